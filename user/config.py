@@ -1,0 +1,209 @@
+"""Typed configuration: one YAML file describes a stack, each service reads its section.
+
+Precedence: YAML file < environment (USER__SECTION__FIELD=value) < CLI (--set section.field=value).
+Values from env/CLI are parsed as YAML scalars, so `--set learner.batch_size=128` is an int.
+A bad config fails fast with the dotted path of the offending field.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class AuthConfig(Strict):
+    enabled: bool = True
+    token: str | None = Field(default=None, description="shared token; default from $USER_TOKEN")
+    token_file: Path | None = None
+    tls_cert: Path | None = Field(default=None, description="server cert (PEM); enables TLS")
+    tls_key: Path | None = None
+    tls_ca: Path | None = Field(default=None, description="CA bundle clients trust; enables TLS")
+
+    def resolved_token(self) -> str | None:
+        if not self.enabled:
+            return None
+        if self.token:
+            return self.token
+        if os.environ.get("USER_TOKEN"):
+            return os.environ["USER_TOKEN"]
+        if self.token_file:
+            return self.token_file.read_text().strip()
+        raise ConfigError("auth.token: auth is enabled but no token is set (auth.token, $USER_TOKEN or auth.token_file)")
+
+
+class ServerConfig(Strict):
+    host: str = "127.0.0.1"
+    port: int = Field(default=0, ge=0, le=65535, description="gRPC port; 0 = ephemeral")
+    metrics_port: int = Field(default=0, ge=0, le=65535, description="Prometheus port; 0 = ephemeral")
+    max_workers: int = Field(default=32, ge=1)
+    grace_s: float = Field(default=5.0, ge=0)
+
+
+class ControlConfig(Strict):
+    server: ServerConfig = ServerConfig(port=50051, metrics_port=9101)
+    lease_ttl_s: float = Field(default=10.0, gt=0)
+    heartbeat_interval_s: float = Field(default=1.0, gt=0)
+    episodes_kept: int = Field(default=200, ge=1, description="recent episodes kept per robot")
+
+
+class ReplayConfig(Strict):
+    server: ServerConfig = ServerConfig(port=50052, metrics_port=9102)
+    path: Path = Path("runs/default/replay")
+    map_size_mb: int = Field(default=4096, ge=16)
+    commit_max_steps: int = Field(default=256, ge=1, description="steps per LMDB transaction at most")
+    commit_max_delay_ms: float = Field(default=20.0, ge=0)
+    control_addr: str = "127.0.0.1:50051"
+    rpc_timeout_s: float = Field(default=5.0, gt=0)
+
+
+class InferenceConfig(Strict):
+    server: ServerConfig = ServerConfig(port=50053, metrics_port=9103)
+    learner_addr: str = "127.0.0.1:50054"
+    max_batch: int = Field(default=64, ge=1)
+    max_wait_ms: float = Field(default=2.0, ge=0)
+    device: str = "cpu"
+
+
+class LearnerConfig(Strict):
+    server: ServerConfig = ServerConfig(port=50054, metrics_port=9104)
+    replay_addr: str = "127.0.0.1:50052"
+    control_addr: str = "127.0.0.1:50051"
+    checkpoint_dir: Path = Path("runs/default/checkpoints")
+    robot_kind: str = "sim_reach_arm"
+    device: str = "cpu"
+    torch_threads: int = Field(default=1, ge=1)
+    seed: int = 0
+    hidden: list[int] = [256, 256]
+    batch_size: int = Field(default=256, ge=1)
+    gamma: float = Field(default=0.95, gt=0, le=1)
+    tau: float = Field(default=0.005, gt=0, le=1)
+    actor_lr: float = Field(default=3e-4, gt=0)
+    critic_lr: float = Field(default=3e-4, gt=0)
+    alpha_lr: float = Field(default=3e-4, gt=0)
+    init_alpha: float = Field(default=0.1, gt=0)
+    min_transitions: int = Field(default=500, ge=1, description="wait for this many before training")
+    max_updates_per_transition: float = Field(
+        default=4.0, gt=0, description="caps the update-to-data ratio so the learner cannot overfit a tiny buffer"
+    )
+    publish_every: int = Field(default=100, ge=1, description="updates between weight versions")
+    checkpoint_every: int = Field(default=2000, ge=1, description="updates between checkpoints")
+    prefetch_batches: int = Field(default=4, ge=1)
+    max_chunk_bytes: int = Field(default=1 << 20, ge=1024)
+    rpc_timeout_s: float = Field(default=10.0, gt=0)
+
+
+class RobotConfig(Strict):
+    id: str = Field(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")
+    kind: str = "sim_reach_arm"
+    params: dict[str, Any] = {}
+
+
+class EdgeConfig(Strict):
+    agent_id: str = "edge-0"
+    control_addr: str = "127.0.0.1:50051"
+    replay_addr: str = "127.0.0.1:50052"
+    inference_addr: str = "127.0.0.1:50053"
+    learner_addr: str = "127.0.0.1:50054"
+    metrics_port: int = Field(default=9105, ge=0, le=65535)
+    metrics_host: str = "127.0.0.1"
+    policy_source: Literal["remote", "local"] = "remote"
+    mode: Literal["realtime", "fast"] = "realtime"
+    control_rate_hz: float = Field(default=20.0, gt=0)
+    action_deadline_ms: float = Field(default=40.0, gt=0, description="no action by then -> hold still")
+    seed: int = 0
+    robots: list[RobotConfig] = [RobotConfig(id="arm-0")]
+    max_unacked_steps: int = Field(default=100_000, ge=1)
+    rpc_timeout_s: float = Field(default=5.0, gt=0)
+
+    @model_validator(mode="after")
+    def _unique_ids(self) -> EdgeConfig:
+        ids = [r.id for r in self.robots]
+        if len(ids) != len(set(ids)):
+            raise ValueError(f"robot ids must be unique, got {ids}")
+        return self
+
+
+class UpConfig(Strict):
+    name: str = Field(default="demo", pattern=r"^[A-Za-z0-9_.\-]{1,64}$")
+    runs_dir: Path = Path("runs")
+    budget_s: float = Field(default=600.0, gt=0)
+    target_success: float = Field(default=0.9, gt=0, le=1)
+    window_episodes: int = Field(default=20, ge=1)
+    edge_agents: int = Field(default=2, ge=1, description="one process per simulated robot")
+    console: bool = True
+
+
+class StackConfig(Strict):
+    auth: AuthConfig = AuthConfig()
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    log_json: bool = True
+    control: ControlConfig = ControlConfig()
+    replay: ReplayConfig = ReplayConfig()
+    inference: InferenceConfig = InferenceConfig()
+    learner: LearnerConfig = LearnerConfig()
+    edge: EdgeConfig = EdgeConfig()
+    up: UpConfig = UpConfig()
+
+
+class ConfigError(ValueError):
+    """Raised with a message naming the offending field."""
+
+
+def _set_path(tree: dict[str, Any], dotted: str, value: Any) -> None:
+    keys = dotted.split(".")
+    node = tree
+    for key in keys[:-1]:
+        nxt = node.get(key)
+        if not isinstance(nxt, dict):
+            nxt = {}
+            node[key] = nxt
+        node = nxt
+    node[keys[-1]] = value
+
+
+def _env_overrides(environ: dict[str, str]) -> list[tuple[str, Any]]:
+    out = []
+    for key, raw in environ.items():
+        if key.startswith("USER__"):
+            dotted = ".".join(part.lower() for part in key[len("USER__") :].split("__"))
+            out.append((dotted, yaml.safe_load(raw)))
+    return out
+
+
+def load_config(
+    path: str | Path | None = None,
+    overrides: list[str] | None = None,
+    environ: dict[str, str] | None = None,
+) -> StackConfig:
+    tree: dict[str, Any] = {}
+    if path is not None:
+        try:
+            loaded = yaml.safe_load(Path(path).read_text())
+        except (OSError, yaml.YAMLError) as exc:
+            raise ConfigError(f"cannot read config {path}: {exc}") from exc
+        if loaded is not None and not isinstance(loaded, dict):
+            raise ConfigError(f"{path}: top level must be a mapping")
+        tree = loaded or {}
+    for dotted, value in _env_overrides(dict(os.environ if environ is None else environ)):
+        _set_path(tree, dotted, value)
+    for item in overrides or []:
+        if "=" not in item:
+            raise ConfigError(f"override {item!r} must look like section.field=value")
+        dotted, raw = item.split("=", 1)
+        _set_path(tree, dotted.strip(), yaml.safe_load(raw))
+    try:
+        return StackConfig.model_validate(tree)
+    except ValidationError as exc:
+        lines = []
+        for err in exc.errors():
+            where = ".".join(str(p) for p in err["loc"]) or "<root>"
+            lines.append(f"{where}: {err['msg']}")
+        raise ConfigError("invalid config: " + "; ".join(lines)) from None

@@ -1,0 +1,359 @@
+"""Everything a USER gRPC process shares: token auth, metrics, health, reflection, TLS,
+graceful shutdown, client channels with auth and keepalive, and reconnect backoff.
+
+A service is `start_server(...)` + `wait_for_shutdown(...)`; a client is `make_channel(...)`.
+"""
+
+from __future__ import annotations
+
+import hmac
+import json
+import logging
+import os
+import random
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator
+from concurrent import futures
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import grpc
+import prometheus_client
+from grpc_health.v1 import health, health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection
+
+from user.config import AuthConfig, ServerConfig
+
+log = logging.getLogger(__name__)
+
+AUTH_HEADER = "authorization"
+# Health checks and reflection stay open so orchestrators and grpcurl work without the token.
+OPEN_METHOD_PREFIXES = ("/grpc.health.v1.Health/", "/grpc.reflection.")
+MAX_MESSAGE_BYTES = 64 * 1024 * 1024
+CHANNEL_OPTIONS = [
+    ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.keepalive_time_ms", 10_000),
+    ("grpc.keepalive_timeout_ms", 5_000),
+    ("grpc.keepalive_permit_without_calls", 1),
+    ("grpc.http2.max_pings_without_data", 0),
+]
+SERVER_OPTIONS = [
+    ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.keepalive_time_ms", 10_000),
+    ("grpc.keepalive_timeout_ms", 5_000),
+    ("grpc.http2.min_ping_interval_without_data_ms", 5_000),
+    ("grpc.keepalive_permit_without_calls", 1),
+    ("grpc.so_reuseport", 0),
+]
+
+RPC_TOTAL = prometheus_client.Counter(
+    "user_grpc_server_handled_total", "RPCs handled, by method and status code", ["method", "code"]
+)
+RPC_SECONDS = prometheus_client.Histogram(
+    "user_grpc_server_handling_seconds",
+    "RPC handling time (streams: whole stream)",
+    ["method"],
+    buckets=(0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 1, 5, 30, 300),
+)
+
+
+# --------------------------------------------------------------------------- server side
+
+
+def _wrap_handler(handler: grpc.RpcMethodHandler, wrap: Callable[[Callable, bool], Callable]):
+    """Rebuild a method handler with its behaviour wrapped (keeps the streaming kind)."""
+    if handler.unary_unary:
+        return grpc.unary_unary_rpc_method_handler(
+            wrap(handler.unary_unary, False), handler.request_deserializer, handler.response_serializer
+        )
+    if handler.unary_stream:
+        return grpc.unary_stream_rpc_method_handler(
+            wrap(handler.unary_stream, True), handler.request_deserializer, handler.response_serializer
+        )
+    if handler.stream_unary:
+        return grpc.stream_unary_rpc_method_handler(
+            wrap(handler.stream_unary, False), handler.request_deserializer, handler.response_serializer
+        )
+    return grpc.stream_stream_rpc_method_handler(
+        wrap(handler.stream_stream, True), handler.request_deserializer, handler.response_serializer
+    )
+
+
+class TokenAuthInterceptor(grpc.ServerInterceptor):
+    """Rejects calls without `authorization: Bearer <token>` with UNAUTHENTICATED."""
+
+    def __init__(self, token: str) -> None:
+        self._expected = f"Bearer {token}".encode()
+
+    def intercept_service(self, continuation, handler_call_details):
+        handler = continuation(handler_call_details)
+        if handler is None or handler_call_details.method.startswith(OPEN_METHOD_PREFIXES):
+            return handler
+        given = dict(handler_call_details.invocation_metadata or ()).get(AUTH_HEADER, "")
+        if hmac.compare_digest(str(given).encode(), self._expected):
+            return handler
+
+        def deny(behavior: Callable, streaming: bool) -> Callable:
+            def reject(request_or_iterator: Any, context: grpc.ServicerContext):
+                context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or invalid token")
+
+            return reject
+
+        return _wrap_handler(handler, deny)
+
+
+class MetricsInterceptor(grpc.ServerInterceptor):
+    """Counts every RPC by final status code and times it."""
+
+    def intercept_service(self, continuation, handler_call_details):
+        handler = continuation(handler_call_details)
+        if handler is None:
+            return handler
+        method = handler_call_details.method
+
+        def observe(start: float, context: grpc.ServicerContext, failed: bool) -> None:
+            code = context.code() if hasattr(context, "code") else None
+            if code is None:
+                code = grpc.StatusCode.UNKNOWN if failed else grpc.StatusCode.OK
+            name = code.name if isinstance(code, grpc.StatusCode) else str(code)
+            RPC_TOTAL.labels(method, name).inc()
+            RPC_SECONDS.labels(method).observe(time.perf_counter() - start)
+
+        def timed(behavior: Callable, streaming: bool) -> Callable:
+            if streaming:
+
+                def run_stream(request: Any, context: grpc.ServicerContext) -> Iterator[Any]:
+                    start, failed = time.perf_counter(), False
+                    try:
+                        yield from behavior(request, context)
+                    except BaseException:
+                        failed = True
+                        raise
+                    finally:
+                        observe(start, context, failed)
+
+                return run_stream
+
+            def run_unary(request: Any, context: grpc.ServicerContext) -> Any:
+                start, failed = time.perf_counter(), False
+                try:
+                    return behavior(request, context)
+                except BaseException:
+                    failed = True
+                    raise
+                finally:
+                    observe(start, context, failed)
+
+            return run_unary
+
+        return _wrap_handler(handler, timed)
+
+
+@dataclass
+class RunningServer:
+    name: str
+    server: grpc.Server
+    port: int
+    metrics_port: int
+    health: health.HealthServicer
+    service_names: list[str]
+    grace_s: float
+    _metrics_http: Any = None
+
+    def address(self, host: str = "127.0.0.1") -> str:
+        return f"{host}:{self.port}"
+
+    def stop(self) -> None:
+        """Graceful: report NOT_SERVING, refuse new calls, let calls in flight finish."""
+        self.health.enter_graceful_shutdown()
+        self.server.stop(self.grace_s).wait()
+        if self._metrics_http is not None:
+            self._metrics_http.shutdown()
+            self._metrics_http.server_close()
+
+
+def _server_credentials(auth: AuthConfig) -> grpc.ServerCredentials | None:
+    if not auth.tls_cert:
+        return None
+    if not auth.tls_key:
+        raise ValueError("auth.tls_key is required with auth.tls_cert")
+    return grpc.ssl_server_credentials([(auth.tls_key.read_bytes(), auth.tls_cert.read_bytes())])
+
+
+def start_server(
+    name: str,
+    register: Callable[[grpc.Server], None],
+    service_names: Iterable[str],
+    server_cfg: ServerConfig,
+    auth: AuthConfig,
+    start_metrics: bool = True,
+) -> RunningServer:
+    """Start a gRPC server with auth, metrics, health and reflection, plus /metrics over HTTP.
+
+    `service_names` are the full names (e.g. user_pb2.DESCRIPTOR.services_by_name[...].full_name)
+    reported SERVING by the health service and listed by reflection.
+    """
+    interceptors: list[grpc.ServerInterceptor] = [MetricsInterceptor()]
+    token = auth.resolved_token()
+    if token:
+        interceptors.append(TokenAuthInterceptor(token))
+    server = grpc.server(
+        futures.ThreadPoolExecutor(max_workers=server_cfg.max_workers, thread_name_prefix=name),
+        interceptors=interceptors,
+        options=SERVER_OPTIONS,
+    )
+    register(server)
+    names = list(service_names)
+    health_servicer = health.HealthServicer(experimental_non_blocking=True)
+    health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    reflection.enable_server_reflection([*names, health.SERVICE_NAME, reflection.SERVICE_NAME], server)
+    bind = f"{server_cfg.host}:{server_cfg.port}"
+    creds = _server_credentials(auth)
+    port = server.add_secure_port(bind, creds) if creds else server.add_insecure_port(bind)
+    if port == 0:
+        raise OSError(f"{name}: cannot bind {bind}")
+    server.start()
+    for svc in [*names, ""]:
+        health_servicer.set(svc, health_pb2.HealthCheckResponse.SERVING)
+    metrics_http, metrics_port = None, 0
+    if start_metrics:
+        metrics_http, metrics_port = start_metrics_http(server_cfg.host, server_cfg.metrics_port)
+    log.info(
+        "serving",
+        extra={"fields": {"grpc_port": port, "metrics_port": metrics_port, "tls": bool(creds), "auth": bool(token)}},
+    )
+    return RunningServer(name, server, port, metrics_port, health_servicer, names, server_cfg.grace_s, metrics_http)
+
+
+def start_metrics_http(host: str, port: int) -> tuple[Any, int]:
+    httpd, _thread = prometheus_client.start_http_server(port, addr=host)
+    return httpd, httpd.server_port
+
+
+def install_signal_handlers() -> threading.Event:
+    """SIGTERM and SIGINT set the returned event instead of killing the process."""
+    stop = threading.Event()
+
+    def handle(signum: int, _frame: Any) -> None:
+        log.info("signal received, shutting down", extra={"fields": {"signal": signal.Signals(signum).name}})
+        stop.set()
+
+    signal.signal(signal.SIGTERM, handle)
+    signal.signal(signal.SIGINT, handle)
+    return stop
+
+
+def write_ready_file(path: str | Path | None, **info: Any) -> None:
+    """Atomically publish the bound ports so a supervisor (userctl up, tests) can find us."""
+    if not path:
+        return
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps({"pid": os.getpid(), **info}))
+    os.replace(tmp, path)
+
+
+# --------------------------------------------------------------------------- client side
+
+
+class _CallDetails(grpc.ClientCallDetails):
+    def __init__(self, base: grpc.ClientCallDetails, metadata: list[tuple[str, str]]) -> None:
+        self.method = base.method
+        self.timeout = base.timeout
+        self.metadata = metadata
+        self.credentials = base.credentials
+        self.wait_for_ready = base.wait_for_ready
+        self.compression = base.compression
+
+
+class TokenClientInterceptor(
+    grpc.UnaryUnaryClientInterceptor,
+    grpc.UnaryStreamClientInterceptor,
+    grpc.StreamUnaryClientInterceptor,
+    grpc.StreamStreamClientInterceptor,
+):
+    def __init__(self, token: str) -> None:
+        self._header = (AUTH_HEADER, f"Bearer {token}")
+
+    def _details(self, details: grpc.ClientCallDetails) -> grpc.ClientCallDetails:
+        return _CallDetails(details, [*(details.metadata or []), self._header])
+
+    def intercept_unary_unary(self, continuation, client_call_details, request):
+        return continuation(self._details(client_call_details), request)
+
+    def intercept_unary_stream(self, continuation, client_call_details, request):
+        return continuation(self._details(client_call_details), request)
+
+    def intercept_stream_unary(self, continuation, client_call_details, request_iterator):
+        return continuation(self._details(client_call_details), request_iterator)
+
+    def intercept_stream_stream(self, continuation, client_call_details, request_iterator):
+        return continuation(self._details(client_call_details), request_iterator)
+
+
+def make_channel(target: str, auth: AuthConfig) -> grpc.Channel:
+    """A channel that sends the token on every call; TLS when auth.tls_ca is set."""
+    if auth.tls_ca:
+        creds = grpc.ssl_channel_credentials(root_certificates=auth.tls_ca.read_bytes())
+        channel = grpc.secure_channel(target, creds, options=CHANNEL_OPTIONS)
+    else:
+        channel = grpc.insecure_channel(target, options=CHANNEL_OPTIONS)
+    token = auth.resolved_token()
+    if token:
+        channel = grpc.intercept_channel(channel, TokenClientInterceptor(token))
+    return channel
+
+
+def check_health(target: str, auth: AuthConfig, service: str = "", timeout_s: float = 2.0) -> bool:
+    """True when the server at `target` reports SERVING (used by docker health checks)."""
+    with make_channel(target, auth) as channel:
+        try:
+            resp = health_pb2_grpc.HealthStub(channel).Check(
+                health_pb2.HealthCheckRequest(service=service), timeout=timeout_s
+            )
+        except grpc.RpcError:
+            return False
+        return resp.status == health_pb2.HealthCheckResponse.SERVING
+
+
+class Backoff:
+    """Exponential backoff with full jitter for reconnect loops."""
+
+    def __init__(self, initial_s: float = 0.1, max_s: float = 5.0, factor: float = 2.0) -> None:
+        self.initial_s, self.max_s, self.factor = initial_s, max_s, factor
+        self._next = initial_s
+
+    def reset(self) -> None:
+        self._next = self.initial_s
+
+    def next_delay(self) -> float:
+        delay = random.uniform(self.initial_s / 2, self._next)
+        self._next = min(self._next * self.factor, self.max_s)
+        return delay
+
+    def sleep(self, stop: threading.Event | None = None) -> bool:
+        """Sleep the next delay; returns False if `stop` was set meanwhile."""
+        delay = self.next_delay()
+        if stop is None:
+            time.sleep(delay)
+            return True
+        return not stop.wait(delay)
+
+
+def is_retryable(err: grpc.RpcError) -> bool:
+    code = err.code() if hasattr(err, "code") else None
+    return code in (
+        grpc.StatusCode.UNAVAILABLE,
+        grpc.StatusCode.DEADLINE_EXCEEDED,
+        grpc.StatusCode.RESOURCE_EXHAUSTED,
+        grpc.StatusCode.ABORTED,
+        grpc.StatusCode.CANCELLED,
+        grpc.StatusCode.INTERNAL,
+        grpc.StatusCode.UNKNOWN,
+    )

@@ -1,0 +1,139 @@
+"""Tensors on the wire: numpy <-> user.v1.Tensor. dtype + shape + raw bytes, never pickle.
+
+Every decode validates sizes, so a malformed message raises WireError (-> INVALID_ARGUMENT)
+instead of producing a garbage array.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import numpy as np
+
+from user.v1 import tensor_pb2 as tpb
+
+MAX_TENSOR_BYTES = 256 * 1024 * 1024
+
+
+class WireError(ValueError):
+    """A message that cannot be decoded or does not match its contract."""
+
+
+_TO_NP: dict[int, np.dtype] = {
+    tpb.DTYPE_FLOAT32: np.dtype("<f4"),
+    tpb.DTYPE_FLOAT64: np.dtype("<f8"),
+    tpb.DTYPE_FLOAT16: np.dtype("<f2"),
+    tpb.DTYPE_UINT8: np.dtype("u1"),
+    tpb.DTYPE_INT8: np.dtype("i1"),
+    tpb.DTYPE_INT32: np.dtype("<i4"),
+    tpb.DTYPE_INT64: np.dtype("<i8"),
+    tpb.DTYPE_BOOL: np.dtype("?"),
+}
+_FROM_NP: dict[np.dtype, int] = {v.newbyteorder("="): k for k, v in _TO_NP.items()}
+
+
+def dtype_to_proto(dtype: np.dtype | type | str) -> int:
+    dt = np.dtype(dtype).newbyteorder("=")
+    try:
+        return _FROM_NP[dt]
+    except KeyError as exc:
+        raise WireError(f"unsupported dtype {dt}") from exc
+
+
+def dtype_from_proto(code: int) -> np.dtype:
+    try:
+        return _TO_NP[code]
+    except KeyError as exc:
+        name = tpb.DType.Name(code) if code in tpb.DType.values() else str(code)
+        raise WireError(f"unsupported dtype {name}") from exc
+
+
+def dtype_name(code: int) -> str:
+    return tpb.DType.Name(code).removeprefix("DTYPE_").lower()
+
+
+def to_tensor(array: np.ndarray, encoding: int = tpb.ENCODING_RAW) -> tpb.Tensor:
+    arr = np.asarray(array)
+    code = dtype_to_proto(arr.dtype)
+    if encoding == tpb.ENCODING_RAW:
+        data = np.ascontiguousarray(arr, dtype=_TO_NP[code]).tobytes()
+    elif encoding in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG):
+        data = _encode_image(arr, encoding)
+    elif encoding == tpb.ENCODING_ZSTD:
+        import zstandard
+
+        data = zstandard.ZstdCompressor(level=3).compress(
+            np.ascontiguousarray(arr, dtype=_TO_NP[code]).tobytes()
+        )
+    else:
+        raise WireError(f"unknown encoding {encoding}")
+    return tpb.Tensor(dtype=code, shape=list(arr.shape), data=data, encoding=encoding)
+
+
+def from_tensor(tensor: tpb.Tensor) -> np.ndarray:
+    """Decode a Tensor; the result is a fresh, writable array."""
+    dtype = dtype_from_proto(tensor.dtype)
+    shape = tuple(int(d) for d in tensor.shape)
+    if any(d < 0 for d in shape):
+        raise WireError(f"negative dimension in shape {shape}")
+    expected = math.prod(shape) * dtype.itemsize
+    if expected > MAX_TENSOR_BYTES:
+        raise WireError(f"tensor of {expected} bytes exceeds {MAX_TENSOR_BYTES}")
+    enc = tensor.encoding
+    if enc == tpb.ENCODING_RAW:
+        raw = tensor.data
+    elif enc in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG):
+        return _decode_image(tensor.data, shape, dtype)
+    elif enc == tpb.ENCODING_ZSTD:
+        import zstandard
+
+        try:
+            raw = zstandard.ZstdDecompressor().decompress(tensor.data, max_output_size=expected)
+        except zstandard.ZstdError as exc:
+            raise WireError(f"bad zstd payload: {exc}") from exc
+    else:
+        raise WireError(f"unsupported encoding {enc}")
+    if len(raw) != expected:
+        raise WireError(
+            f"tensor data has {len(raw)} bytes, dtype {dtype} x shape {shape} needs {expected}"
+        )
+    return np.frombuffer(raw, dtype=dtype).reshape(shape).astype(dtype.newbyteorder("="), copy=True)
+
+
+def _encode_image(arr: np.ndarray, encoding: int) -> bytes:
+    import cv2
+
+    if arr.dtype != np.uint8 or arr.ndim not in (2, 3):
+        raise WireError("JPEG/PNG encode uint8 images (H, W) or (H, W, C)")
+    ext = ".jpg" if encoding == tpb.ENCODING_JPEG else ".png"
+    ok, buf = cv2.imencode(ext, arr)
+    if not ok:
+        raise WireError(f"cv2 could not encode {ext}")
+    return buf.tobytes()
+
+
+def _decode_image(data: bytes, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+    import cv2
+
+    if dtype != np.uint8:
+        raise WireError("JPEG/PNG tensors must be uint8")
+    flag = cv2.IMREAD_GRAYSCALE if len(shape) == 2 or shape[-1] == 1 else cv2.IMREAD_COLOR
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), flag)
+    if img is None:
+        raise WireError("undecodable image payload")
+    img = img.reshape(shape) if img.size == math.prod(shape) else img
+    if img.shape != shape:
+        raise WireError(f"decoded image shape {img.shape} != declared {shape}")
+    return img
+
+
+def to_tensor_map(arrays: Mapping[str, np.ndarray]) -> tpb.TensorMap:
+    out = tpb.TensorMap()
+    for name, arr in arrays.items():
+        out.tensors[name].CopyFrom(to_tensor(arr))
+    return out
+
+
+def from_tensor_map(tmap: tpb.TensorMap) -> dict[str, np.ndarray]:
+    return {name: from_tensor(t) for name, t in tmap.tensors.items()}
