@@ -115,8 +115,9 @@ class EdgeConfig(Strict):
     metrics_port: int = Field(default=9105, ge=0, le=65535)
     metrics_host: str = "127.0.0.1"
     policy_source: Literal["remote", "local"] = "remote"
-    mode: Literal["realtime", "fast"] = "realtime"
-    control_rate_hz: float = Field(default=20.0, gt=0)
+    mode: Literal["realtime", "fast"] = Field(
+        default="realtime", description="realtime: each robot's spec.control_rate_hz; fast: unthrottled"
+    )
     action_deadline_ms: float = Field(default=40.0, gt=0, description="no action by then -> hold still")
     seed: int = 0
     robots: list[RobotConfig] = [RobotConfig(id="arm-0")]

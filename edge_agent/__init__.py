@@ -1,0 +1,1 @@
+"""Edge agent: the daemon on each robot PC."""

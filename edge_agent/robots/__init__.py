@@ -1,0 +1,3 @@
+"""Built-in robots; importing this package registers them."""
+
+from edge_agent.robots import sim_arm  # noqa: F401
