@@ -36,7 +36,7 @@ proto: $(STAMP)
 	rm -f $(STUBS) && $(MAKE) --no-print-directory $(STUBS)
 
 demo: install
-	MUJOCO_GL=egl $(VENV)/bin/userctl up --config configs/demo.yaml
+	MUJOCO_GL=egl $(VENV)/bin/userctl up --config configs/demo.yaml --fresh
 
 test: install
 	MUJOCO_GL=egl $(PY) -m pytest -q -rs --durations=10

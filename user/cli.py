@@ -33,6 +33,8 @@ def _parser() -> argparse.ArgumentParser:
         p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE")
         if name != "up":
             p.add_argument("--ready-file", help="write bound ports here as JSON once serving")
+        else:
+            p.add_argument("--fresh", action="store_true", help="delete runs/<name> first instead of resuming it")
     h = sub.add_parser("health", help="gRPC health check of HOST:PORT")
     h.add_argument("target")
     h.add_argument("--config", "-c")
@@ -55,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "up":
         from user.up import run_up
 
-        return run_up(cfg, args.config, args.overrides)
+        return run_up(cfg, args.config, args.overrides, fresh=args.fresh)
     setup_logging(args.command, cfg.log_level, cfg.log_json)
     module = importlib.import_module(SERVICES[args.command])
     try:

@@ -1,0 +1,499 @@
+"""`userctl up`: the whole stack as local processes on 127.0.0.1, a live console, a report.
+
+Each service is a separate `userctl <service>` process bound to an ephemeral port; it announces
+its ports in a ready file, and the supervisor wires the next service to them. Children die
+with the supervisor (PR_SET_PDEATHSIG), and Ctrl-C stops them in reverse order so the edges
+flush their steps and the learner writes its final checkpoint.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import json
+import os
+import secrets
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import grpc
+
+from user.config import StackConfig
+from user.rpc import make_channel
+from user.v1 import (
+    control_pb2,
+    control_pb2_grpc,
+    learner_pb2,
+    learner_pb2_grpc,
+    replay_pb2,
+    replay_pb2_grpc,
+)
+
+READY_TIMEOUT_S = 120.0
+STOP_TIMEOUT_S = 20.0
+PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> None:
+    """Runs in the child before exec: SIGTERM it when the supervisor dies, however it dies."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except OSError:
+        pass
+
+
+@dataclass
+class Child:
+    name: str
+    proc: subprocess.Popen
+    ready_file: Path
+    log_path: Path
+    info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def grpc_addr(self) -> str:
+        return f"127.0.0.1:{self.info['grpc_port']}"
+
+    @property
+    def metrics_url(self) -> str:
+        return f"http://127.0.0.1:{self.info['metrics_port']}/metrics"
+
+    def log_tail(self, lines: int = 20) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return ""
+
+
+class Stack:
+    """Starts control -> replay -> learner -> inference -> edges, each its own process."""
+
+    def __init__(self, cfg: StackConfig, config_path: str | None, overrides: list[str], run_dir: Path) -> None:
+        self.cfg = cfg
+        self.config_path = config_path
+        self.overrides = list(overrides)
+        self.run_dir = run_dir
+        self.children: list[Child] = []
+        self.env = dict(os.environ)
+        if cfg.auth.enabled and not (cfg.auth.token or cfg.auth.token_file or os.environ.get("USER_TOKEN")):
+            # A fresh secret per run: the children inherit it, nothing else on the host knows it.
+            self.env["USER_TOKEN"] = secrets.token_hex(16)
+        self.env.setdefault("MUJOCO_GL", "egl")
+        self.env["PYTHONUNBUFFERED"] = "1"
+        for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            self.env.setdefault(var, "1")
+
+    @property
+    def auth(self):
+        auth = self.cfg.auth.model_copy()
+        if self.env.get("USER_TOKEN") and not auth.token:
+            auth.token = self.env["USER_TOKEN"]
+        return auth
+
+    def child(self, name: str) -> Child:
+        return next(c for c in self.children if c.name == name)
+
+    def _spawn(self, name: str, service: str, extra: list[str]) -> Child:
+        ready = self.run_dir / "ready" / f"{name}.json"
+        ready.unlink(missing_ok=True)
+        log_path = self.run_dir / "logs" / f"{name}.log"
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        cmd = [sys.executable, "-m", "user.cli", service]
+        if self.config_path:
+            cmd += ["--config", self.config_path]
+        for item in [*self.overrides, *extra]:
+            cmd += ["--set", item]
+        cmd += ["--ready-file", str(ready)]
+        with open(log_path, "ab") as log_file:
+            proc = subprocess.Popen(
+                cmd,
+                stdout=log_file,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                env=self.env,
+                preexec_fn=_die_with_parent,
+                start_new_session=True,  # Ctrl-C reaches only the supervisor, which stops children in order
+            )
+        child = Child(name, proc, ready, log_path)
+        self.children.append(child)
+        return child
+
+    def _wait_ready(self, child: Child) -> None:
+        deadline = time.monotonic() + READY_TIMEOUT_S
+        while time.monotonic() < deadline:
+            if child.ready_file.exists():
+                child.info = json.loads(child.ready_file.read_text())
+                return
+            if child.proc.poll() is not None:
+                raise RuntimeError(f"{child.name} exited with {child.proc.returncode}:\n{child.log_tail()}")
+            time.sleep(0.05)
+        raise RuntimeError(f"{child.name} not ready after {READY_TIMEOUT_S:.0f}s:\n{child.log_tail()}")
+
+    def start(self, on_progress: Callable[[str], None] = lambda _msg: None) -> None:
+        rd = self.run_dir
+        listen = ["server.host=127.0.0.1", "server.port=0", "server.metrics_port=0"]
+        on_progress("control")
+        control = self._spawn("control", "control", [f"control.{x}" for x in listen])
+        self._wait_ready(control)
+        on_progress("replay")
+        replay = self._spawn(
+            "replay",
+            "replay",
+            [*(f"replay.{x}" for x in listen), f"replay.path={rd / 'replay'}", f"replay.control_addr={control.grpc_addr}"],
+        )
+        self._wait_ready(replay)
+        on_progress("learner")
+        learner = self._spawn(
+            "learner",
+            "learner",
+            [
+                *(f"learner.{x}" for x in listen),
+                f"learner.checkpoint_dir={rd / 'checkpoints'}",
+                f"learner.replay_addr={replay.grpc_addr}",
+                f"learner.control_addr={control.grpc_addr}",
+            ],
+        )
+        self._wait_ready(learner)
+        on_progress("inference")
+        inference = self._spawn(
+            "inference", "inference", [*(f"inference.{x}" for x in listen), f"inference.learner_addr={learner.grpc_addr}"]
+        )
+        self._wait_ready(inference)
+        template = self.cfg.edge.robots[0]
+        edges = []
+        for i in range(self.cfg.up.edge_agents):
+            robot = {"id": f"arm-{i}", "kind": template.kind, "params": template.params}
+            on_progress(f"edge-{i}")
+            edges.append(
+                self._spawn(
+                    f"edge-{i}",
+                    "edge",
+                    [
+                        f"edge.agent_id=edge-{i}",
+                        f"edge.robots={json.dumps([robot])}",
+                        f"edge.seed={self.cfg.edge.seed + 1000 * i}",
+                        "edge.metrics_port=0",
+                        f"edge.control_addr={control.grpc_addr}",
+                        f"edge.replay_addr={replay.grpc_addr}",
+                        f"edge.inference_addr={inference.grpc_addr}",
+                        f"edge.learner_addr={learner.grpc_addr}",
+                    ],
+                )
+            )
+        for edge in edges:
+            self._wait_ready(edge)
+
+    def dead_children(self) -> list[Child]:
+        return [c for c in self.children if c.proc.poll() is not None]
+
+    def stop(self) -> dict[str, int | None]:
+        """SIGTERM in reverse start order (edges flush first), SIGKILL stragglers; returns exit codes."""
+        for child in reversed(self.children):
+            if child.proc.poll() is None:
+                child.proc.send_signal(signal.SIGTERM)
+                try:
+                    child.proc.wait(STOP_TIMEOUT_S)
+                except subprocess.TimeoutExpired:
+                    child.proc.kill()
+                    child.proc.wait()
+        return {c.name: c.proc.returncode for c in self.children}
+
+
+# --------------------------------------------------------------------------- monitoring
+
+
+@dataclass
+class Episode:
+    robot_id: str
+    episode_id: str
+    t: float  # seconds since start (supervisor clock)
+    success: bool
+    episode_return: float
+    length: int
+    policy_version: int
+
+
+@dataclass
+class Snapshot:
+    t: float
+    robots: list[control_pb2.RobotInfo]
+    learner: learner_pb2.LearnerStatus | None
+    replay: replay_pb2.StatsResponse | None
+
+
+class Monitor:
+    """Polls control, learner and replay; accumulates finished episodes."""
+
+    def __init__(self, stack: Stack, t0: float) -> None:
+        auth = stack.auth
+        self.t0 = t0
+        self.control = control_pb2_grpc.ControlStub(make_channel(stack.child("control").grpc_addr, auth))
+        self.learner = learner_pb2_grpc.LearnerStub(make_channel(stack.child("learner").grpc_addr, auth))
+        self.replay = replay_pb2_grpc.ReplayStub(make_channel(stack.child("replay").grpc_addr, auth))
+        self.episodes: dict[tuple[str, str], Episode] = {}
+
+    def poll(self) -> Snapshot:
+        now = time.monotonic() - self.t0
+        robots, learner, replay = [], None, None
+        try:
+            robots = list(self.control.ListRobots(control_pb2.ListRobotsRequest(include_offline=True), timeout=2).robots)
+        except grpc.RpcError:
+            pass
+        try:
+            learner = self.learner.GetStatus(learner_pb2.LearnerStatusRequest(), timeout=2)
+        except grpc.RpcError:
+            pass
+        try:
+            replay = self.replay.Stats(replay_pb2.StatsRequest(), timeout=2)
+        except grpc.RpcError:
+            pass
+        for info in robots:
+            for ep in info.recent_episodes:
+                key = (ep.robot_id or info.spec.robot_id, ep.episode_id)
+                if key not in self.episodes:
+                    self.episodes[key] = Episode(
+                        key[0], ep.episode_id, now, ep.success, ep.episode_return, ep.length, ep.policy_version
+                    )
+        return Snapshot(now, robots, learner, replay)
+
+    def ordered(self) -> list[Episode]:
+        return sorted(self.episodes.values(), key=lambda e: (e.t, e.robot_id, e.episode_id))
+
+    def success_rate(self, window: int) -> float | None:
+        eps = self.ordered()[-window:]
+        if len(eps) < window:
+            return None
+        return sum(e.success for e in eps) / len(eps)
+
+
+def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
+    from rich.console import Group
+    from rich.table import Table
+
+    learner_version = snap.learner.weight_version if snap.learner else 0
+    robots = Table(title=f"USER · {cfg.up.name} · {snap.t:5.0f}s / {budget_s:.0f}s", expand=True)
+    for col in ("robot", "state", "episodes", "success (last 20)", "env steps", "steps/s", "policy v", "staleness", "loop p99 ms"):
+        robots.add_column(col, justify="right" if col != "robot" else "left")
+    for info in snap.robots:
+        st = info.status
+        rid = info.spec.robot_id
+        mine = [e for e in mon.ordered() if e.robot_id == rid][-cfg.up.window_episodes :]
+        rate = f"{100 * sum(e.success for e in mine) / len(mine):.0f} % ({len(mine)})" if mine else "-"
+        state = control_pb2.RobotState.Name(st.state).removeprefix("ROBOT_STATE_").lower() if info.online else "offline"
+        robots.add_row(
+            rid,
+            state,
+            str(st.episodes),
+            rate,
+            str(st.env_steps),
+            f"{st.env_steps_per_s:.1f}",
+            str(st.policy_version),
+            str(max(0, learner_version - st.policy_version)),
+            f"{st.loop_period_p99_ms:.1f}",
+        )
+    learner = Table(expand=True)
+    for col in ("learner updates", "updates/s", "weight version", "buffer (transitions)", "alpha", "overall success (last 20)"):
+        learner.add_column(col, justify="right")
+    overall = mon.success_rate(cfg.up.window_episodes)
+    if snap.learner:
+        lr = snap.learner
+        learner.add_row(
+            str(lr.updates),
+            f"{lr.updates_per_s:.1f}",
+            str(lr.weight_version),
+            str(snap.replay.transitions if snap.replay else lr.buffer_transitions),
+            f"{lr.alpha:.3f}",
+            "-" if overall is None else f"{100 * overall:.0f} %",
+        )
+    return Group(robots, learner)
+
+
+def write_report(run_dir: Path, episodes: list[Episode], summary: dict[str, Any], window: int) -> None:
+    """metrics.json and report.png (rolling success rate and return against wall time)."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    rolling = []
+    for i in range(len(episodes)):
+        recent = episodes[max(0, i + 1 - window) : i + 1]
+        rolling.append(sum(e.success for e in recent) / len(recent))
+    doc = {
+        **summary,
+        "episodes": [
+            {
+                "t": round(e.t, 3),
+                "robot_id": e.robot_id,
+                "success": e.success,
+                "return": e.episode_return,
+                "length": e.length,
+                "policy_version": e.policy_version,
+            }
+            for e in episodes
+        ],
+        "rolling_success": [round(r, 4) for r in rolling],
+    }
+    tmp = run_dir / "metrics.json.tmp"
+    tmp.write_text(json.dumps(doc, indent=1))
+    os.replace(tmp, run_dir / "metrics.json")
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    ts = [e.t for e in episodes]
+    ax1.plot(ts, [100 * r for r in rolling], color="tab:green")
+    ax1.axhline(100 * summary.get("target_success", 0.9), color="grey", linestyle="--", linewidth=1)
+    ax1.set_ylabel(f"success rate, last {window} episodes (%)")
+    ax1.set_ylim(-2, 102)
+    for rid in sorted({e.robot_id for e in episodes}):
+        mine = [e for e in episodes if e.robot_id == rid]
+        ax2.plot([e.t for e in mine], [e.episode_return for e in mine], ".", markersize=3, label=rid)
+    ax2.set_ylabel("episode return")
+    ax2.set_xlabel("wall time (s)")
+    if episodes:
+        ax2.legend(loc="lower right")
+    title = summary.get("name", "")
+    if summary.get("time_to_target_s") is not None:
+        title += f" — {100 * summary['target_success']:.0f} % success after {summary['time_to_target_s']:.0f} s"
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(run_dir / "report.png", dpi=100)
+    plt.close(fig)
+
+
+def run_up(cfg: StackConfig, config_path: str | None, overrides: list[str], fresh: bool = False) -> int:
+    from rich.console import Console
+    from rich.live import Live
+
+    console = Console()
+    run_dir = cfg.up.runs_dir / cfg.up.name
+    if fresh and run_dir.exists():
+        shutil.rmtree(run_dir)
+    elif run_dir.exists():
+        console.print(f"[yellow]resuming {run_dir}: replay and learner checkpoints are kept (--fresh starts over)")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    stack = Stack(cfg, config_path, overrides, run_dir)
+    stop = threading.Event()
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    budget_s = cfg.up.budget_s
+    reason, time_to_target, mon = "interrupted", None, None
+    t0 = time.monotonic()
+    try:
+        with console.status("starting") as status:
+            stack.start(lambda name: status.update(f"starting {name}"))
+        console.print(f"[green]stack up in {time.monotonic() - t0:.1f}s; logs in {run_dir / 'logs'}")
+        t0 = time.monotonic()
+        mon = Monitor(stack, t0)
+        snap = mon.poll()
+        with Live(_render(snap, mon, cfg, budget_s), console=console, refresh_per_second=2, transient=False) as live:
+            while not stop.wait(0.5):
+                snap = mon.poll()
+                if cfg.up.console:
+                    live.update(_render(snap, mon, cfg, budget_s))
+                rate = mon.success_rate(cfg.up.window_episodes)
+                if rate is not None and rate >= cfg.up.target_success:
+                    reason, time_to_target = "target reached", snap.t
+                    break
+                if snap.t >= budget_s:
+                    reason = "budget exhausted"
+                    break
+                dead = stack.dead_children()
+                if dead:
+                    reason = f"{dead[0].name} exited with {dead[0].proc.returncode}"
+                    console.print(f"[red]{reason}:\n{dead[0].log_tail()}")
+                    break
+    except RuntimeError as exc:
+        reason = f"start failed: {exc}"
+        console.print(f"[red]{reason}")
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C must not orphan children mid-stop
+        with console.status("stopping"):
+            final = mon.poll() if mon else None
+            codes = stack.stop()
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    episodes = mon.ordered() if mon else []
+    summary = _summary(cfg, reason, time_to_target, final, episodes, codes, time.monotonic() - t0)
+    write_report(run_dir, episodes, summary, cfg.up.window_episodes)
+    _print_summary(console, summary, run_dir)
+    return 0 if time_to_target is not None else 1
+
+
+def _summary(
+    cfg: StackConfig,
+    reason: str,
+    time_to_target: float | None,
+    final: Snapshot | None,
+    episodes: list[Episode],
+    codes: dict[str, int | None],
+    wall_s: float,
+) -> dict[str, Any]:
+    window = episodes[-cfg.up.window_episodes :]
+    robots = {}
+    if final:
+        for info in final.robots:
+            st = info.status
+            robots[info.spec.robot_id] = {
+                "env_steps": st.env_steps,
+                "episodes": st.episodes,
+                "successes": st.successes,
+                "env_steps_per_s": round(st.env_steps_per_s, 2),
+                "policy_version": st.policy_version,
+                "loop_period_p99_ms": round(st.loop_period_p99_ms, 2),
+                "held_steps": st.held_steps,
+            }
+    learner = final.learner if final else None
+    return {
+        "name": cfg.up.name,
+        "reason": reason,
+        "target_success": cfg.up.target_success,
+        "time_to_target_s": None if time_to_target is None else round(time_to_target, 1),
+        "wall_s": round(wall_s, 1),
+        "episodes_total": len(episodes),
+        "final_success_rate": round(sum(e.success for e in window) / len(window), 3) if window else None,
+        "edge_mode": cfg.edge.mode,
+        "policy_source": cfg.edge.policy_source,
+        "robots": robots,
+        "learner": None
+        if learner is None
+        else {
+            "updates": learner.updates,
+            "weight_version": learner.weight_version,
+            "updates_per_s": round(learner.updates_per_s, 1),
+            "alpha": round(learner.alpha, 4),
+        },
+        "replay_steps": final.replay.steps if final and final.replay else None,
+        "exit_codes": codes,
+    }
+
+
+def _print_summary(console, summary: dict[str, Any], run_dir: Path) -> None:
+    from rich.table import Table
+
+    table = Table(title="summary", show_header=False)
+    table.add_row("stopped because", summary["reason"])
+    ttt = summary["time_to_target_s"]
+    table.add_row(f"time to {100 * summary['target_success']:.0f} % success", "-" if ttt is None else f"{ttt:.0f} s")
+    table.add_row("episodes", str(summary["episodes_total"]))
+    if summary["final_success_rate"] is not None:
+        table.add_row("success, last episodes", f"{100 * summary['final_success_rate']:.0f} %")
+    if summary["learner"]:
+        table.add_row("learner updates", str(summary["learner"]["updates"]))
+        table.add_row("weight version", str(summary["learner"]["weight_version"]))
+    for rid, st in summary["robots"].items():
+        table.add_row(rid, f"{st['env_steps']} steps, {st['episodes']} episodes, policy v{st['policy_version']}")
+    bad = {k: v for k, v in summary["exit_codes"].items() if v not in (0, None)}
+    table.add_row("process exits", "all clean" if not bad else str(bad))
+    table.add_row("report", f"{run_dir / 'report.png'}, {run_dir / 'metrics.json'}")
+    console.print(table)
