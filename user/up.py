@@ -75,8 +75,16 @@ class Child:
 class Stack:
     """Starts control -> replay -> learner -> inference -> edges, each its own process."""
 
-    def __init__(self, cfg: StackConfig, config_path: str | None, overrides: list[str], run_dir: Path) -> None:
+    def __init__(
+        self,
+        cfg: StackConfig,
+        config_path: str | None,
+        overrides: list[str],
+        run_dir: Path,
+        per_edge_overrides: dict[int, list[str]] | None = None,
+    ) -> None:
         self.cfg = cfg
+        self.per_edge_overrides = per_edge_overrides or {}
         self.config_path = config_path
         self.overrides = list(overrides)
         self.run_dir = run_dir
@@ -184,6 +192,7 @@ class Stack:
                         f"edge.replay_addr={replay.grpc_addr}",
                         f"edge.inference_addr={inference.grpc_addr}",
                         f"edge.learner_addr={learner.grpc_addr}",
+                        *self.per_edge_overrides.get(i, []),
                     ],
                 )
             )

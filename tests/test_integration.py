@@ -1,0 +1,139 @@
+"""The whole stack as real processes: control, replay, learner, inference and two edge agents
+(one acting through the inference service, one through its weight-streamed local copy)."""
+
+from __future__ import annotations
+
+import json
+import time
+import urllib.request
+from pathlib import Path
+
+import grpc
+import numpy as np
+import pytest
+
+from user import wire
+from user.config import load_config
+from user.rpc import check_health, make_channel
+from user.up import Episode, Stack, write_report
+from user.v1 import (
+    control_pb2,
+    control_pb2_grpc,
+    learner_pb2,
+    learner_pb2_grpc,
+    replay_pb2,
+    replay_pb2_grpc,
+)
+
+CONFIG = str(Path(__file__).resolve().parents[1] / "configs" / "demo.yaml")
+OVERRIDES = [
+    "edge.mode=fast",
+    "learner.min_transitions=200",
+    "learner.publish_every=20",
+    "learner.checkpoint_every=200",
+    "up.edge_agents=2",
+    "log_json=true",
+]
+
+
+def _wait_for(predicate, what: str, limit_s: float = 120.0):
+    """Liveness bound, not a performance threshold: fails only if the pipeline is stuck."""
+    end = time.monotonic() + limit_s
+    last = None
+    while time.monotonic() < end:
+        last = predicate()
+        if last:
+            return last
+        time.sleep(0.25)
+    raise AssertionError(f"timed out waiting for {what}; last={last!r}")
+
+
+@pytest.mark.slow
+def test_stack_learns_through_all_services(tmp_path: Path) -> None:
+    cfg = load_config(CONFIG, OVERRIDES)
+    stack = Stack(
+        cfg,
+        CONFIG,
+        OVERRIDES,
+        tmp_path,
+        per_edge_overrides={0: ["edge.policy_source=remote"], 1: ["edge.policy_source=local"]},
+    )
+    try:
+        stack.start()
+        auth = stack.auth
+        control = control_pb2_grpc.ControlStub(make_channel(stack.child("control").grpc_addr, auth))
+        learner = learner_pb2_grpc.LearnerStub(make_channel(stack.child("learner").grpc_addr, auth))
+        replay = replay_pb2_grpc.ReplayStub(make_channel(stack.child("replay").grpc_addr, auth))
+
+        robots = _wait_for(
+            lambda: [r for r in control.ListRobots(control_pb2.ListRobotsRequest(), timeout=5).robots if r.online]
+            if len(control.ListRobots(control_pb2.ListRobotsRequest(), timeout=5).robots) == 2
+            else None,
+            "two robots online",
+        )
+        assert sorted(r.spec.robot_id for r in robots) == ["arm-0", "arm-1"]
+
+        # The learner trains and publishes; both edges act with versions newer than the first.
+        status = _wait_for(
+            lambda: (s := learner.GetStatus(learner_pb2.LearnerStatusRequest(), timeout=5)).weight_version >= 4 and s,
+            "learner to publish weight version 4",
+        )
+        assert status.updates > 0
+
+        def edge_versions():
+            infos = control.ListRobots(control_pb2.ListRobotsRequest(), timeout=5).robots
+            versions = {r.spec.robot_id: r.status.policy_version for r in infos}
+            return versions if len(versions) == 2 and min(versions.values()) >= 3 else None
+
+        versions = _wait_for(edge_versions, "both edges (remote and local policy) to act with version >= 3")
+        assert min(versions.values()) >= 3
+
+        # Steps reached replay, stamped with the versions that produced them.
+        stats = replay.Stats(replay_pb2.StatsRequest(), timeout=5)
+        assert set(stats.steps_per_robot) == {"arm-0", "arm-1"}
+        assert stats.steps > 200
+        batch = replay.Sample(replay_pb2.SampleRequest(batch_size=256), timeout=5).batch
+        versions_in_batch = wire.from_tensor(batch.policy_version)
+        assert versions_in_batch.max() >= 2
+        assert wire.from_tensor(batch.action).shape == (256, 3)
+        assert np.isfinite(wire.from_tensor(batch.observation.tensors["state"])).all()
+
+        # Every process serves /metrics with its own metrics and answers health checks.
+        expected = {
+            "control": "user_control_",
+            "replay": "user_replay_",
+            "learner": "user_learner_",
+            "inference": "user_inference_",
+            "edge-0": "user_edge_",
+            "edge-1": "user_edge_",
+        }
+        for name, prefix in expected.items():
+            body = urllib.request.urlopen(stack.child(name).metrics_url, timeout=5).read().decode()
+            assert prefix in body, f"{name} /metrics lacks {prefix}*"
+            if "grpc_port" in stack.child(name).info:
+                assert check_health(stack.child(name).grpc_addr, auth)
+
+        # The token is enforced on the running stack.
+        anonymous = control_pb2_grpc.ControlStub(make_channel(stack.child("control").grpc_addr, cfg.auth.model_copy(update={"enabled": False})))
+        with pytest.raises(grpc.RpcError) as err:
+            anonymous.ListRobots(control_pb2.ListRobotsRequest(), timeout=5)
+        assert err.value.code() == grpc.StatusCode.UNAUTHENTICATED
+    finally:
+        codes = stack.stop()
+    assert codes == {name: 0 for name in codes}, f"unclean exits: {codes}"
+    # The learner wrote its final checkpoint on SIGTERM.
+    assert (tmp_path / "checkpoints" / "latest").exists()
+    # Every log line is structured JSON.
+    for log_file in (tmp_path / "logs").glob("*.log"):
+        for line in log_file.read_text().splitlines()[:50]:
+            if line.startswith("{"):
+                json.loads(line)
+
+
+def test_report_files(tmp_path: Path) -> None:
+    episodes = [Episode("arm-0", f"e{i}", float(i), i > 10, -5.0 + i, 50, i) for i in range(30)]
+    write_report(tmp_path, episodes, {"name": "t", "target_success": 0.9, "time_to_target_s": 29.0}, window=20)
+    doc = json.loads((tmp_path / "metrics.json").read_text())
+    assert len(doc["episodes"]) == 30
+    assert doc["rolling_success"][-1] == pytest.approx(19 / 20)
+    assert (tmp_path / "report.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
