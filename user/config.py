@@ -208,3 +208,21 @@ def load_config(
             where = ".".join(str(p) for p in err["loc"]) or "<root>"
             lines.append(f"{where}: {err['msg']}")
         raise ConfigError("invalid config: " + "; ".join(lines)) from None
+
+
+def reference_markdown(instance: BaseModel | None = None, prefix: str = "") -> list[str]:
+    """One table row per leaf field with its default: the README's config reference comes from here."""
+    instance = instance if instance is not None else StackConfig()
+    rows: list[str] = []
+    for name, info in type(instance).model_fields.items():
+        path, value = f"{prefix}{name}", getattr(instance, name)
+        if isinstance(value, BaseModel):
+            rows += reference_markdown(value, f"{path}.")
+            continue
+        if isinstance(value, list) and value and isinstance(value[0], BaseModel):
+            value = [v.model_dump(mode="json") for v in value]
+        elif isinstance(value, Path):
+            value = str(value)
+        text = (info.description or "").replace("|", "/")
+        rows.append(f"| `{path}` | `{value}` | {text} |")
+    return rows
