@@ -1,0 +1,195 @@
+"""Policy networks shared by the learner, the inference service and edge agents.
+
+A policy travels as a PolicySpec (kind + architecture JSON) plus named weight tensors, so any
+process can rebuild it without unpickling anything. New kinds are one class plus
+`@register_policy("kind")`.
+"""
+
+from __future__ import annotations
+
+import json
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from user.v1 import learner_pb2
+
+LOG_STD_MIN = -5.0
+LOG_STD_MAX = 2.0
+
+
+class SquashedGaussianActor(nn.Module):
+    """MLP -> (mean, log_std) of a Gaussian, squashed by tanh and rescaled to [low, high]."""
+
+    def __init__(
+        self,
+        obs_dim: int,
+        action_dim: int,
+        hidden: Sequence[int],
+        action_low: Sequence[float] | np.ndarray,
+        action_high: Sequence[float] | np.ndarray,
+    ) -> None:
+        super().__init__()
+        low = torch.as_tensor(np.asarray(action_low, dtype=np.float32).reshape(-1))
+        high = torch.as_tensor(np.asarray(action_high, dtype=np.float32).reshape(-1))
+        if low.shape != (action_dim,) or high.shape != (action_dim,):
+            raise ValueError(f"action bounds must have {action_dim} elements, got {low.numel()} and {high.numel()}")
+        if not bool(torch.all(high > low)):
+            raise ValueError("action_high must exceed action_low elementwise")
+        self.obs_dim, self.action_dim = int(obs_dim), int(action_dim)
+        layers: list[nn.Module] = []
+        width = self.obs_dim
+        for h in hidden:
+            layers += [nn.Linear(width, int(h)), nn.ReLU()]
+            width = int(h)
+        layers.append(nn.Linear(width, 2 * self.action_dim))
+        self.net = nn.Sequential(*layers)
+        # Not persistent: the bounds travel in the PolicySpec, the tensors are only learned weights.
+        self.register_buffer("action_scale", (high - low) / 2.0, persistent=False)
+        self.register_buffer("action_bias", (high + low) / 2.0, persistent=False)
+
+    def distribution(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, log_std = self.net(obs).chunk(2, dim=-1)
+        # Soft clamp keeps gradients alive at the bounds (a hard clamp would zero them).
+        log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(log_std) + 1.0)
+        return mean, log_std
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(sampled action, its log-prob (B,), deterministic action), all in [low, high]."""
+        mean, log_std = self.distribution(obs)
+        std = log_std.exp()
+        pre = mean + std * torch.randn_like(mean)  # reparameterized sample
+        squashed = torch.tanh(pre)
+        normal_logp = (-0.5 * ((pre - mean) / std) ** 2 - log_std - 0.5 * np.log(2 * np.pi)).sum(-1)
+        # Change of variables for tanh and the affine rescale; 1e-6 guards log(0) at saturation.
+        log_prob = normal_logp - torch.log(self.action_scale * (1 - squashed.pow(2)) + 1e-6).sum(-1)
+        action = squashed * self.action_scale + self.action_bias
+        mean_action = torch.tanh(mean) * self.action_scale + self.action_bias
+        return action, log_prob, mean_action
+
+
+class Policy(ABC):
+    """A versioned, ready-to-run policy: batched observations in, batched actions out."""
+
+    version: int
+    spec: learner_pb2.PolicySpec
+
+    @abstractmethod
+    def act(self, observation: Mapping[str, np.ndarray], deterministic: bool = False) -> np.ndarray:
+        """observation values are (B, ...) arrays; returns (B, action_dim) float32."""
+
+
+PolicyFactory = Callable[[learner_pb2.PolicySpec, Mapping[str, np.ndarray], int], Policy]
+_REGISTRY: dict[str, PolicyFactory] = {}
+
+
+def register_policy(kind: str) -> Callable[[PolicyFactory], PolicyFactory]:
+    def deco(factory: PolicyFactory) -> PolicyFactory:
+        _REGISTRY[kind] = factory
+        return factory
+
+    return deco
+
+
+def build_policy(spec: learner_pb2.PolicySpec, tensors: Mapping[str, np.ndarray], version: int) -> Policy:
+    """Rebuild a policy from the wire; any mismatch raises ValueError."""
+    try:
+        factory = _REGISTRY[spec.kind]
+    except KeyError:
+        raise ValueError(f"unknown policy kind {spec.kind!r}; known: {sorted(_REGISTRY)}") from None
+    return factory(spec, tensors, version)
+
+
+def known_policy_kinds() -> list[str]:
+    return sorted(_REGISTRY)
+
+
+# --- sac_mlp --------------------------------------------------------------------------------------
+
+SAC_MLP = "sac_mlp"
+
+
+def _check_config(config: Mapping[str, Any]) -> dict[str, Any]:
+    required = ("obs_keys", "obs_dim", "action_dim", "hidden", "action_low", "action_high")
+    missing = [k for k in required if k not in config]
+    if missing:
+        raise ValueError(f"sac_mlp config is missing {missing}")
+    cfg = dict(config)
+    if not cfg["obs_keys"] or not all(isinstance(k, str) for k in cfg["obs_keys"]):
+        raise ValueError("sac_mlp config: obs_keys must be a non-empty list of names")
+    if int(cfg["obs_dim"]) < 1 or int(cfg["action_dim"]) < 1:
+        raise ValueError("sac_mlp config: obs_dim and action_dim must be >= 1")
+    return cfg
+
+
+def actor_from_config(config: Mapping[str, Any]) -> SquashedGaussianActor:
+    cfg = _check_config(config)
+    return SquashedGaussianActor(
+        int(cfg["obs_dim"]), int(cfg["action_dim"]), list(cfg["hidden"]), cfg["action_low"], cfg["action_high"]
+    )
+
+
+def policy_spec_for(actor_config: Mapping[str, Any]) -> learner_pb2.PolicySpec:
+    cfg = _check_config(actor_config)
+    return learner_pb2.PolicySpec(kind=SAC_MLP, config_json=json.dumps(cfg, sort_keys=True))
+
+
+def _load_tensors(module: nn.Module, tensors: Mapping[str, np.ndarray]) -> None:
+    expected = module.state_dict()
+    if set(tensors) != set(expected):
+        missing, extra = sorted(set(expected) - set(tensors)), sorted(set(tensors) - set(expected))
+        raise ValueError(f"weight tensors do not match the architecture: missing {missing}, unexpected {extra}")
+    state = {}
+    for name, ref in expected.items():
+        arr = np.asarray(tensors[name])
+        if tuple(arr.shape) != tuple(ref.shape):
+            raise ValueError(f"tensor {name!r} has shape {tuple(arr.shape)}, expected {tuple(ref.shape)}")
+        state[name] = torch.from_numpy(np.array(arr, dtype=np.float32, copy=True))
+    module.load_state_dict(state, strict=True)
+
+
+class SacMlpPolicy(Policy):
+    def __init__(self, spec: learner_pb2.PolicySpec, tensors: Mapping[str, np.ndarray], version: int) -> None:
+        try:
+            config = json.loads(spec.config_json)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"sac_mlp config_json is not JSON: {exc}") from None
+        if not isinstance(config, dict):
+            raise ValueError("sac_mlp config_json must be an object")
+        cfg = _check_config(config)
+        self.spec = spec
+        self.version = int(version)
+        self.obs_keys: list[str] = list(cfg["obs_keys"])
+        self.obs_dim = int(cfg["obs_dim"])
+        self.action_dim = int(cfg["action_dim"])
+        self.actor = actor_from_config(cfg)
+        _load_tensors(self.actor, tensors)
+        self.actor.eval()
+
+    def obs_vector(self, observation: Mapping[str, np.ndarray]) -> np.ndarray:
+        """Concatenate obs_keys (each flattened after the batch dim) into (B, obs_dim) float32."""
+        missing = [k for k in self.obs_keys if k not in observation]
+        if missing:
+            raise ValueError(f"observation lacks {missing}")
+        parts = [np.asarray(observation[k], dtype=np.float32) for k in self.obs_keys]
+        batch = parts[0].shape[0] if parts[0].ndim else 0
+        if batch < 1 or any(p.ndim == 0 or p.shape[0] != batch for p in parts):
+            raise ValueError("observation values need the same leading batch dimension")
+        vec = np.concatenate([p.reshape(batch, -1) for p in parts], axis=1)
+        if vec.shape[1] != self.obs_dim:
+            raise ValueError(f"observation has {vec.shape[1]} features, the policy expects {self.obs_dim}")
+        return vec
+
+    @torch.no_grad()
+    def act(self, observation: Mapping[str, np.ndarray], deterministic: bool = False) -> np.ndarray:
+        obs = torch.from_numpy(self.obs_vector(observation))
+        action, _, mean_action = self.actor(obs)
+        out = mean_action if deterministic else action
+        return out.numpy().astype(np.float32, copy=False)
+
+
+register_policy(SAC_MLP)(SacMlpPolicy)
