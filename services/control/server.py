@@ -1,0 +1,529 @@
+"""Control service: the registry of robots, their leases and heartbeats, and cloud-to-edge commands.
+
+An edge agent opens one long-lived Connect stream: `register` first (validated specs -> a lease),
+then heartbeats that renew the lease and report each robot's status and finished episodes.
+Commands from SendCommand travel down the same stream. A robot goes offline when its stream ends
+or when no heartbeat arrives for lease_ttl_s (a reaper thread); its spec stays queryable so replay
+can keep validating steps that arrive late.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import queue
+import re
+import threading
+import time
+import uuid
+from collections import deque
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import grpc
+import prometheus_client
+
+from user import rpc
+from user.config import StackConfig
+from user.log import kv
+from user.v1 import control_pb2, control_pb2_grpc, robot_pb2
+from user.v1 import tensor_pb2 as tpb
+from user.wire import WireError, dtype_from_proto
+
+log = logging.getLogger(__name__)
+
+SERVICE_NAME = control_pb2.DESCRIPTOR.services_by_name["Control"].full_name
+ROBOT_ID_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
+FLOAT_DTYPES = (tpb.DTYPE_UNSPECIFIED, tpb.DTYPE_FLOAT32, tpb.DTYPE_FLOAT64, tpb.DTYPE_FLOAT16)
+QUEUE_POLL_S = 0.25  # how often a Connect stream notices its client went away
+
+ROBOTS_ONLINE = prometheus_client.Gauge("user_control_robots_online", "Robots with a live lease")
+REGISTRATIONS = prometheus_client.Counter("user_control_registrations_total", "Accepted edge registrations")
+HEARTBEATS = prometheus_client.Counter("user_control_heartbeats_total", "Heartbeats received")
+LEASE_EXPIRATIONS = prometheus_client.Counter(
+    "user_control_lease_expirations_total", "Leases ended because no heartbeat arrived within lease_ttl_s"
+)
+COMMANDS = prometheus_client.Counter("user_control_commands_total", "Commands sent to edges", ["kind"])
+EPISODES = prometheus_client.Counter(
+    "user_control_episodes_total", "Finished episodes reported by edges", ["robot_id", "success"]
+)
+
+
+class SpecError(ValueError):
+    """A registration that breaks the RobotSpec contract (-> INVALID_ARGUMENT)."""
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def validate_spec(spec: robot_pb2.RobotSpec) -> None:
+    """Raise SpecError naming the robot and the offending field."""
+    rid = spec.robot_id
+    if not ROBOT_ID_RE.match(rid):
+        raise SpecError(f"robot_id {rid!r} must match {ROBOT_ID_RE.pattern}")
+    where = f"robot {rid}"
+    act = spec.action
+    if not act.shape or any(d <= 0 for d in act.shape):
+        raise SpecError(f"{where}: action.shape must be non-empty with positive dims, got {list(act.shape)}")
+    size = math.prod(act.shape)
+    if len(act.low) != size or len(act.high) != size:
+        raise SpecError(
+            f"{where}: action.low/high need {size} values for shape {list(act.shape)}, "
+            f"got {len(act.low)} and {len(act.high)}"
+        )
+    for i, (lo, hi) in enumerate(zip(act.low, act.high, strict=True)):
+        if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
+            raise SpecError(f"{where}: action bound {i} needs finite low <= high, got low={lo} high={hi}")
+    if act.names and len(act.names) != size:
+        raise SpecError(f"{where}: action.names has {len(act.names)} entries for {size} action elements")
+    if act.dtype not in FLOAT_DTYPES:
+        raise SpecError(f"{where}: action.dtype must be a float type, got {tpb.DType.Name(act.dtype)}")
+    _validate_features(where, spec.observation)
+    for cam in spec.cameras:
+        if not cam.name or cam.width <= 0 or cam.height <= 0:
+            raise SpecError(f"{where}: camera {cam.name!r} needs a name and positive width/height")
+    if not (math.isfinite(spec.control_rate_hz) and spec.control_rate_hz > 0):
+        raise SpecError(f"{where}: control_rate_hz must be > 0, got {spec.control_rate_hz}")
+
+
+def _validate_features(where: str, features: list[robot_pb2.FeatureSpec]) -> None:
+    if not features:
+        raise SpecError(f"{where}: observation needs at least one feature")
+    seen: set[str] = set()
+    for feat in features:
+        if not feat.name or feat.name in seen:
+            raise SpecError(f"{where}: observation feature names must be non-empty and unique, got {feat.name!r}")
+        seen.add(feat.name)
+        if not feat.shape or any(d <= 0 for d in feat.shape):
+            raise SpecError(
+                f"{where}: observation {feat.name!r} needs a non-empty shape with positive dims, got {list(feat.shape)}"
+            )
+        try:
+            dtype_from_proto(feat.dtype)
+        except WireError as exc:
+            raise SpecError(f"{where}: observation {feat.name!r}: {exc}") from None
+
+
+def validate_register(req: control_pb2.RegisterRequest) -> None:
+    if not ROBOT_ID_RE.match(req.agent_id):
+        raise SpecError(f"agent_id {req.agent_id!r} must match {ROBOT_ID_RE.pattern}")
+    if not req.robots:
+        raise SpecError("register needs at least one robot")
+    ids = [spec.robot_id for spec in req.robots]
+    if len(ids) != len(set(ids)):
+        raise SpecError(f"robot ids must be unique within a registration, got {ids}")
+    for spec in req.robots:
+        validate_spec(spec)
+
+
+# --------------------------------------------------------------------------- registry
+
+
+class AlreadyRegistered(Exception):
+    """A robot_id held by a different live agent (-> ALREADY_EXISTS)."""
+
+
+@dataclass
+class Abort:
+    """Queued on a connection to end its stream with this status."""
+
+    code: grpc.StatusCode
+    message: str
+
+
+@dataclass(eq=False)
+class Connection:
+    """One live Connect stream: an agent, its robots, its lease and its outbound queue."""
+
+    lease_id: str
+    agent_id: str
+    hostname: str
+    robot_ids: list[str]
+    lease_deadline: float  # monotonic
+    outbox: queue.Queue = field(default_factory=queue.Queue)
+    live: bool = True
+
+
+@dataclass
+class RobotRecord:
+    spec: robot_pb2.RobotSpec
+    agent_id: str
+    hostname: str
+    registered_at_ns: int
+    conn: Connection | None
+    last_heartbeat_ns: int = 0
+    lease_expires_ns: int = 0
+    status: control_pb2.RobotStatus = field(default_factory=control_pb2.RobotStatus)
+    episodes: deque = field(default_factory=deque)
+
+    @property
+    def online(self) -> bool:
+        return self.conn is not None and self.conn.live
+
+
+class Registry:
+    """Thread-safe state shared by the Connect streams, the unary RPCs and the reaper."""
+
+    def __init__(self, lease_ttl_s: float, episodes_kept: int) -> None:
+        self.lease_ttl_s = lease_ttl_s
+        self.episodes_kept = episodes_kept
+        self._lock = threading.Lock()
+        self._robots: dict[str, RobotRecord] = {}
+        self._conns: dict[str, Connection] = {}  # lease_id -> live connection
+
+    def register(self, req: control_pb2.RegisterRequest) -> tuple[Connection, list[Connection]]:
+        """Take the robots for this agent; returns the new connection and the ones it replaced."""
+        now_ns = time.time_ns()
+        with self._lock:
+            for spec in req.robots:
+                rec = self._robots.get(spec.robot_id)
+                if rec is not None and rec.online and rec.agent_id != req.agent_id:
+                    raise AlreadyRegistered(
+                        f"robot {spec.robot_id} is registered by live agent {rec.agent_id!r} "
+                        f"({rec.hostname}); a robot belongs to one agent at a time"
+                    )
+            # One stream per agent: a re-registration (reconnect) supersedes the old one.
+            replaced = [c for c in self._conns.values() if c.agent_id == req.agent_id]
+            for old in replaced:
+                self._end_locked(old)
+            conn = Connection(
+                lease_id=uuid.uuid4().hex,
+                agent_id=req.agent_id,
+                hostname=req.hostname,
+                robot_ids=[s.robot_id for s in req.robots],
+                lease_deadline=time.monotonic() + self.lease_ttl_s,
+            )
+            self._conns[conn.lease_id] = conn
+            for spec in req.robots:
+                old_rec = self._robots.get(spec.robot_id)
+                rec = RobotRecord(
+                    spec=spec,
+                    agent_id=req.agent_id,
+                    hostname=req.hostname,
+                    registered_at_ns=now_ns,
+                    conn=conn,
+                    last_heartbeat_ns=now_ns,
+                    lease_expires_ns=now_ns + int(self.lease_ttl_s * 1e9),
+                    status=control_pb2.RobotStatus(robot_id=spec.robot_id, state=control_pb2.ROBOT_STATE_RUNNING),
+                    episodes=old_rec.episodes if old_rec else deque(maxlen=self.episodes_kept),
+                )
+                self._robots[spec.robot_id] = rec
+            self._update_gauge_locked()
+        return conn, replaced
+
+    def heartbeat(self, conn: Connection, hb: control_pb2.Heartbeat) -> list[str]:
+        """Renew the lease and store statuses; returns robot ids in the heartbeat that this stream does not own."""
+        now_ns = time.time_ns()
+        foreign: list[str] = []
+        with self._lock:
+            if not conn.live:
+                return foreign
+            conn.lease_deadline = time.monotonic() + self.lease_ttl_s
+            for rid in conn.robot_ids:
+                rec = self._robots.get(rid)
+                if rec is not None and rec.conn is conn:
+                    rec.last_heartbeat_ns = now_ns
+                    rec.lease_expires_ns = now_ns + int(self.lease_ttl_s * 1e9)
+            for status in hb.robots:
+                rec = self._robots.get(status.robot_id)
+                if rec is None or rec.conn is not conn:
+                    foreign.append(status.robot_id)
+                    continue
+                self._store_status_locked(rec, status)
+        return foreign
+
+    @staticmethod
+    def _store_status_locked(rec: RobotRecord, status: control_pb2.RobotStatus) -> None:
+        for ep in status.new_episodes:
+            if not ep.robot_id:
+                ep.robot_id = rec.spec.robot_id
+            rec.episodes.append(ep)
+            EPISODES.labels(rec.spec.robot_id, "true" if ep.success else "false").inc()
+        kept = control_pb2.RobotStatus()
+        kept.CopyFrom(status)
+        kept.ClearField("new_episodes")  # they live in rec.episodes, bounded
+        rec.status = kept
+
+    def disconnect(self, conn: Connection) -> bool:
+        """The stream ended; True if this ended a live lease."""
+        with self._lock:
+            if not conn.live:
+                return False
+            self._end_locked(conn)
+            return True
+
+    def expire(self) -> list[Connection]:
+        """End every lease whose heartbeat deadline has passed."""
+        now = time.monotonic()
+        with self._lock:
+            expired = [c for c in self._conns.values() if c.lease_deadline < now]
+            for conn in expired:
+                self._end_locked(conn)
+        return expired
+
+    def close_all(self) -> list[Connection]:
+        with self._lock:
+            conns = list(self._conns.values())
+            for conn in conns:
+                self._end_locked(conn)
+        return conns
+
+    def _end_locked(self, conn: Connection) -> None:
+        conn.live = False
+        self._conns.pop(conn.lease_id, None)
+        for rid in conn.robot_ids:
+            rec = self._robots.get(rid)
+            if rec is not None and rec.conn is conn:
+                rec.conn = None
+                rec.status.state = control_pb2.ROBOT_STATE_OFFLINE
+        self._update_gauge_locked()
+
+    def _update_gauge_locked(self) -> None:
+        ROBOTS_ONLINE.set(sum(1 for r in self._robots.values() if r.online))
+
+    def info(self, robot_id: str) -> control_pb2.RobotInfo | None:
+        with self._lock:
+            rec = self._robots.get(robot_id)
+            return self._info_locked(rec) if rec else None
+
+    def list(self, include_offline: bool) -> list[control_pb2.RobotInfo]:
+        with self._lock:
+            recs = [self._robots[k] for k in sorted(self._robots)]
+            return [self._info_locked(r) for r in recs if include_offline or r.online]
+
+    @staticmethod
+    def _info_locked(rec: RobotRecord) -> control_pb2.RobotInfo:
+        return control_pb2.RobotInfo(
+            spec=rec.spec,
+            agent_id=rec.agent_id,
+            hostname=rec.hostname,
+            online=rec.online,
+            registered_at_ns=rec.registered_at_ns,
+            last_heartbeat_ns=rec.last_heartbeat_ns,
+            lease_expires_ns=rec.lease_expires_ns,
+            status=rec.status,
+            recent_episodes=list(rec.episodes),
+        )
+
+    def route(self, command: control_pb2.Command) -> tuple[bool, bool]:
+        """Queue a command on the owning stream(s): (robot known, delivered)."""
+        with self._lock:
+            if not command.robot_id:  # every robot of every live agent
+                conns = list(self._conns.values())
+                for conn in conns:
+                    conn.outbox.put(control_pb2.ControlMessage(command=command))
+                return True, bool(conns)
+            rec = self._robots.get(command.robot_id)
+            if rec is None:
+                return False, False
+            if not rec.online:
+                return True, False
+            assert rec.conn is not None
+            rec.conn.outbox.put(control_pb2.ControlMessage(command=command))
+            return True, True
+
+
+# --------------------------------------------------------------------------- gRPC servicer
+
+
+class ControlServicer(control_pb2_grpc.ControlServicer):
+    def __init__(self, registry: Registry, heartbeat_interval_s: float) -> None:
+        self.registry = registry
+        self.heartbeat_interval_s = heartbeat_interval_s
+
+    def Connect(
+        self, request_iterator: Iterator[control_pb2.EdgeMessage], context: grpc.ServicerContext
+    ) -> Iterator[control_pb2.ControlMessage]:
+        first = next(request_iterator, None)
+        if first is None:
+            return
+        if first.WhichOneof("msg") != "register":
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "the first message on Connect must be `register`")
+        req = first.register
+        try:
+            validate_register(req)
+            conn, replaced = self.registry.register(req)
+        except SpecError as exc:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"bad registration: {exc}")
+        except AlreadyRegistered as exc:
+            context.abort(grpc.StatusCode.ALREADY_EXISTS, str(exc))
+        for old in replaced:
+            old.outbox.put(Abort(grpc.StatusCode.ABORTED, "superseded by a newer registration of this agent"))
+        REGISTRATIONS.inc()
+        log.info(
+            "agent registered",
+            extra=kv(
+                agent_id=req.agent_id,
+                hostname=req.hostname,
+                robots=conn.robot_ids,
+                lease_id=conn.lease_id,
+                software_version=req.software_version,
+                replaced=len(replaced),
+            ),
+        )
+        yield control_pb2.ControlMessage(
+            registered=control_pb2.Registered(
+                lease_id=conn.lease_id,
+                lease_ttl_s=self.registry.lease_ttl_s,
+                heartbeat_interval_s=self.heartbeat_interval_s,
+            )
+        )
+        reader_done = threading.Event()
+        reader = threading.Thread(
+            target=self._read, args=(conn, request_iterator, reader_done), name=f"control-{req.agent_id}", daemon=True
+        )
+        reader.start()
+        try:
+            yield from self._outbound(conn, context, reader_done)
+        finally:
+            if self.registry.disconnect(conn):
+                log.info("agent disconnected", extra=kv(agent_id=conn.agent_id, robots=conn.robot_ids))
+
+    def _outbound(
+        self, conn: Connection, context: grpc.ServicerContext, reader_done: threading.Event
+    ) -> Iterator[control_pb2.ControlMessage]:
+        """Commands for this agent, until the edge hangs up or the lease ends."""
+        while True:
+            try:
+                item = conn.outbox.get(timeout=QUEUE_POLL_S)
+            except queue.Empty:
+                if reader_done.is_set() or not context.is_active():
+                    return
+                continue
+            if isinstance(item, Abort):
+                context.abort(item.code, item.message)
+            yield item
+
+    def _read(self, conn: Connection, requests: Iterator[control_pb2.EdgeMessage], done: threading.Event) -> None:
+        try:
+            for msg in requests:
+                kind = msg.WhichOneof("msg")
+                if kind == "heartbeat":
+                    HEARTBEATS.inc()
+                    foreign = self.registry.heartbeat(conn, msg.heartbeat)
+                    if foreign:
+                        log.warning(
+                            "heartbeat for robots this stream does not own",
+                            extra=kv(agent_id=conn.agent_id, robots=foreign),
+                        )
+                elif kind == "command_result":
+                    res = msg.command_result
+                    log.info(
+                        "command result",
+                        extra=kv(agent_id=conn.agent_id, command_id=res.command_id, ok=res.ok, message=res.message),
+                    )
+                else:
+                    conn.outbox.put(
+                        Abort(
+                            grpc.StatusCode.INVALID_ARGUMENT,
+                            f"unexpected {kind or 'empty'} message after register; register once per stream",
+                        )
+                    )
+                    return
+        except Exception as exc:  # the stream was cancelled or broke: same as hanging up
+            log.debug("edge stream read ended", extra=kv(agent_id=conn.agent_id, error=repr(exc)))
+        finally:
+            done.set()
+
+    def ListRobots(
+        self, request: control_pb2.ListRobotsRequest, context: grpc.ServicerContext
+    ) -> control_pb2.ListRobotsResponse:
+        return control_pb2.ListRobotsResponse(robots=self.registry.list(request.include_offline))
+
+    def GetRobot(self, request: control_pb2.GetRobotRequest, context: grpc.ServicerContext) -> control_pb2.RobotInfo:
+        info = self.registry.info(request.robot_id)
+        if info is None:
+            context.abort(grpc.StatusCode.NOT_FOUND, f"unknown robot {request.robot_id!r}")
+        return info
+
+    def SendCommand(
+        self, request: control_pb2.SendCommandRequest, context: grpc.ServicerContext
+    ) -> control_pb2.SendCommandResponse:
+        cmd = control_pb2.Command()
+        cmd.CopyFrom(request.command)
+        if cmd.kind == control_pb2.COMMAND_KIND_UNSPECIFIED:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "command.kind must be set (PAUSE, RESUME or RESET)")
+        if not cmd.command_id:
+            cmd.command_id = uuid.uuid4().hex
+        known, delivered = self.registry.route(cmd)
+        if not known:
+            context.abort(grpc.StatusCode.NOT_FOUND, f"unknown robot {cmd.robot_id!r}")
+        kind = control_pb2.CommandKind.Name(cmd.kind).removeprefix("COMMAND_KIND_").lower()
+        COMMANDS.labels(kind).inc()
+        log.info("command", extra=kv(command_id=cmd.command_id, kind=kind, robot_id=cmd.robot_id, delivered=delivered))
+        return control_pb2.SendCommandResponse(command_id=cmd.command_id, delivered=delivered)
+
+
+# --------------------------------------------------------------------------- service lifecycle
+
+
+class ControlService:
+    """The control server in-process: start() binds (port 0 works), stop() ends streams and shuts down."""
+
+    def __init__(self, cfg: StackConfig, start_metrics: bool = True) -> None:
+        self.cfg = cfg
+        c = cfg.control
+        self.registry = Registry(c.lease_ttl_s, c.episodes_kept)
+        self.servicer = ControlServicer(self.registry, c.heartbeat_interval_s)
+        self.start_metrics = start_metrics
+        self.running: rpc.RunningServer | None = None
+        self._stop = threading.Event()
+        self._reaper: threading.Thread | None = None
+
+    @property
+    def port(self) -> int:
+        assert self.running is not None, "not started"
+        return self.running.port
+
+    @property
+    def address(self) -> str:
+        assert self.running is not None, "not started"
+        return self.running.address()
+
+    def start(self) -> ControlService:
+        self.running = rpc.start_server(
+            "control",
+            lambda server: control_pb2_grpc.add_ControlServicer_to_server(self.servicer, server),
+            [SERVICE_NAME],
+            self.cfg.control.server,
+            self.cfg.auth,
+            start_metrics=self.start_metrics,
+        )
+        self._reaper = threading.Thread(target=self._reap, name="control-reaper", daemon=True)
+        self._reaper.start()
+        return self
+
+    def _reap(self) -> None:
+        period = min(0.5, self.registry.lease_ttl_s / 4)
+        while not self._stop.wait(period):
+            for conn in self.registry.expire():
+                LEASE_EXPIRATIONS.inc()
+                conn.outbox.put(
+                    Abort(
+                        grpc.StatusCode.ABORTED,
+                        f"lease expired: no heartbeat for {self.registry.lease_ttl_s}s; reconnect and register again",
+                    )
+                )
+                log.warning("lease expired", extra=kv(agent_id=conn.agent_id, robots=conn.robot_ids))
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._reaper is not None:
+            self._reaper.join()
+        # End the long-lived streams first so the graceful stop does not wait out its grace on them.
+        for conn in self.registry.close_all():
+            conn.outbox.put(Abort(grpc.StatusCode.UNAVAILABLE, "control is shutting down"))
+        if self.running is not None:
+            self.running.stop()
+            self.running = None
+
+
+def run(cfg: StackConfig, ready_file: str | None) -> int:
+    service = ControlService(cfg).start()
+    assert service.running is not None
+    rpc.write_ready_file(ready_file, grpc_port=service.running.port, metrics_port=service.running.metrics_port)
+    stop = rpc.install_signal_handlers()
+    stop.wait()
+    service.stop()
+    log.info("control stopped")
+    return 0
