@@ -1,0 +1,508 @@
+"""The edge agent: the daemon on each robot PC.
+
+One RobotLoop thread per robot runs observe -> act -> observe at the robot's control rate and
+ships every step to replay; the policy source answers within a deadline or the robot holds still,
+so nothing here ever waits on the learner. A ControlClient registers the robots, heartbeats their
+status and delivers PAUSE / RESUME / RESET commands.
+
+    userctl edge --config configs/demo.yaml [--ready-file F]
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Protocol
+
+import numpy as np
+import prometheus_client
+
+from edge_agent.control_client import ControlClient
+from edge_agent.policy_source import PolicySource, make_policy_source
+from edge_agent.replay_client import ReplaySender
+from edge_agent.robot import Observation, Robot, action_bounds, clip_action, make_robot
+from user import rpc, wire
+from user.config import StackConfig
+from user.log import kv
+from user.v1 import control_pb2, step_pb2
+
+log = logging.getLogger(__name__)
+
+LOOP_PERIOD = prometheus_client.Histogram(
+    "user_edge_loop_period_seconds",
+    "Time between consecutive control ticks",
+    ["robot_id"],
+    buckets=(0.001, 0.002, 0.005, 0.01, 0.02, 0.03, 0.04, 0.05, 0.06, 0.08, 0.1, 0.15, 0.2, 0.5, 1.0),
+)
+LOOP_JITTER = prometheus_client.Histogram(
+    "user_edge_loop_jitter_seconds",
+    "|actual tick period - target period| in realtime mode",
+    ["robot_id"],
+    buckets=(0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1),
+)
+LOOP_OVERRUNS = prometheus_client.Counter(
+    "user_edge_loop_overruns_total", "Control ticks skipped because a step took longer than the period", ["robot_id"]
+)
+ENV_STEPS = prometheus_client.Counter("user_edge_env_steps_total", "Control steps taken (held ones too)", ["robot_id"])
+EPISODES = prometheus_client.Counter("user_edge_episodes_total", "Finished episodes", ["robot_id", "success"])
+HELD_STEPS = prometheus_client.Counter(
+    "user_edge_held_steps_total", "Steps where no action came in time and the robot held still", ["robot_id"]
+)
+POLICY_VERSION = prometheus_client.Gauge(
+    "user_edge_policy_version", "Policy version of the latest applied action", ["robot_id"]
+)
+EPISODE_RETURN = prometheus_client.Gauge("user_edge_last_episode_return", "Return of the latest episode", ["robot_id"])
+
+RATE_WINDOW_S = 5.0
+PERIOD_WINDOW = 1000  # recent tick periods kept for percentiles
+PAUSED_POLL_S = 0.05  # fast mode: how often a paused loop re-checks
+
+
+class StepSink(Protocol):
+    """Where finished steps go (ReplaySender); send() must not block."""
+
+    def send(self, step: step_pb2.Step) -> int: ...
+
+    @property
+    def unacked(self) -> int: ...
+
+
+class TickScheduler:
+    """Fixed-rate ticks on a grid t0 + k*period: sleeping to an absolute time never drifts, and a
+    step that overruns skips the ticks it missed instead of bursting to catch up."""
+
+    def __init__(
+        self,
+        period_s: float,
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], object] = time.sleep,
+    ) -> None:
+        if period_s <= 0:
+            raise ValueError("period_s must be > 0")
+        self.period = period_s
+        self._clock, self._sleep = clock, sleep
+        self._next: float | None = None
+        self.ticks = 0
+        self.overruns = 0  # ticks skipped
+
+    def wait(self) -> float:
+        """Sleep until the next tick and return its scheduled time (the first tick is now)."""
+        now = self._clock()
+        if self._next is None:
+            self._next = now
+        elif now >= self._next + self.period:  # whole ticks missed: skip them
+            missed = int((now - self._next) // self.period)
+            self._next += missed * self.period
+            self.overruns += missed
+        delay = self._next - now
+        if delay > 0:
+            self._sleep(delay)
+        tick = self._next
+        self._next += self.period
+        self.ticks += 1
+        return tick
+
+
+class RobotLoop:
+    """observe -> policy (deadline) -> act or hold -> observe, one step per tick, steps to the sink."""
+
+    def __init__(
+        self,
+        robot: Robot,
+        policy: PolicySource,
+        sink: StepSink,
+        mode: str = "realtime",
+        action_deadline_s: float = 0.04,
+    ) -> None:
+        if mode not in ("realtime", "fast"):
+            raise ValueError(f"mode must be realtime or fast, got {mode!r}")
+        self.robot, self.policy, self.sink = robot, policy, sink
+        self.spec = robot.spec
+        self.robot_id = self.spec.robot_id
+        self.mode = mode
+        self.deadline_s = action_deadline_s
+        rate = self.spec.control_rate_hz or 20.0
+        self.period_s = 1.0 / rate
+        self.max_episode_steps = int(self.spec.max_episode_steps) or 0
+        self._hold_action = clip_action(self.spec, np.zeros(action_bounds(self.spec)[0].shape, np.float32))
+        self._stop = threading.Event()
+        self._paused = threading.Event()
+        self._reset_requested = threading.Event()
+        self._lock = threading.Lock()  # guards the stats below against status() from the control thread
+        self._thread: threading.Thread | None = None
+        self.scheduler = TickScheduler(self.period_s, sleep=self._stop.wait)
+        # stats
+        self.env_steps = self.held_steps = self.episodes = self.successes = 0
+        self.policy_version = 0
+        self.last_held = False
+        self.error: str | None = None
+        self._overruns_seen = 0
+        self._periods: deque[float] = deque(maxlen=PERIOD_WINDOW)
+        self._jitters: deque[float] = deque(maxlen=PERIOD_WINDOW)
+        self._rate_samples: deque[tuple[float, int]] = deque()
+        self._new_episodes: list[control_pb2.EpisodeSummary] = []
+        self._labels = {"robot_id": self.robot_id}
+
+    # ------------------------------------------------------------------ lifecycle and commands
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name=f"loop-{self.robot_id}", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Graceful: the step in progress completes, then the robot holds."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    @property
+    def alive(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def pause(self) -> None:
+        self._paused.set()
+
+    def resume(self) -> None:
+        self._paused.clear()
+
+    def request_reset(self) -> None:
+        """End the current episode: the next step is marked truncated and a new episode starts."""
+        self._reset_requested.set()
+
+    @property
+    def paused(self) -> bool:
+        return self._paused.is_set()
+
+    # ------------------------------------------------------------------ loop
+
+    def _run(self) -> None:
+        try:
+            obs, self._obs_ns = self.robot.reset(), time.time_ns()
+            self._begin_episode()
+            stale = False  # the world moved on while paused: observe afresh before acting
+            last_tick: float | None = None
+            while not self._stop.is_set():
+                tick_start = self._wait_tick()
+                if self._stop.is_set():
+                    break
+                last_tick = self._record_period(last_tick, tick_start)
+                if self._paused.is_set():
+                    self.robot.hold()
+                    stale = True
+                    if self.mode == "fast":
+                        self._stop.wait(PAUSED_POLL_S)
+                        last_tick = None  # a paused gap is not a loop period
+                    continue
+                if stale:
+                    obs, self._obs_ns, stale = self.robot.observe(), time.time_ns(), False
+                obs = self._step(obs)
+        except Exception as exc:
+            self.error = repr(exc)
+            log.exception("robot loop failed; holding", extra=kv(robot_id=self.robot_id))
+        finally:
+            try:
+                self.robot.hold()
+            except Exception:
+                log.exception("robot hold failed", extra=kv(robot_id=self.robot_id))
+
+    def _wait_tick(self) -> float:
+        if self.mode == "realtime":
+            self.scheduler.wait()
+        return time.monotonic()
+
+    def _record_period(self, last_tick: float | None, now: float) -> float:
+        if last_tick is not None:
+            period = now - last_tick
+            LOOP_PERIOD.labels(**self._labels).observe(period)
+            with self._lock:
+                self._periods.append(period)
+                if self.mode == "realtime":
+                    jitter = abs(period - self.period_s)
+                    self._jitters.append(jitter)
+                    LOOP_JITTER.labels(**self._labels).observe(jitter)
+        overruns = self.scheduler.overruns - self._overruns_seen
+        if overruns:
+            LOOP_OVERRUNS.labels(**self._labels).inc(overruns)
+            self._overruns_seen = self.scheduler.overruns
+        return now
+
+    def _begin_episode(self) -> None:
+        start_ns = time.time_ns()
+        self.episode_id = f"{self.robot_id}-{start_ns}"
+        self.step_index = 0
+        self._return = 0.0
+        self._success = False
+        self._episode_version = 0
+
+    def _decide(self, obs: Observation) -> tuple[np.ndarray, int, bool]:
+        """(applied action, policy version, held). No answer in time -> hold still."""
+        answer = self.policy.act(self.robot_id, obs.features, self.deadline_s)
+        if answer is not None and np.asarray(answer[0]).size != self._hold_action.size:
+            log.warning(
+                "policy action has the wrong size; holding",
+                extra=kv(robot_id=self.robot_id, got=int(np.asarray(answer[0]).size), want=self._hold_action.size),
+            )
+            answer = None
+        if answer is None:
+            self.robot.hold()
+            return self._hold_action, 0, True
+        action, version = answer
+        return self.robot.act(np.asarray(action, np.float32).reshape(self._hold_action.shape)), int(version), False
+
+    def _step(self, obs: Observation) -> Observation:
+        started = time.monotonic()
+        applied, version, held = self._decide(obs)
+        acted_ns = time.time_ns()
+        nxt = self.robot.observe()
+        next_ns = time.time_ns()
+        last_index = self.max_episode_steps > 0 and self.step_index + 1 >= self.max_episode_steps
+        reset = self._reset_requested.is_set()
+        truncated = not nxt.terminated and (last_index or reset)
+        done = nxt.terminated or truncated
+        step = step_pb2.Step(
+            robot_id=self.robot_id,
+            episode_id=self.episode_id,
+            step_index=self.step_index,
+            observation=wire.to_tensor_map(obs.features),
+            action=wire.to_tensor(np.asarray(applied, np.float32)),
+            reward=float(nxt.reward),
+            terminated=bool(nxt.terminated),
+            truncated=bool(truncated),
+            success=bool(nxt.success),
+            policy_version=version,
+            held=held,
+            observed_at_ns=self._obs_ns,
+            acted_at_ns=acted_ns,
+        )
+        if done:
+            step.final_observation.CopyFrom(wire.to_tensor_map(nxt.features))
+        self.sink.send(step)
+        self._count(nxt, version, held)
+        if held and self.mode == "fast":
+            # Unthrottled holding would flood replay with still frames: a held tick lasts a deadline.
+            self._stop.wait(max(0.0, self.deadline_s - (time.monotonic() - started)))
+        if not done:
+            self.step_index += 1
+            self._obs_ns = next_ns
+            return nxt
+        self._end_episode(step)
+        if reset:
+            self._reset_requested.clear()
+        obs, self._obs_ns = self.robot.reset(), time.time_ns()
+        self._begin_episode()
+        return obs
+
+    def _count(self, nxt: Observation, version: int, held: bool) -> None:
+        self._return += float(nxt.reward)
+        self._success = self._success or bool(nxt.success)
+        ENV_STEPS.labels(**self._labels).inc()
+        if held:
+            HELD_STEPS.labels(**self._labels).inc()
+        else:
+            self._episode_version = max(self._episode_version, version)
+            POLICY_VERSION.labels(**self._labels).set(version)
+        now = time.monotonic()
+        with self._lock:
+            self.env_steps += 1
+            self.held_steps += int(held)
+            self.last_held = held
+            if not held:
+                self.policy_version = version
+            if not self._rate_samples or now - self._rate_samples[-1][0] >= 0.1:
+                self._rate_samples.append((now, self.env_steps))
+                while now - self._rate_samples[0][0] > RATE_WINDOW_S:
+                    self._rate_samples.popleft()
+
+    def _end_episode(self, last: step_pb2.Step) -> None:
+        summary = control_pb2.EpisodeSummary(
+            robot_id=self.robot_id,
+            episode_id=self.episode_id,
+            length=self.step_index + 1,
+            episode_return=self._return,
+            success=self._success,
+            ended_at_ns=time.time_ns(),
+            policy_version=self._episode_version,
+        )
+        EPISODES.labels(robot_id=self.robot_id, success=str(self._success).lower()).inc()
+        EPISODE_RETURN.labels(**self._labels).set(self._return)
+        with self._lock:
+            self.episodes += 1
+            self.successes += int(self._success)
+            self._new_episodes.append(summary)
+        log.debug(
+            "episode finished",
+            extra=kv(robot_id=self.robot_id, episode_id=self.episode_id, length=summary.length, success=self._success),
+        )
+
+    # ------------------------------------------------------------------ reporting
+
+    def status(self, drain: bool = True) -> control_pb2.RobotStatus:
+        """This robot's heartbeat status; drain=True hands over the episodes finished since the last call."""
+        with self._lock:
+            episodes = self._new_episodes
+            if drain:
+                self._new_episodes = []
+            periods = list(self._periods)
+            rate = self._rate_locked()
+            status = control_pb2.RobotStatus(
+                robot_id=self.robot_id,
+                state=self._state_locked(),
+                episodes=self.episodes,
+                successes=self.successes,
+                env_steps=self.env_steps,
+                env_steps_per_s=rate,
+                policy_version=self.policy_version,
+                loop_period_p99_ms=float(np.percentile(periods, 99) * 1000) if periods else 0.0,
+                held_steps=self.held_steps,
+                new_episodes=episodes,
+            )
+        status.steps_unacked = self.sink.unacked
+        return status
+
+    def _rate_locked(self) -> float:
+        if len(self._rate_samples) < 2:
+            return 0.0
+        (t0, n0), (t1, n1) = self._rate_samples[0], self._rate_samples[-1]
+        return (n1 - n0) / (t1 - t0) if t1 > t0 else 0.0
+
+    def _state_locked(self) -> int:
+        if self._paused.is_set():
+            return control_pb2.ROBOT_STATE_PAUSED
+        if self.error is not None:
+            return control_pb2.ROBOT_STATE_OFFLINE
+        return control_pb2.ROBOT_STATE_HOLDING if self.last_held else control_pb2.ROBOT_STATE_RUNNING
+
+    def loop_stats(self) -> dict[str, float]:
+        """Percentiles of recent tick periods and jitter (seconds), for reports and benchmarks."""
+        with self._lock:
+            periods, jitters = np.asarray(self._periods), np.asarray(self._jitters)
+        out: dict[str, float] = {"ticks": float(len(periods)), "overruns": float(self.scheduler.overruns)}
+        for name, arr in (("period", periods), ("jitter", jitters)):
+            if arr.size:
+                out[f"{name}_p50_s"] = float(np.percentile(arr, 50))
+                out[f"{name}_p99_s"] = float(np.percentile(arr, 99))
+        return out
+
+
+class EdgeAgent:
+    """Robots from cfg.edge.robots, one RobotLoop each, plus the replay sender, policy source and control client."""
+
+    def __init__(
+        self,
+        cfg: StackConfig,
+        robots: list[Robot] | None = None,
+        policy: PolicySource | None = None,
+        sender: ReplaySender | None = None,
+    ) -> None:
+        self.cfg = cfg
+        edge = cfg.edge
+        self.robots = robots if robots is not None else self._build_robots(cfg)
+        self.sender = sender or ReplaySender(
+            edge.replay_addr, cfg.auth, max_unacked=edge.max_unacked_steps, start=False
+        )
+        self.policy = policy or make_policy_source(cfg, client_id=edge.agent_id)
+        self.loops = {
+            r.spec.robot_id: RobotLoop(r, self.policy, self.sender, edge.mode, edge.action_deadline_ms / 1000.0)
+            for r in self.robots
+        }
+        self.control = ControlClient(
+            edge.control_addr,
+            cfg.auth,
+            edge.agent_id,
+            [r.spec for r in self.robots],
+            status_fn=self.status,
+            on_command=self.on_command,
+            start=False,
+        )
+
+    @staticmethod
+    def _build_robots(cfg: StackConfig) -> list[Robot]:
+        robots: list[Robot] = []
+        try:
+            for index, rc in enumerate(cfg.edge.robots):
+                robots.append(make_robot(rc.kind, rc.id, rc.params, seed=cfg.edge.seed + index))
+        except Exception:
+            for robot in robots:
+                robot.close()
+            raise
+        return robots
+
+    def start(self) -> None:
+        self.sender.start()
+        self.control.start()
+        for loop in self.loops.values():
+            loop.start()
+        log.info(
+            "edge agent started",
+            extra=kv(
+                agent_id=self.cfg.edge.agent_id,
+                robots=list(self.loops),
+                mode=self.cfg.edge.mode,
+                policy_source=self.cfg.edge.policy_source,
+            ),
+        )
+
+    def stop(self, flush_timeout_s: float = 10.0) -> None:
+        """Finish the current steps, hold, flush unacked steps to replay (bounded), close everything."""
+        for loop in self.loops.values():
+            loop.stop()
+        flushed = self.sender.flush(flush_timeout_s)
+        if not flushed:
+            log.warning("replay did not acknowledge every step before shutdown", extra=kv(unacked=self.sender.unacked))
+        self.control.close()
+        self.sender.close()
+        self.policy.close()
+        for robot in self.robots:
+            try:
+                robot.close()
+            except Exception:
+                log.exception("robot close failed", extra=kv(robot_id=robot.spec.robot_id))
+        log.info("edge agent stopped", extra=kv(agent_id=self.cfg.edge.agent_id, flushed=flushed))
+
+    def status(self) -> list[control_pb2.RobotStatus]:
+        return [loop.status() for loop in self.loops.values()]
+
+    def on_command(self, cmd: control_pb2.Command) -> tuple[bool, str]:
+        return apply_command(self.loops, cmd)
+
+
+_COMMANDS: dict[int, Callable[[RobotLoop], None]] = {
+    control_pb2.COMMAND_KIND_PAUSE: RobotLoop.pause,
+    control_pb2.COMMAND_KIND_RESUME: RobotLoop.resume,
+    control_pb2.COMMAND_KIND_RESET: RobotLoop.request_reset,
+}
+
+
+def apply_command(loops: dict[str, RobotLoop], cmd: control_pb2.Command) -> tuple[bool, str]:
+    """PAUSE / RESUME / RESET one robot (cmd.robot_id) or all of them (empty robot_id)."""
+    if cmd.robot_id and cmd.robot_id not in loops:
+        return False, f"unknown robot {cmd.robot_id!r} on this agent"
+    if cmd.kind not in _COMMANDS:
+        return False, f"unsupported command kind {cmd.kind}"
+    targets = [loops[cmd.robot_id]] if cmd.robot_id else list(loops.values())
+    for loop in targets:
+        _COMMANDS[cmd.kind](loop)
+    name = control_pb2.CommandKind.Name(cmd.kind)
+    log.info("command applied", extra=kv(command_id=cmd.command_id, kind=name, robots=[t.robot_id for t in targets]))
+    return True, f"{name} applied to {len(targets)} robot(s)"
+
+
+def run(cfg: StackConfig, ready_file: str | None) -> int:
+    """Process entry (`userctl edge`): blocks until SIGTERM/SIGINT, then stops gracefully."""
+    stop = rpc.install_signal_handlers()
+    agent = EdgeAgent(cfg)
+    httpd, metrics_port = rpc.start_metrics_http(cfg.edge.metrics_host, cfg.edge.metrics_port)
+    try:
+        agent.start()
+        rpc.write_ready_file(
+            ready_file, metrics_port=metrics_port, agent_id=cfg.edge.agent_id, robots=list(agent.loops)
+        )
+        stop.wait()
+    finally:
+        agent.stop()
+        httpd.shutdown()
+        httpd.server_close()
+    return 0

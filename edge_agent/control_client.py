@@ -1,0 +1,235 @@
+"""The edge's line to the Control service: register, heartbeat, receive commands, reconnect.
+
+One background thread owns the Control.Connect stream. Heartbeats carry a RobotStatus per robot
+from `status_fn()`; the finished-episode summaries inside them are not lost when a stream breaks:
+the ones of the last heartbeat written on a broken stream go out again with the next one.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+
+import grpc
+import prometheus_client
+
+import user
+from user.config import AuthConfig
+from user.log import kv
+from user.rpc import Backoff, make_channel
+from user.v1 import control_pb2, control_pb2_grpc, robot_pb2
+
+log = logging.getLogger(__name__)
+
+HEARTBEATS = prometheus_client.Counter("user_edge_heartbeats_sent_total", "Heartbeats written to the control stream")
+CONTROL_RECONNECTS = prometheus_client.Counter("user_edge_control_reconnects_total", "Control streams re-opened")
+COMMANDS = prometheus_client.Counter("user_edge_commands_total", "Commands received from control", ["kind"])
+CONNECTED = prometheus_client.Gauge("user_edge_control_connected", "1 while registered with control")
+
+# Refusals that retrying soon will not fix (duplicate robot id, bad spec, bad token): retry slowly.
+_FATALISH = (
+    grpc.StatusCode.ALREADY_EXISTS,
+    grpc.StatusCode.INVALID_ARGUMENT,
+    grpc.StatusCode.UNAUTHENTICATED,
+    grpc.StatusCode.PERMISSION_DENIED,
+    grpc.StatusCode.FAILED_PRECONDITION,
+)
+_POLL_S = 0.2
+
+StatusFn = Callable[[], list[control_pb2.RobotStatus]]
+CommandFn = Callable[[control_pb2.Command], "tuple[bool, str] | None"]
+
+
+class ControlClient:
+    def __init__(
+        self,
+        addr: str,
+        auth: AuthConfig,
+        agent_id: str,
+        specs: list[robot_pb2.RobotSpec],
+        status_fn: StatusFn,
+        on_command: CommandFn,
+        hostname: str | None = None,
+        backoff: Backoff | None = None,
+        slow_retry_s: float = 10.0,
+        start: bool = True,
+    ) -> None:
+        self.addr = addr
+        self.agent_id = agent_id
+        self._register = control_pb2.RegisterRequest(
+            agent_id=agent_id,
+            hostname=hostname or socket.gethostname(),
+            robots=specs,
+            software_version=user.__version__,
+        )
+        self._status_fn = status_fn
+        self._on_command = on_command
+        self._channel = make_channel(addr, auth)
+        self._stub = control_pb2_grpc.ControlStub(self._channel)
+        self._backoff = backoff or Backoff(initial_s=0.1, max_s=5.0)
+        self._slow_retry_s = slow_retry_s
+        self._stopping = threading.Event()
+        self._lock = threading.Lock()
+        self._results: queue.Queue[control_pb2.CommandResult] = queue.Queue()
+        self._carry: dict[str, list[control_pb2.EpisodeSummary]] = {}  # episodes to (re)send next heartbeat
+        self._in_flight: dict[str, list[control_pb2.EpisodeSummary]] = {}  # in the last heartbeat written
+        self._call: grpc.Call | None = None
+        self._stream_gen = 0
+        self._registered: control_pb2.Registered | None = None
+        self._registered_event = threading.Event()
+        self.heartbeats = self.reconnects = 0
+        self.last_error: grpc.StatusCode | None = None
+        self._thread = threading.Thread(target=self._run, name="control-client", daemon=True)
+        if start:
+            self.start()
+
+    def start(self) -> None:
+        if not self._thread.is_alive():
+            self._thread.start()
+
+    @property
+    def registered(self) -> control_pb2.Registered | None:
+        return self._registered
+
+    def wait_registered(self, timeout: float) -> bool:
+        return self._registered_event.wait(timeout)
+
+    def close(self) -> None:
+        self._stopping.set()
+        with self._lock:
+            self._stream_gen += 1
+            call = self._call
+        if call is not None:
+            call.cancel()
+        if self._thread.is_alive():
+            self._thread.join(timeout=5.0)
+        self._channel.close()
+        CONNECTED.set(0)
+
+    # ------------------------------------------------------------------ stream
+
+    def _run(self) -> None:
+        first = True
+        while not self._stopping.is_set():
+            if not first:
+                self.reconnects += 1
+                CONTROL_RECONNECTS.inc()
+            first = False
+            code = self._stream_once()
+            if self._stopping.is_set():
+                return
+            if code in _FATALISH:
+                log.error(
+                    "control refused this agent; fix the config or the duplicate agent. Retrying slowly",
+                    extra=kv(addr=self.addr, agent_id=self.agent_id, code=code.name, retry_s=self._slow_retry_s),
+                )
+                self._stopping.wait(self._slow_retry_s)
+            else:
+                self._backoff.sleep(self._stopping)
+
+    def _stream_once(self) -> grpc.StatusCode | None:
+        with self._lock:
+            self._stream_gen += 1
+            gen = self._stream_gen
+        call = self._stub.Connect(self._requests(gen))
+        with self._lock:
+            self._call = call
+        try:
+            for msg in call:
+                self._on_message(msg)
+            code = None
+            log.warning("control closed the stream", extra=kv(addr=self.addr))
+        except grpc.RpcError as err:
+            code = err.code() if hasattr(err, "code") else grpc.StatusCode.UNKNOWN
+            if not self._stopping.is_set() and code not in _FATALISH:
+                log.warning("control stream broken", extra=kv(addr=self.addr, code=code.name, details=err.details()))
+        finally:
+            with self._lock:
+                self._call = None
+                self._stream_gen += 1
+                self._requeue_in_flight()
+            self._registered = None
+            self._registered_event.clear()
+            CONNECTED.set(0)
+        self.last_error = code
+        return code
+
+    def _on_message(self, msg: control_pb2.ControlMessage) -> None:
+        kind = msg.WhichOneof("msg")
+        if kind == "registered":
+            self._registered = msg.registered
+            self._registered_event.set()
+            self._backoff.reset()
+            CONNECTED.set(1)
+            log.info(
+                "registered with control",
+                extra=kv(
+                    agent_id=self.agent_id,
+                    lease_id=msg.registered.lease_id,
+                    heartbeat_interval_s=msg.registered.heartbeat_interval_s,
+                ),
+            )
+        elif kind == "command":
+            self._dispatch(msg.command)
+
+    def _dispatch(self, cmd: control_pb2.Command) -> None:
+        COMMANDS.labels(control_pb2.CommandKind.Name(cmd.kind).removeprefix("COMMAND_KIND_").lower()).inc()
+        try:
+            outcome = self._on_command(cmd)
+            ok, message = outcome if outcome is not None else (True, "")
+        except Exception as exc:  # a bad command must not kill the stream
+            log.exception("command handler failed", extra=kv(command_id=cmd.command_id))
+            ok, message = False, f"handler error: {exc}"
+        self._results.put(control_pb2.CommandResult(command_id=cmd.command_id, ok=ok, message=message))
+
+    def _requests(self, gen: int) -> Iterator[control_pb2.EdgeMessage]:
+        yield control_pb2.EdgeMessage(register=self._register)
+        seq = 0
+        next_beat = 0.0
+        while True:
+            if gen != self._stream_gen:
+                return
+            reg = self._registered
+            if reg is not None and time.monotonic() >= next_beat:
+                interval = reg.heartbeat_interval_s if reg.heartbeat_interval_s > 0 else 1.0
+                next_beat = time.monotonic() + interval
+                seq += 1
+                beat = self._heartbeat(seq)
+                if gen != self._stream_gen:  # stream ended while building it: keep the episodes
+                    with self._lock:
+                        self._requeue_in_flight()
+                    return
+                self.heartbeats += 1
+                HEARTBEATS.inc()
+                yield control_pb2.EdgeMessage(heartbeat=beat)
+                continue
+            wait = _POLL_S if reg is None else max(0.0, min(_POLL_S, next_beat - time.monotonic()))
+            try:
+                result = self._results.get(timeout=wait)
+            except queue.Empty:
+                continue
+            yield control_pb2.EdgeMessage(command_result=result)
+
+    def _heartbeat(self, seq: int) -> control_pb2.Heartbeat:
+        """Statuses with fresh episodes plus any carried over from a broken stream."""
+        statuses = self._status_fn()
+        with self._lock:
+            self._in_flight = {}
+            for status in statuses:
+                carried = self._carry.pop(status.robot_id, [])
+                fresh = list(status.new_episodes)
+                del status.new_episodes[:]
+                status.new_episodes.extend([*carried, *fresh])
+                self._in_flight[status.robot_id] = list(status.new_episodes)
+        return control_pb2.Heartbeat(seq=seq, sent_at_ns=time.time_ns(), robots=statuses)
+
+    def _requeue_in_flight(self) -> None:
+        """Caller holds the lock. The last heartbeat may not have arrived: send its episodes again."""
+        for robot_id, episodes in self._in_flight.items():
+            if episodes:
+                self._carry[robot_id] = [*episodes, *self._carry.get(robot_id, [])]
+        self._in_flight = {}
