@@ -1,0 +1,224 @@
+"""Micro-batching: many robots' single observations in, one policy forward per batch out.
+
+Request handlers `submit()` one observation and wait on the returned future. One worker thread
+takes the first waiting request, then collects more until max_batch, or until max_wait_ms after
+the first one arrived, or until every robot seen recently has a request in (waiting longer could
+only add latency). Requests are grouped by (deterministic, observation shapes), stacked, and the
+policy runs once per group; each future gets its own row of the result.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable, Mapping
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from user.log import kv
+
+log = logging.getLogger(__name__)
+
+# Batched observation (values with a leading batch dim), deterministic -> (B, action_dim).
+ActFn = Callable[[Mapping[str, np.ndarray], bool], np.ndarray]
+# Called once per policy forward: (batch size, compute seconds).
+BatchObserver = Callable[[int, float], None]
+ACTIVE_WINDOW_S = 1.0  # a robot counts as active this long after its last request
+
+
+class NoPolicyError(RuntimeError):
+    """No policy has been loaded yet."""
+
+
+@dataclass
+class ActResult:
+    action: np.ndarray  # this request's row: (action_dim,) or (horizon, action_dim)
+    version: int
+    queue_us: int  # submit -> start of the forward that served it
+    compute_us: int  # the whole forward of its group
+    batch_size: int  # requests in that forward
+
+
+@dataclass
+class _Request:
+    observation: dict[str, np.ndarray]
+    deterministic: bool
+    key: str
+    future: Future
+    submitted: float = field(default_factory=time.perf_counter)
+
+    def group(self) -> tuple:
+        shapes = tuple(sorted((k, v.shape, v.dtype.str) for k, v in self.observation.items()))
+        return (self.deterministic, shapes)
+
+
+class MicroBatcher:
+    """Thread-safe; start() the worker, set_policy() whenever new weights arrive, stop() at shutdown."""
+
+    def __init__(
+        self,
+        max_batch: int,
+        max_wait_ms: float,
+        on_batch: BatchObserver | None = None,
+        name: str = "batcher",
+    ) -> None:
+        if max_batch < 1:
+            raise ValueError("max_batch must be >= 1")
+        self.max_batch = max_batch
+        self.max_wait_s = max(0.0, max_wait_ms) / 1000.0
+        self.on_batch = on_batch
+        self.name = name
+        self._queue: queue.Queue[_Request] = queue.Queue()
+        self._policy: tuple[ActFn, int] | None = None
+        self._lock = threading.Lock()
+        self._active: dict[str, float] = {}  # robot key -> last submit (perf_counter)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.requests = 0  # requests answered by a forward
+        self.batches = 0  # forwards run
+
+    # ----------------------------------------------------------------------- public
+
+    def start(self) -> MicroBatcher:
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
+            self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+            self._thread = None
+        self._fail_pending(RuntimeError("batcher stopped"))
+
+    def set_policy(self, act: ActFn, version: int) -> None:
+        """Swap the policy; a batch in progress finishes with the one it started with."""
+        with self._lock:
+            self._policy = (act, int(version))
+
+    @property
+    def version(self) -> int | None:
+        with self._lock:
+            return self._policy[1] if self._policy else None
+
+    @property
+    def mean_batch_size(self) -> float:
+        with self._lock:
+            return self.requests / self.batches if self.batches else 0.0
+
+    def submit(self, observation: Mapping[str, np.ndarray], deterministic: bool = False, key: str = "") -> Future:
+        """Queue one observation (no batch dim); the future resolves to an ActResult.
+
+        `key` names the caller (e.g. robot_id): the batcher closes a batch early once every
+        recently active key is in it.
+        """
+        if self._stop.is_set():
+            raise RuntimeError("batcher stopped")
+        if self.version is None:
+            raise NoPolicyError("no policy yet")
+        req = _Request({k: np.asarray(v) for k, v in observation.items()}, bool(deterministic), key, Future())
+        if key:
+            with self._lock:
+                self._active[key] = req.submitted
+        self._queue.put(req)
+        return req.future
+
+    # ----------------------------------------------------------------------- worker
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                first = self._queue.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            batch = self._collect(first)
+            try:
+                self._serve(batch)
+            except Exception as exc:  # never let one bad batch kill the worker
+                log.exception("batch failed", extra=kv(size=len(batch)))
+                for req in batch:
+                    if not req.future.done():
+                        req.future.set_exception(exc)
+
+    def _expected(self, now: float) -> int:
+        """How many distinct callers were active within the window (at least 1)."""
+        with self._lock:
+            stale = [k for k, t in self._active.items() if now - t > ACTIVE_WINDOW_S]
+            for k in stale:
+                del self._active[k]
+            return max(1, len(self._active))
+
+    def _collect(self, first: _Request) -> list[_Request]:
+        batch = [first]
+        keys = {first.key}
+        deadline = first.submitted + self.max_wait_s
+        # Anonymous callers give no hint how many are coming: they wait the full max_wait.
+        expected = self._expected(time.perf_counter()) if first.key else self.max_batch + 1
+        while len(batch) < self.max_batch and len(keys) < expected:
+            remaining = deadline - time.perf_counter()
+            try:
+                req = self._queue.get(timeout=remaining) if remaining > 0 else self._queue.get_nowait()
+            except queue.Empty:
+                break
+            batch.append(req)
+            if req.key:
+                keys.add(req.key)
+        # Whatever is already waiting rides along (up to max_batch): it costs no extra latency.
+        while len(batch) < self.max_batch:
+            try:
+                batch.append(self._queue.get_nowait())
+            except queue.Empty:
+                break
+        return batch
+
+    def _serve(self, batch: list[_Request]) -> None:
+        live = [r for r in batch if r.future.set_running_or_notify_cancel()]  # drop callers that gave up
+        with self._lock:
+            policy = self._policy
+        if policy is None:
+            for req in live:
+                req.future.set_exception(NoPolicyError("no policy yet"))
+            return
+        groups: dict[tuple, list[_Request]] = {}
+        for req in live:
+            groups.setdefault(req.group(), []).append(req)
+        for reqs in groups.values():
+            self._forward(policy, reqs)
+
+    def _forward(self, policy: tuple[ActFn, int], reqs: list[_Request]) -> None:
+        act, version = policy
+        start = time.perf_counter()
+        try:
+            stacked = {k: np.stack([r.observation[k] for r in reqs]) for k in reqs[0].observation}
+            actions = np.asarray(act(stacked, reqs[0].deterministic))
+            if actions.shape[:1] != (len(reqs),):
+                raise ValueError(f"policy returned shape {actions.shape} for a batch of {len(reqs)}")
+        except Exception as exc:
+            log.exception("policy forward failed", extra=kv(size=len(reqs), version=version))
+            for req in reqs:
+                req.future.set_exception(exc)
+            return
+        compute_s = time.perf_counter() - start
+        with self._lock:
+            self.requests += len(reqs)
+            self.batches += 1
+        if self.on_batch is not None:
+            self.on_batch(len(reqs), compute_s)
+        compute_us = int(compute_s * 1e6)
+        for i, req in enumerate(reqs):
+            queue_us = int((start - req.submitted) * 1e6)
+            req.future.set_result(ActResult(actions[i].copy(), version, queue_us, compute_us, len(reqs)))
+
+    def _fail_pending(self, exc: Exception) -> None:
+        while True:
+            try:
+                req = self._queue.get_nowait()
+            except queue.Empty:
+                return
+            if req.future.set_running_or_notify_cancel():
+                req.future.set_exception(exc)

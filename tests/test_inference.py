@@ -1,0 +1,295 @@
+"""Inference service and its micro-batcher, with a real sac_mlp policy built from random weights.
+
+Weights are loaded with InferenceService.load_weights (what the weight subscriber calls); the path
+through a real learner weight stream is covered by the integration test.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+
+import grpc
+import numpy as np
+import pytest
+import torch
+
+from services.inference.batcher import MicroBatcher, NoPolicyError
+from services.inference.server import InferenceService
+from user import wire
+from user.config import AuthConfig, StackConfig
+from user.policy import actor_from_config, build_policy, policy_spec_for
+from user.rpc import check_health, make_channel
+from user.v1 import inference_pb2, inference_pb2_grpc
+from user.v1 import tensor_pb2 as tpb
+from user.weights import WeightSet
+
+torch.set_num_threads(1)
+
+AUTH = AuthConfig(token="test-token")
+CONFIG = {
+    "obs_keys": ["state"],
+    "obs_dim": 6,
+    "action_dim": 3,
+    "hidden": [32, 32],
+    "action_low": [-1.0, -2.0, 0.0],
+    "action_high": [1.0, 2.0, 0.5],
+}
+LOW, HIGH = np.array(CONFIG["action_low"]), np.array(CONFIG["action_high"])
+
+
+def weight_set(version: int, seed: int = 0) -> WeightSet:
+    torch.manual_seed(seed)
+    actor = actor_from_config(CONFIG)
+    tensors = {k: v.detach().numpy().copy() for k, v in actor.state_dict().items()}
+    return WeightSet(version=version, policy=policy_spec_for(CONFIG), tensors=tensors)
+
+
+def obs(seed: int) -> dict[str, np.ndarray]:
+    return {"state": np.random.default_rng(seed).normal(size=6).astype(np.float32)}
+
+
+def act_request(seed: int, robot_id: str = "arm-0", deterministic: bool = True, **arrays) -> inference_pb2.ActRequest:
+    observation = arrays or obs(seed)
+    return inference_pb2.ActRequest(
+        robot_id=robot_id, observation=wire.to_tensor_map(observation), deterministic=deterministic
+    )
+
+
+@pytest.fixture
+def service() -> Iterator[InferenceService]:
+    cfg = StackConfig(auth=AUTH)
+    cfg.inference.server.port = 0
+    cfg.inference.server.metrics_port = 0
+    cfg.inference.server.grace_s = 1.0
+    cfg.inference.max_wait_ms = 50.0  # generous: the batch closes early once every active robot is in
+    svc = InferenceService(cfg, policy_source="manual", start_metrics=False).start()
+    yield svc
+    svc.stop()
+
+
+@pytest.fixture
+def stub(service: InferenceService) -> inference_pb2_grpc.InferenceStub:
+    return inference_pb2_grpc.InferenceStub(make_channel(service.address, AUTH))
+
+
+def test_no_policy_is_unavailable(service: InferenceService, stub: inference_pb2_grpc.InferenceStub) -> None:
+    with pytest.raises(grpc.RpcError) as err:
+        stub.Act(act_request(0), timeout=5)
+    assert err.value.code() == grpc.StatusCode.UNAVAILABLE
+    assert err.value.details() == "no policy yet"
+    status = stub.Status(inference_pb2.InferenceStatusRequest(), timeout=5)
+    assert status.policy_version == 0 and status.policy_kind == ""
+
+
+def test_act_shape_bounds_and_version(service: InferenceService, stub: inference_pb2_grpc.InferenceStub) -> None:
+    service.load_weights(weight_set(version=3))
+    reference = build_policy(policy_spec_for(CONFIG), weight_set(3).tensors, 3)
+    for seed in range(5):
+        resp = stub.Act(act_request(seed), timeout=5)
+        action = wire.from_tensor(resp.action)
+        assert action.shape == (3,) and action.dtype == np.float32
+        assert np.all(action >= LOW - 1e-6) and np.all(action <= HIGH + 1e-6)
+        assert resp.policy_version == 3 and resp.batch_size >= 1
+        assert resp.queue_us >= 0 and resp.compute_us >= 0
+        expected = reference.act({"state": obs(seed)["state"][None]}, deterministic=True)[0]
+        np.testing.assert_allclose(action, expected, rtol=1e-5, atol=1e-6)
+    sampled = [wire.from_tensor(stub.Act(act_request(0, deterministic=False), timeout=5).action) for _ in range(3)]
+    assert all(np.all(a >= LOW - 1e-6) and np.all(a <= HIGH + 1e-6) for a in sampled)
+    assert not np.allclose(sampled[0], sampled[1])  # a sample, not the mean
+
+    # A new weight version is served as soon as it is loaded.
+    service.load_weights(weight_set(version=4, seed=1))
+    assert stub.Act(act_request(0), timeout=5).policy_version == 4
+    status = stub.Status(inference_pb2.InferenceStatusRequest(), timeout=5)
+    assert status.policy_version == 4 and status.policy_kind == "sac_mlp"
+    assert status.requests == 9 and status.mean_batch_size >= 1.0
+
+
+def test_bad_weights_keep_the_old_policy(service: InferenceService, stub: inference_pb2_grpc.InferenceStub) -> None:
+    service.load_weights(weight_set(version=1))
+    bad = weight_set(version=2)
+    bad.tensors.pop(next(iter(bad.tensors)))
+    with pytest.raises(ValueError):
+        service.load_weights(bad)
+    assert stub.Act(act_request(0), timeout=5).policy_version == 1
+
+
+@pytest.mark.parametrize(
+    "observation",
+    [
+        {"state": np.zeros(5, np.float32)},  # wrong size
+        {"joints": np.zeros(6, np.float32)},  # wrong key
+        {"state": np.array([0, 0, np.nan, 0, 0, 0], np.float32)},
+    ],
+    ids=["shape", "key", "nan"],
+)
+def test_bad_observation_is_invalid_argument(
+    service: InferenceService, stub: inference_pb2_grpc.InferenceStub, observation: dict[str, np.ndarray]
+) -> None:
+    service.load_weights(weight_set(version=1))
+    with pytest.raises(grpc.RpcError) as err:
+        stub.Act(act_request(0, **observation), timeout=5)
+    assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert err.value.details().startswith("bad observation")
+    assert stub.Act(act_request(0), timeout=5).policy_version == 1  # still serving
+
+
+def test_undecodable_tensor_is_invalid_argument(
+    service: InferenceService, stub: inference_pb2_grpc.InferenceStub
+) -> None:
+    service.load_weights(weight_set(version=1))
+    req = inference_pb2.ActRequest(robot_id="arm-0")
+    req.observation.tensors["state"].CopyFrom(tpb.Tensor(dtype=tpb.DTYPE_FLOAT32, shape=[6], data=b"\0" * 7))
+    with pytest.raises(grpc.RpcError) as err:
+        stub.Act(req, timeout=5)
+    assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+
+
+def test_concurrent_requests_are_batched(service: InferenceService, stub: inference_pb2_grpc.InferenceStub) -> None:
+    service.load_weights(weight_set(version=7))
+    clients, rounds = 8, 20
+    barrier = threading.Barrier(clients)
+    sizes: list[int] = []
+    errors: list[BaseException] = []
+    lock = threading.Lock()
+
+    def robot(i: int) -> None:
+        try:
+            barrier.wait(timeout=10)
+            for r in range(rounds):
+                resp = stub.Act(act_request(r, robot_id=f"arm-{i}", deterministic=r % 2 == 0), timeout=10)
+                action = wire.from_tensor(resp.action)
+                assert action.shape == (3,) and resp.policy_version == 7
+                assert np.all(action >= LOW - 1e-6) and np.all(action <= HIGH + 1e-6)
+                with lock:
+                    sizes.append(resp.batch_size)
+        except BaseException as exc:
+            errors.append(exc)
+
+    threads = [threading.Thread(target=robot, args=(i,)) for i in range(clients)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors
+    assert len(sizes) == clients * rounds
+    print(f"batch sizes seen by {clients} clients: mean {np.mean(sizes):.2f}, max {max(sizes)}")
+    assert np.mean(sizes) > 1.0 and max(sizes) <= clients
+    status = stub.Status(inference_pb2.InferenceStatusRequest(), timeout=5)
+    assert status.requests == clients * rounds and status.mean_batch_size > 1.0
+
+
+def test_client_deadline_is_honored(service: InferenceService, stub: inference_pb2_grpc.InferenceStub) -> None:
+    service.load_weights(weight_set(version=1))
+    release = threading.Event()
+
+    def stuck(observation, deterministic):  # a forward that outlives the caller's deadline
+        release.wait(5)
+        return np.zeros((len(observation["state"]), 3), np.float32)
+
+    service.batcher.set_policy(stuck, 1)
+    try:
+        with pytest.raises(grpc.RpcError) as err:
+            stub.Act(act_request(0), timeout=0.2)
+        assert err.value.code() == grpc.StatusCode.DEADLINE_EXCEEDED
+    finally:
+        release.set()
+
+
+def test_auth_and_health(service: InferenceService) -> None:
+    anonymous = inference_pb2_grpc.InferenceStub(make_channel(service.address, AuthConfig(enabled=False)))
+    with pytest.raises(grpc.RpcError) as err:
+        anonymous.Act(act_request(0), timeout=5)
+    assert err.value.code() == grpc.StatusCode.UNAUTHENTICATED
+    assert check_health(service.address, AuthConfig(enabled=False), service="user.v1.Inference")
+
+
+# --------------------------------------------------------------------------- the batcher alone
+
+
+@pytest.fixture
+def policy():
+    return build_policy(policy_spec_for(CONFIG), weight_set(1).tensors, 1)
+
+
+def test_batcher_stacks_and_splits(policy) -> None:
+    batcher = MicroBatcher(max_batch=64, max_wait_ms=200.0).start()
+    try:
+        with pytest.raises(NoPolicyError):
+            batcher.submit(obs(0), True)
+        batcher.set_policy(policy.act, policy.version)
+        # Anonymous callers wait the full max_wait, so everything submitted at once rides in one forward,
+        # split by the deterministic flag.
+        futures = [batcher.submit(obs(i), deterministic=i < 10) for i in range(16)]
+        results = [f.result(timeout=10) for f in futures]
+        assert {r.batch_size for r in results[:10]} == {10} and {r.batch_size for r in results[10:]} == {6}
+        for i, r in enumerate(results[:10]):
+            expected = policy.act({"state": obs(i)["state"][None]}, deterministic=True)[0]
+            np.testing.assert_allclose(r.action, expected, rtol=1e-5, atol=1e-6)
+            assert r.version == 1 and r.queue_us >= 0
+        assert batcher.requests == 16 and batcher.batches == 2 and batcher.mean_batch_size == 8.0
+    finally:
+        batcher.stop()
+
+
+def test_batcher_respects_max_batch_and_survives_errors(policy) -> None:
+    batcher = MicroBatcher(max_batch=4, max_wait_ms=50.0).start()
+    try:
+        batcher.set_policy(policy.act, 2)
+        results = [f.result(timeout=10) for f in [batcher.submit(obs(i), True, key=f"r{i}") for i in range(10)]]
+        assert all(1 <= r.batch_size <= 4 for r in results)
+
+        def broken(observation, deterministic):
+            raise RuntimeError("boom")
+
+        batcher.set_policy(broken, 3)
+        with pytest.raises(RuntimeError, match="boom"):
+            batcher.submit(obs(0), True, key="r0").result(timeout=10)
+        batcher.set_policy(policy.act, 4)  # the worker is still alive
+        assert batcher.submit(obs(0), True, key="r0").result(timeout=10).version == 4
+    finally:
+        batcher.stop()
+
+
+def test_batcher_closes_early_when_every_robot_is_in(policy) -> None:
+    """With one known robot, a request does not wait out max_wait (a 10 s wait would fail result(timeout=5))."""
+    batcher = MicroBatcher(max_batch=64, max_wait_ms=10_000.0).start()
+    try:
+        batcher.set_policy(policy.act, 1)
+        for i in range(3):
+            assert batcher.submit(obs(i), True, key="solo").result(timeout=5).batch_size == 1
+    finally:
+        batcher.stop()
+
+
+def test_weights_arrive_through_a_weight_stream() -> None:
+    """The default policy source subscribes to the learner address (here a bare WeightServicer)."""
+    from user.rpc import start_server
+    from user.v1 import learner_pb2_grpc
+    from user.weights import WeightServicer, WeightStore
+
+    cfg = StackConfig(auth=AUTH)
+    cfg.inference.server.port = 0
+    cfg.inference.server.grace_s = 1.0
+    store = WeightStore()
+    learner = start_server(
+        "learner-weights",
+        lambda server: learner_pb2_grpc.add_LearnerServicer_to_server(WeightServicer(store, poll_s=0.2), server),
+        ["user.v1.Learner"],
+        cfg.learner.server.model_copy(update={"port": 0, "grace_s": 0.5}),
+        AUTH,
+        start_metrics=False,
+    )
+    cfg.inference.learner_addr = learner.address()
+    svc = InferenceService(cfg, start_metrics=False).start()
+    try:
+        ws = weight_set(version=5)
+        store.publish(ws.version, ws.policy, ws.tensors)
+        assert svc.subscriber is not None and svc.subscriber.wait_version(5, timeout=20)
+        stub = inference_pb2_grpc.InferenceStub(make_channel(svc.address, AUTH))
+        assert stub.Act(act_request(0), timeout=5).policy_version == 5
+    finally:
+        store.close()
+        svc.stop()
+        learner.stop()
