@@ -1,0 +1,102 @@
+"""Atomic learner checkpoints on our own disk.
+
+Each checkpoint is written to a temp file in the same directory, fsynced, renamed to
+`ckpt-<updates:09d>.pt`, and only then named by the `latest` pointer file (itself replaced
+atomically). A crash at any point leaves the previous checkpoint loadable; stray `.tmp` files
+are never read. Loading uses torch.load(weights_only=True): these files are ours, never wire bytes.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from user.log import kv
+
+log = logging.getLogger(__name__)
+
+LATEST = "latest"
+KEEP = 3
+_NAME = re.compile(r"^ckpt-(\d{9,})\.pt$")
+
+
+def _fsync_dir(path: Path) -> None:
+    """Make the renames durable (a no-op where directories cannot be opened)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _write_atomic(path: Path, write: Any) -> None:
+    """write(file) into a temp file beside `path`, fsync, rename over `path`."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def checkpoint_name(updates: int) -> str:
+    return f"ckpt-{updates:09d}.pt"
+
+
+def list_checkpoints(ckpt_dir: str | Path) -> list[Path]:
+    """Complete checkpoints, oldest first (temp files are ignored)."""
+    ckpt_dir = Path(ckpt_dir)
+    if not ckpt_dir.is_dir():
+        return []
+    found = [(int(m.group(1)), p) for p in ckpt_dir.iterdir() if (m := _NAME.match(p.name))]
+    return [p for _, p in sorted(found)]
+
+
+def save_checkpoint(ckpt_dir: str | Path, state: dict[str, Any], keep: int = KEEP) -> Path:
+    """Write `state` (must hold "updates") atomically, point `latest` at it, keep the newest `keep`."""
+    ckpt_dir = Path(ckpt_dir)
+    ckpt_dir.mkdir(parents=True, exist_ok=True)
+    path = ckpt_dir / checkpoint_name(int(state["updates"]))
+    _write_atomic(path, lambda f: torch.save(state, f))
+    _write_atomic(ckpt_dir / LATEST, lambda f: f.write(path.name.encode() + b"\n"))
+    _fsync_dir(ckpt_dir)
+    for old in list_checkpoints(ckpt_dir)[:-keep]:
+        if old != path:
+            old.unlink(missing_ok=True)
+    log.info("checkpoint saved", extra=kv(path=str(path), updates=int(state["updates"])))
+    return path
+
+
+def latest_path(ckpt_dir: str | Path) -> Path | None:
+    """The checkpoint `latest` names; falls back to the newest complete file if the pointer is missing or stale."""
+    ckpt_dir = Path(ckpt_dir)
+    pointer = ckpt_dir / LATEST
+    if pointer.is_file():
+        name = pointer.read_text().strip()
+        if _NAME.match(name) and (ckpt_dir / name).is_file():
+            return ckpt_dir / name
+        log.warning("latest pointer names no checkpoint; using the newest file", extra=kv(pointer=name))
+    found = list_checkpoints(ckpt_dir)
+    return found[-1] if found else None
+
+
+def load_latest(ckpt_dir: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any] | None:
+    path = latest_path(ckpt_dir)
+    if path is None:
+        return None
+    state = torch.load(path, map_location=map_location, weights_only=True)
+    log.info("checkpoint loaded", extra=kv(path=str(path), updates=int(state.get("updates", 0))))
+    return state
