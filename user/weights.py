@@ -18,6 +18,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import grpc
 import numpy as np
@@ -184,13 +185,15 @@ class WeightAssembler:
     def __init__(self) -> None:
         self._header: learner_pb2.WeightHeader | None = None
         self._buf = bytearray()
+        self._filled = 0
+        self._sha: Any = None  # running sha256 of raw payloads, updated as chunks arrive
 
     @property
     def in_progress(self) -> bool:
         return self._header is not None
 
     def reset(self) -> None:
-        self._header, self._buf = None, bytearray()
+        self._header, self._buf, self._filled, self._sha = None, bytearray(), 0, None
 
     def feed(self, msg: learner_pb2.WeightMessage) -> WeightSet | None:
         try:
@@ -209,7 +212,9 @@ class WeightAssembler:
             raise WireError(f"weight header v{header.version} before v{self._header.version} was complete")
         _check_header(header)
         self._header = header
-        self._buf = bytearray()
+        # Preallocated (the header passed the size limit): one copy per chunk, no regrowth.
+        self._buf, self._filled = bytearray(header.encoded_bytes), 0
+        self._sha = hashlib.sha256() if header.encoding == ENCODING_RAW else None
         return self._finish() if header.encoded_bytes == 0 else None
 
     def _on_chunk(self, chunk: learner_pb2.WeightChunk) -> WeightSet | None:
@@ -218,33 +223,41 @@ class WeightAssembler:
             raise WireError("weight chunk without a header")
         if chunk.version != h.version:
             raise WireError(f"weight chunk of v{chunk.version} inside v{h.version}")
-        if chunk.offset != len(self._buf):
-            raise WireError(f"weight chunk at offset {chunk.offset}, expected {len(self._buf)}")
-        if not chunk.data:
+        start, data = self._filled, chunk.data
+        if chunk.offset != start:
+            raise WireError(f"weight chunk at offset {chunk.offset}, expected {start}")
+        if not data:
             raise WireError("empty weight chunk")
-        if len(self._buf) + len(chunk.data) > h.encoded_bytes:
+        if start + len(data) > h.encoded_bytes:
             raise WireError(f"weight chunks exceed the declared {h.encoded_bytes} encoded bytes")
-        self._buf += chunk.data
-        return self._finish() if len(self._buf) == h.encoded_bytes else None
+        self._buf[start : start + len(data)] = data
+        self._filled += len(data)
+        if self._sha is not None:
+            self._sha.update(data)
+        return self._finish() if self._filled == h.encoded_bytes else None
 
     def _finish(self) -> WeightSet:
         h = self._header
         assert h is not None
-        raw = self._decode(h, bytes(self._buf))
-        if hashlib.sha256(raw).digest() != h.sha256:
+        raw = self._decode(h, self._buf)  # the buffer is handed over, not copied: reset() starts a new one
+        digest = self._sha.digest() if self._sha is not None else hashlib.sha256(raw).digest()
+        if digest != h.sha256:
             raise WireError(f"weight v{h.version}: sha256 mismatch")
         tensors = {}
         for info in h.tensors:
             dtype = dtype_from_proto(info.dtype)
-            flat = np.frombuffer(raw, dtype=dtype, count=math.prod(info.shape), offset=info.offset)
-            # copy: writable, aligned, native byte order, independent of the payload buffer
-            tensors[info.name] = flat.reshape(tuple(info.shape)).astype(dtype.newbyteorder("="), copy=True)
+            arr = np.frombuffer(raw, dtype=dtype, count=math.prod(info.shape), offset=info.offset)
+            arr = arr.reshape(tuple(info.shape))
+            # Views into the payload when usable as is (writable, aligned, native order); else a copy.
+            if not (arr.flags.aligned and arr.flags.writeable and arr.dtype.isnative):
+                arr = arr.astype(dtype.newbyteorder("="), copy=True)
+            tensors[info.name] = arr
         out = WeightSet(int(h.version), h.policy, tensors, int(h.learner_updates))
         self.reset()
         return out
 
     @staticmethod
-    def _decode(h: learner_pb2.WeightHeader, data: bytes) -> bytes:
+    def _decode(h: learner_pb2.WeightHeader, data: bytearray) -> bytearray:
         if h.encoding == ENCODING_RAW:
             return data
         import zstandard
@@ -255,7 +268,7 @@ class WeightAssembler:
             raise WireError(f"weight v{h.version}: bad zstd payload: {exc}") from exc
         if len(raw) != h.total_bytes:
             raise WireError(f"weight v{h.version}: decoded {len(raw)} bytes, header says {h.total_bytes}")
-        return raw
+        return bytearray(raw)  # writable, so tensors can be views
 
 
 # --------------------------------------------------------------------------- server side
