@@ -81,15 +81,15 @@ class LearnerConfig(Strict):
     device: str = "cpu"
     torch_threads: int = Field(default=1, ge=1)
     seed: int = 0
-    hidden: list[int] = [256, 256]
-    batch_size: int = Field(default=256, ge=1)
+    hidden: list[int] = [128, 128]
+    batch_size: int = Field(default=128, ge=1)
     gamma: float = Field(default=0.95, gt=0, le=1)
     tau: float = Field(default=0.005, gt=0, le=1)
-    actor_lr: float = Field(default=3e-4, gt=0)
-    critic_lr: float = Field(default=3e-4, gt=0)
-    alpha_lr: float = Field(default=3e-4, gt=0)
+    actor_lr: float = Field(default=1e-3, gt=0)
+    critic_lr: float = Field(default=1e-3, gt=0)
+    alpha_lr: float = Field(default=1e-3, gt=0)
     init_alpha: float = Field(default=0.1, gt=0)
-    min_transitions: int = Field(default=500, ge=1, description="wait for this many before training")
+    min_transitions: int = Field(default=250, ge=1, description="wait for this many before training")
     max_updates_per_transition: float = Field(
         default=4.0, gt=0, description="caps the update-to-data ratio so the learner cannot overfit a tiny buffer"
     )
