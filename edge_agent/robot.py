@@ -19,8 +19,8 @@ from user.v1 import robot_pb2
 @dataclass
 class Observation:
     features: dict[str, np.ndarray]  # must match spec.observation by name, dtype and shape
-    reward: float = 0.0              # reward for the action that led here
-    terminated: bool = False         # task over (success or failure): no bootstrapping past it
+    reward: float = 0.0  # reward for the action that led here
+    terminated: bool = False  # task over (success or failure): no bootstrapping past it
     success: bool = False
     info: dict[str, Any] = field(default_factory=dict)
 

@@ -65,12 +65,11 @@ def test_stack_learns_through_all_services(tmp_path: Path) -> None:
         learner = learner_pb2_grpc.LearnerStub(make_channel(stack.child("learner").grpc_addr, auth))
         replay = replay_pb2_grpc.ReplayStub(make_channel(stack.child("replay").grpc_addr, auth))
 
-        robots = _wait_for(
-            lambda: [r for r in control.ListRobots(control_pb2.ListRobotsRequest(), timeout=5).robots if r.online]
-            if len(control.ListRobots(control_pb2.ListRobotsRequest(), timeout=5).robots) == 2
-            else None,
-            "two robots online",
-        )
+        def online_robots():
+            robots = control.ListRobots(control_pb2.ListRobotsRequest(), timeout=5).robots
+            return [r for r in robots if r.online] if len(robots) == 2 else None
+
+        robots = _wait_for(online_robots, "two robots online")
         assert sorted(r.spec.robot_id for r in robots) == ["arm-0", "arm-1"]
 
         # The learner trains and publishes; both edges act with versions newer than the first.
@@ -114,7 +113,8 @@ def test_stack_learns_through_all_services(tmp_path: Path) -> None:
                 assert check_health(stack.child(name).grpc_addr, auth)
 
         # The token is enforced on the running stack.
-        anonymous = control_pb2_grpc.ControlStub(make_channel(stack.child("control").grpc_addr, cfg.auth.model_copy(update={"enabled": False})))
+        no_token = cfg.auth.model_copy(update={"enabled": False})
+        anonymous = control_pb2_grpc.ControlStub(make_channel(stack.child("control").grpc_addr, no_token))
         with pytest.raises(grpc.RpcError) as err:
             anonymous.ListRobots(control_pb2.ListRobotsRequest(), timeout=5)
         assert err.value.code() == grpc.StatusCode.UNAUTHENTICATED

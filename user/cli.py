@@ -1,8 +1,8 @@
 """userctl: one entry point for every USER process.
 
-    userctl control|replay|inference|learner|edge --config configs/demo.yaml [--set a.b=c] [--ready-file F]
-    userctl up --config configs/demo.yaml      # the whole stack locally, with a live console
-    userctl health HOST:PORT                   # exit 0 when SERVING (docker health checks)
+userctl control|replay|inference|learner|edge --config configs/demo.yaml [--set a.b=c] [--ready-file F]
+userctl up --config configs/demo.yaml      # the whole stack locally, with a live console
+userctl health HOST:PORT                   # exit 0 when SERVING (docker health checks)
 """
 
 from __future__ import annotations

@@ -154,7 +154,11 @@ class Stack:
         replay = self._spawn(
             "replay",
             "replay",
-            [*(f"replay.{x}" for x in listen), f"replay.path={rd / 'replay'}", f"replay.control_addr={control.grpc_addr}"],
+            [
+                *(f"replay.{x}" for x in listen),
+                f"replay.path={rd / 'replay'}",
+                f"replay.control_addr={control.grpc_addr}",
+            ],
         )
         self._wait_ready(replay)
         on_progress("learner")
@@ -171,7 +175,9 @@ class Stack:
         self._wait_ready(learner)
         on_progress("inference")
         inference = self._spawn(
-            "inference", "inference", [*(f"inference.{x}" for x in listen), f"inference.learner_addr={learner.grpc_addr}"]
+            "inference",
+            "inference",
+            [*(f"inference.{x}" for x in listen), f"inference.learner_addr={learner.grpc_addr}"],
         )
         self._wait_ready(inference)
         template = self.cfg.edge.robots[0]
@@ -252,7 +258,9 @@ class Monitor:
         now = time.monotonic() - self.t0
         robots, learner, replay = [], None, None
         try:
-            robots = list(self.control.ListRobots(control_pb2.ListRobotsRequest(include_offline=True), timeout=2).robots)
+            robots = list(
+                self.control.ListRobots(control_pb2.ListRobotsRequest(include_offline=True), timeout=2).robots
+            )
         except grpc.RpcError:
             pass
         try:
@@ -288,7 +296,17 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
 
     learner_version = snap.learner.weight_version if snap.learner else 0
     robots = Table(title=f"USER · {cfg.up.name} · {snap.t:5.0f}s / {budget_s:.0f}s", expand=True)
-    for col in ("robot", "state", "episodes", "success (last 20)", "env steps", "steps/s", "policy v", "staleness", "loop p99 ms"):
+    for col in (
+        "robot",
+        "state",
+        "episodes",
+        "success (last 20)",
+        "env steps",
+        "steps/s",
+        "policy v",
+        "staleness",
+        "loop p99 ms",
+    ):
         robots.add_column(col, justify="right" if col != "robot" else "left")
     for info in snap.robots:
         st = info.status
@@ -308,7 +326,14 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
             f"{st.loop_period_p99_ms:.1f}",
         )
     learner = Table(expand=True)
-    for col in ("learner updates", "updates/s", "weight version", "buffer (transitions)", "alpha", "overall success (last 20)"):
+    for col in (
+        "learner updates",
+        "updates/s",
+        "weight version",
+        "buffer (transitions)",
+        "alpha",
+        "overall success (last 20)",
+    ):
         learner.add_column(col, justify="right")
     overall = mon.success_rate(cfg.up.window_episodes)
     if snap.learner:

@@ -63,9 +63,7 @@ def to_tensor(array: np.ndarray, encoding: int = tpb.ENCODING_RAW) -> tpb.Tensor
     elif encoding == tpb.ENCODING_ZSTD:
         import zstandard
 
-        data = zstandard.ZstdCompressor(level=3).compress(
-            np.ascontiguousarray(arr, dtype=_TO_NP[code]).tobytes()
-        )
+        data = zstandard.ZstdCompressor(level=3).compress(np.ascontiguousarray(arr, dtype=_TO_NP[code]).tobytes())
     else:
         raise WireError(f"unknown encoding {encoding}")
     return tpb.Tensor(dtype=code, shape=list(arr.shape), data=data, encoding=encoding)
@@ -95,9 +93,7 @@ def from_tensor(tensor: tpb.Tensor) -> np.ndarray:
     else:
         raise WireError(f"unsupported encoding {enc}")
     if len(raw) != expected:
-        raise WireError(
-            f"tensor data has {len(raw)} bytes, dtype {dtype} x shape {shape} needs {expected}"
-        )
+        raise WireError(f"tensor data has {len(raw)} bytes, dtype {dtype} x shape {shape} needs {expected}")
     return np.frombuffer(raw, dtype=dtype).reshape(shape).astype(dtype.newbyteorder("="), copy=True)
 
 
