@@ -493,6 +493,10 @@ def apply_command(loops: dict[str, RobotLoop], cmd: control_pb2.Command) -> tupl
 def run(cfg: StackConfig, ready_file: str | None) -> int:
     """Process entry (`userctl edge`): blocks until SIGTERM/SIGINT, then stops gracefully."""
     stop = rpc.install_signal_handlers()
+    if cfg.edge.policy_source == "local":
+        import torch
+
+        torch.set_num_threads(1)  # one small forward per tick: extra threads only contend with the loop
     agent = EdgeAgent(cfg)
     httpd, metrics_port = rpc.start_metrics_http(cfg.edge.metrics_host, cfg.edge.metrics_port)
     try:

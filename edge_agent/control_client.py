@@ -73,6 +73,7 @@ class ControlClient:
         self._backoff = backoff or Backoff(initial_s=0.1, max_s=5.0)
         self._slow_retry_s = slow_retry_s
         self._stopping = threading.Event()
+        self._final = threading.Event()
         self._lock = threading.Lock()
         self._results: queue.Queue[control_pb2.CommandResult] = queue.Queue()
         self._carry: dict[str, list[control_pb2.EpisodeSummary]] = {}  # episodes to (re)send next heartbeat
@@ -98,8 +99,12 @@ class ControlClient:
     def wait_registered(self, timeout: float) -> bool:
         return self._registered_event.wait(timeout)
 
-    def close(self) -> None:
+    def close(self, final_heartbeat_timeout_s: float = 2.0) -> None:
+        """Send a last heartbeat (the latest episodes), hang up cleanly, stop the thread."""
         self._stopping.set()
+        if self._registered is not None and final_heartbeat_timeout_s > 0 and self._thread.is_alive():
+            self._final.set()  # the request iterator sends one more heartbeat, then half-closes
+            self._thread.join(final_heartbeat_timeout_s)  # control ends the stream once it has read it
         with self._lock:
             self._stream_gen += 1
             call = self._call
@@ -142,7 +147,8 @@ class ControlClient:
             for msg in call:
                 self._on_message(msg)
             code = None
-            log.warning("control closed the stream", extra=kv(addr=self.addr))
+            if not self._stopping.is_set():
+                log.warning("control closed the stream", extra=kv(addr=self.addr))
         except grpc.RpcError as err:
             code = err.code() if hasattr(err, "code") else grpc.StatusCode.UNKNOWN
             if not self._stopping.is_set() and code not in _FATALISH:
@@ -194,7 +200,8 @@ class ControlClient:
             if gen != self._stream_gen:
                 return
             reg = self._registered
-            if reg is not None and time.monotonic() >= next_beat:
+            final = self._final.is_set()
+            if reg is not None and (final or time.monotonic() >= next_beat):
                 interval = reg.heartbeat_interval_s if reg.heartbeat_interval_s > 0 else 1.0
                 next_beat = time.monotonic() + interval
                 seq += 1
@@ -206,6 +213,8 @@ class ControlClient:
                 self.heartbeats += 1
                 HEARTBEATS.inc()
                 yield control_pb2.EdgeMessage(heartbeat=beat)
+                if final:
+                    return  # half-close: control sees the end of our stream and closes its side
                 continue
             wait = _POLL_S if reg is None else max(0.0, min(_POLL_S, next_beat - time.monotonic()))
             try:

@@ -72,6 +72,8 @@ class RemotePolicy(PolicySource):
         self.addr = addr
         self._channel = make_channel(addr, auth)
         self._stub = inference_pb2_grpc.InferenceStub(self._channel)
+        # Connect now, so the first action does not pay the TCP/HTTP2 handshake inside its deadline.
+        self._connecting = grpc.channel_ready_future(self._channel)
         self._deterministic = deterministic
         self._version = 0
         self._last_error: grpc.StatusCode | None = None
@@ -112,6 +114,7 @@ class RemotePolicy(PolicySource):
             self._last_error = code
 
     def close(self) -> None:
+        self._connecting.cancel()
         self._channel.close()
 
 
@@ -121,6 +124,7 @@ class LocalPolicy(PolicySource):
     def __init__(
         self, learner_addr: str, auth: AuthConfig, client_id: str, deterministic: bool = False, start: bool = True
     ) -> None:
+        import user.policy  # noqa: F401 - torch loads now, not in the weight thread while robots run
         from user.weights import WeightSubscriber
 
         self._policy: Policy | None = None  # replaced whole, never mutated: reading it needs no lock

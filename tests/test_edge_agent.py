@@ -3,9 +3,15 @@ real Control / Replay / Inference servers and the real MuJoCo sim arm."""
 
 from __future__ import annotations
 
+import json
+import os
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
+import urllib.request
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -13,17 +19,19 @@ import numpy as np
 import pytest
 import torch
 
-from edge_agent.agent import RobotLoop, TickScheduler, apply_command
+from edge_agent.agent import EdgeAgent, RobotLoop, TickScheduler, apply_command
 from edge_agent.control_client import ControlClient
 from edge_agent.policy_source import RemotePolicy
+from edge_agent.replay_client import ReplaySender
 from edge_agent.robot import make_robot
 from services.control.server import ControlService
 from services.inference.server import InferenceService
+from services.replay.server import ReplayService
 from user import wire
-from user.config import AuthConfig, StackConfig
+from user.config import AuthConfig, RobotConfig, StackConfig
 from user.policy import actor_from_config, policy_spec_for
 from user.rpc import Backoff, make_channel
-from user.v1 import control_pb2, control_pb2_grpc, step_pb2
+from user.v1 import control_pb2, control_pb2_grpc, replay_pb2, replay_pb2_grpc, robot_pb2, step_pb2
 from user.weights import WeightSet
 
 torch.set_num_threads(1)
@@ -251,6 +259,110 @@ def test_loop_episodes_steps_and_final_observation(inference: InferenceService) 
     assert list(loop.status().new_episodes) == []  # drained
 
 
+# --------------------------------------------------------------------------- replay sender
+
+SIM_SPEC = make_robot("sim_reach_arm", "arm-0").spec
+
+
+def sim_steps(n: int, episode_len: int = 50, robot_id: str = "arm-0") -> list[step_pb2.Step]:
+    """Valid steps for the sim arm's spec: episodes of episode_len, the last one truncated."""
+    rng = np.random.default_rng(0)
+    steps = []
+    for i in range(n):
+        index = i % episode_len
+        step = step_pb2.Step(
+            robot_id=robot_id,
+            episode_id=f"{robot_id}-ep{i // episode_len}",
+            step_index=index,
+            observation=wire.to_tensor_map({"state": rng.normal(size=15).astype(np.float32)}),
+            action=wire.to_tensor(rng.uniform(-1, 1, 3).astype(np.float32)),
+            reward=float(rng.normal()),
+            policy_version=1,
+        )
+        if index == episode_len - 1:
+            step.truncated = True
+            step.final_observation.CopyFrom(wire.to_tensor_map({"state": np.zeros(15, np.float32)}))
+        steps.append(step)
+    return steps
+
+
+def replay_stats(addr: str) -> replay_pb2.StatsResponse:
+    stub = replay_pb2_grpc.ReplayStub(make_channel(addr, AUTH))
+    return stub.Stats(replay_pb2.StatsRequest(), timeout=5)
+
+
+def start_replay(cfg: StackConfig, specs: dict[str, robot_pb2.RobotSpec] | None = None) -> ReplayService:
+    return ReplayService(cfg, spec_source=(specs or {"arm-0": SIM_SPEC}).get, start_metrics=False).start()
+
+
+def test_sender_survives_replay_restart_on_the_same_port_and_dir(tmp_path: Path) -> None:
+    cfg = stack_cfg(tmp_path)
+    cfg.replay.server.port = free_port()
+    replay = start_replay(cfg)
+    sender = ReplaySender(replay.address, AUTH, backoff=Backoff(0.05, 0.5))
+    steps = sim_steps(300)
+    try:
+        for step in steps[:100]:
+            sender.send(step)
+        wait_until(lambda: sender.acked == 100)
+        for step in steps[100:200]:
+            sender.send(step)
+        replay.stop()  # mid-stream: some of these are in flight, none acked yet for sure
+        for step in steps[200:]:
+            sender.send(step)  # while replay is down: queued, never blocking
+        assert sender.unacked > 0
+        replay = start_replay(cfg)  # same port, same LMDB dir
+        assert sender.flush(60)
+        stats = replay_stats(replay.address)
+        assert stats.steps == 300 and dict(stats.steps_per_robot) == {"arm-0": 300}  # none lost, each once
+        assert stats.rejected == 0
+        assert sender.acked == 300 and sender.unacked == 0 and sender.dropped == 0
+        assert sender.reconnects >= 1
+    finally:
+        sender.close()
+        replay.stop()
+
+
+def test_sender_drops_a_rejected_step_and_goes_on(tmp_path: Path) -> None:
+    replay = start_replay(stack_cfg(tmp_path))
+    sender = ReplaySender(replay.address, AUTH, backoff=Backoff(0.05, 0.5))
+    steps = sim_steps(100)
+    bad = steps[40]
+    bad.action.CopyFrom(wire.to_tensor(np.full(3, 5.0, np.float32)))  # outside the spec's [-1, 1]
+    try:
+        for step in steps:
+            sender.send(step)
+        assert sender.flush(30)
+        stats = replay_stats(replay.address)
+        assert stats.steps == 99 and stats.rejected == 1
+        assert sender.rejected == 1 and sender.acked == 99
+    finally:
+        sender.close()
+        replay.stop()
+
+
+def test_sender_bounds_its_memory_by_dropping_the_oldest(tmp_path: Path) -> None:
+    cfg = stack_cfg(tmp_path)
+    cfg.replay.server.port = free_port()  # nothing listens yet
+    sender = ReplaySender(f"127.0.0.1:{cfg.replay.server.port}", AUTH, max_unacked=10, backoff=Backoff(0.05, 0.2))
+    steps = sim_steps(25)
+    replay = None
+    try:
+        for step in steps:
+            sender.send(step)
+        assert sender.unacked == 10 and sender.dropped == 15
+        assert not sender.flush(0.05)
+        replay = start_replay(cfg)
+        assert sender.flush(30)
+        stats = replay_stats(replay.address)
+        assert stats.steps == 10  # the newest ten
+        assert stats.steps_per_robot["arm-0"] == 10
+    finally:
+        sender.close()
+        if replay is not None:
+            replay.stop()
+
+
 # --------------------------------------------------------------------------- control client
 
 
@@ -334,6 +446,10 @@ def test_control_client_reconnects_and_keeps_episodes(tmp_path: Path) -> None:
         wait_until(lambda: "ep-2" in episode_ids(svc, "arm-0"))
         assert set(episode_ids(svc, "arm-0")) <= {"ep-1", "ep-2"}
         assert client.reconnects >= 1
+        finish(3)
+        client.close()  # a last heartbeat carries ep-3, then a clean hang-up takes the robot offline
+        assert "ep-3" in episode_ids(svc, "arm-0")
+        wait_until(lambda: not robot_info(svc, "arm-0").online)
     finally:
         client.close()
         svc.stop()
@@ -370,6 +486,97 @@ def test_unknown_robot_command_is_refused() -> None:
     assert ok and not loops["arm-0"].paused
     policy.close()
     robot.close()
+
+
+# --------------------------------------------------------------------------- the whole agent
+
+
+def edge_cfg(
+    cfg: StackConfig, control: ControlService, replay: ReplayService, inference: InferenceService
+) -> StackConfig:
+    cfg.edge.agent_id = "edge-test"
+    cfg.edge.control_addr = control.address
+    cfg.edge.replay_addr = replay.address
+    cfg.edge.inference_addr = inference.address
+    cfg.edge.mode = "fast"
+    cfg.edge.metrics_port = 0
+    cfg.edge.robots = [RobotConfig(id="arm-0", kind="sim_reach_arm", params={"max_episode_steps": 20})]
+    return cfg
+
+
+@pytest.fixture
+def cloud(tmp_path: Path, control: ControlService, inference: InferenceService) -> Iterator[StackConfig]:
+    """Control + replay (validating against control) + inference with random weights, version 5."""
+    cfg = stack_cfg(tmp_path)
+    cfg.replay.control_addr = control.address
+    replay = ReplayService(cfg, start_metrics=False).start()
+    inference.load_weights(random_weights(5))
+    yield edge_cfg(cfg, control, replay, inference)
+    replay.stop()
+
+
+def test_edge_agent_fast_mode_end_to_end(cloud: StackConfig, control: ControlService) -> None:
+    agent = EdgeAgent(cloud)
+    agent.start()
+    try:
+        wait_until(lambda: (info := robot_info(control, "arm-0")) is not None and info.status.env_steps >= 300)
+        info = robot_info(control, "arm-0")
+        assert info.online and info.agent_id == "edge-test"
+        assert info.status.state in (control_pb2.ROBOT_STATE_RUNNING, control_pb2.ROBOT_STATE_HOLDING)
+        assert info.status.policy_version == 5
+        wait_until(lambda: replay_stats(cloud.edge.replay_addr).steps >= 300)
+    finally:
+        agent.stop()
+    loop = agent.loops["arm-0"]
+    stats = replay_stats(cloud.edge.replay_addr)
+    assert stats.steps == loop.env_steps  # graceful stop flushed every step
+    assert stats.rejected == 0
+    stub = replay_pb2_grpc.ReplayStub(make_channel(cloud.edge.replay_addr, AUTH))
+    batch = stub.Sample(replay_pb2.SampleRequest(batch_size=64), timeout=5).batch
+    assert wire.from_tensor(batch.policy_version).max() == 5
+    # The last heartbeat reported every finished episode; the clean hang-up took the robot offline.
+    info = robot_info(control, "arm-0")
+    assert not info.online
+    assert len({e.episode_id for e in info.recent_episodes}) == loop.episodes >= 10
+    assert all(e.length <= 20 for e in info.recent_episodes)
+
+
+def test_edge_process_serves_metrics_and_stops_on_sigterm(cloud: StackConfig, tmp_path: Path) -> None:
+    ready = tmp_path / "edge.json"
+    overrides = {
+        "auth.token": AUTH.token,
+        "edge.agent_id": "edge-proc",
+        "edge.mode": "fast",
+        "edge.metrics_port": 0,
+        "edge.control_addr": cloud.edge.control_addr,
+        "edge.replay_addr": cloud.edge.replay_addr,
+        "edge.inference_addr": cloud.edge.inference_addr,
+        "edge.robots": json.dumps([{"id": "arm-0", "kind": "sim_reach_arm", "params": {"max_episode_steps": 20}}]),
+        "log_json": "true",
+    }
+    cmd = [sys.executable, "-m", "user.cli", "edge", "--ready-file", str(ready)]
+    for key, value in overrides.items():
+        cmd += ["--set", f"{key}={value}"]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "MUJOCO_GL": "egl"}
+    proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True)
+    try:
+        wait_until(lambda: ready.exists() or proc.poll() is not None, timeout=60)
+        assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
+        info = json.loads(ready.read_text())
+        url = f"http://127.0.0.1:{info['metrics_port']}/metrics"
+        wait_until(lambda: replay_stats(cloud.edge.replay_addr).steps >= 50)
+        body = urllib.request.urlopen(url, timeout=5).read().decode()
+        for name in ("user_edge_env_steps_total", "user_edge_loop_period_seconds", "user_edge_steps_acked_total"):
+            assert name in body
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 0
+        logs = proc.stderr.read() if proc.stderr else ""
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    stopped = [json.loads(line) for line in logs.splitlines() if '"edge agent stopped"' in line]
+    assert stopped and stopped[0]["flushed"] is True  # every step acked by replay before exit
 
 
 # --------------------------------------------------------------------------- gym-hil Panda (optional)
