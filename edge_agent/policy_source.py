@@ -72,8 +72,9 @@ class RemotePolicy(PolicySource):
         self.addr = addr
         self._channel = make_channel(addr, auth)
         self._stub = inference_pb2_grpc.InferenceStub(self._channel)
-        # Connect now, so the first action does not pay the TCP/HTTP2 handshake inside its deadline.
-        self._connecting = grpc.channel_ready_future(self._channel)
+        # Connect now (a cheap Status call, result unused), so the first action does not pay the
+        # TCP/HTTP2 handshake inside its deadline.
+        self._warmup = self._stub.Status.future(inference_pb2.InferenceStatusRequest(), timeout=5.0)
         self._deterministic = deterministic
         self._version = 0
         self._last_error: grpc.StatusCode | None = None
@@ -114,7 +115,7 @@ class RemotePolicy(PolicySource):
             self._last_error = code
 
     def close(self) -> None:
-        self._connecting.cancel()
+        self._warmup.cancel()
         self._channel.close()
 
 
