@@ -1,77 +1,239 @@
+"""ReplayStore on a real LMDB in tmp_path, and validate_step."""
+
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from services.replay.store import EmptyBufferError, ReplayStore
-from services.replay.validate import validate_step
-from tests.replay_helpers import episode, make_step, spec
+from services.replay.store import (
+    EmptyBufferError,
+    LayoutError,
+    ReplayFullError,
+    ReplayStore,
+    StoreClosedError,
+)
+from services.replay.validate import StepError, validate_step
 from user import wire
+from user.v1 import robot_pb2, step_pb2
+from user.v1 import tensor_pb2 as tpb
+
+OBS_DIM = 6
 
 
-def test_next_observation_comes_from_the_next_step_or_final_observation(tmp_path):
-    store = ReplayStore(tmp_path, 64)
-    store.put_steps(episode("arm-0", "e1", 5, terminated=True))
-    assert store.transitions == 5
+def spec(robot_id: str = "arm-0", obs_dim: int = OBS_DIM) -> robot_pb2.RobotSpec:
+    return robot_pb2.RobotSpec(
+        robot_id=robot_id,
+        kind="test",
+        action=robot_pb2.ActionSpace(shape=[3], low=[-1] * 3, high=[1] * 3, dtype=tpb.DTYPE_FLOAT32),
+        observation=[robot_pb2.FeatureSpec(name="state", dtype=tpb.DTYPE_FLOAT32, shape=[obs_dim])],
+        control_rate_hz=20,
+        max_episode_steps=50,
+    )
+
+
+def obs(value: float, dim: int = OBS_DIM) -> tpb.TensorMap:
+    return wire.to_tensor_map({"state": np.full(dim, value, dtype=np.float32)})
+
+
+def make_step(
+    robot_id: str, episode: str, t: int, *, last: bool = False, terminated: bool = False, dim: int = OBS_DIM, **kw
+) -> step_pb2.Step:
+    """Observation of step t is t everywhere; the final observation is t + 1."""
+    step = step_pb2.Step(
+        robot_id=robot_id,
+        episode_id=episode,
+        step_index=t,
+        observation=obs(t, dim),
+        action=wire.to_tensor(np.full(3, 0.1 * (t % 10), dtype=np.float32)),
+        reward=-float(t),
+        terminated=terminated,
+        truncated=last and not terminated,
+        **{"policy_version": 7, **kw},
+    )
+    if last or terminated:
+        step.final_observation.CopyFrom(obs(t + 1, dim))
+    return step
+
+
+def episode(robot_id: str, name: str, length: int, terminated: bool = False, **kw) -> list[step_pb2.Step]:
+    end = length - 1
+    return [
+        make_step(robot_id, name, t, last=t == end, terminated=terminated and t == end, **kw) for t in range(length)
+    ]
+
+
+@pytest.fixture
+def store(tmp_path: Path):
+    s = ReplayStore(tmp_path / "replay", 64)
+    yield s
+    s.close()
+
+
+def test_sample_shapes_and_next_observation(store: ReplayStore) -> None:
+    assert store.put_steps(episode("arm-0", "e1", 5, terminated=True) + episode("arm-0", "e2", 4)) == (9, 0)
+    assert store.transitions == 9
     batch = store.sample(512, np.random.default_rng(0))
-    state, nxt = batch["observation"]["state"][:, 0], batch["next_observation"]["state"][:, 0]
-    np.testing.assert_array_equal(nxt, state + 1)  # obs of step t is t, next is t+1 (final obs on the last)
-    assert (batch["terminated"] == (state == 4)).all()
-    assert batch["action"].shape == (512, 3) and batch["policy_version"].dtype == np.int64
-    store.close()
+    state, nxt = batch["observation"]["state"], batch["next_observation"]["state"]
+    assert state.shape == nxt.shape == (512, OBS_DIM) and state.dtype == np.float32
+    # next_observation is step t+1's observation, or the last step's final_observation
+    np.testing.assert_array_equal(nxt, state + 1)
+    assert batch["action"].shape == (512, 3) and batch["action"].dtype == np.float32
+    np.testing.assert_allclose(batch["action"][:, 0], 0.1 * state[:, 0], rtol=1e-6)
+    assert batch["reward"].dtype == np.float32
+    np.testing.assert_array_equal(batch["reward"], -state[:, 0])
+    assert batch["policy_version"].dtype == np.int64 and (batch["policy_version"] == 7).all()
+    for flag in ("terminated", "truncated", "intervention"):
+        assert batch[flag].shape == (512,) and batch[flag].dtype == bool
+    # e1 ends terminated at t=4, e2 ends truncated at t=3; both kinds of last step were drawn
+    assert batch["terminated"].sum() > 0 and batch["truncated"].sum() > 0
+    assert not (batch["terminated"] & batch["truncated"]).any()
+    assert set(state[batch["terminated"], 0]) == {4.0}
+    assert set(state[batch["truncated"], 0]) == {3.0}
+    assert not batch["intervention"].any()
+    assert store.cache_info()["hits"] > 0  # 512 draws from 9 transitions: decoded once each
 
 
-def test_open_episode_tail_is_not_sampleable_until_its_successor_arrives(tmp_path):
-    store = ReplayStore(tmp_path, 64)
+def test_open_tail_waits_for_its_successor(store: ReplayStore) -> None:
     store.put_steps([make_step("arm-0", "e", 0), make_step("arm-0", "e", 1)])
     assert store.transitions == 1  # step 1 has no next observation yet
+    with pytest.raises(EmptyBufferError):
+        store.sample(1, np.random.default_rng(0), robot_ids=["arm-1"])
     store.put_steps([make_step("arm-0", "e", 2, last=True)])
     assert store.transitions == 3
-    store.close()
 
 
-def test_resent_steps_are_stored_once_and_out_of_order_arrival_is_handled(tmp_path):
-    store = ReplayStore(tmp_path, 64)
+def test_resent_steps_are_stored_once(store: ReplayStore) -> None:
     steps = episode("arm-0", "e", 6)
-    assert store.put_steps([steps[3], steps[5], steps[4]]) == (3, 0)
-    assert store.put_steps(steps) == (3, 3)
+    assert store.put_steps(steps[:4]) == (4, 0)
+    before = store.stats()["bytes_on_disk"]
+    assert store.put_steps(steps) == (2, 4)
+    assert store.put_steps([steps[0], steps[0]]) == (0, 2)
     st = store.stats()
-    assert st["steps"] == 6 and st["transitions"] == 6 and st["duplicates"] == 3
-    assert st["steps_per_robot"] == {"arm-0": 6} and st["episodes"] == 1
-    store.close()
+    assert (st["steps"], st["transitions"], st["episodes"], st["duplicates"]) == (6, 6, 1, 6)
+    assert st["steps_per_robot"] == {"arm-0": 6}
+    assert st["bytes_on_disk"] >= before
 
 
-def test_reopen_rebuilds_the_index(tmp_path):
-    store = ReplayStore(tmp_path, 64)
-    store.put_steps(episode("arm-0", "a", 4) + episode("arm-1", "b", 3, terminated=True) + [make_step("arm-1", "c", 0)])
+def test_out_of_order_arrival(store: ReplayStore) -> None:
+    steps = episode("arm-0", "e", 8, terminated=True)
+    store.put_steps([steps[5], steps[7], steps[3]])  # 7 is last: sampleable alone
+    assert store.transitions == 1
+    store.put_steps([steps[6], steps[4]])  # completes 3->4, 4->5, 5->6, 6->7
+    assert store.transitions == 5
+    store.put_steps(list(reversed(steps[:3])))  # one transaction, reversed
+    assert store.transitions == 8
+    batch = store.sample(256, np.random.default_rng(3))
+    np.testing.assert_array_equal(batch["next_observation"]["state"], batch["observation"]["state"] + 1)
+    assert sorted(set(batch["observation"]["state"][:, 0])) == list(range(8))
+
+
+def test_reopen_rebuilds_the_index(tmp_path: Path) -> None:
+    path = tmp_path / "replay"
+    store = ReplayStore(path, 64)
+    store.put_steps(episode("arm-0", "a", 4) + episode("arm-1", "b", 3, terminated=True, policy_version=2))
+    store.put_steps([make_step("arm-1", "c", 0), make_step("arm-0", "a", 0)])  # open tail + a duplicate
     store.put_spec(spec("arm-0"))
     before = store.stats()
+    assert before["transitions"] == 7 and before["episodes"] == 3 and before["duplicates"] == 1
     store.close()
-    again = ReplayStore(tmp_path, 64)
-    assert again.stats() == {**before, "duplicates": 0}
-    assert again.get_spec("arm-0") == spec("arm-0")
-    batch = again.sample(64, np.random.default_rng(1), robot_ids=["arm-1"])
-    assert batch["observation"]["state"].shape == (64, 6)
-    with pytest.raises(EmptyBufferError):
-        again.sample(4, np.random.default_rng(1), robot_ids=["nobody"])
-    again.close()
+    store.close()  # idempotent
+    with pytest.raises(StoreClosedError):
+        store.sample(1, np.random.default_rng(0))
+
+    again = ReplayStore(path, 64)
+    try:
+        assert again.stats() == before
+        assert again.get_spec("arm-0") == spec("arm-0") and again.get_spec("arm-9") is None
+        batch = again.sample(64, np.random.default_rng(1), robot_ids=["arm-1"])
+        assert (batch["policy_version"] == 2).all()  # only arm-1's transitions
+        np.testing.assert_array_equal(batch["next_observation"]["state"], batch["observation"]["state"] + 1)
+        again.put_steps([make_step("arm-1", "c", 1, last=True)])  # the open tail completes after the restart
+        assert again.transitions == 9
+    finally:
+        again.close()
+
+
+def test_sampling_is_uniform_over_transitions_across_robots(store: ReplayStore) -> None:
+    store.put_steps(episode("arm-0", "a", 30, policy_version=1) + episode("arm-1", "b", 10, policy_version=2))
+    versions = store.sample(20_000, np.random.default_rng(0))["policy_version"]
+    share = float((versions == 1).mean())
+    assert 0.72 < share < 0.78  # 30 of 40 transitions; ~0.003 standard deviation
+    assert store.transitions_for(["arm-1"]) == 10 and store.transitions_for(["arm-1", "nobody"]) == 10
+
+
+def test_robots_with_different_layouts_are_sampled_separately(store: ReplayStore) -> None:
+    store.put_steps(episode("arm-0", "a", 3) + episode("big-0", "b", 3, dim=9))
+    with pytest.raises(LayoutError, match="robot_ids"):
+        for seed in range(20):
+            store.sample(16, np.random.default_rng(seed))
+    assert store.sample(16, np.random.default_rng(0), robot_ids=["big-0"])["observation"]["state"].shape == (16, 9)
+
+
+def test_a_full_map_stores_nothing_of_the_batch(tmp_path: Path) -> None:
+    store = ReplayStore(tmp_path / "tiny", 1)
+    try:
+        big = [make_step("arm-0", "e", t, dim=20_000) for t in range(30)]  # ~80 KB each, 2.4 MB > 1 MiB map
+        with pytest.raises(ReplayFullError, match="map_size_mb"):
+            store.put_steps(big)
+        st = store.stats()
+        assert st["steps"] == 0 and st["transitions"] == 0
+        assert store.put_steps(big[:2]) == (2, 0)  # the store still works
+    finally:
+        store.close()
+
+
+# --------------------------------------------------------------------------- validation
+
+
+def _set_obs(step: step_pb2.Step, array: np.ndarray) -> None:
+    step.observation.tensors["state"].CopyFrom(wire.to_tensor(array))
 
 
 @pytest.mark.parametrize(
-    "mutate, message",
+    "mutate, reason, message",
     [
-        (lambda s: s.observation.tensors["state"].shape.__setitem__(0, 5), "shape"),
-        (lambda s: s.observation.tensors["state"].CopyFrom(wire.to_tensor(np.full(6, np.nan, np.float32))), "NaN"),
-        (lambda s: s.action.CopyFrom(wire.to_tensor(np.zeros(3, np.float64))), "dtype"),
-        (lambda s: s.action.CopyFrom(wire.to_tensor(np.full(3, 5.0, np.float32))), "limits"),
-        (lambda s: setattr(s, "terminated", True), "final_observation"),
-        (lambda s: setattr(s, "episode_id", "a/b"), "episode_id"),
-        (lambda s: s.observation.tensors["extra"].CopyFrom(wire.to_tensor(np.zeros(1, np.float32))), "features"),
+        (lambda s: _set_obs(s, np.zeros(5, np.float32)), "shape", "shape"),
+        (lambda s: _set_obs(s, np.zeros(6, np.float64)), "dtype", "float64"),
+        (lambda s: _set_obs(s, np.full(6, np.nan, np.float32)), "non_finite", "NaN"),
+        (lambda s: _set_obs(s, np.array([0, 0, np.inf, 0, 0, 0], np.float32)), "non_finite", "Inf"),
+        (lambda s: s.observation.tensors["state"].__setattr__("data", b"\0" * 8), "decode", "bytes"),
+        (lambda s: s.observation.tensors["extra"].CopyFrom(wire.to_tensor(np.zeros(1))), "keys", "extra"),
+        (lambda s: s.observation.tensors.pop("state"), "keys", "missing"),
+        (lambda s: s.action.CopyFrom(wire.to_tensor(np.zeros(3, np.float64))), "dtype", "action"),
+        (lambda s: s.action.CopyFrom(wire.to_tensor(np.zeros(4, np.float32))), "shape", "action"),
+        (lambda s: s.action.CopyFrom(wire.to_tensor(np.array([0, np.nan, 0], np.float32))), "non_finite", "action"),
+        (lambda s: s.action.CopyFrom(wire.to_tensor(np.array([0, 1.01, 0], np.float32))), "action_bounds", "clip"),
+        (lambda s: setattr(s, "reward", float("nan")), "non_finite", "reward"),
+        (lambda s: setattr(s, "terminated", True), "final_observation", "required"),
+        (lambda s: s.final_observation.CopyFrom(obs(1)), "final_observation", "only on the last step"),
+        (lambda s: setattr(s, "episode_id", "a/b"), "episode_id", "'/'"),
+        (lambda s: setattr(s, "episode_id", "a\0b"), "episode_id", "NUL"),
+        (lambda s: setattr(s, "episode_id", ""), "episode_id", "empty"),
+        (lambda s: setattr(s, "robot_id", ""), "robot_id", "empty"),
+        (lambda s: setattr(s, "robot_id", "arm-1"), "robot_id", "arm-1"),
     ],
 )
-def test_validation_rejects_what_does_not_match_the_spec(mutate, message):
+def test_validation_names_what_does_not_match(mutate, reason: str, message: str) -> None:
     step = make_step("arm-0", "e", 0)
     validate_step(step, spec())
     mutate(step)
-    with pytest.raises(wire.WireError, match=message):
+    with pytest.raises(StepError, match=message) as err:
         validate_step(step, spec())
+    assert err.value.reason == reason
+    assert isinstance(err.value, wire.WireError)
+
+
+def test_validation_accepts_edges_of_the_contract() -> None:
+    last = make_step("arm-0", "e", 9, last=True)
+    validate_step(last, spec())
+    last.final_observation.tensors["state"].CopyFrom(wire.to_tensor(np.full(6, 2.0, np.float32)))
+    validate_step(last, spec())
+    step = make_step("arm-0", "e", 0)
+    step.action.CopyFrom(wire.to_tensor(np.array([1.00001, -1.00001, 0], np.float32)))  # float noise past the bound
+    validate_step(step, spec())
+    nan_ok = spec()
+    nan_ok.observation[0].allow_nan = True
+    _set_obs(step, np.full(6, np.nan, np.float32))
+    validate_step(step, nan_ok)

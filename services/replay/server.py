@@ -1,9 +1,14 @@
 """Replay service: validated, acknowledged-after-commit inserts; ready-to-train samples.
 
-An Insert stream groups steps into LMDB transactions (at most commit_max_steps steps or
-commit_max_delay_ms old) and acknowledges each step only after its transaction commits. The
-first invalid step ends the stream with INVALID_ARGUMENT, after everything before it has been
-committed and acknowledged; the invalid step changes nothing.
+An Insert stream groups steps into LMDB transactions (at most commit_max_steps steps, or whatever
+arrived within commit_max_delay_ms of the first pending step) and acknowledges a step only after
+its transaction has committed. The first invalid step ends the stream with INVALID_ARGUMENT
+("seq N: reason") after everything before it has been committed and acknowledged; the invalid
+step itself changes nothing.
+
+Steps are validated against the spec their robot registered with the Control service (GetRobot,
+cached in memory, persisted beside the steps). When control cannot be reached a persisted spec is
+used; with none, the stream ends with UNAVAILABLE so the edge re-sends later instead of losing data.
 """
 
 from __future__ import annotations
@@ -13,13 +18,21 @@ import queue
 import threading
 import time
 from collections.abc import Callable, Iterator
+from typing import Any
 
 import grpc
 import numpy as np
 import prometheus_client
 
-from services.replay.store import EmptyBufferError, ReplayStore
-from services.replay.validate import validate_step
+from services.replay.store import (
+    DEFAULT_CACHE_MB,
+    EmptyBufferError,
+    LayoutError,
+    ReplayFullError,
+    ReplayStore,
+    StoreClosedError,
+)
+from services.replay.validate import StepError, validate_step
 from user import rpc, wire
 from user.config import AuthConfig, StackConfig
 from user.log import kv
@@ -29,168 +42,381 @@ log = logging.getLogger(__name__)
 
 SERVICE_NAME = replay_pb2.DESCRIPTOR.services_by_name["Replay"].full_name
 MAX_SAMPLE = 65536
+MAX_BATCH_BYTES = rpc.MAX_MESSAGE_BYTES - (1 << 20)  # room for the envelope
+POLL_S = 0.1  # how often an idle Insert stream notices shutdown
+SPEC_REFRESH_S = 2.0  # a step failing a cached spec re-asks control at most this often per robot
 
+_SECONDS = (0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 1.0)
+RECEIVED = prometheus_client.Counter("user_replay_steps_received_total", "Steps read from Insert streams")
 STORED = prometheus_client.Counter("user_replay_steps_stored_total", "Steps committed to LMDB")
 DUPLICATES = prometheus_client.Counter(
-    "user_replay_duplicates_total", "Re-sent steps already stored (acked, not stored)"
+    "user_replay_duplicates_total", "Re-sent steps that were already stored (acknowledged, not stored again)"
 )
-REJECTED = prometheus_client.Counter("user_replay_rejected_total", "Steps refused", ["reason"])
+REJECTED = prometheus_client.Counter(
+    "user_replay_rejected_total", "Steps refused with INVALID_ARGUMENT, by reason", ["reason"]
+)
+STEPS = prometheus_client.Gauge("user_replay_steps", "Steps stored")
 TRANSITIONS = prometheus_client.Gauge("user_replay_transitions", "Sampleable transitions")
-BYTES = prometheus_client.Gauge("user_replay_bytes_on_disk", "LMDB bytes in use")
-STREAMS = prometheus_client.Gauge("user_replay_insert_streams", "Open Insert streams")
+BYTES_ON_DISK = prometheus_client.Gauge("user_replay_bytes_on_disk", "LMDB pages in use, bytes")
+INSERT_STREAMS = prometheus_client.Gauge("user_replay_insert_streams", "Open Insert streams")
 COMMIT_SECONDS = prometheus_client.Histogram(
-    "user_replay_commit_seconds",
-    "LMDB write transaction time",
-    buckets=(0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.5),
+    "user_replay_commit_seconds", "One LMDB write transaction (put + commit + fsync)", buckets=_SECONDS
 )
 COMMIT_STEPS = prometheus_client.Histogram(
-    "user_replay_commit_steps", "Steps per transaction", buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256, 1024)
+    "user_replay_commit_steps", "Steps per write transaction", buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
 )
 SAMPLE_SECONDS = prometheus_client.Histogram(
-    "user_replay_sample_seconds", "Sample RPC time", buckets=(0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.5)
+    "user_replay_sample_seconds", "Sample: draw, read, decode, stack and encode a batch", buckets=_SECONDS
 )
 
+
+class SpecUnavailable(Exception):
+    """The spec source cannot answer now (control unreachable); not the same as an unknown robot."""
+
+
+# A spec source returns the robot's registered spec, None for a robot it does not know, or raises
+# SpecUnavailable when it cannot tell.
 SpecSource = Callable[[str], robot_pb2.RobotSpec | None]
 
 
 class ControlSpecSource:
-    """Registered specs from the Control service, cached; persisted copies when control is down."""
+    """Specs from the Control service's GetRobot (NOT_FOUND -> None)."""
 
-    def __init__(self, addr: str, auth: AuthConfig, store: ReplayStore, timeout_s: float) -> None:
-        self._stub = control_pb2_grpc.ControlStub(rpc.make_channel(addr, auth))
-        self._store, self._timeout = store, timeout_s
-        self._cache: dict[str, robot_pb2.RobotSpec] = {}
+    def __init__(self, addr: str, auth: AuthConfig, timeout_s: float) -> None:
+        self.addr = addr
+        self.timeout_s = timeout_s
+        self._channel = rpc.make_channel(addr, auth)
+        self._stub = control_pb2_grpc.ControlStub(self._channel)
 
     def __call__(self, robot_id: str) -> robot_pb2.RobotSpec | None:
-        spec = self._cache.get(robot_id)
-        if spec is not None:
-            return spec
         try:
-            spec = self._stub.GetRobot(control_pb2.GetRobotRequest(robot_id=robot_id), timeout=self._timeout).spec
+            info = self._stub.GetRobot(control_pb2.GetRobotRequest(robot_id=robot_id), timeout=self.timeout_s)
         except grpc.RpcError as err:
-            if err.code() != grpc.StatusCode.NOT_FOUND:
-                log.warning(
-                    "control unreachable; using persisted spec", extra=kv(robot_id=robot_id, code=err.code().name)
-                )
-            spec = self._store.get_spec(robot_id)
-            if spec is not None:
-                self._cache[robot_id] = spec
-            return spec
-        self._store.put_spec(spec)
-        self._cache[robot_id] = spec
+            code = err.code() if hasattr(err, "code") else grpc.StatusCode.UNKNOWN
+            if code == grpc.StatusCode.NOT_FOUND:
+                return None
+            details = err.details() if hasattr(err, "details") else ""
+            raise SpecUnavailable(f"control at {self.addr} answered {code.name}: {details}") from None
+        return info.spec
+
+    def close(self) -> None:
+        self._channel.close()
+
+
+class SpecBook:
+    """Specs by robot id: fetched from the source once, cached; the persisted copy when the source is down.
+
+    A spec fetched from the source that differs from the persisted one is "dirty" and is written in the
+    next step commit, so a stream whose only step is rejected changes nothing on disk.
+    """
+
+    def __init__(self, source: SpecSource, store: ReplayStore) -> None:
+        self._source = source
+        self._store = store
+        self._lock = threading.Lock()
+        self._cache: dict[str, robot_pb2.RobotSpec] = {}
+        self._fetched_at: dict[str, float] = {}
+        self._dirty: dict[str, robot_pb2.RobotSpec] = {}
+
+    def get(self, robot_id: str) -> robot_pb2.RobotSpec | None:
+        with self._lock:
+            spec = self._cache.get(robot_id)
+        return spec if spec is not None else self.refresh(robot_id)
+
+    def may_refresh(self, robot_id: str) -> bool:
+        with self._lock:
+            return time.monotonic() - self._fetched_at.get(robot_id, -float("inf")) >= SPEC_REFRESH_S
+
+    def refresh(self, robot_id: str) -> robot_pb2.RobotSpec | None:
+        """Ask the source. None = unknown robot; SpecUnavailable when neither source nor disk has it."""
+        with self._lock:
+            self._fetched_at[robot_id] = time.monotonic()
+        try:
+            spec = self._source(robot_id)
+        except Exception as exc:  # SpecUnavailable, or a broken source: never reject steps for it
+            return self._fallback(robot_id, exc)
+        with self._lock:
+            if spec is None:
+                self._cache.pop(robot_id, None)
+                return None
+            if self._cache.get(robot_id) != spec and self._store.get_spec(robot_id) != spec:
+                self._dirty[robot_id] = spec
+            self._cache[robot_id] = spec
         return spec
 
+    def _fallback(self, robot_id: str, exc: Exception) -> robot_pb2.RobotSpec:
+        persisted = self._store.get_spec(robot_id)
+        if persisted is None:
+            raise SpecUnavailable(f"cannot validate steps of robot {robot_id}: {exc}; no spec of it was persisted")
+        log.warning("spec source unavailable; using the persisted spec", extra=kv(robot_id=robot_id, error=str(exc)))
+        with self._lock:
+            self._cache[robot_id] = persisted
+        return persisted
 
-_END = object()
+    def take_dirty(self) -> list[robot_pb2.RobotSpec]:
+        with self._lock:
+            specs = list(self._dirty.values())
+            self._dirty.clear()
+        return specs
+
+    def restore_dirty(self, specs: list[robot_pb2.RobotSpec]) -> None:
+        with self._lock:
+            for spec in specs:
+                self._dirty.setdefault(spec.robot_id, spec)
+
+
+# --------------------------------------------------------------------------- Insert plumbing
+
+_END = object()  # the client closed its side
+_BROKEN = object()  # the call was cancelled or broke
+
+
+class _Inbox:
+    """Reads the request stream in a thread, so a half-full batch commits on time while the client is idle."""
+
+    def __init__(self, requests: Iterator[replay_pb2.InsertRequest], maxsize: int) -> None:
+        self._queue: queue.Queue = queue.Queue(maxsize=maxsize)  # bounded: backpressure on the client
+        self._closed = threading.Event()
+        threading.Thread(target=self._read, args=(requests,), name="replay-insert-reader", daemon=True).start()
+
+    def _read(self, requests: Iterator[replay_pb2.InsertRequest]) -> None:
+        end = _END
+        try:
+            for req in requests:
+                if not self._offer(req):
+                    return
+        except Exception as exc:  # cancelled, deadline, connection lost
+            log.debug("insert stream read ended", extra=kv(error=repr(exc)))
+            end = _BROKEN
+        self._offer(end)
+
+    def _offer(self, item: Any) -> bool:
+        while not self._closed.is_set():
+            try:
+                self._queue.put(item, timeout=POLL_S)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def get(self, timeout: float) -> Any:
+        """The next request, _END, _BROKEN, or None after `timeout` seconds."""
+        try:
+            return self._queue.get(timeout=timeout) if timeout > 0 else self._queue.get_nowait()
+        except queue.Empty:
+            return None
+
+    def close(self) -> None:
+        self._closed.set()
 
 
 class ReplayServicer(replay_pb2_grpc.ReplayServicer):
     def __init__(
-        self, store: ReplayStore, spec_source: SpecSource, commit_max_steps: int, commit_max_delay_s: float
+        self,
+        store: ReplayStore,
+        spec_source: SpecSource,
+        commit_max_steps: int,
+        commit_max_delay_s: float,
+        seed: int | None = None,
     ) -> None:
         self.store = store
-        self.spec_source = spec_source
+        self.specs = SpecBook(spec_source, store)
         self.commit_max_steps = commit_max_steps
         self.commit_max_delay_s = commit_max_delay_s
         self.rejected = 0
-        self._rng = np.random.default_rng()
+        self._count_lock = threading.Lock()
+        self._rng = np.random.default_rng(seed)
         self._rng_lock = threading.Lock()
-        self.closing = threading.Event()
+        self._closing = threading.Event()
+        self._streams = 0
+        self._streams_cond = threading.Condition()
 
-    def _commit(self, pending: list[replay_pb2.InsertRequest]) -> replay_pb2.InsertAck:
+    # ------------------------------------------------------------------ lifecycle
+
+    def begin_shutdown(self) -> None:
+        """Open streams commit and acknowledge what they hold, then end with UNAVAILABLE."""
+        self._closing.set()
+
+    def wait_streams(self, timeout_s: float) -> bool:
+        end = time.monotonic() + timeout_s
+        with self._streams_cond:
+            while self._streams:
+                left = end - time.monotonic()
+                if left <= 0:
+                    return False
+                self._streams_cond.wait(left)
+        return True
+
+    def _stream_delta(self, delta: int) -> None:
+        with self._streams_cond:
+            self._streams += delta
+            INSERT_STREAMS.set(self._streams)
+            self._streams_cond.notify_all()
+
+    # ------------------------------------------------------------------ Insert
+
+    def Insert(
+        self, request_iterator: Iterator[replay_pb2.InsertRequest], context: grpc.ServicerContext
+    ) -> Iterator[replay_pb2.InsertAck]:
+        if self._closing.is_set():
+            context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down; re-send later")
+        inbox = _Inbox(request_iterator, maxsize=2 * self.commit_max_steps)
+        self._stream_delta(+1)
+        try:
+            yield from self._insert(inbox, context)
+        finally:
+            inbox.close()
+            self._stream_delta(-1)
+
+    def _insert(self, inbox: _Inbox, context: grpc.ServicerContext) -> Iterator[replay_pb2.InsertAck]:
+        pending: list[replay_pb2.InsertRequest] = []
+        deadline = 0.0
+        while True:
+            if self._closing.is_set():
+                if pending:
+                    yield self._commit(pending, context)
+                context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down; re-send unacknowledged steps")
+            wait = min(POLL_S, deadline - time.monotonic()) if pending else POLL_S
+            item = inbox.get(wait)
+            if item is _END:
+                if pending:
+                    yield self._commit(pending, context)
+                return
+            if item is _BROKEN:  # nobody to ack; commit anyway, a re-send is deduplicated
+                if pending:
+                    self._commit(pending, context)
+                return
+            if item is not None:
+                RECEIVED.inc()
+                failure = self._admit(item)
+                if failure is not None:
+                    if pending:  # everything before the failing step is committed and acknowledged first
+                        yield self._commit(pending, context)
+                    context.abort(*failure)
+                pending.append(item)
+                if len(pending) == 1:
+                    deadline = time.monotonic() + self.commit_max_delay_s
+            if pending and (len(pending) >= self.commit_max_steps or time.monotonic() >= deadline):
+                yield self._commit(pending, context)
+                pending = []
+
+    def _admit(self, req: replay_pb2.InsertRequest) -> tuple[grpc.StatusCode, str] | None:
+        """None for a valid step; otherwise the status that ends the stream (after the steps before it)."""
+        step = req.step
+        try:
+            problem = self._check(step)
+        except SpecUnavailable as exc:
+            log.warning("cannot validate step", extra=kv(seq=req.seq, robot_id=step.robot_id, error=str(exc)))
+            return grpc.StatusCode.UNAVAILABLE, f"seq {req.seq}: {exc}"
+        except StoreClosedError:
+            return grpc.StatusCode.UNAVAILABLE, "replay is shutting down; re-send unacknowledged steps"
+        if problem is None:
+            return None
+        reason, message = problem
+        REJECTED.labels(reason).inc()
+        with self._count_lock:
+            self.rejected += 1
+        log.warning(
+            "step rejected",
+            extra=kv(
+                seq=req.seq,
+                robot_id=step.robot_id,
+                episode_id=step.episode_id,
+                step_index=step.step_index,
+                reason=reason,
+                error=message,
+            ),
+        )
+        return grpc.StatusCode.INVALID_ARGUMENT, f"seq {req.seq}: {message}"
+
+    def _check(self, step: step_pb2.Step) -> tuple[str, str] | None:
+        """None when valid, else (metric reason, message). Raises SpecUnavailable."""
+        rid = step.robot_id
+        if not rid:
+            return "robot_id", "robot_id is empty"
+        spec = self.specs.get(rid)
+        if spec is None:
+            return "unknown_robot", f"unknown robot {rid} (control has no registration for it)"
+        try:
+            validate_step(step, spec)
+            return None
+        except StepError as exc:
+            error = exc
+        # The robot may have re-registered with a new spec since it was cached: ask again, rarely.
+        if self.specs.may_refresh(rid):
+            try:
+                fresh = self.specs.refresh(rid)
+            except SpecUnavailable:
+                fresh = spec
+            if fresh is None:
+                return "unknown_robot", f"unknown robot {rid} (control has no registration for it)"
+            if fresh != spec:
+                try:
+                    validate_step(step, fresh)
+                    return None
+                except StepError as exc:
+                    error = exc
+        return error.reason, str(error)
+
+    def _commit(self, pending: list[replay_pb2.InsertRequest], context: grpc.ServicerContext) -> replay_pb2.InsertAck:
+        specs = self.specs.take_dirty()
         start = time.perf_counter()
-        stored, dups = self.store.put_steps([r.step for r in pending])
+        try:
+            stored, dups = self.store.put_steps([r.step for r in pending], specs)
+        except ReplayFullError as exc:
+            self.specs.restore_dirty(specs)
+            log.error("replay full", extra=kv(error=str(exc)))
+            context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, str(exc))
+        except StoreClosedError:
+            context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down; re-send unacknowledged steps")
         COMMIT_SECONDS.observe(time.perf_counter() - start)
         COMMIT_STEPS.observe(len(pending))
         STORED.inc(stored)
         DUPLICATES.inc(dups)
-        TRANSITIONS.set(self.store.transitions)
+        self._update_gauges()
         return replay_pb2.InsertAck(seqs=[r.seq for r in pending], stored=stored, duplicates=dups)
 
-    def _check(self, step: step_pb2.Step) -> str | None:
-        """None when valid, else the reason."""
-        spec = self.spec_source(step.robot_id) if step.robot_id else None
-        if spec is None:
-            REJECTED.labels("unknown_robot").inc()
-            return f"unknown robot {step.robot_id!r} (register it with the control service first)"
+    def _update_gauges(self) -> None:
         try:
-            validate_step(step, spec)
-        except wire.WireError as exc:
-            REJECTED.labels("invalid").inc()
-            return str(exc)
-        return None
+            st = self.store.stats()
+        except StoreClosedError:
+            return
+        STEPS.set(st["steps"])
+        TRANSITIONS.set(st["transitions"])
+        BYTES_ON_DISK.set(st["bytes_on_disk"])
 
-    def Insert(self, request_iterator: Iterator[replay_pb2.InsertRequest], context: grpc.ServicerContext):
-        # A reader thread feeds a queue so a half-full batch commits on time while the client is idle.
-        inbox: queue.Queue = queue.Queue(maxsize=4 * self.commit_max_steps)
-
-        def read() -> None:
-            try:
-                for req in request_iterator:
-                    inbox.put(req)
-            except Exception:  # client went away: commit what we have, nobody to ack
-                pass
-            inbox.put(_END)
-
-        threading.Thread(target=read, name="replay-insert-reader", daemon=True).start()
-        STREAMS.inc()
-        pending: list[replay_pb2.InsertRequest] = []
-        deadline = None
-        try:
-            while True:
-                timeout = None if deadline is None else max(0.0, deadline - time.monotonic())
-                try:
-                    item = inbox.get(timeout=timeout if timeout is not None else 0.5)
-                except queue.Empty:
-                    item = None
-                if item is _END or (item is None and self.closing.is_set()):
-                    if pending:
-                        yield self._commit(pending)
-                    return
-                if item is not None:
-                    reason = self._check(item.step)
-                    if reason is not None:
-                        self.rejected += 1
-                        if pending:
-                            yield self._commit(pending)
-                        log.warning("step rejected", extra=kv(seq=item.seq, robot_id=item.step.robot_id, reason=reason))
-                        context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"seq {item.seq}: {reason}")
-                    pending.append(item)
-                    if deadline is None:
-                        deadline = time.monotonic() + self.commit_max_delay_s
-                due = deadline is not None and time.monotonic() >= deadline
-                if pending and (len(pending) >= self.commit_max_steps or due):
-                    yield self._commit(pending)
-                    pending, deadline = [], None
-        finally:
-            STREAMS.dec()
+    # ------------------------------------------------------------------ Sample / Stats
 
     def Sample(self, request: replay_pb2.SampleRequest, context: grpc.ServicerContext) -> replay_pb2.SampleResponse:
-        if not 0 < request.batch_size <= MAX_SAMPLE:
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"batch_size must be in 1..{MAX_SAMPLE}")
+        n = request.batch_size
+        if not 1 <= n <= MAX_SAMPLE:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"batch_size must be in 1..{MAX_SAMPLE}, got {n}")
+        robot_ids = list(request.robot_ids) or None
         start = time.perf_counter()
-        with self._rng_lock:
-            seed = int(self._rng.integers(1 << 62))
         try:
-            arrays = self.store.sample(request.batch_size, np.random.default_rng(seed), list(request.robot_ids))
-        except EmptyBufferError as exc:
+            with self._rng_lock:
+                arrays = self.store.sample(n, self._rng, robot_ids)
+        except (EmptyBufferError, LayoutError) as exc:
             context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(exc))
-        batch = replay_pb2.Batch(
-            observation=wire.to_tensor_map(arrays["observation"]),
-            next_observation=wire.to_tensor_map(arrays["next_observation"]),
-            action=wire.to_tensor(arrays["action"]),
-            reward=wire.to_tensor(arrays["reward"]),
-            terminated=wire.to_tensor(arrays["terminated"]),
-            truncated=wire.to_tensor(arrays["truncated"]),
-            intervention=wire.to_tensor(arrays["intervention"]),
-            policy_version=wire.to_tensor(arrays["policy_version"]),
-        )
+        except StoreClosedError:
+            context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down")
+        size = _nbytes(arrays)
+        if size > MAX_BATCH_BYTES:
+            per = max(1, size // n)
+            context.abort(
+                grpc.StatusCode.INVALID_ARGUMENT,
+                f"a batch of {n} is {size} bytes, over the {MAX_BATCH_BYTES}-byte message limit; "
+                f"ask for at most {MAX_BATCH_BYTES // per}",
+            )
+        resp = replay_pb2.SampleResponse(batch=to_batch(arrays), transitions=self.store.transitions_for(robot_ids))
         SAMPLE_SECONDS.observe(time.perf_counter() - start)
-        return replay_pb2.SampleResponse(batch=batch, transitions=self.store.transitions_for(list(request.robot_ids)))
+        return resp
 
     def Stats(self, request: replay_pb2.StatsRequest, context: grpc.ServicerContext) -> replay_pb2.StatsResponse:
-        st = self.store.stats()
-        BYTES.set(st["bytes_on_disk"])
+        try:
+            st = self.store.stats()
+        except StoreClosedError:
+            context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down")
         return replay_pb2.StatsResponse(
             steps=st["steps"],
             transitions=st["transitions"],
@@ -202,29 +428,61 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         )
 
 
-class ReplayService:
-    """In-process replay server (tests, benchmarks) and the body of `userctl replay`."""
+def _nbytes(arrays: dict[str, Any]) -> int:
+    total = 0
+    for value in arrays.values():
+        total += sum(a.nbytes for a in value.values()) if isinstance(value, dict) else value.nbytes
+    return total
 
-    def __init__(self, cfg: StackConfig, spec_source: SpecSource | None = None, start_metrics: bool = True) -> None:
+
+def to_batch(arrays: dict[str, Any]) -> replay_pb2.Batch:
+    """store.sample() arrays -> the wire Batch (RAW tensors)."""
+    return replay_pb2.Batch(
+        observation=wire.to_tensor_map(arrays["observation"]),
+        action=wire.to_tensor(arrays["action"]),
+        reward=wire.to_tensor(arrays["reward"]),
+        next_observation=wire.to_tensor_map(arrays["next_observation"]),
+        terminated=wire.to_tensor(arrays["terminated"]),
+        truncated=wire.to_tensor(arrays["truncated"]),
+        intervention=wire.to_tensor(arrays["intervention"]),
+        policy_version=wire.to_tensor(arrays["policy_version"]),
+    )
+
+
+# --------------------------------------------------------------------------- service lifecycle
+
+
+class ReplayService:
+    """The replay server in-process: start() binds (port 0 works), stop() drains streams and closes LMDB."""
+
+    def __init__(
+        self,
+        cfg: StackConfig,
+        spec_source: SpecSource | None = None,
+        start_metrics: bool = True,
+        cache_mb: int = DEFAULT_CACHE_MB,
+    ) -> None:
         self.cfg = cfg
-        self.store = ReplayStore(cfg.replay.path, cfg.replay.map_size_mb)
-        source = spec_source or ControlSpecSource(
-            cfg.replay.control_addr, cfg.auth, self.store, cfg.replay.rpc_timeout_s
-        )
-        self.servicer = ReplayServicer(
-            self.store, source, cfg.replay.commit_max_steps, cfg.replay.commit_max_delay_ms / 1000.0
-        )
+        rc = cfg.replay
+        self.store = ReplayStore(rc.path, rc.map_size_mb, cache_mb=cache_mb)
+        self._control: ControlSpecSource | None = None
+        if spec_source is None:
+            self._control = ControlSpecSource(rc.control_addr, cfg.auth, rc.rpc_timeout_s)
+            spec_source = self._control
+        self.servicer = ReplayServicer(self.store, spec_source, rc.commit_max_steps, rc.commit_max_delay_ms / 1000.0)
         self.start_metrics = start_metrics
         self.running: rpc.RunningServer | None = None
+        self._stopped = False
 
     @property
     def port(self) -> int:
-        assert self.running is not None
+        assert self.running is not None, "not started"
         return self.running.port
 
     @property
     def address(self) -> str:
-        return f"127.0.0.1:{self.port}"
+        assert self.running is not None, "not started"
+        return self.running.address()
 
     def start(self) -> ReplayService:
         self.running = rpc.start_server(
@@ -235,16 +493,24 @@ class ReplayService:
             self.cfg.auth,
             start_metrics=self.start_metrics,
         )
-        TRANSITIONS.set(self.store.transitions)
-        log.info("replay open", extra=kv(path=str(self.cfg.replay.path), **self.store.stats()))
+        self.servicer._update_gauges()
+        log.info("replay serving", extra=kv(path=str(self.cfg.replay.path), **self.store.stats()))
         return self
 
     def stop(self) -> None:
-        """Open streams commit what they hold, then the server drains and LMDB is closed."""
-        self.servicer.closing.set()
+        """Graceful and idempotent: refuse new calls, let streams commit and ack, close LMDB."""
+        if self._stopped:
+            return
+        self._stopped = True
+        self.servicer.begin_shutdown()
+        grace = self.cfg.replay.server.grace_s
         if self.running is not None:
             self.running.stop()
+        if not self.servicer.wait_streams(grace + 1.0):
+            log.warning("insert streams still open at shutdown")
         self.store.close()
+        if self._control is not None:
+            self._control.close()
 
 
 def run(cfg: StackConfig, ready_file: str | None) -> int:

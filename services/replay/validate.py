@@ -1,59 +1,142 @@
-"""A step must match the spec its robot registered; anything else is rejected before storage."""
+"""A step must match the spec its robot registered; anything else is rejected before storage.
+
+validate_step raises StepError (a user.wire.WireError) whose message names the field and whose
+`reason` is a short label for the rejected-steps metric.
+"""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
 from user import wire
-from user.v1 import robot_pb2, step_pb2, tensor_pb2
+from user.v1 import robot_pb2, step_pb2
+from user.v1 import tensor_pb2 as tpb
 
-ACTION_TOLERANCE = 1e-4  # the edge clips; beyond float noise an out-of-range action is a bug
+# The edge clips every action; beyond float noise an out-of-range action is a bug upstream.
+ACTION_ATOL = 1e-4
+ACTION_RTOL = 1e-6
+MAX_EPISODE_ID_BYTES = 256  # keys stay well under LMDB's 511-byte limit
+MAX_ROBOT_ID_BYTES = 128
 
 
-def _check_features(where: str, tmap: tensor_pb2.TensorMap, spec: robot_pb2.RobotSpec) -> None:
-    expected = {f.name: f for f in spec.observation}
+class StepError(wire.WireError):
+    """A step that breaks its robot's contract (-> INVALID_ARGUMENT)."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+def _check_id(field: str, value: str, limit: int) -> None:
+    if not value:
+        raise StepError(field, f"{field} is empty")
+    if "/" in value or "\0" in value:
+        raise StepError(field, f"{field} {value!r} must not contain '/' or NUL")
+    if len(value.encode()) > limit:
+        raise StepError(field, f"{field} is longer than {limit} bytes")
+
+
+def _decode(where: str, tensor: tpb.Tensor) -> np.ndarray:
+    try:
+        return wire.from_tensor(tensor)  # checks the byte count against dtype x shape
+    except wire.WireError as exc:
+        raise StepError("decode", f"{where}: {exc}") from None
+
+
+def check_tensor_map(where: str, tmap: tpb.TensorMap, features: list[robot_pb2.FeatureSpec]) -> None:
+    """Same names as the spec, and per feature the declared dtype, shape and finiteness."""
     given = set(tmap.tensors)
-    if given != set(expected):
-        raise wire.WireError(f"{where}: features {sorted(given)} do not match the spec's {sorted(expected)}")
-    for name, feature in expected.items():
-        tensor = tmap.tensors[name]
-        if tensor.dtype != feature.dtype:
-            raise wire.WireError(
-                f"{where}.{name}: dtype {wire.dtype_name(tensor.dtype)}, spec says {wire.dtype_name(feature.dtype)}"
+    wanted = {f.name for f in features}
+    if given != wanted:
+        missing, extra = sorted(wanted - given), sorted(given - wanted)
+        raise StepError(
+            "keys", f"{where}: keys {sorted(given)} do not match the spec (missing {missing}, extra {extra})"
+        )
+    for feat in features:
+        tensor = tmap.tensors[feat.name]
+        name = f"{where}[{feat.name!r}]"
+        if tensor.dtype != feat.dtype:
+            raise StepError(
+                "dtype",
+                f"{name}: dtype {_dtype_name(tensor.dtype)}, spec says {_dtype_name(feat.dtype)}",
             )
-        if tuple(tensor.shape) != tuple(feature.shape):
-            raise wire.WireError(f"{where}.{name}: shape {tuple(tensor.shape)}, spec says {tuple(feature.shape)}")
-        array = wire.from_tensor(tensor)  # checks the byte count against dtype x shape
-        if not feature.allow_nan and array.dtype.kind == "f" and not np.isfinite(array).all():
-            raise wire.WireError(f"{where}.{name}: NaN or Inf where the spec does not allow it")
+        if tuple(tensor.shape) != tuple(feat.shape):
+            raise StepError("shape", f"{name}: shape {list(tensor.shape)}, spec says {list(feat.shape)}")
+        array = _decode(name, tensor)
+        if not feat.allow_nan and array.dtype.kind == "f" and not np.isfinite(array).all():
+            raise StepError("non_finite", f"{name}: NaN or Inf where the spec does not allow it")
+
+
+def _dtype_name(code: int) -> str:
+    return wire.dtype_name(code) if code in tpb.DType.values() else str(code)
+
+
+class _ActionCheck:
+    """What one spec implies for actions, computed once per spec instead of once per step."""
+
+    def __init__(self, spec: robot_pb2.RobotSpec) -> None:
+        act = spec.action
+        self.dtype = act.dtype or tpb.DTYPE_FLOAT32
+        self.shape = tuple(act.shape)
+        size = math.prod(self.shape) if self.shape else 0
+        self.bounded = len(act.low) == size and len(act.high) == size
+        self.low = np.asarray(act.low, np.float64)
+        self.high = np.asarray(act.high, np.float64)
+        self.low_limit = self.low - (ACTION_ATOL + ACTION_RTOL * np.abs(self.low))
+        self.high_limit = self.high + (ACTION_ATOL + ACTION_RTOL * np.abs(self.high))
+
+    def __call__(self, tensor: tpb.Tensor) -> None:
+        if tensor.dtype != self.dtype:
+            raise StepError("dtype", f"action: dtype {_dtype_name(tensor.dtype)}, spec says {_dtype_name(self.dtype)}")
+        if tuple(tensor.shape) != self.shape:
+            raise StepError("shape", f"action: shape {list(tensor.shape)}, spec says {list(self.shape)}")
+        values = _decode("action", tensor).reshape(-1)
+        if not np.isfinite(values).all():
+            raise StepError("non_finite", "action: NaN or Inf")
+        if self.bounded and ((values < self.low_limit).any() or (values > self.high_limit).any()):
+            i = int(np.flatnonzero((values < self.low_limit) | (values > self.high_limit))[0])
+            raise StepError(
+                "action_bounds",
+                f"action[{i}] = {values[i]:.6g} is outside [{self.low[i]:.6g}, {self.high[i]:.6g}] "
+                "(the edge must clip)",
+            )
+
+
+# Compiled checks keyed by the serialized action space (~0.5 us), so a spec edited in place is recompiled.
+_COMPILED: dict[bytes, _ActionCheck] = {}
+_COMPILED_MAX = 256
+
+
+def _action_check(spec: robot_pb2.RobotSpec) -> _ActionCheck:
+    key = spec.action.SerializeToString()
+    check = _COMPILED.get(key)
+    if check is None:
+        if len(_COMPILED) >= _COMPILED_MAX:
+            _COMPILED.clear()
+        check = _COMPILED[key] = _ActionCheck(spec)
+    return check
 
 
 def validate_step(step: step_pb2.Step, spec: robot_pb2.RobotSpec) -> None:
-    """Raise WireError naming the first thing that does not match `spec`."""
-    if not step.robot_id or step.robot_id != spec.robot_id:
-        raise wire.WireError(f"robot_id {step.robot_id!r} does not match spec {spec.robot_id!r}")
-    if not step.episode_id or "/" in step.episode_id or "\0" in step.episode_id or len(step.episode_id) > 128:
-        raise wire.WireError(f"episode_id {step.episode_id!r} must be 1-128 chars without '/' or NUL")
-    _check_features("observation", step.observation, spec)
-    if step.action.dtype != tensor_pb2.DTYPE_FLOAT32:
-        raise wire.WireError(f"action: dtype {wire.dtype_name(step.action.dtype)}, expected float32")
-    if tuple(step.action.shape) != tuple(spec.action.shape):
-        raise wire.WireError(f"action: shape {tuple(step.action.shape)}, spec says {tuple(spec.action.shape)}")
-    action = wire.from_tensor(step.action).reshape(-1)
-    if not np.isfinite(action).all():
-        raise wire.WireError("action: NaN or Inf")
-    low = np.asarray(spec.action.low, dtype=np.float32)
-    high = np.asarray(spec.action.high, dtype=np.float32)
-    if low.size == action.size and (
-        np.any(action < low - ACTION_TOLERANCE) or np.any(action > high + ACTION_TOLERANCE)
-    ):
-        raise wire.WireError("action: outside the declared limits (the edge must clip)")
-    if not np.isfinite(step.reward):
-        raise wire.WireError("reward: NaN or Inf")
+    """Raise StepError naming the first thing in `step` that does not match `spec`."""
+    _check_id("robot_id", step.robot_id, MAX_ROBOT_ID_BYTES)
+    if step.robot_id != spec.robot_id:
+        raise StepError("robot_id", f"robot_id {step.robot_id!r} does not match the spec's {spec.robot_id!r}")
+    _check_id("episode_id", step.episode_id, MAX_EPISODE_ID_BYTES)
+    check_tensor_map("observation", step.observation, list(spec.observation))
+    _action_check(spec)(step.action)
+    if not math.isfinite(step.reward):
+        raise StepError("non_finite", "reward: NaN or Inf")
     last = step.terminated or step.truncated
-    if last and not step.final_observation.tensors:
-        raise wire.WireError("final_observation is required on the last step (terminated or truncated)")
-    if step.final_observation.tensors:
+    has_final = step.HasField("final_observation")
+    if last and not has_final:
+        raise StepError("final_observation", "final_observation is required on the last step (terminated or truncated)")
+    if has_final:
         if not last:
-            raise wire.WireError("final_observation is only allowed on the last step of an episode")
-        _check_features("final_observation", step.final_observation, spec)
+            raise StepError(
+                "final_observation",
+                "final_observation is set only on the last step of an episode (terminated or truncated)",
+            )
+        check_tensor_map("final_observation", step.final_observation, list(spec.observation))
