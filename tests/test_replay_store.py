@@ -10,6 +10,7 @@ import pytest
 from services.replay.store import (
     EmptyBufferError,
     LayoutError,
+    ReplayError,
     ReplayFullError,
     ReplayStore,
     StoreClosedError,
@@ -182,6 +183,17 @@ def test_a_full_map_stores_nothing_of_the_batch(tmp_path: Path) -> None:
         assert store.put_steps(big[:2]) == (2, 0)  # the store still works
     finally:
         store.close()
+
+
+def test_a_store_of_another_format_is_refused(tmp_path: Path) -> None:
+    import lmdb
+
+    env = lmdb.open(str(tmp_path / "old"), max_dbs=4)
+    with env.begin(write=True, db=env.open_db(b"steps")) as txn:
+        txn.put(b"arm-0/e/" + bytes(8), b"\x00" + make_step("arm-0", "e", 0).SerializeToString())
+    env.close()
+    with pytest.raises(ReplayError, match="older replay format"):
+        ReplayStore(tmp_path / "old", 64)
 
 
 # --------------------------------------------------------------------------- validation

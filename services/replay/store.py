@@ -203,8 +203,12 @@ class ReplayStore:
         self._episodes: set[bytes] = set()
         self._n_steps = 0
         self._duplicates = 0
-        self._open_meta()
-        self._rebuild_index()
+        try:
+            self._open_meta()
+            self._rebuild_index()
+        except BaseException:
+            self.env.close()
+            raise
         log.info(
             "replay store open",
             extra=kv(
@@ -218,6 +222,8 @@ class ReplayStore:
         with self.env.begin(write=True, db=self._meta) as txn:
             fmt = txn.get(b"format")
             if fmt is None:
+                if txn.stat(self._steps)["entries"]:
+                    raise ReplayError(f"{self.path} holds steps of an older replay format; move it away to start anew")
                 txn.put(b"format", FORMAT)
             elif fmt != FORMAT:
                 raise ReplayError(f"{self.path}: replay format {fmt!r}, this code reads {FORMAT!r}")
