@@ -152,10 +152,10 @@ class RobotLoop:
         self._thread = threading.Thread(target=self._run, name=f"loop-{self.robot_id}", daemon=True)
         self._thread.start()
 
-    def stop(self, timeout: float = 5.0) -> None:
+    def stop(self, timeout: float = 5.0, wait: bool = True) -> None:
         """Graceful: the step in progress completes, then the robot holds."""
         self._stop.set()
-        if self._thread is not None:
+        if wait and self._thread is not None:
             self._thread.join(timeout)
 
     @property
@@ -447,6 +447,8 @@ class EdgeAgent:
 
     def stop(self, flush_timeout_s: float = 10.0) -> None:
         """Finish the current steps, hold, flush unacked steps to replay (bounded), close everything."""
+        for loop in self.loops.values():
+            loop.stop(wait=False)  # every robot finishes its step at once
         for loop in self.loops.values():
             loop.stop()
         flushed = self.sender.flush(flush_timeout_s)

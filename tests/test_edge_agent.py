@@ -516,29 +516,35 @@ def cloud(tmp_path: Path, control: ControlService, inference: InferenceService) 
 
 
 def test_edge_agent_fast_mode_end_to_end(cloud: StackConfig, control: ControlService) -> None:
+    cloud.edge.robots = [
+        RobotConfig(id=rid, kind="sim_reach_arm", params={"max_episode_steps": 20}) for rid in ("arm-0", "arm-1")
+    ]
     agent = EdgeAgent(cloud)
     agent.start()
     try:
-        wait_until(lambda: (info := robot_info(control, "arm-0")) is not None and info.status.env_steps >= 300)
-        info = robot_info(control, "arm-0")
-        assert info.online and info.agent_id == "edge-test"
-        assert info.status.state in (control_pb2.ROBOT_STATE_RUNNING, control_pb2.ROBOT_STATE_HOLDING)
-        assert info.status.policy_version == 5
-        wait_until(lambda: replay_stats(cloud.edge.replay_addr).steps >= 300)
+        for rid in ("arm-0", "arm-1"):
+            wait_until(lambda rid=rid: (info := robot_info(control, rid)) is not None and info.status.env_steps >= 200)
+            info = robot_info(control, rid)
+            assert info.online and info.agent_id == "edge-test"
+            assert info.status.state in (control_pb2.ROBOT_STATE_RUNNING, control_pb2.ROBOT_STATE_HOLDING)
+            assert info.status.policy_version == 5
+        wait_until(lambda: replay_stats(cloud.edge.replay_addr).steps >= 400)
     finally:
         agent.stop()
-    loop = agent.loops["arm-0"]
     stats = replay_stats(cloud.edge.replay_addr)
-    assert stats.steps == loop.env_steps  # graceful stop flushed every step
+    assert dict(stats.steps_per_robot) == {rid: loop.env_steps for rid, loop in agent.loops.items()}  # all flushed
     assert stats.rejected == 0
     stub = replay_pb2_grpc.ReplayStub(make_channel(cloud.edge.replay_addr, AUTH))
     batch = stub.Sample(replay_pb2.SampleRequest(batch_size=64), timeout=5).batch
     assert wire.from_tensor(batch.policy_version).max() == 5
-    # The last heartbeat reported every finished episode; the clean hang-up took the robot offline.
-    info = robot_info(control, "arm-0")
-    assert not info.online
-    assert len({e.episode_id for e in info.recent_episodes}) == loop.episodes >= 10
-    assert all(e.length <= 20 for e in info.recent_episodes)
+    # The last heartbeat reported every finished episode; the clean hang-up took the robots offline.
+    for rid, loop in agent.loops.items():
+        info = robot_info(control, rid)
+        assert not info.online
+        assert len({e.episode_id for e in info.recent_episodes}) == loop.episodes >= 10
+        assert all(e.length <= 20 and e.robot_id == rid for e in info.recent_episodes)
+    # Different seeds: the two arms did not live the same episodes.
+    assert agent.loops["arm-0"].robot.target.tolist() != agent.loops["arm-1"].robot.target.tolist()
 
 
 def test_edge_process_serves_metrics_and_stops_on_sigterm(cloud: StackConfig, tmp_path: Path) -> None:
