@@ -1,0 +1,136 @@
+"""`python -m bench [--quick] [--only replay,weights,inference] [--json out.json] [--markdown out.md]`
+
+Runs each benchmark against its real peer in this process and prints one table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import logging
+import os
+import sys
+import tempfile
+import time
+import traceback
+from pathlib import Path
+
+from rich.console import Console
+from rich.table import Table
+
+from bench import Row, fmt_advantage, fmt_value
+
+BENCHES = {
+    "replay": "bench.replay_bench",
+    "weights": "bench.weights_bench",
+    "inference": "bench.inference_bench",
+}
+
+
+LEGEND = {
+    "replay": "replay: ours services.replay.store.ReplayStore (LMDB, durable commits) vs "
+    "lerobot.rl.buffer.ReplayBuffer built as their learner builds it (CPU, optimize_memory=True), DrQ off; "
+    "both fed the same transitions, taking turns.",
+    "weights": "weights: ours user.weights (WeightStore/WeightServicer -> WeightSubscriber, token auth) vs lerobot's "
+    "LearnerService.StreamParameters + transport.utils (state_to_bytes, receive_bytes_in_chunks, bytes_to_state_dict); "
+    "both real gRPC servers on 127.0.0.1, versions alternate.",
+    "inference": "inference: ours InferenceService (micro-batching) vs the same Act proto served one forward per "
+    "request in the handler; each robot is a separate process, windows alternate.",
+}
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m bench", description=__doc__)
+    p.add_argument("--quick", action="store_true", help="tiny sizes (smoke test); numbers are not meaningful")
+    p.add_argument("--only", default=",".join(BENCHES), help=f"comma-separated subset of {list(BENCHES)}")
+    p.add_argument("--json", dest="json_path", help="also write the rows as JSON here")
+    p.add_argument("--markdown", dest="md_path", help="also write the table as Markdown here")
+    p.add_argument("--workdir", help="where LMDB files go (default: a temporary directory)")
+    return p
+
+
+def render(rows: list[Row], title: str) -> Table:
+    table = Table(title=title, show_lines=False, header_style="bold")
+    table.add_column("benchmark", style="cyan", no_wrap=True)
+    table.add_column("metric")
+    table.add_column("USER (ours)", justify="right")
+    table.add_column("peer", justify="right")
+    table.add_column("ours vs peer", justify="right", style="bold")
+    table.add_column("note", style="dim")
+    last_group = None
+    for row in rows:
+        group = f"{row.group}\n[dim]vs {row.peer_name}[/dim]" if row.group != last_group else ""
+        last_group = row.group
+        table.add_row(
+            group,
+            row.metric,
+            fmt_value(row.ours, row.unit),
+            fmt_value(row.peer, row.unit),
+            fmt_advantage(row.advantage),
+            row.note,
+        )
+    return table
+
+
+def markdown(rows: list[Row]) -> str:
+    lines = [
+        "| benchmark | metric | USER (ours) | peer | ours vs peer | note |",
+        "|---|---|---:|---:|---:|---|",
+    ]
+    last_group = None
+    for r in rows:
+        group = f"{r.group} vs {r.peer_name}" if r.group != last_group else ""
+        last_group = r.group
+        cells = [group, r.metric, fmt_value(r.ours, r.unit), fmt_value(r.peer, r.unit), fmt_advantage(r.advantage)]
+        cells.append(r.note)
+        lines.append("| " + " | ".join(c.replace("|", "/") for c in cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    names = [n.strip() for n in args.only.split(",") if n.strip()]
+    unknown = [n for n in names if n not in BENCHES]
+    if unknown:
+        print(f"unknown benchmark(s) {unknown}; known: {list(BENCHES)}", file=sys.stderr)
+        return 2
+    import torch
+
+    torch.set_num_threads(1)
+    logging.basicConfig(level=logging.WARNING)
+    console = Console(stderr=True)
+    rows: list[Row] = []
+    failed: list[str] = []
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="user-bench-") as tmp:
+        workdir = Path(args.workdir or tmp)
+        workdir.mkdir(parents=True, exist_ok=True)
+        for name in names:
+            t0 = time.perf_counter()
+            console.log(f"bench {name} ...")
+            try:
+                module = importlib.import_module(BENCHES[name])
+                rows += module.run(quick=args.quick, workdir=workdir / name, log=console.log)
+            except Exception:
+                failed.append(name)
+                console.print(f"[red]bench {name} failed[/red]\n{traceback.format_exc()}")
+            console.log(f"bench {name} done in {time.perf_counter() - t0:.1f} s")
+    cpus = os.cpu_count()
+    title = (
+        f"USER vs peers{' (--quick: sizes too small to mean anything)' if args.quick else ''}\n"
+        f"{cpus} CPUs, torch threads 1, loopback gRPC; 'ours vs peer' > 1 means ours is better"
+    )
+    Console(width=max(160, Console().width)).print(render(rows, title))
+    for name in names:
+        print(LEGEND[name])
+    print(f"total {time.perf_counter() - start:.1f} s")
+    if args.json_path:
+        Path(args.json_path).write_text(json.dumps([r.to_json() for r in rows], indent=1, default=str))
+    if args.md_path:
+        Path(args.md_path).write_text(markdown(rows))
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,282 @@
+"""Replay buffer: durable LMDB ReplayStore (ours) vs lerobot's in-RAM ReplayBuffer (peer).
+
+Both get the same transitions, built before timing starts: ours as user.v1.Step messages (what the
+Replay service receives), theirs as the torch tensors their learner adds one by one (images as float32
+in [0, 1], channel-first, as their pipeline feeds them). The peer is built like lerobot's learner
+builds its online buffer (optimize_memory=True, storage on the CPU); DrQ augmentation is off so both
+sample plain batches.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench import Row, median, repeat_ms, timed
+from user.v1 import step_pb2
+from user.wire import to_tensor, to_tensor_map
+
+BATCH = 256
+EPISODE_LEN = 50
+STATE_DIM = 15
+ACTION_DIM = 3
+IMAGE_HW = 128
+CAMERAS = ("front", "wrist")
+
+
+@dataclass(frozen=True)
+class Shape:
+    name: str
+    images: bool
+
+    def observation(self, rng: np.random.Generator) -> dict[str, np.ndarray]:
+        obs = {"state": rng.standard_normal(STATE_DIM).astype(np.float32)}
+        if self.images:
+            for cam in CAMERAS:
+                obs[f"camera.{cam}"] = rng.integers(0, 256, (IMAGE_HW, IMAGE_HW, 3), dtype=np.uint8)
+        return obs
+
+
+SIM_ARM = Shape("sim-arm (state 15 f32, action 3)", images=False)
+IMAGES = Shape(f"images (2 cams {IMAGE_HW}x{IMAGE_HW}x3 u8, state 15)", images=True)
+
+
+@dataclass
+class Episode:
+    """Observations o_0..o_T and actions a_0..a_{T-1}: T transitions."""
+
+    observations: list[dict[str, np.ndarray]]
+    actions: list[np.ndarray]
+    rewards: list[float]
+
+
+def make_episodes(shape: Shape, n: int, seed: int = 0) -> list[Episode]:
+    rng = np.random.default_rng(seed)
+    episodes, left = [], n
+    while left > 0:
+        length = min(EPISODE_LEN, left)
+        episodes.append(
+            Episode(
+                [shape.observation(rng) for _ in range(length + 1)],
+                [rng.uniform(-1, 1, ACTION_DIM).astype(np.float32) for _ in range(length)],
+                [float(r) for r in rng.standard_normal(length)],
+            )
+        )
+        left -= length
+    return episodes
+
+
+def to_steps(episodes: list[Episode], robot_id: str = "arm-0") -> list[step_pb2.Step]:
+    """Steps as an edge agent sends them: the last step of an episode carries final_observation."""
+    steps = []
+    for e, ep in enumerate(episodes):
+        length = len(ep.actions)
+        for t in range(length):
+            last = t == length - 1
+            step = step_pb2.Step(
+                robot_id=robot_id,
+                episode_id=f"ep-{e}",
+                step_index=t,
+                observation=to_tensor_map(ep.observations[t]),
+                action=to_tensor(ep.actions[t]),
+                reward=ep.rewards[t],
+                truncated=last,
+                policy_version=1,
+                observed_at_ns=1,
+                acted_at_ns=2,
+            )
+            if last:
+                step.final_observation.CopyFrom(to_tensor_map(ep.observations[t + 1]))
+            steps.append(step)
+    return steps
+
+
+# --------------------------------------------------------------------------- ours
+
+
+def open_store(path: Path, map_size_mb: int) -> Any:
+    from services.replay.store import ReplayStore
+
+    return ReplayStore(path, map_size_mb=map_size_mb)
+
+
+def store_transitions(store: Any) -> int:
+    """Sampleable transitions the store holds."""
+    return int(store.stats()["transitions"])
+
+
+def insert_ours(store: Any, steps: list[step_pb2.Step]) -> None:
+    for i in range(0, len(steps), BATCH):
+        _stored, dups = store.put_steps(steps[i : i + BATCH])
+        if dups:
+            raise RuntimeError(f"{dups} unexpected duplicates")
+
+
+def map_size_for(shape: Shape, n: int) -> int:
+    per = (2 * IMAGE_HW * IMAGE_HW * 3 + 1024) if shape.images else 1024
+    return max(64, int(3 * n * per / 2**20) + 64)
+
+
+# --------------------------------------------------------------------------- peer
+
+
+def make_peer(capacity: int) -> Any:
+    from lerobot.rl.buffer import ReplayBuffer
+
+    # As lerobot's learner builds its online buffer (learner.py): CPU storage, optimize_memory=True.
+    return ReplayBuffer(capacity=capacity, device="cpu", storage_device="cpu", optimize_memory=True, use_drq=False)
+
+
+def peer_transitions(episodes: list[Episode]) -> list[dict[str, Any]]:
+    """add() kwargs per transition, as lerobot's learner receives them from its actor."""
+    import torch
+
+    def state(obs: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+        out = {"observation.state": torch.from_numpy(obs["state"]).unsqueeze(0)}
+        for key, val in obs.items():
+            if key.startswith("camera."):
+                img = torch.from_numpy(val).permute(2, 0, 1).float().div_(255.0)
+                out[f"observation.images.{key.removeprefix('camera.')}"] = img.unsqueeze(0)
+        return out
+
+    out = []
+    for ep in episodes:
+        states = [state(o) for o in ep.observations]  # next_state shares the tensors of the next state
+        for t, action in enumerate(ep.actions):
+            last = t == len(ep.actions) - 1
+            out.append(
+                {
+                    "state": states[t],
+                    "action": torch.from_numpy(action).unsqueeze(0),
+                    "reward": ep.rewards[t],
+                    "next_state": states[t + 1],
+                    "done": False,
+                    "truncated": last,
+                }
+            )
+    return out
+
+
+def peer_nbytes(buf: Any) -> int:
+    tensors = [*buf.states.values(), buf.actions, buf.rewards, buf.dones, buf.truncateds, buf.episode_ends]
+    if not buf.optimize_memory:
+        tensors += list(buf.next_states.values())
+    return sum(t.numel() * t.element_size() for t in tensors)
+
+
+# --------------------------------------------------------------------------- crash survival
+
+
+def crash_child(path: str, n: int, images: bool) -> None:
+    """Insert n transitions, then die by SIGKILL without closing anything."""
+    shape = IMAGES if images else SIM_ARM
+    store = open_store(Path(path), map_size_for(shape, n))
+    insert_ours(store, to_steps(make_episodes(shape, n, seed=1)))
+    os.kill(os.getpid(), signal.SIGKILL)
+
+
+def crash_survival(workdir: Path, shape: Shape, n: int) -> tuple[int, int]:
+    """(transitions after SIGKILL and reopen, child return code)."""
+    path = workdir / f"crash-{'img' if shape.images else 'arm'}"
+    code = f"from bench.replay_bench import crash_child; crash_child({str(path)!r}, {n}, {shape.images})"
+    proc = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1], timeout=120)
+    store = open_store(path, map_size_for(shape, n))
+    try:
+        return store_transitions(store), proc.returncode
+    finally:
+        store.close()
+
+
+# --------------------------------------------------------------------------- driver
+
+
+def bench_shape(shape: Shape, n: int, sample_repeats: int, workdir: Path, log: Callable[..., None]) -> list[Row]:
+    """Ours and the peer take turns (a batch of inserts, a sample) so background load hits both alike."""
+    episodes = make_episodes(shape, n)
+    steps = to_steps(episodes)
+    peer_in = peer_transitions(episodes)  # same transitions, same order
+    group = f"replay {shape.name}, N={n}"
+    path = workdir / ("img" if shape.images else "arm")
+    path.mkdir(parents=True, exist_ok=True)
+    store = open_store(path, map_size_for(shape, n))
+    buf = make_peer(n)
+    # Untimed first pass: their buffer is preallocated with torch.empty, so the first fill pays page
+    # faults; the timed pass overwrites the ring (a long-running learner's steady state, their best case).
+    for tr in peer_in:
+        buf.add(**tr)
+    try:
+        ours_s = peer_s = 0.0
+        for i in range(0, n, BATCH):
+            ours_s += timed(lambda i=i: insert_ours(store, steps[i : i + BATCH]))[0]
+            peer_s += timed(lambda i=i: [buf.add(**tr) for tr in peer_in[i : i + BATCH]])[0]
+        have = store_transitions(store)
+        if have != n or len(buf) != n:
+            raise RuntimeError(f"ours holds {have}, theirs {len(buf)} transitions; inserted {n}")
+        log(f"replay {shape.name}: inserted {n}: ours {ours_s:.2f} s, theirs {peer_s:.2f} s")
+        rng = np.random.default_rng(0)
+        ours_ms, peer_ms = [], []
+        for r in range(sample_repeats + 1):  # round 0 is a warm-up
+            o = repeat_ms(lambda: store.sample(BATCH, rng), 1, warmup=0)
+            p = repeat_ms(lambda: buf.sample(BATCH), 1, warmup=0)
+            if r:
+                ours_ms += o
+                peer_ms += p
+        peer_bytes = peer_nbytes(buf) / n
+        ours_bytes = store.stats()["bytes_on_disk"] / n
+    finally:
+        store.close()
+    kill_n = min(n, 2 * BATCH + 7)
+    survived, rc = crash_survival(workdir, shape, kill_n)
+    return [
+        Row(
+            group,
+            "insert",
+            n / ours_s,
+            n / peer_s,
+            "tr/s",
+            True,
+            f"ours: {BATCH}/LMDB commit (fsync); theirs: add() into a warm RAM ring",
+        ),
+        Row(
+            group,
+            f"sample batch {BATCH} (median of {sample_repeats})",
+            median(ours_ms),
+            median(peer_ms),
+            "ms",
+            False,
+            "ours: LMDB read + decode; theirs: tensor index",
+        ),
+        Row(
+            group,
+            "bytes per transition",
+            ours_bytes,
+            peer_bytes,
+            "B",
+            False,
+            "ours: LMDB pages; theirs: tensors" + (", images f32" if shape.images else ""),
+        ),
+        Row(
+            group,
+            "after SIGKILL + restart",
+            f"{survived}/{kill_n} kept",
+            f"0/{kill_n} (RAM only)",
+            note=f"child SIGKILLed (rc {rc}) after its last commit",
+        ),
+    ]
+
+
+def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Row]:
+    workdir.mkdir(parents=True, exist_ok=True)
+    sizes = [(SIM_ARM, 600, 3), (IMAGES, 300, 2)] if quick else [(SIM_ARM, 20_000, 30), (IMAGES, 1_000, 10)]
+    rows: list[Row] = []
+    for shape, n, repeats in sizes:
+        rows += bench_shape(shape, n, repeats, workdir, log)
+    return rows

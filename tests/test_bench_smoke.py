@@ -1,0 +1,65 @@
+"""`python -m bench --quick` runs end to end and produces every row with finite ratios.
+
+No timing thresholds: the numbers of a --quick run mean nothing; only the table's shape is checked.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_bench_quick(tmp_path: Path) -> None:
+    out = tmp_path / "bench.json"
+    md = tmp_path / "bench.md"
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "bench",
+            "--quick",
+            "--json",
+            str(out),
+            "--markdown",
+            str(md),
+            "--workdir",
+            str(tmp_path),
+        ],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
+    rows = json.loads(out.read_text())
+    groups = {r["group"].split(" ")[0] for r in rows}
+    assert {"replay", "weights", "weights:"} <= groups, groups
+    metrics = {(r["group"].split(" (")[0], r["metric"].split(" (")[0]) for r in rows}
+    for shape in ("sim-arm", "images"):
+        for metric in ("insert", "sample batch 256", "bytes per transition", "after SIGKILL + restart"):
+            assert any(g.startswith("replay " + shape) and m == metric for g, m in metrics), (shape, metric)
+    for model in ("SAC actor", "big MLP"):
+        for metric in ("latency per version", "throughput", "bytes on the wire per version"):
+            assert (f"weights {model}", metric) in metrics, (model, metric)
+
+    numeric = [r for r in rows if r["higher_is_better"] is not None]
+    assert numeric
+    for r in numeric:
+        assert math.isfinite(r["ours"]) and r["ours"] > 0, r
+        assert math.isfinite(r["peer"]) and r["peer"] > 0, r
+        assert math.isfinite(r["advantage"]) and r["advantage"] > 0, r
+    # Durability is a fact, not a timing: every transition committed before SIGKILL is back after reopen.
+    for r in rows:
+        if r["metric"] == "after SIGKILL + restart":
+            kept, total = r["ours"].split(" ")[0].split("/")
+            assert kept == total, r
+    assert "ours vs peer" in proc.stdout
+    assert md.read_text().count("\n") == len(rows) + 2
