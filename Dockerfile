@@ -1,0 +1,51 @@
+# One image for every USER process (control, replay, inference, learner, edge): `docker run IMAGE <subcommand>`.
+#   docker build -t user-robot-learning .
+#   docker run --rm -e USER_TOKEN=... user-robot-learning control -c /app/configs/compose.yaml
+# Debian bookworm, the release the stack is tested on (libosmesa6 is in it).
+FROM python:3.12-slim-bookworm
+
+ENV PYTHONDONTWRITEBYTECODE=1 \
+    PYTHONUNBUFFERED=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    MUJOCO_GL=egl
+
+# Headless MuJoCo rendering: EGL through Mesa (llvmpipe on a CPU-only host); OSMesa as the fallback (MUJOCO_GL=osmesa).
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends libegl1 libegl-mesa0 libgl1 libosmesa6 \
+    && rm -rf /var/lib/apt/lists/*
+
+WORKDIR /app
+
+# Dependencies first, from pyproject.toml + constraints.txt only, so a code change reuses this (large) layer.
+# evdev (a lerobot[hilserl] dependency, for teleoperators) ships no wheel: gcc + kernel headers build it, then go.
+COPY pyproject.toml constraints.txt ./
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends gcc libc6-dev \
+    && python -c "import tomllib; print('\n'.join(tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies']))" \
+        > /tmp/requirements.txt \
+    && pip install -c constraints.txt -r /tmp/requirements.txt \
+    && apt-get purge -y --auto-remove gcc libc6-dev \
+    && rm -rf /var/lib/apt/lists/* /tmp/requirements.txt
+
+COPY . .
+
+# gRPC stubs are generated, never committed: the same protoc call as the Makefile's $(STUBS) rule.
+# Generated before the install so the user.v1 package is part of it.
+RUN rm -rf user/v1 && mkdir -p user/v1 \
+    && python -m grpc_tools.protoc -Iproto --python_out=. --pyi_out=. --grpc_python_out=. proto/user/v1/*.proto \
+    && touch user/v1/__init__.py user/v1/.generated \
+    && pip install --no-deps -c constraints.txt . \
+    && python -c "import user.v1.replay_pb2_grpc, services.control.server, cloud_learner.server, edge_agent.agent"
+
+# Non-root; /data holds the named volumes (replay LMDB, checkpoints), created here so fresh volumes inherit the owner.
+RUN useradd --create-home --uid 10001 --shell /usr/sbin/nologin user \
+    && mkdir -p /data/replay /data/checkpoints \
+    && chown -R user:user /data
+USER user
+
+# gRPC: control 50051, replay 50052, inference 50053, learner 50054; Prometheus /metrics: 9101-9105.
+EXPOSE 50051 50052 50053 50054 9101 9102 9103 9104 9105
+
+ENTRYPOINT ["userctl"]
+CMD ["--help"]
