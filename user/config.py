@@ -36,7 +36,9 @@ class AuthConfig(Strict):
             return os.environ["USER_TOKEN"]
         if self.token_file:
             return self.token_file.read_text().strip()
-        raise ConfigError("auth.token: auth is enabled but no token is set (auth.token, $USER_TOKEN or auth.token_file)")
+        raise ConfigError(
+            "auth.token: auth is enabled but no token is set (auth.token, $USER_TOKEN or auth.token_file)"
+        )
 
 
 class ServerConfig(Strict):
@@ -47,14 +49,27 @@ class ServerConfig(Strict):
     grace_s: float = Field(default=5.0, ge=0)
 
 
-class ControlConfig(Strict):
+class _ServerSection(Strict):
+    """A section with a `server`: a partial server mapping keeps the section's own defaults for the rest
+    (`--set control.server.host=0.0.0.0` must not reset control's port 50051 to the generic 0)."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _fill_server_defaults(cls, data: Any) -> Any:
+        if isinstance(data, dict) and isinstance(data.get("server"), dict):
+            default = cls.model_fields["server"].default.model_dump()
+            data = {**data, "server": {**default, **data["server"]}}
+        return data
+
+
+class ControlConfig(_ServerSection):
     server: ServerConfig = ServerConfig(port=50051, metrics_port=9101)
     lease_ttl_s: float = Field(default=10.0, gt=0)
     heartbeat_interval_s: float = Field(default=1.0, gt=0)
     episodes_kept: int = Field(default=200, ge=1, description="recent episodes kept per robot")
 
 
-class ReplayConfig(Strict):
+class ReplayConfig(_ServerSection):
     server: ServerConfig = ServerConfig(port=50052, metrics_port=9102)
     path: Path = Path("runs/default/replay")
     map_size_mb: int = Field(default=4096, ge=16)
@@ -64,7 +79,7 @@ class ReplayConfig(Strict):
     rpc_timeout_s: float = Field(default=5.0, gt=0)
 
 
-class InferenceConfig(Strict):
+class InferenceConfig(_ServerSection):
     server: ServerConfig = ServerConfig(port=50053, metrics_port=9103)
     learner_addr: str = "127.0.0.1:50054"
     max_batch: int = Field(default=64, ge=1)
@@ -72,7 +87,7 @@ class InferenceConfig(Strict):
     device: str = "cpu"
 
 
-class LearnerConfig(Strict):
+class LearnerConfig(_ServerSection):
     server: ServerConfig = ServerConfig(port=50054, metrics_port=9104)
     replay_addr: str = "127.0.0.1:50052"
     control_addr: str = "127.0.0.1:50051"
