@@ -53,7 +53,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "health":
         from user.rpc import check_health
 
-        return 0 if check_health(args.target, cfg.auth, timeout_s=args.timeout) else 1
+        auth = cfg.auth
+        try:
+            auth.resolved_token()
+        except ConfigError:  # health checks are exempt from auth: probing needs no token
+            auth = auth.model_copy(update={"enabled": False})
+        return 0 if check_health(args.target, auth, timeout_s=args.timeout) else 1
     if args.command == "up":
         from user.up import run_up
 
