@@ -9,9 +9,10 @@ def test_health_probe_needs_no_token(monkeypatch):
     cfg = StackConfig(auth=AuthConfig(token="server-secret"))
     cfg.control.server.port = 0
     service = ControlService(cfg, start_metrics=False).start()
+    address = service.address
     try:
         monkeypatch.delenv("USER_TOKEN", raising=False)
-        assert main(["health", service.address]) == 0
+        assert main(["health", address]) == 0
     finally:
         service.stop()
-    assert main(["health", service.address, "--timeout", "0.5"]) == 1
+    assert main(["health", address, "--timeout", "0.5"]) == 1
