@@ -28,6 +28,7 @@ BENCHES = {
 }
 
 
+DEFAULT_OUT = Path("runs/bench")
 LEGEND = {
     "replay": "replay: ours services.replay.store.ReplayStore (LMDB, durable commits) vs "
     "lerobot.rl.buffer.ReplayBuffer built as their learner builds it (CPU, optimize_memory=True), DrQ off; "
@@ -44,8 +45,10 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m bench", description=__doc__)
     p.add_argument("--quick", action="store_true", help="tiny sizes (smoke test); numbers are not meaningful")
     p.add_argument("--only", default=",".join(BENCHES), help=f"comma-separated subset of {list(BENCHES)}")
-    p.add_argument("--json", dest="json_path", help="also write the rows as JSON here")
-    p.add_argument("--markdown", dest="md_path", help="also write the table as Markdown here")
+    p.add_argument("--json", dest="json_path", help="rows as JSON (default runs/bench/latest.json, not with --quick)")
+    p.add_argument(
+        "--markdown", dest="md_path", help="table as Markdown (default runs/bench/latest.md, not with --quick)"
+    )
     p.add_argument("--workdir", help="where LMDB files go (default: a temporary directory)")
     return p
 
@@ -90,6 +93,9 @@ def markdown(rows: list[Row]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    if not args.quick:
+        args.json_path = args.json_path or str(DEFAULT_OUT / "latest.json")
+        args.md_path = args.md_path or str(DEFAULT_OUT / "latest.md")
     names = [n.strip() for n in args.only.split(",") if n.strip()]
     unknown = [n for n in names if n not in BENCHES]
     if unknown:
@@ -125,10 +131,16 @@ def main(argv: list[str] | None = None) -> int:
     for name in names:
         print(LEGEND[name])
     print(f"total {time.perf_counter() - start:.1f} s")
+    for out in (args.json_path, args.md_path):
+        if out:
+            Path(out).parent.mkdir(parents=True, exist_ok=True)
     if args.json_path:
         Path(args.json_path).write_text(json.dumps([r.to_json() for r in rows], indent=1, default=str))
     if args.md_path:
-        Path(args.md_path).write_text(markdown(rows))
+        legend = "".join(f"\n- {LEGEND[n]}" for n in names)
+        Path(args.md_path).write_text(f"{title.replace(chr(10), '; ')}\n\n{markdown(rows)}{legend}\n")
+    if args.json_path or args.md_path:
+        print(f"wrote {', '.join(p for p in (args.json_path, args.md_path) if p)}")
     return 1 if failed else 0
 
 

@@ -177,7 +177,7 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
     from bench.weights_bench import models
 
     rows: list[Row] = []
-    rounds, seconds = (1, 0.3) if quick else (3, 0.7)
+    rounds, seconds = (1, 0.3) if quick else (4, 0.8)
     concurrency = [1, 2] if quick else CONCURRENCY
     # Robots are separate processes (as on real edges), so clients never share the server's GIL.
     with multiprocessing.get_context("spawn").Pool(max(concurrency)) as pool:

@@ -233,7 +233,7 @@ def bench_shape(shape: Shape, n: int, sample_repeats: int, workdir: Path, log: C
         ours_bytes = store.stats()["bytes_on_disk"] / n
     finally:
         store.close()
-    kill_n = min(n, 2 * BATCH + 7)
+    kill_n = n
     survived, rc = crash_survival(workdir, shape, kill_n)
     return [
         Row(

@@ -257,7 +257,7 @@ def fact_rows() -> list[Row]:
 def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Row]:
     rows: list[Row] = []
     for label, config in models():
-        versions = 2 if quick else (20 if label == "SAC actor" else 5)
+        versions = 2 if quick else (30 if label == "SAC actor" else 8)
         if quick and label != "SAC actor":
             config = {**config, "obs_dim": 64, "hidden": [256, 256]}
         log(f"weights: {label}, {versions} versions")
