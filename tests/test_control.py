@@ -171,6 +171,19 @@ def test_register_heartbeat_list_get(make_service: Callable[..., ControlService]
         assert arm1.status.state == control_pb2.ROBOT_STATE_PAUSED
         assert _metric("user_control_episodes_total", robot_id="arm-0", success="true") >= 3
 
+        # After a broken stream the edge re-sends its last episodes: each is kept once.
+        resent = [episodes[4], control_pb2.EpisodeSummary(episode_id="ep5", length=9, success=True)]
+        status.ClearField("new_episodes")
+        status.new_episodes.extend(resent)
+        status.env_steps = 260
+        edge.heartbeat(2, status)
+        _wait_for(
+            lambda: stub.GetRobot(control_pb2.GetRobotRequest(robot_id="arm-0"), timeout=5).status.env_steps == 260,
+            "second heartbeat applied",
+        )
+        info = stub.GetRobot(control_pb2.GetRobotRequest(robot_id="arm-0"), timeout=5)
+        assert [e.episode_id for e in info.recent_episodes] == ["ep3", "ep4", "ep5"]
+
         with pytest.raises(grpc.RpcError) as err:
             stub.GetRobot(control_pb2.GetRobotRequest(robot_id="nope"), timeout=5)
         assert err.value.code() == grpc.StatusCode.NOT_FOUND

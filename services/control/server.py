@@ -234,7 +234,11 @@ class Registry:
 
     @staticmethod
     def _store_status_locked(rec: RobotRecord, status: control_pb2.RobotStatus) -> None:
+        known = {ep.episode_id for ep in rec.episodes}
         for ep in status.new_episodes:
+            if ep.episode_id in known:  # re-sent after a broken stream: count it once
+                continue
+            known.add(ep.episode_id)
             if not ep.robot_id:
                 ep.robot_id = rec.spec.robot_id
             rec.episodes.append(ep)
