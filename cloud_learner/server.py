@@ -14,8 +14,9 @@ import torch
 
 from cloud_learner.learner import Learner
 from user import rpc
-from user.config import StackConfig
+from user.config import ConfigError, StackConfig
 from user.log import kv
+from user.policy import check_device
 from user.v1 import learner_pb2, learner_pb2_grpc
 from user.weights import WeightServicer, WeightStore
 
@@ -50,6 +51,10 @@ class LearnerService:
     """In-process learner service (tests, userctl): start() serves and trains, stop() shuts down cleanly."""
 
     def __init__(self, cfg: StackConfig, start_metrics: bool = True) -> None:
+        try:
+            check_device(cfg.learner.device)
+        except ValueError as exc:
+            raise ConfigError(f"learner.device: {exc}") from None
         self.cfg = cfg
         self.start_metrics = start_metrics
         self.store = WeightStore()

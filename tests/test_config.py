@@ -178,6 +178,23 @@ def test_userctl_exits_2_on_a_bad_override(command: str, capsys: pytest.CaptureF
     assert "learner.batch_size" in err
 
 
+@pytest.mark.parametrize(
+    ("command", "device", "said"),
+    [
+        ("inference", "gpu", "should match pattern"),
+        ("learner", "cuda:7", "CUDA devices"),
+        ("inference", "cuda:7", "CUDA"),
+    ],
+)
+def test_userctl_exits_2_on_a_device_this_machine_lacks(
+    command: str, device: str, said: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    overrides = ["--set", f"{command}.device={device}", "--set", "auth.token=t"]
+    assert cli.main([command, "-c", str(ROOT / "configs" / "compose.yaml"), *overrides]) == 2
+    err = capsys.readouterr().err
+    assert f"{command}.device" in err and said in err
+
+
 def test_userctl_health_exits_2_on_a_bad_config(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli.main(["health", "127.0.0.1:1", "--set", "control.server.port=-5"]) == 2
     assert "control.server.port" in capsys.readouterr().err

@@ -14,6 +14,9 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+# torch device names; whether the machine has the device is checked when the service starts.
+DEVICE = Field(default="cpu", pattern=r"^(cpu|cuda(:[0-9]+)?|mps)$", description="torch device: cpu, cuda, cuda:N")
+
 
 class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
@@ -84,7 +87,7 @@ class InferenceConfig(_ServerSection):
     learner_addr: str = "127.0.0.1:50054"
     max_batch: int = Field(default=64, ge=1)
     max_wait_ms: float = Field(default=2.0, ge=0)
-    device: str = "cpu"
+    device: str = DEVICE
 
 
 class LearnerConfig(_ServerSection):
@@ -93,7 +96,7 @@ class LearnerConfig(_ServerSection):
     control_addr: str = "127.0.0.1:50051"
     checkpoint_dir: Path = Path("runs/default/checkpoints")
     robot_kind: str = "sim_reach_arm"
-    device: str = "cpu"
+    device: str = DEVICE
     torch_threads: int = Field(default=1, ge=1)
     seed: int = 0
     hidden: list[int] = [128, 128]

@@ -83,7 +83,8 @@ class Policy(ABC):
         """observation values are (B, ...) arrays; returns (B, action_dim) float32."""
 
 
-PolicyFactory = Callable[[learner_pb2.PolicySpec, Mapping[str, np.ndarray], int], Policy]
+# (spec, tensors, version, device) -> Policy
+PolicyFactory = Callable[[learner_pb2.PolicySpec, Mapping[str, np.ndarray], int, str], Policy]
 _REGISTRY: dict[str, PolicyFactory] = {}
 
 
@@ -95,13 +96,26 @@ def register_policy(kind: str) -> Callable[[PolicyFactory], PolicyFactory]:
     return deco
 
 
-def build_policy(spec: learner_pb2.PolicySpec, tensors: Mapping[str, np.ndarray], version: int) -> Policy:
-    """Rebuild a policy from the wire; any mismatch raises ValueError."""
+def build_policy(
+    spec: learner_pb2.PolicySpec, tensors: Mapping[str, np.ndarray], version: int, device: str = "cpu"
+) -> Policy:
+    """Rebuild a policy from the wire on `device` (e.g. "cpu", "cuda:0"); any mismatch raises ValueError."""
     try:
         factory = _REGISTRY[spec.kind]
     except KeyError:
         raise ValueError(f"unknown policy kind {spec.kind!r}; known: {sorted(_REGISTRY)}") from None
-    return factory(spec, tensors, version)
+    return factory(spec, tensors, version, device)
+
+
+def check_device(device: str) -> torch.device:
+    """Parse a torch device name and make sure this machine has it (fail at start, not at the first request)."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, ValueError) as exc:
+        raise ValueError(f"bad device {device!r}: {exc}") from None
+    if dev.type == "cuda" and (not torch.cuda.is_available() or (dev.index or 0) >= torch.cuda.device_count()):
+        raise ValueError(f"device {device!r} requested but this machine has {torch.cuda.device_count()} CUDA devices")
+    return dev
 
 
 def known_policy_kinds() -> list[str]:
@@ -153,7 +167,9 @@ def _load_tensors(module: nn.Module, tensors: Mapping[str, np.ndarray]) -> None:
 
 
 class SacMlpPolicy(Policy):
-    def __init__(self, spec: learner_pb2.PolicySpec, tensors: Mapping[str, np.ndarray], version: int) -> None:
+    def __init__(
+        self, spec: learner_pb2.PolicySpec, tensors: Mapping[str, np.ndarray], version: int, device: str = "cpu"
+    ) -> None:
         try:
             config = json.loads(spec.config_json)
         except json.JSONDecodeError as exc:
@@ -168,7 +184,8 @@ class SacMlpPolicy(Policy):
         self.action_dim = int(cfg["action_dim"])
         self.actor = actor_from_config(cfg)
         _load_tensors(self.actor, tensors)
-        self.actor.eval()
+        self.device = check_device(device)
+        self.actor.to(self.device).eval()
 
     def obs_vector(self, observation: Mapping[str, np.ndarray]) -> np.ndarray:
         """Concatenate obs_keys (each flattened after the batch dim) into (B, obs_dim) float32."""
@@ -186,10 +203,10 @@ class SacMlpPolicy(Policy):
 
     @torch.no_grad()
     def act(self, observation: Mapping[str, np.ndarray], deterministic: bool = False) -> np.ndarray:
-        obs = torch.from_numpy(self.obs_vector(observation))
+        obs = torch.from_numpy(self.obs_vector(observation)).to(self.device)
         action, _, mean_action = self.actor(obs)
         out = mean_action if deterministic else action
-        return out.numpy().astype(np.float32, copy=False)
+        return out.cpu().numpy().astype(np.float32, copy=False)
 
 
 register_policy(SAC_MLP)(SacMlpPolicy)

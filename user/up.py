@@ -295,23 +295,20 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
     from rich.table import Table
 
     learner_version = snap.learner.weight_version if snap.learner else 0
-    robots = Table(title=f"USER · {cfg.up.name} · {snap.t:5.0f}s / {budget_s:.0f}s", expand=True)
-    for col in (
-        "robot",
-        "state",
-        "episodes",
-        "success (last 20)",
-        "env steps",
-        "steps/s",
-        "policy v",
-        "staleness",
-        "loop p99 ms",
-    ):
+    window = cfg.up.window_episodes
+    robots = Table(
+        title=f"USER · {cfg.up.name} · {snap.t:5.0f}s / {budget_s:.0f}s",
+        caption=f"success: each robot's last {window} episodes (the stop rule counts all robots')"
+        " · stale = learner version - acting version · p99 = control-loop period (ms)",
+        expand=True,
+    )
+    # Short headers: the table must stay readable in an 80-column terminal.
+    for col in ("robot", "state", "eps", "success", "steps", "steps/s", "policy", "stale", "p99"):
         robots.add_column(col, justify="right" if col != "robot" else "left")
     for info in snap.robots:
         st = info.status
         rid = info.spec.robot_id
-        mine = [e for e in mon.ordered() if e.robot_id == rid][-cfg.up.window_episodes :]
+        mine = [e for e in mon.ordered() if e.robot_id == rid][-window:]
         rate = f"{100 * sum(e.success for e in mine) / len(mine):.0f} % ({len(mine)})" if mine else "-"
         state = control_pb2.RobotState.Name(st.state).removeprefix("ROBOT_STATE_").lower() if info.online else "offline"
         robots.add_row(
@@ -326,16 +323,9 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
             f"{st.loop_period_p99_ms:.1f}",
         )
     learner = Table(expand=True)
-    for col in (
-        "learner updates",
-        "updates/s",
-        "weight version",
-        "buffer (transitions)",
-        "alpha",
-        "overall success (last 20)",
-    ):
+    for col in ("learner updates", "updates/s", "weights", "buffer", "alpha", "success, all"):
         learner.add_column(col, justify="right")
-    overall = mon.success_rate(cfg.up.window_episodes)
+    overall = mon.success_rate(window)
     if snap.learner:
         lr = snap.learner
         learner.add_row(
@@ -515,6 +505,7 @@ def _summary(
 def _print_summary(console, summary: dict[str, Any], run_dir: Path) -> None:
     from rich.table import Table
 
+    console.print()  # Live leaves the cursor after its last line when stdout is not a terminal
     table = Table(title="summary", show_header=False)
     table.add_row("stopped because", summary["reason"])
     ttt = summary["time_to_target_s"]

@@ -23,9 +23,9 @@ import prometheus_client
 
 from services.inference.batcher import ActResult, MicroBatcher, NoPolicyError
 from user import rpc, wire
-from user.config import StackConfig
+from user.config import ConfigError, StackConfig
 from user.log import kv
-from user.policy import Policy, build_policy
+from user.policy import Policy, build_policy, check_device
 from user.v1 import inference_pb2, inference_pb2_grpc
 from user.weights import WeightSet, WeightSubscriber
 
@@ -159,8 +159,10 @@ class InferenceService:
         self._load_lock = threading.Lock()
         self.subscriber: WeightSubscriber | None = None
         self.running: rpc.RunningServer | None = None
-        if icfg.device != "cpu":
-            log.warning("policies run on the CPU; inference.device is not used", extra=kv(device=icfg.device))
+        try:
+            check_device(icfg.device)
+        except ValueError as exc:
+            raise ConfigError(f"inference.device: {exc}") from None
 
     @property
     def policy(self) -> Policy | None:
@@ -174,7 +176,7 @@ class InferenceService:
     def load_weights(self, weights: WeightSet) -> Policy:
         """Rebuild the policy from a weight set and serve it; raises ValueError (keeping the old one) if bad."""
         start = time.perf_counter()
-        policy = build_policy(weights.policy, weights.tensors, weights.version)
+        policy = build_policy(weights.policy, weights.tensors, weights.version, self.cfg.inference.device)
         with self._load_lock:
             self._policy = policy
             self.batcher.set_policy(policy.act, policy.version)
