@@ -1,6 +1,6 @@
 """Weight streaming, learner -> actor, over real gRPC servers on 127.0.0.1.
 
-ours: WeightStore.publish (dtype+shape manifest, sha256, raw chunks) -> WeightServicer.SubscribeWeights
+ours: WeightStore.publish (dtype+shape manifest, xxh3-128 checksum, raw chunks) -> WeightServicer.SubscribeWeights
       -> WeightSubscriber/WeightAssembler rebuild numpy arrays from dtype + shape + bytes.
 peer: lerobot's own LearnerService.StreamParameters (their servicer class, server options and channel
       options) fed the way their learner does (state_to_bytes = torch.save), received with their
@@ -249,7 +249,7 @@ def fact_rows() -> list[Row]:
         Row(
             group, "receiver decodes with", "dtype+shape+bytes", "torch.load (pickle)", note="theirs: weights_only=True"
         ),
-        Row(group, "integrity check", "sha256 per version", "none"),
+        Row(group, "integrity check", "xxh3-128 checksum per version (sha256 optional)", "none"),
         Row(group, "auth on the stream", "bearer token", "none"),
     ]
 

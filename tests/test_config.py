@@ -232,3 +232,12 @@ def test_the_installed_userctl_reads_environment_overrides() -> None:
     )
     assert proc.returncode == 2, proc.stderr
     assert "edge.robots.0.id" in proc.stderr
+
+
+def test_the_readme_config_reference_matches_the_code() -> None:
+    """The README's table is generated from the config classes; regenerate it when a default changes."""
+    from user.config import reference_markdown
+
+    readme = (ROOT / "README.md").read_text()
+    missing = [row for row in reference_markdown() if row not in readme]
+    assert not missing, "README config reference is stale; first stale row: " + missing[0]

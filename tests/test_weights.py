@@ -62,11 +62,13 @@ def assert_same(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> None:
         np.testing.assert_array_equal(a[name], b[name])
 
 
+@pytest.mark.parametrize("digest", [learner_pb2.DIGEST_XXH3_128, learner_pb2.DIGEST_SHA256])
 @pytest.mark.parametrize("encoding", [ENCODING_RAW, ENCODING_ZSTD])
 @pytest.mark.parametrize("chunk", [1, 1024, 4096, 1 << 20])
-def test_round_trip(encoding: int, chunk: int) -> None:
+def test_round_trip(encoding: int, chunk: int, digest: int) -> None:
     tensors = make_tensors()
-    packed = pack_weights(5, SPEC, tensors, learner_updates=123, encoding=encoding)
+    packed = pack_weights(5, SPEC, tensors, learner_updates=123, encoding=encoding, digest=digest)
+    assert packed.header.digest_kind == digest
     msgs = list(iter_weight_messages(packed, chunk))
     assert msgs[0].HasField("header") and all(m.HasField("chunk") for m in msgs[1:])
     assert all(len(m.chunk.data) <= chunk for m in msgs[1:])
@@ -112,8 +114,11 @@ def _tensor_beyond_payload(msgs: list[learner_pb2.WeightMessage]) -> None:
 
 CORRUPTIONS: dict[str, Callable[[list[learner_pb2.WeightMessage]], None]] = {
     "flipped byte": _corrupt_chunk_byte,
-    "bad sha256": lambda m: setattr(m[0].header, "sha256", bytes(32)),
-    "short sha256": lambda m: setattr(m[0].header, "sha256", b"abc"),
+    "wrong digest": lambda m: setattr(m[0].header, "digest", bytes(16)),
+    "short digest": lambda m: setattr(m[0].header, "digest", b"abc"),
+    "unspecified digest kind": lambda m: setattr(m[0].header, "digest_kind", learner_pb2.DIGEST_UNSPECIFIED),
+    "unknown digest kind": lambda m: setattr(m[0].header, "digest_kind", 77),
+    "digest kind swapped": lambda m: setattr(m[0].header, "digest_kind", learner_pb2.DIGEST_SHA256),
     "chunk offset gap": lambda m: setattr(m[2].chunk, "offset", m[2].chunk.offset + 1),
     "chunk of another version": lambda m: setattr(m[3].chunk, "version", 9),
     "missing chunk": lambda m: m.pop(2),
@@ -152,7 +157,7 @@ def test_corrupted_zstd_payload_raises_wire_error() -> None:
 def test_assembler_recovers_after_error() -> None:
     asm = WeightAssembler()
     bad = _messages()
-    bad[0].header.sha256 = bytes(32)
+    bad[0].header.digest = bytes(16)
     with pytest.raises(WireError):
         for msg in bad:
             asm.feed(msg)

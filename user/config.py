@@ -23,11 +23,11 @@ class Strict(BaseModel):
 
 
 class AuthConfig(Strict):
-    enabled: bool = True
+    enabled: bool = Field(default=True, description="require `authorization: Bearer <token>` on every call")
     token: str | None = Field(default=None, description="shared token; default from $USER_TOKEN")
-    token_file: Path | None = None
+    token_file: Path | None = Field(default=None, description="file holding the token (docker/k8s secrets)")
     tls_cert: Path | None = Field(default=None, description="server cert (PEM); enables TLS")
-    tls_key: Path | None = None
+    tls_key: Path | None = Field(default=None, description="server private key (PEM)")
     tls_ca: Path | None = Field(default=None, description="CA bundle clients trust; enables TLS")
 
     def resolved_token(self) -> str | None:
@@ -45,11 +45,11 @@ class AuthConfig(Strict):
 
 
 class ServerConfig(Strict):
-    host: str = "127.0.0.1"
+    host: str = Field(default="127.0.0.1", description="bind address; 0.0.0.0 to serve other machines")
     port: int = Field(default=0, ge=0, le=65535, description="gRPC port; 0 = ephemeral")
     metrics_port: int = Field(default=0, ge=0, le=65535, description="Prometheus port; 0 = ephemeral")
-    max_workers: int = Field(default=32, ge=1)
-    grace_s: float = Field(default=5.0, ge=0)
+    max_workers: int = Field(default=32, ge=1, description="gRPC handler threads (each open stream holds one)")
+    grace_s: float = Field(default=5.0, ge=0, description="on SIGTERM, seconds in-flight calls get to finish")
 
 
 class _ServerSection(Strict):
@@ -67,80 +67,84 @@ class _ServerSection(Strict):
 
 class ControlConfig(_ServerSection):
     server: ServerConfig = ServerConfig(port=50051, metrics_port=9101)
-    lease_ttl_s: float = Field(default=10.0, gt=0)
-    heartbeat_interval_s: float = Field(default=1.0, gt=0)
+    lease_ttl_s: float = Field(default=10.0, gt=0, description="a robot without a heartbeat this long goes offline")
+    heartbeat_interval_s: float = Field(default=1.0, gt=0, description="heartbeat period asked of edge agents")
     episodes_kept: int = Field(default=200, ge=1, description="recent episodes kept per robot")
 
 
 class ReplayConfig(_ServerSection):
     server: ServerConfig = ServerConfig(port=50052, metrics_port=9102)
-    path: Path = Path("runs/default/replay")
-    map_size_mb: int = Field(default=4096, ge=16)
+    path: Path = Field(default=Path("runs/default/replay"), description="LMDB directory (survives restarts)")
+    map_size_mb: int = Field(default=4096, ge=16, description="LMDB map size: the most the buffer may hold")
     commit_max_steps: int = Field(default=256, ge=1, description="steps per LMDB transaction at most")
-    commit_max_delay_ms: float = Field(default=20.0, ge=0)
-    control_addr: str = "127.0.0.1:50051"
-    rpc_timeout_s: float = Field(default=5.0, gt=0)
+    commit_max_delay_ms: float = Field(default=20.0, ge=0, description="longest a received step waits for its commit")
+    control_addr: str = Field(default="127.0.0.1:50051", description="control service: robot specs to validate against")
+    rpc_timeout_s: float = Field(default=5.0, gt=0, description="deadline on calls to control")
 
 
 class InferenceConfig(_ServerSection):
     server: ServerConfig = ServerConfig(port=50053, metrics_port=9103)
-    learner_addr: str = "127.0.0.1:50054"
-    max_batch: int = Field(default=64, ge=1)
-    max_wait_ms: float = Field(default=2.0, ge=0)
+    learner_addr: str = Field(default="127.0.0.1:50054", description="learner whose weight stream is served")
+    max_batch: int = Field(default=64, ge=1, description="most requests per policy forward")
+    max_wait_ms: float = Field(default=2.0, ge=0, description="longest a request waits for others to batch with")
     device: str = DEVICE
 
 
 class LearnerConfig(_ServerSection):
     server: ServerConfig = ServerConfig(port=50054, metrics_port=9104)
-    replay_addr: str = "127.0.0.1:50052"
-    control_addr: str = "127.0.0.1:50051"
-    checkpoint_dir: Path = Path("runs/default/checkpoints")
-    robot_kind: str = "sim_reach_arm"
+    replay_addr: str = Field(default="127.0.0.1:50052", description="replay service to sample from")
+    control_addr: str = Field(default="127.0.0.1:50051", description="control service: robot specs")
+    checkpoint_dir: Path = Field(default=Path("runs/default/checkpoints"), description="resumes from the newest here")
+    robot_kind: str = Field(default="sim_reach_arm", description="train on the robots of this kind")
     device: str = DEVICE
-    torch_threads: int = Field(default=1, ge=1)
+    torch_threads: int = Field(default=1, ge=1, description="intra-op threads for training")
     seed: int = 0
-    hidden: list[int] = [128, 128]
-    batch_size: int = Field(default=128, ge=1)
-    gamma: float = Field(default=0.95, gt=0, le=1)
-    tau: float = Field(default=0.005, gt=0, le=1)
+    hidden: list[int] = Field(default=[128, 128], description="MLP widths of actor and critics")
+    batch_size: int = Field(default=128, ge=1, description="transitions per update")
+    gamma: float = Field(default=0.95, gt=0, le=1, description="discount")
+    tau: float = Field(default=0.005, gt=0, le=1, description="Polyak rate of the target critics")
     actor_lr: float = Field(default=1e-3, gt=0)
     critic_lr: float = Field(default=1e-3, gt=0)
     alpha_lr: float = Field(default=1e-3, gt=0)
-    init_alpha: float = Field(default=0.1, gt=0)
+    init_alpha: float = Field(default=0.1, gt=0, description="initial entropy temperature (then tuned)")
     min_transitions: int = Field(default=250, ge=1, description="wait for this many before training")
     max_updates_per_transition: float = Field(
         default=4.0, gt=0, description="caps the update-to-data ratio so the learner cannot overfit a tiny buffer"
     )
     publish_every: int = Field(default=100, ge=1, description="updates between weight versions")
     checkpoint_every: int = Field(default=2000, ge=1, description="updates between checkpoints")
-    prefetch_batches: int = Field(default=4, ge=1)
-    max_chunk_bytes: int = Field(default=1 << 20, ge=1024)
-    rpc_timeout_s: float = Field(default=10.0, gt=0)
+    prefetch_batches: int = Field(default=4, ge=1, description="batches sampled ahead while the learner trains")
+    max_chunk_bytes: int = Field(default=1 << 20, ge=1024, description="weight stream chunk size cap")
+    rpc_timeout_s: float = Field(default=10.0, gt=0, description="deadline on calls to replay and control")
 
 
 class RobotConfig(Strict):
     id: str = Field(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")
-    kind: str = "sim_reach_arm"
-    params: dict[str, Any] = {}
+    kind: str = Field(default="sim_reach_arm", description="registered robot kind")
+    params: dict[str, Any] = Field(default={}, description="keyword arguments of the robot class")
 
 
 class EdgeConfig(Strict):
-    agent_id: str = "edge-0"
+    agent_id: str = Field(default="edge-0", description="this robot PC's name at the control service")
     control_addr: str = "127.0.0.1:50051"
     replay_addr: str = "127.0.0.1:50052"
-    inference_addr: str = "127.0.0.1:50053"
-    learner_addr: str = "127.0.0.1:50054"
-    metrics_port: int = Field(default=9105, ge=0, le=65535)
+    inference_addr: str = Field(default="127.0.0.1:50053", description="used when policy_source=remote")
+    learner_addr: str = Field(default="127.0.0.1:50054", description="weight stream, used when policy_source=local")
+    metrics_port: int = Field(default=9105, ge=0, le=65535, description="Prometheus port; 0 = ephemeral")
     metrics_host: str = "127.0.0.1"
-    policy_source: Literal["remote", "local"] = "remote"
+    policy_source: Literal["remote", "local"] = Field(
+        default="remote", description="remote: ask the inference service; local: run a weight-streamed copy"
+    )
     mode: Literal["realtime", "fast"] = Field(
         default="realtime", description="realtime: each robot's spec.control_rate_hz; fast: unthrottled"
     )
     action_deadline_ms: float = Field(default=40.0, gt=0, description="no action by then -> hold still")
     seed: int = 0
-    robots: list[RobotConfig] = [RobotConfig(id="arm-0")]
-    max_unacked_steps: int = Field(default=100_000, ge=1)
-    rpc_timeout_s: float = Field(default=5.0, gt=0)
+    robots: list[RobotConfig] = Field(default=[RobotConfig(id="arm-0")], description="robots this agent drives")
+    max_unacked_steps: int = Field(
+        default=100_000, ge=1, description="steps kept for re-send while replay is away; the oldest drop beyond"
+    )
+    rpc_timeout_s: float = Field(default=5.0, gt=0, description="deadline on unary calls")
 
     @model_validator(mode="after")
     def _unique_ids(self) -> EdgeConfig:
@@ -151,19 +155,19 @@ class EdgeConfig(Strict):
 
 
 class UpConfig(Strict):
-    name: str = Field(default="demo", pattern=r"^[A-Za-z0-9_.\-]{1,64}$")
+    name: str = Field(default="demo", pattern=r"^[A-Za-z0-9_.\-]{1,64}$", description="data goes to runs_dir/name")
     runs_dir: Path = Path("runs")
-    budget_s: float = Field(default=600.0, gt=0)
-    target_success: float = Field(default=0.9, gt=0, le=1)
-    window_episodes: int = Field(default=20, ge=1)
+    budget_s: float = Field(default=600.0, gt=0, description="stop after this many seconds")
+    target_success: float = Field(default=0.9, gt=0, le=1, description="stop at this success rate")
+    window_episodes: int = Field(default=20, ge=1, description="over the last this many episodes, all robots")
     edge_agents: int = Field(default=2, ge=1, description="one process per simulated robot")
-    console: bool = True
+    console: bool = Field(default=True, description="live table; false prints only the summary")
 
 
 class StackConfig(Strict):
     auth: AuthConfig = AuthConfig()
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
-    log_json: bool = True
+    log_json: bool = Field(default=True, description="one JSON object per log line; false for plain text")
     control: ControlConfig = ControlConfig()
     replay: ReplayConfig = ReplayConfig()
     inference: InferenceConfig = InferenceConfig()
