@@ -8,9 +8,11 @@ flush their steps and the learner writes its final checkpoint.
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import json
 import os
+import re
 import secrets
 import shutil
 import signal
@@ -181,9 +183,10 @@ class Stack:
         )
         self._wait_ready(inference)
         template = self.cfg.edge.robots[0]
+        base_id = re.sub(r"-\d+$", "", template.id)  # arm-0 -> arm-0, arm-1, ...; panda -> panda-0, ...
         edges = []
         for i in range(self.cfg.up.edge_agents):
-            robot = {"id": f"arm-{i}", "kind": template.kind, "params": template.params}
+            robot = {"id": f"{base_id}-{i}", "kind": template.kind, "params": template.params}
             on_progress(f"edge-{i}")
             edges.append(
                 self._spawn(
@@ -421,10 +424,15 @@ def run_up(cfg: StackConfig, config_path: str | None, overrides: list[str], fres
         t0 = time.monotonic()
         mon = Monitor(stack, t0)
         snap = mon.poll()
-        with Live(_render(snap, mon, cfg, budget_s), console=console, refresh_per_second=2, transient=False) as live:
+        live_view = (
+            Live(_render(snap, mon, cfg, budget_s), console=console, refresh_per_second=2, transient=False)
+            if cfg.up.console
+            else contextlib.nullcontext()
+        )
+        with live_view as live:
             while not stop.wait(0.5):
                 snap = mon.poll()
-                if cfg.up.console:
+                if live is not None:
                     live.update(_render(snap, mon, cfg, budget_s))
                 rate = mon.success_rate(cfg.up.window_episodes)
                 if rate is not None and rate >= cfg.up.target_success:
