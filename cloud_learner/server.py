@@ -47,7 +47,7 @@ class LearnerServicer(WeightServicer):
         )
 
 
-class LearnerService:
+class LearnerService(rpc.GrpcService):
     """In-process learner service (tests, userctl): start() serves and trains, stop() shuts down cleanly."""
 
     def __init__(self, cfg: StackConfig, start_metrics: bool = True) -> None:
@@ -61,11 +61,6 @@ class LearnerService:
         self.learner = Learner(cfg, self.store)
         self.servicer = LearnerServicer(self.learner, self.store, cfg.learner.max_chunk_bytes)
         self.running: rpc.RunningServer | None = None
-
-    @property
-    def address(self) -> str:
-        assert self.running is not None
-        return self.running.address()
 
     def start(self) -> LearnerService:
         torch.set_num_threads(self.cfg.learner.torch_threads)
@@ -89,14 +84,8 @@ class LearnerService:
 
 
 def run(cfg: StackConfig, ready_file: str | None) -> int:
-    service = LearnerService(cfg).start()
-    assert service.running is not None
-    rpc.write_ready_file(ready_file, grpc_port=service.running.port, metrics_port=service.running.metrics_port)
-    stop = rpc.install_signal_handlers()
-    while not stop.wait(0.5):
-        if service.learner.failed:
-            break
-    service.stop()
+    service = LearnerService(cfg)
+    rpc.serve_until_signal(service, "learner", ready_file, healthy=lambda: not service.learner.failed)
     if service.learner.failed:
         log.error("learner stopped on an error", extra=kv(error=str(service.learner.error)))
         return 1

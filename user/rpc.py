@@ -264,6 +264,46 @@ def write_ready_file(path: str | Path | None, **info: Any) -> None:
     os.replace(tmp, path)
 
 
+class GrpcService:
+    """What every USER service object is: start() serves (returns self), stop() shuts down gracefully
+    and is safe to call twice; `running` is set while it serves."""
+
+    running: RunningServer | None = None
+
+    def start(self) -> Any:
+        raise NotImplementedError
+
+    def stop(self) -> None:
+        raise NotImplementedError
+
+    @property
+    def port(self) -> int:
+        assert self.running is not None, "not started"
+        return self.running.port
+
+    @property
+    def address(self) -> str:
+        assert self.running is not None, "not started"
+        return self.running.address()
+
+
+def serve_until_signal(
+    service: GrpcService, name: str, ready_file: str | None, healthy: Callable[[], bool] = lambda: True
+) -> bool:
+    """The body of `userctl <service>`: start, publish the ports, serve until SIGTERM/Ctrl-C (or until
+    healthy() turns false), stop gracefully. Returns whether it stopped healthy."""
+    service.start()
+    assert service.running is not None
+    write_ready_file(ready_file, grpc_port=service.running.port, metrics_port=service.running.metrics_port)
+    stop = install_signal_handlers()
+    while not stop.wait(0.5) and healthy():
+        pass
+    ok = healthy()
+    service.stop()
+    log.info(f"{name} stopped")
+    return ok
+
+
 # --------------------------------------------------------------------------- client side
 
 

@@ -461,7 +461,7 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
 # --------------------------------------------------------------------------- service lifecycle
 
 
-class ControlService:
+class ControlService(rpc.GrpcService):
     """The control server in-process: start() binds (port 0 works), stop() ends streams and shuts down."""
 
     def __init__(self, cfg: StackConfig, start_metrics: bool = True) -> None:
@@ -473,16 +473,6 @@ class ControlService:
         self.running: rpc.RunningServer | None = None
         self._stop = threading.Event()
         self._reaper: threading.Thread | None = None
-
-    @property
-    def port(self) -> int:
-        assert self.running is not None, "not started"
-        return self.running.port
-
-    @property
-    def address(self) -> str:
-        assert self.running is not None, "not started"
-        return self.running.address()
 
     def start(self) -> ControlService:
         self.running = rpc.start_server(
@@ -523,11 +513,5 @@ class ControlService:
 
 
 def run(cfg: StackConfig, ready_file: str | None) -> int:
-    service = ControlService(cfg).start()
-    assert service.running is not None
-    rpc.write_ready_file(ready_file, grpc_port=service.running.port, metrics_port=service.running.metrics_port)
-    stop = rpc.install_signal_handlers()
-    stop.wait()
-    service.stop()
-    log.info("control stopped")
+    rpc.serve_until_signal(ControlService(cfg), "control", ready_file)
     return 0

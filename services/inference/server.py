@@ -135,7 +135,7 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
         )
 
 
-class InferenceService:
+class InferenceService(rpc.GrpcService):
     """In-process inference server: start() binds (port 0 works), stop() drains and shuts down.
 
     policy_source: "learner" (default, also None) streams weights from cfg.inference.learner_addr;
@@ -167,11 +167,6 @@ class InferenceService:
     @property
     def policy(self) -> Policy | None:
         return self._policy
-
-    @property
-    def address(self) -> str:
-        assert self.running is not None, "not started"
-        return self.running.address()
 
     def load_weights(self, weights: WeightSet) -> Policy:
         """Rebuild the policy from a weight set and serve it; raises ValueError (keeping the old one) if bad."""
@@ -225,11 +220,5 @@ def run(cfg: StackConfig, ready_file: str | None) -> int:
 
     # Per-robot MLP forwards are latency-bound; extra intra-op threads only contend with the learner.
     torch.set_num_threads(1)
-    service = InferenceService(cfg).start()
-    assert service.running is not None
-    rpc.write_ready_file(ready_file, grpc_port=service.running.port, metrics_port=service.running.metrics_port)
-    stop = rpc.install_signal_handlers()
-    stop.wait()
-    service.stop()
-    log.info("inference stopped")
+    rpc.serve_until_signal(InferenceService(cfg), "inference", ready_file)
     return 0

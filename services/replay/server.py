@@ -452,7 +452,7 @@ def to_batch(arrays: dict[str, Any]) -> replay_pb2.Batch:
 # --------------------------------------------------------------------------- service lifecycle
 
 
-class ReplayService:
+class ReplayService(rpc.GrpcService):
     """The replay server in-process: start() binds (port 0 works), stop() drains streams and closes LMDB."""
 
     def __init__(
@@ -473,16 +473,6 @@ class ReplayService:
         self.start_metrics = start_metrics
         self.running: rpc.RunningServer | None = None
         self._stopped = False
-
-    @property
-    def port(self) -> int:
-        assert self.running is not None, "not started"
-        return self.running.port
-
-    @property
-    def address(self) -> str:
-        assert self.running is not None, "not started"
-        return self.running.address()
 
     def start(self) -> ReplayService:
         self.running = rpc.start_server(
@@ -514,11 +504,5 @@ class ReplayService:
 
 
 def run(cfg: StackConfig, ready_file: str | None) -> int:
-    service = ReplayService(cfg).start()
-    assert service.running is not None
-    rpc.write_ready_file(ready_file, grpc_port=service.running.port, metrics_port=service.running.metrics_port)
-    stop = rpc.install_signal_handlers()
-    stop.wait()
-    service.stop()
-    log.info("replay stopped")
+    rpc.serve_until_signal(ReplayService(cfg), "replay", ready_file)
     return 0
