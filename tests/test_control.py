@@ -13,6 +13,7 @@ import prometheus_client
 import pytest
 
 from services.control.server import ControlService
+from tests.helpers import wait_for
 from user.config import AuthConfig, StackConfig
 from user.rpc import check_health, make_channel
 from user.v1 import control_pb2, control_pb2_grpc, robot_pb2
@@ -109,16 +110,6 @@ class Edge:
         self.call.cancel()
 
 
-def _wait_for(predicate: Callable[[], Any], what: str, limit_s: float = 10.0) -> Any:
-    """Liveness bound, not a performance threshold."""
-    end = time.monotonic() + limit_s
-    while time.monotonic() < end:
-        if value := predicate():
-            return value
-        time.sleep(0.02)
-    raise AssertionError(f"timed out waiting for {what}")
-
-
 def _metric(name: str, **labels: str) -> float:
     return prometheus_client.REGISTRY.get_sample_value(name, labels) or 0.0
 
@@ -156,7 +147,7 @@ def test_register_heartbeat_list_get(make_service: Callable[..., ControlService]
             new_episodes=episodes,
         )
         edge.heartbeat(1, status, control_pb2.RobotStatus(robot_id="arm-1", state=control_pb2.ROBOT_STATE_PAUSED))
-        info = _wait_for(
+        info = wait_for(
             lambda: (
                 (i := stub.GetRobot(control_pb2.GetRobotRequest(robot_id="arm-0"), timeout=5)).status.env_steps and i
             ),
@@ -177,7 +168,7 @@ def test_register_heartbeat_list_get(make_service: Callable[..., ControlService]
         status.new_episodes.extend(resent)
         status.env_steps = 260
         edge.heartbeat(2, status)
-        _wait_for(
+        wait_for(
             lambda: stub.GetRobot(control_pb2.GetRobotRequest(robot_id="arm-0"), timeout=5).status.env_steps == 260,
             "second heartbeat applied",
         )
@@ -190,7 +181,7 @@ def test_register_heartbeat_list_get(make_service: Callable[..., ControlService]
 
         # The edge hangs up: its robots go offline, their specs stay queryable.
         edge.hang_up()
-        _wait_for(lambda: not stub.ListRobots(control_pb2.ListRobotsRequest(), timeout=5).robots, "robots offline")
+        wait_for(lambda: not stub.ListRobots(control_pb2.ListRobotsRequest(), timeout=5).robots, "robots offline")
         offline = stub.ListRobots(control_pb2.ListRobotsRequest(include_offline=True), timeout=5).robots
         assert [r.spec.robot_id for r in offline] == ["arm-0", "arm-1"]
         assert not any(r.online for r in offline)
@@ -324,7 +315,7 @@ def test_send_command_reaches_edge(make_service: Callable[..., ControlService]) 
         assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
 
         edge.hang_up()
-        _wait_for(
+        wait_for(
             lambda: not stub.GetRobot(control_pb2.GetRobotRequest(robot_id="arm-0"), timeout=5).online, "arm-0 offline"
         )
         resp = stub.SendCommand(

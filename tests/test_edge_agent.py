@@ -6,13 +6,12 @@ from __future__ import annotations
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
 import time
 import urllib.request
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +26,7 @@ from edge_agent.robot import make_robot
 from services.control.server import ControlService
 from services.inference.server import InferenceService
 from services.replay.server import ReplayService
+from tests.helpers import free_port, wait_for
 from user import wire
 from user.config import AuthConfig, RobotConfig, StackConfig
 from user.policy import actor_from_config, policy_spec_for
@@ -48,22 +48,6 @@ ACTOR = {
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_until(cond: Callable[[], object], timeout: float = 30.0) -> None:
-    """Liveness bound only: fails if something is stuck, never on speed."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return
-        time.sleep(0.02)
-    raise AssertionError("condition not reached")
 
 
 def random_weights(version: int, seed: int = 0) -> WeightSet:
@@ -203,7 +187,7 @@ def test_loop_holds_when_the_policy_never_answers() -> None:
     loop = RobotLoop(robot, policy, sink, mode="realtime", action_deadline_s=0.005)
     loop.start()
     try:
-        wait_until(lambda: len(sink.steps) >= 15)
+        wait_for(lambda: len(sink.steps) >= 15)
     finally:
         loop.stop()
         policy.close()
@@ -230,7 +214,7 @@ def test_loop_episodes_steps_and_final_observation(inference: InferenceService) 
     loop = RobotLoop(robot, policy, sink, mode="fast", action_deadline_s=5.0)
     loop.start()
     try:
-        wait_until(lambda: loop.status(drain=False).episodes >= 3)
+        wait_for(lambda: loop.status(drain=False).episodes >= 3)
     finally:
         loop.stop()
         policy.close()
@@ -304,7 +288,7 @@ def test_sender_survives_replay_restart_on_the_same_port_and_dir(tmp_path: Path)
     try:
         for step in steps[:100]:
             sender.send(step)
-        wait_until(lambda: sender.acked == 100)
+        wait_for(lambda: sender.acked == 100)
         for step in steps[100:200]:
             sender.send(step)
         replay.stop()  # mid-stream: some of these are in flight, none acked yet for sure
@@ -383,28 +367,28 @@ def test_control_client_registers_heartbeats_and_obeys_commands(control: Control
     stub = control_stub(control)
     try:
         assert client.wait_registered(10)
-        wait_until(lambda: (info := robot_info(control, "arm-0")) is not None and info.online and info.status.env_steps)
+        wait_for(lambda: (info := robot_info(control, "arm-0")) is not None and info.online and info.status.env_steps)
         info = robot_info(control, "arm-0")
         assert info is not None and info.agent_id == "edge-t"
         assert info.status.state == control_pb2.ROBOT_STATE_HOLDING
 
         cmd = control_pb2.Command(kind=control_pb2.COMMAND_KIND_PAUSE, robot_id="arm-0")
         assert stub.SendCommand(control_pb2.SendCommandRequest(command=cmd), timeout=5).delivered
-        wait_until(lambda: loop.paused)
-        wait_until(lambda: robot_info(control, "arm-0").status.state == control_pb2.ROBOT_STATE_PAUSED)
+        wait_for(lambda: loop.paused)
+        wait_for(lambda: robot_info(control, "arm-0").status.state == control_pb2.ROBOT_STATE_PAUSED)
         count = len(sink.snapshot())
         time.sleep(0.2)
         assert len(sink.snapshot()) <= count + 1  # at most the step that was in progress
 
         cmd = control_pb2.Command(kind=control_pb2.COMMAND_KIND_RESUME)  # every robot of the agent
         assert stub.SendCommand(control_pb2.SendCommandRequest(command=cmd), timeout=5).delivered
-        wait_until(lambda: not loop.paused and len(sink.snapshot()) > count + 3)
+        wait_for(lambda: not loop.paused and len(sink.snapshot()) > count + 3)
 
         before = len(sink.snapshot())
         cmd = control_pb2.Command(kind=control_pb2.COMMAND_KIND_RESET, robot_id="arm-0")
         stub.SendCommand(control_pb2.SendCommandRequest(command=cmd), timeout=5)
-        wait_until(lambda: any(s.truncated for s in sink.snapshot()[before:]))
-        wait_until(lambda: any(e.length < 1000 for e in robot_info(control, "arm-0").recent_episodes))
+        wait_for(lambda: any(s.truncated for s in sink.snapshot()[before:]))
+        wait_for(lambda: any(e.length < 1000 for e in robot_info(control, "arm-0").recent_episodes))
     finally:
         client.close()
         loop.stop()
@@ -438,18 +422,18 @@ def test_control_client_reconnects_and_keeps_episodes(tmp_path: Path) -> None:
     try:
         assert client.wait_registered(10)
         finish(1)
-        wait_until(lambda: episode_ids(svc, "arm-0") == ["ep-1"])
+        wait_for(lambda: episode_ids(svc, "arm-0") == ["ep-1"])
         svc.stop()
         finish(2)  # finished while control is down: must arrive after the reconnect
         svc = ControlService(cfg, start_metrics=False).start()
         # The heartbeat in flight when the stream broke is sent again (consumers dedupe by episode_id).
-        wait_until(lambda: "ep-2" in episode_ids(svc, "arm-0"))
+        wait_for(lambda: "ep-2" in episode_ids(svc, "arm-0"))
         assert set(episode_ids(svc, "arm-0")) <= {"ep-1", "ep-2"}
         assert client.reconnects >= 1
         finish(3)
         client.close()  # a last heartbeat carries ep-3, then a clean hang-up takes the robot offline
         assert "ep-3" in episode_ids(svc, "arm-0")
-        wait_until(lambda: not robot_info(svc, "arm-0").online)
+        wait_for(lambda: not robot_info(svc, "arm-0").online)
     finally:
         client.close()
         svc.stop()
@@ -462,13 +446,13 @@ def test_control_client_refused_registration_retries_slowly(control: ControlServ
     assert owner.wait_registered(10)
     rival = ControlClient(control.address, AUTH, "edge-b", [spec], status_fn, lambda cmd: None, slow_retry_s=0.2)
     try:
-        wait_until(lambda: rival.last_error is not None)
+        wait_for(lambda: rival.last_error is not None)
         assert rival.registered is None
         assert rival.last_error.name == "ALREADY_EXISTS"
         assert rival._thread.is_alive()  # still retrying, not crashed
         owner.close()  # the robot is free again: the rival's next slow retry takes it
         assert rival.wait_registered(20)
-        wait_until(lambda: robot_info(control, "arm-0").agent_id == "edge-b")
+        wait_for(lambda: robot_info(control, "arm-0").agent_id == "edge-b")
     finally:
         owner.close()
         rival.close()
@@ -523,12 +507,12 @@ def test_edge_agent_fast_mode_end_to_end(cloud: StackConfig, control: ControlSer
     agent.start()
     try:
         for rid in ("arm-0", "arm-1"):
-            wait_until(lambda rid=rid: (info := robot_info(control, rid)) is not None and info.status.env_steps >= 200)
+            wait_for(lambda rid=rid: (info := robot_info(control, rid)) is not None and info.status.env_steps >= 200)
             info = robot_info(control, rid)
             assert info.online and info.agent_id == "edge-test"
             assert info.status.state in (control_pb2.ROBOT_STATE_RUNNING, control_pb2.ROBOT_STATE_HOLDING)
             assert info.status.policy_version == 5
-        wait_until(lambda: replay_stats(cloud.edge.replay_addr).steps >= 400)
+        wait_for(lambda: replay_stats(cloud.edge.replay_addr).steps >= 400)
     finally:
         agent.stop()
     stats = replay_stats(cloud.edge.replay_addr)
@@ -566,11 +550,11 @@ def test_edge_process_serves_metrics_and_stops_on_sigterm(cloud: StackConfig, tm
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "MUJOCO_GL": "egl"}
     proc = subprocess.Popen(cmd, env=env, stderr=subprocess.PIPE, text=True)
     try:
-        wait_until(lambda: ready.exists() or proc.poll() is not None, timeout=60)
+        wait_for(lambda: ready.exists() or proc.poll() is not None, limit_s=60)
         assert proc.poll() is None, proc.stderr.read() if proc.stderr else ""
         info = json.loads(ready.read_text())
         url = f"http://127.0.0.1:{info['metrics_port']}/metrics"
-        wait_until(lambda: replay_stats(cloud.edge.replay_addr).steps >= 50)
+        wait_for(lambda: replay_stats(cloud.edge.replay_addr).steps >= 50)
         body = urllib.request.urlopen(url, timeout=5).read().decode()
         for name in ("user_edge_env_steps_total", "user_edge_loop_period_seconds", "user_edge_steps_acked_total"):
             assert name in body

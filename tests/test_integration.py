@@ -3,8 +3,8 @@
 
 from __future__ import annotations
 
+import functools
 import json
-import time
 import urllib.request
 from pathlib import Path
 
@@ -12,6 +12,7 @@ import grpc
 import numpy as np
 import pytest
 
+from tests import helpers
 from user import wire
 from user.config import load_config
 from user.rpc import check_health, make_channel
@@ -25,6 +26,8 @@ from user.v1 import (
     replay_pb2_grpc,
 )
 
+# Whole processes on 2 busy cores: a generous liveness bound, polled gently.
+wait_for = functools.partial(helpers.wait_for, limit_s=120.0, poll_s=0.25)
 CONFIG = str(Path(__file__).resolve().parents[1] / "configs" / "demo.yaml")
 OVERRIDES = [
     "edge.mode=fast",
@@ -34,18 +37,6 @@ OVERRIDES = [
     "up.edge_agents=2",
     "log_json=true",
 ]
-
-
-def _wait_for(predicate, what: str, limit_s: float = 120.0):
-    """Liveness bound, not a performance threshold: fails only if the pipeline is stuck."""
-    end = time.monotonic() + limit_s
-    last = None
-    while time.monotonic() < end:
-        last = predicate()
-        if last:
-            return last
-        time.sleep(0.25)
-    raise AssertionError(f"timed out waiting for {what}; last={last!r}")
 
 
 @pytest.mark.slow
@@ -69,11 +60,11 @@ def test_stack_learns_through_all_services(tmp_path: Path) -> None:
             robots = control.ListRobots(control_pb2.ListRobotsRequest(), timeout=5).robots
             return [r for r in robots if r.online] if len(robots) == 2 else None
 
-        robots = _wait_for(online_robots, "two robots online")
+        robots = wait_for(online_robots, "two robots online")
         assert sorted(r.spec.robot_id for r in robots) == ["arm-0", "arm-1"]
 
         # The learner trains and publishes; both edges act with versions newer than the first.
-        status = _wait_for(
+        status = wait_for(
             lambda: (s := learner.GetStatus(learner_pb2.LearnerStatusRequest(), timeout=5)).weight_version >= 4 and s,
             "learner to publish weight version 4",
         )
@@ -84,7 +75,7 @@ def test_stack_learns_through_all_services(tmp_path: Path) -> None:
             versions = {r.spec.robot_id: r.status.policy_version for r in infos}
             return versions if len(versions) == 2 and min(versions.values()) >= 3 else None
 
-        versions = _wait_for(edge_versions, "both edges (remote and local policy) to act with version >= 3")
+        versions = wait_for(edge_versions, "both edges (remote and local policy) to act with version >= 3")
         assert min(versions.values()) >= 3
 
         # Steps reached replay, stamped with the versions that produced them.

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import socket
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -12,6 +10,7 @@ import torch
 
 from edge_agent.policy_source import LocalPolicy, RemotePolicy, make_policy_source
 from services.inference.server import InferenceService
+from tests.helpers import free_port, wait_for
 from user import rpc
 from user.config import AuthConfig, ServerConfig, StackConfig
 from user.policy import actor_from_config, policy_spec_for
@@ -38,22 +37,6 @@ def random_weights(version: int, seed: int = 0) -> WeightSet:
     actor = actor_from_config(ACTOR)
     tensors = {k: v.detach().numpy().copy() for k, v in actor.state_dict().items()}
     return WeightSet(version=version, policy=policy_spec_for(ACTOR), tensors=tensors)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_until(cond: Callable[[], bool], timeout: float = 20.0) -> bool:
-    """Liveness bound only: fails if something is stuck, never on speed."""
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.02)
-    return False
 
 
 @pytest.fixture
@@ -124,12 +107,12 @@ def test_local_policy_follows_weight_stream() -> None:
         assert policy.act("arm-0", OBS, DEADLINE_S) is None  # no weights yet
         assert policy.version == 0
         store.publish(1, policy_spec_for(ACTOR), random_weights(1, seed=1).tensors)
-        assert wait_until(lambda: policy.version == 1)
+        assert wait_for(lambda: policy.version == 1)
         first = policy.act("arm-0", OBS, DEADLINE_S)
         assert first is not None and first[0].shape == (3,) and first[1] == 1
 
         store.publish(2, policy_spec_for(ACTOR), random_weights(2, seed=2).tensors)
-        assert wait_until(lambda: policy.version == 2)
+        assert wait_for(lambda: policy.version == 2)
         second = policy.act("arm-0", OBS, DEADLINE_S)
         assert second is not None and second[1] == 2
         assert policy.act("arm-0", {"state": np.zeros(4, np.float32)}, DEADLINE_S) is None  # wrong size: hold

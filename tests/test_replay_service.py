@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import queue
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -17,6 +16,7 @@ from services.control.server import ControlService
 from services.replay import server as replay_server
 from services.replay.server import ReplayService
 from services.replay.store import ReplayStore
+from tests.helpers import wait_for
 from tests.test_replay_store import episode, make_step, spec
 from user import wire
 from user.config import AuthConfig, StackConfig
@@ -98,16 +98,6 @@ def _sans_rejected(st: replay_pb2.StatsResponse) -> replay_pb2.StatsResponse:
 
 def _metric(name: str, **labels: str) -> float:
     return prometheus_client.REGISTRY.get_sample_value(name, labels) or 0.0
-
-
-def _wait_for(predicate: Callable[[], Any], what: str, limit_s: float = 10.0) -> Any:
-    """Liveness bound, not a performance threshold."""
-    end = time.monotonic() + limit_s
-    while time.monotonic() < end:
-        if value := predicate():
-            return value
-        time.sleep(0.01)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 class OpenStream:
@@ -301,7 +291,7 @@ def test_shutdown_commits_and_acks_in_flight_steps(make_service: Callable[..., R
     stream = OpenStream(service)
     for t in range(5):
         stream.send(t, make_step("arm-0", "e", t))
-    _wait_for(lambda: _metric("user_replay_steps_received_total") - received == 5, "replay to read 5 steps")
+    wait_for(lambda: _metric("user_replay_steps_received_total") - received == 5, "replay to read 5 steps")
     assert service.servicer.wait_streams(0) is False  # the stream is open, nothing committed yet
     assert stats(service).steps == 0
     service.stop()

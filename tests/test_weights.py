@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Callable, Iterator
 
 import grpc
 import numpy as np
 import pytest
 
+from tests.helpers import wait_for
 from user import rpc
 from user.config import AuthConfig, ServerConfig
 from user.v1 import learner_pb2, learner_pb2_grpc
@@ -212,15 +212,6 @@ def stop_weight_server(store: WeightStore, server: rpc.RunningServer) -> None:
     server.stop()
 
 
-def wait_until(cond: Callable[[], bool], timeout: float = 20.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.02)
-    return cond()
-
-
 def test_stream_skip_and_reconnect_after_restart() -> None:
     store = WeightStore()
     store.publish(1, SPEC, make_tensors(1))
@@ -231,7 +222,7 @@ def test_stream_skip_and_reconnect_after_restart() -> None:
     try:
         assert sub.wait_version(1, timeout=20)
         assert_same(received[0].tensors, make_tensors(1))
-        assert wait_until(lambda: servicer.subscribers == 1)
+        assert wait_for(lambda: servicer.subscribers == 1)
 
         # Two quick versions: the subscriber may skip v2 but must end on v3.
         store.publish(2, SPEC, make_tensors(2))
@@ -247,7 +238,7 @@ def test_stream_skip_and_reconnect_after_restart() -> None:
         store.publish(3, SPEC, make_tensors(3))
         server, servicer = start_weight_server(store, port=port)
         assert server.port == port
-        assert wait_until(lambda: servicer.subscribers == 1)
+        assert wait_for(lambda: servicer.subscribers == 1)
         store.publish(4, SPEC, make_tensors(4))
         assert sub.wait_version(4, timeout=20)
         versions = [w.version for w in received]
@@ -257,7 +248,7 @@ def test_stream_skip_and_reconnect_after_restart() -> None:
     finally:
         sub.stop()
         # The server notices the client going away and ends its stream.
-        assert wait_until(lambda: servicer.subscribers == 0)
+        assert wait_for(lambda: servicer.subscribers == 0)
         stop_weight_server(store, server)
 
 
@@ -276,7 +267,7 @@ def test_callback_error_keeps_previous_version() -> None:
     try:
         assert sub.wait_version(1, timeout=20)
         store.publish(2, SPEC, make_tensors())
-        assert wait_until(lambda: 2 in calls)
+        assert wait_for(lambda: 2 in calls)
         assert sub.version == 1
         store.publish(3, SPEC, make_tensors())
         assert sub.wait_version(3, timeout=20)
