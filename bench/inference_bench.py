@@ -35,13 +35,11 @@ START_MARGIN_S = 0.4
 def make_weights(config: dict[str, Any]) -> Any:
     import torch
 
-    from user.policy import actor_from_config, policy_spec_for
+    from user.policy import actor_from_config, module_tensors, policy_spec_for
     from user.weights import WeightSet
 
     torch.manual_seed(0)
-    actor = actor_from_config(config)
-    tensors = {k: v.detach().numpy().copy() for k, v in actor.state_dict().items()}
-    return WeightSet(1, policy_spec_for(config), tensors)
+    return WeightSet(1, policy_spec_for(config), module_tensors(actor_from_config(config)))
 
 
 class NaiveServicer(inference_pb2_grpc.InferenceServicer):

@@ -27,7 +27,7 @@ import torch
 from bench import Row, median
 from user import rpc
 from user.config import AuthConfig, LearnerConfig, ServerConfig
-from user.policy import actor_from_config, policy_spec_for
+from user.policy import actor_from_config, module_tensors, policy_spec_for
 from user.v1 import learner_pb2, learner_pb2_grpc
 from user.weights import WeightServicer, WeightSet, WeightStore, WeightSubscriber, iter_weight_messages
 
@@ -54,11 +54,6 @@ def models() -> list[tuple[str, dict[str, Any]]]:
     sac = SAC(STATE_DIM, -ones, ones, LearnerConfig()).actor_config()
     big = actor_config(1024, 7, [2048, 2048, 2048])
     return [("SAC actor", sac), ("big MLP", big)]
-
-
-def actor_tensors(module: torch.nn.Module) -> dict[str, np.ndarray]:
-    """What the learner hands WeightStore.publish (cloud_learner.sac.SAC.actor_tensors)."""
-    return {k: v.detach().cpu().numpy().copy() for k, v in module.state_dict().items()}
 
 
 # --------------------------------------------------------------------------- ours
@@ -92,7 +87,7 @@ class OursLink:
         """(seconds publish -> decoded on the subscriber, received tensors, bytes on the wire)."""
         self.version += 1
         start = time.perf_counter()
-        tensors = actor_tensors(module)
+        tensors = module_tensors(module)  # what the learner hands WeightStore.publish
         packed = self.store.publish(self.version, self.spec, tensors)
         arrived, weights = self.received.get(timeout=RECEIVE_TIMEOUT_S)
         if weights.version != self.version:

@@ -18,7 +18,7 @@ from torch import nn
 
 from edge_agent.robot import Robot, action_bounds
 from user.config import LearnerConfig
-from user.policy import SquashedGaussianActor
+from user.policy import SquashedGaussianActor, module_tensors
 
 
 class QNetwork(nn.Module):
@@ -146,7 +146,7 @@ class SAC:
         }
 
     def actor_tensors(self) -> dict[str, np.ndarray]:
-        return {k: v.detach().cpu().numpy().copy() for k, v in self.actor.state_dict().items()}
+        return module_tensors(self.actor)
 
     def state_dict(self) -> dict[str, Any]:
         """Tensors, ints and plain dicts only, so torch.load(weights_only=True) can read it back."""

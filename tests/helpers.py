@@ -25,3 +25,30 @@ def wait_for(predicate: Callable[[], Any], what: str = "condition", limit_s: flo
             return last
         time.sleep(poll_s)
     raise AssertionError(f"timed out after {limit_s}s waiting for {what}; last={last!r}")
+
+
+def random_weights(actor_config: dict[str, Any], version: int, seed: int = 0) -> Any:
+    """A sac_mlp weight set with seeded random weights, as the learner would publish it."""
+    import torch
+
+    from user.policy import actor_from_config, module_tensors, policy_spec_for
+    from user.weights import WeightSet
+
+    torch.manual_seed(seed)
+    return WeightSet(
+        version=version, policy=policy_spec_for(actor_config), tensors=module_tensors(actor_from_config(actor_config))
+    )
+
+
+def random_sac_batch(obs_dim: int, act_dim: int, seed: int, n: int = 16, p_terminal: float = 0.1) -> dict[str, Any]:
+    """A seeded batch in the learner's format (actions in [-1, 1])."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    return {
+        "obs": torch.randn(n, obs_dim, generator=g),
+        "action": torch.rand(n, act_dim, generator=g) * 2 - 1,
+        "reward": torch.randn(n, generator=g),
+        "next_obs": torch.randn(n, obs_dim, generator=g),
+        "terminated": (torch.rand(n, generator=g) < p_terminal).float(),
+    }

@@ -182,8 +182,8 @@ def test_userctl_exits_2_on_a_bad_override(command: str, capsys: pytest.CaptureF
     ("command", "device", "said"),
     [
         ("inference", "gpu", "should match pattern"),
-        ("learner", "cuda:7", "CUDA devices"),
-        ("inference", "cuda:7", "CUDA"),
+        ("learner", "cuda:99", "CUDA devices"),
+        ("inference", "cuda:99", "CUDA"),
     ],
 )
 def test_userctl_exits_2_on_a_device_this_machine_lacks(

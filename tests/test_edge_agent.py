@@ -3,6 +3,7 @@ real Control / Replay / Inference servers and the real MuJoCo sim arm."""
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import signal
@@ -26,13 +27,12 @@ from edge_agent.robot import make_robot
 from services.control.server import ControlService
 from services.inference.server import InferenceService
 from services.replay.server import ReplayService
+from tests import helpers
 from tests.helpers import free_port, wait_for
 from user import wire
 from user.config import AuthConfig, RobotConfig, StackConfig
-from user.policy import actor_from_config, policy_spec_for
 from user.rpc import Backoff, make_channel
 from user.v1 import control_pb2, control_pb2_grpc, replay_pb2, replay_pb2_grpc, robot_pb2, step_pb2
-from user.weights import WeightSet
 
 torch.set_num_threads(1)
 
@@ -50,11 +50,7 @@ ACTOR = {
 # --------------------------------------------------------------------------- helpers
 
 
-def random_weights(version: int, seed: int = 0) -> WeightSet:
-    torch.manual_seed(seed)
-    actor = actor_from_config(ACTOR)
-    tensors = {k: v.detach().numpy().copy() for k, v in actor.state_dict().items()}
-    return WeightSet(version=version, policy=policy_spec_for(ACTOR), tensors=tensors)
+random_weights = functools.partial(helpers.random_weights, ACTOR)
 
 
 class ListSink:

@@ -6,6 +6,7 @@ through a real learner weight stream is covered by the integration test.
 
 from __future__ import annotations
 
+import functools
 import threading
 from collections.abc import Iterator
 
@@ -16,13 +17,13 @@ import torch
 
 from services.inference.batcher import MicroBatcher, NoPolicyError
 from services.inference.server import InferenceService
+from tests import helpers
 from user import wire
 from user.config import AuthConfig, StackConfig
-from user.policy import actor_from_config, build_policy, policy_spec_for
+from user.policy import build_policy, policy_spec_for
 from user.rpc import check_health, make_channel
 from user.v1 import inference_pb2, inference_pb2_grpc
 from user.v1 import tensor_pb2 as tpb
-from user.weights import WeightSet
 
 torch.set_num_threads(1)
 
@@ -38,11 +39,7 @@ CONFIG = {
 LOW, HIGH = np.array(CONFIG["action_low"]), np.array(CONFIG["action_high"])
 
 
-def weight_set(version: int, seed: int = 0) -> WeightSet:
-    torch.manual_seed(seed)
-    actor = actor_from_config(CONFIG)
-    tensors = {k: v.detach().numpy().copy() for k, v in actor.state_dict().items()}
-    return WeightSet(version=version, policy=policy_spec_for(CONFIG), tensors=tensors)
+weight_set = functools.partial(helpers.random_weights, CONFIG)
 
 
 def obs(seed: int) -> dict[str, np.ndarray]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import grpc
@@ -20,6 +21,7 @@ from cloud_learner.learner import (
 )
 from cloud_learner.sac import SAC
 from cloud_learner.server import LearnerService
+from tests import helpers
 from user.config import LearnerConfig, ServerConfig, StackConfig
 from user.policy import build_policy, policy_spec_for
 from user.rpc import make_channel
@@ -34,15 +36,7 @@ SHAPE = RobotShape(OBS_DIM, np.full(ACT_DIM, -1.0, np.float32), np.array([1.0, 2
 SMALL = LearnerConfig(hidden=[32, 32], batch_size=16)
 
 
-def random_batch(seed: int, n: int = 16) -> dict[str, torch.Tensor]:
-    g = torch.Generator().manual_seed(seed)
-    return {
-        "obs": torch.randn(n, OBS_DIM, generator=g),
-        "action": torch.rand(n, ACT_DIM, generator=g) * 2 - 1,
-        "reward": torch.randn(n, generator=g),
-        "next_obs": torch.randn(n, OBS_DIM, generator=g),
-        "terminated": (torch.rand(n, generator=g) < 0.1).float(),
-    }
+random_batch = functools.partial(helpers.random_sac_batch, OBS_DIM, ACT_DIM)
 
 
 def trained_sac(updates: int = 5) -> SAC:

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
+from tests import helpers
 from user.policy import (
     Policy,
     SquashedGaussianActor,
-    actor_from_config,
     build_policy,
     known_policy_kinds,
     policy_spec_for,
@@ -29,9 +29,7 @@ CONFIG = {
 
 
 def _tensors(seed: int = 0) -> dict[str, np.ndarray]:
-    torch.manual_seed(seed)
-    actor = actor_from_config(CONFIG)
-    return {k: v.detach().cpu().numpy().copy() for k, v in actor.state_dict().items()}
+    return helpers.random_weights(CONFIG, 1, seed).tensors
 
 
 def _obs(batch: int, seed: int = 1) -> dict[str, np.ndarray]:

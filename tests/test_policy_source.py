@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterator
 
 import numpy as np
@@ -10,12 +11,13 @@ import torch
 
 from edge_agent.policy_source import LocalPolicy, RemotePolicy, make_policy_source
 from services.inference.server import InferenceService
+from tests import helpers
 from tests.helpers import free_port, wait_for
 from user import rpc
 from user.config import AuthConfig, ServerConfig, StackConfig
-from user.policy import actor_from_config, policy_spec_for
+from user.policy import policy_spec_for
 from user.v1 import learner_pb2_grpc
-from user.weights import WeightServicer, WeightSet, WeightStore
+from user.weights import WeightServicer, WeightStore
 
 torch.set_num_threads(1)
 
@@ -32,11 +34,7 @@ OBS = {"state": np.linspace(-1, 1, 15, dtype=np.float32)}
 DEADLINE_S = 5.0  # generous: these tests check answers, not latency
 
 
-def random_weights(version: int, seed: int = 0) -> WeightSet:
-    torch.manual_seed(seed)
-    actor = actor_from_config(ACTOR)
-    tensors = {k: v.detach().numpy().copy() for k, v in actor.state_dict().items()}
-    return WeightSet(version=version, policy=policy_spec_for(ACTOR), tensors=tensors)
+random_weights = functools.partial(helpers.random_weights, ACTOR)
 
 
 @pytest.fixture

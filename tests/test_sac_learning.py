@@ -10,6 +10,7 @@ import torch
 
 from cloud_learner.sac import SAC, train_local
 from edge_agent.robot import make_robot
+from tests import helpers
 from user.config import LearnerConfig
 from user.policy import build_policy, policy_spec_for
 
@@ -27,15 +28,8 @@ def _agent(seed: int = 0) -> SAC:
     return SAC(OBS_DIM, np.array([-1.0, -2.0]), np.array([1.0, 2.0]), cfg)
 
 
-def _batch(seed: int = 0, n: int = 16) -> dict[str, torch.Tensor]:
-    g = torch.Generator().manual_seed(seed)
-    return {
-        "obs": torch.randn(n, OBS_DIM, generator=g),
-        "action": torch.rand(n, ACT_DIM, generator=g) * 2 - 1,
-        "reward": torch.randn(n, generator=g),
-        "next_obs": torch.randn(n, OBS_DIM, generator=g),
-        "terminated": (torch.rand(n, generator=g) < 0.3).float(),
-    }
+def _batch(seed: int = 0) -> dict[str, torch.Tensor]:
+    return helpers.random_sac_batch(OBS_DIM, ACT_DIM, seed, p_terminal=0.3)
 
 
 def test_update_returns_finite_losses() -> None:

@@ -152,6 +152,11 @@ def policy_spec_for(actor_config: Mapping[str, Any]) -> learner_pb2.PolicySpec:
     return learner_pb2.PolicySpec(kind=SAC_MLP, config_json=json.dumps(cfg, sort_keys=True))
 
 
+def module_tensors(module: nn.Module) -> dict[str, np.ndarray]:
+    """A module's weights as named numpy copies: what a weight set carries (the inverse of _load_tensors)."""
+    return {k: v.detach().cpu().numpy().copy() for k, v in module.state_dict().items()}
+
+
 def _load_tensors(module: nn.Module, tensors: Mapping[str, np.ndarray]) -> None:
     expected = module.state_dict()
     if set(tensors) != set(expected):

@@ -14,6 +14,7 @@ import random
 import signal
 import threading
 import time
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Iterable, Iterator
 from concurrent import futures
 from dataclasses import dataclass
@@ -264,17 +265,17 @@ def write_ready_file(path: str | Path | None, **info: Any) -> None:
     os.replace(tmp, path)
 
 
-class GrpcService:
+class GrpcService(ABC):
     """What every USER service object is: start() serves (returns self), stop() shuts down gracefully
     and is safe to call twice; `running` is set while it serves."""
 
     running: RunningServer | None = None
 
-    def start(self) -> Any:
-        raise NotImplementedError
+    @abstractmethod
+    def start(self) -> Any: ...
 
-    def stop(self) -> None:
-        raise NotImplementedError
+    @abstractmethod
+    def stop(self) -> None: ...
 
     @property
     def port(self) -> int:

@@ -25,7 +25,6 @@ import numpy as np
 import prometheus_client
 
 from services.replay.store import (
-    DEFAULT_CACHE_MB,
     EmptyBufferError,
     LayoutError,
     ReplayFullError,
@@ -460,11 +459,10 @@ class ReplayService(rpc.GrpcService):
         cfg: StackConfig,
         spec_source: SpecSource | None = None,
         start_metrics: bool = True,
-        cache_mb: int = DEFAULT_CACHE_MB,
     ) -> None:
         self.cfg = cfg
         rc = cfg.replay
-        self.store = ReplayStore(rc.path, rc.map_size_mb, cache_mb=cache_mb)
+        self.store = ReplayStore(rc.path, rc.map_size_mb, cache_mb=rc.cache_mb)
         self._control: ControlSpecSource | None = None
         if spec_source is None:
             self._control = ControlSpecSource(rc.control_addr, cfg.auth, rc.rpc_timeout_s)
