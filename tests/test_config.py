@@ -3,6 +3,7 @@ precedence is file < environment < --set, and userctl exits 2 on a bad config be
 
 from __future__ import annotations
 
+import logging
 import os
 import subprocess
 import sys
@@ -187,8 +188,13 @@ def test_userctl_exits_2_on_a_bad_override(command: str, capsys: pytest.CaptureF
     ],
 )
 def test_userctl_exits_2_on_a_device_this_machine_lacks(
-    command: str, device: str, said: str, capsys: pytest.CaptureFixture[str]
+    command: str, device: str, said: str, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    # userctl sets up logging on pytest's captured stderr before the service refuses the device: put the
+    # root handlers back afterwards, or later tests would log into a closed stream.
+    root = logging.getLogger()
+    monkeypatch.setattr(root, "handlers", list(root.handlers))
+    monkeypatch.setattr(root, "level", root.level)
     overrides = ["--set", f"{command}.device={device}", "--set", "auth.token=t"]
     assert cli.main([command, "-c", str(ROOT / "configs" / "compose.yaml"), *overrides]) == 2
     err = capsys.readouterr().err
