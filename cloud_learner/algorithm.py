@@ -1,0 +1,108 @@
+"""The algorithm interface: the only thing the learner loop knows about how a policy is trained.
+
+The learner samples what `batch_request()` asks for (tables and their shares, e.g. RLPD's 50/50
+online/demos), decodes it into a `Batch`, calls `update(batch)` and logs the scalars it returns,
+publishes `policy()` as a weight version and checkpoints `state_dict()`. It never names an
+algorithm. New algorithms are one class plus `@ALGORITHMS.register("kind")` in a module of
+`cloud_learner.algorithms`, readable top to bottom like CleanRL.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from user.registry import PluginParams, Registry
+from user.v1 import learner_pb2
+
+
+@dataclass(frozen=True)
+class Feature:
+    shape: tuple[int, ...]
+    dtype: str  # numpy dtype name as it arrives from replay ("float32", "uint8", ...)
+    is_image: bool = False
+
+
+@dataclass(frozen=True)
+class Layout:
+    """What an experiment's transitions look like, derived from its robots' specs.
+
+    For an experiment spanning several embodiments, features and actions are padded to the largest
+    robot's size and `embodiments` lists the robot kinds (the index is the embodiment id in batches).
+    """
+
+    observation: dict[str, Feature]
+    action_low: np.ndarray
+    action_high: np.ndarray
+    embodiments: tuple[str, ...] = ()
+
+    @property
+    def action_dim(self) -> int:
+        return int(self.action_low.size)
+
+    def state_keys(self) -> list[str]:
+        return sorted(k for k, f in self.observation.items() if not f.is_image)
+
+    def image_keys(self) -> list[str]:
+        return sorted(k for k, f in self.observation.items() if f.is_image)
+
+
+@dataclass(frozen=True)
+class BatchRequest:
+    batch_size: int
+    tables: dict[str, float] = field(default_factory=lambda: {"online": 1.0})  # table -> share of the batch
+    n_step: int = 1
+
+
+@dataclass
+class Batch:
+    """Decoded transitions on the algorithm's device; images stay uint8 (B, H, W, C) until the encoder."""
+
+    observation: dict[str, torch.Tensor]
+    action: torch.Tensor  # (B, action_dim) float32
+    reward: torch.Tensor  # (B,) float32 (n-step discounted sum when n_step > 1)
+    next_observation: dict[str, torch.Tensor]
+    terminated: torch.Tensor  # (B,) float32 0/1: no bootstrapping
+    intervention: torch.Tensor  # (B,) bool: a human chose the action
+    discount: torch.Tensor | None = None  # (B,) gamma**n per row when n-step; None = gamma
+    embodiment: torch.Tensor | None = None  # (B,) int64 index into Layout.embodiments
+    action_mask: torch.Tensor | None = None  # (B, action_dim) bool: real (not padded) action dims
+
+    def __len__(self) -> int:
+        return int(self.action.shape[0])
+
+
+class Algorithm(ABC):
+    """update(batch) -> scalars; policy() -> what to publish; state_dict() -> what to checkpoint."""
+
+    Params: type[PluginParams] = PluginParams
+
+    def __init__(self, params: PluginParams, layout: Layout, device: torch.device) -> None:
+        self.params, self.layout, self.device = params, layout, device
+        self.updates = 0
+
+    def batch_request(self) -> BatchRequest:
+        """What to sample for the next update (default: uniform from the online table)."""
+        return BatchRequest(batch_size=int(getattr(self.params, "batch_size", 256)))
+
+    @abstractmethod
+    def update(self, batch: Batch) -> dict[str, float]:
+        """One gradient step; returns named scalars (losses, temperature, ...) for status and metrics."""
+
+    @abstractmethod
+    def policy(self) -> tuple[learner_pb2.PolicySpec, dict[str, np.ndarray]]:
+        """The acting policy to publish: its spec and named tensors (only what actors need)."""
+
+    @abstractmethod
+    def state_dict(self) -> dict[str, Any]:
+        """Everything a resumed run needs (networks, optimizers, counters); tensors only, no pickled objects."""
+
+    @abstractmethod
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+ALGORITHMS: Registry[Algorithm] = Registry("algorithm", Algorithm, "cloud_learner.algorithms")

@@ -1,0 +1,1 @@
+"""Built-in tasks: each module registers its kinds with edge_agent.task.TASKS (found without an import list)."""
