@@ -123,7 +123,13 @@ class LocalPolicy(PolicySource):
     """A local policy copy kept fresh by a WeightSubscriber; new weights swap in atomically."""
 
     def __init__(
-        self, learner_addr: str, auth: AuthConfig, client_id: str, deterministic: bool = False, start: bool = True
+        self,
+        learner_addr: str,
+        auth: AuthConfig,
+        client_id: str,
+        deterministic: bool = False,
+        start: bool = True,
+        experiment: str = "",
     ) -> None:
         import user.policy  # noqa: F401 - torch loads now, not in the weight thread while robots run
         from user.weights import WeightSubscriber
@@ -131,7 +137,7 @@ class LocalPolicy(PolicySource):
         self._policy: Policy | None = None  # replaced whole, never mutated: reading it needs no lock
         self._deterministic = deterministic
         self._lock = threading.Lock()  # serialises forward passes of robots sharing this copy
-        self._subscriber = WeightSubscriber(learner_addr, auth, client_id, self._on_weights)
+        self._subscriber = WeightSubscriber(learner_addr, auth, client_id, self._on_weights, experiment=experiment)
         if start:
             self._subscriber.start()
 
@@ -176,7 +182,45 @@ class LocalPolicy(PolicySource):
         self._subscriber.stop()
 
 
+class RoutedPolicy(PolicySource):
+    """Robots of one agent in different experiments: each robot asks its experiment's source."""
+
+    def __init__(self, routes: dict[str, PolicySource]) -> None:
+        self.routes = routes
+
+    @property
+    def version(self) -> int:
+        return max((s.version for s in set(self.routes.values())), default=0)
+
+    def act(
+        self, robot_id: str, observation: dict[str, np.ndarray], deadline_s: float
+    ) -> tuple[np.ndarray, int] | None:
+        source = self.routes.get(robot_id)
+        return source.act(robot_id, observation, deadline_s) if source is not None else None
+
+    def close(self) -> None:
+        for source in set(self.routes.values()):
+            source.close()
+
+
+def robot_experiments(cfg: StackConfig) -> dict[str, str]:
+    """robot id -> experiment name, from the robots' configured kinds (labels come with the spec)."""
+    from user.experiments import experiment_for
+    from user.v1 import robot_pb2
+
+    out = {}
+    for robot in cfg.edge.robots:
+        exp = experiment_for(robot_pb2.RobotSpec(robot_id=robot.id, kind=robot.kind), cfg.resolved_experiments())
+        out[robot.id] = exp.name if exp is not None else ""
+    return out
+
+
 def make_policy_source(cfg: StackConfig, client_id: str) -> PolicySource:
     if cfg.edge.policy_source == "local":
-        return LocalPolicy(cfg.edge.learner_addr, cfg.auth, client_id)
+        routes = robot_experiments(cfg)
+        names = sorted(set(routes.values()))
+        if len(names) <= 1:
+            return LocalPolicy(cfg.edge.learner_addr, cfg.auth, client_id, experiment=names[0] if names else "")
+        sources = {n: LocalPolicy(cfg.edge.learner_addr, cfg.auth, f"{client_id}-{n}", experiment=n) for n in names}
+        return RoutedPolicy({rid: sources[name] for rid, name in routes.items()})
     return RemotePolicy(cfg.edge.inference_addr, cfg.auth)

@@ -113,7 +113,7 @@ def test_stack_learns_through_all_services(tmp_path: Path) -> None:
         codes = stack.stop()
     assert codes == {name: 0 for name in codes}, f"unclean exits: {codes}"
     # The learner wrote its final checkpoint on SIGTERM.
-    assert (tmp_path / "checkpoints" / "latest").exists()
+    assert (tmp_path / "checkpoints" / "default" / "latest").exists()
     # Every log line is structured JSON.
     for log_file in (tmp_path / "logs").glob("*.log"):
         for line in log_file.read_text().splitlines()[:50]:

@@ -22,7 +22,8 @@ import grpc
 import prometheus_client
 
 from user import rpc
-from user.config import StackConfig
+from user.config import ExperimentConfig, StackConfig
+from user.experiments import experiment_for
 from user.log import kv
 from user.spec import ROBOT_ID_RE, SpecError, validate_spec
 from user.v1 import control_pb2, control_pb2_grpc, robot_pb2
@@ -275,9 +276,17 @@ class Registry:
 
 
 class ControlServicer(control_pb2_grpc.ControlServicer):
-    def __init__(self, registry: Registry, heartbeat_interval_s: float) -> None:
+    def __init__(
+        self, registry: Registry, heartbeat_interval_s: float, experiments: list[ExperimentConfig] | None = None
+    ) -> None:
         self.registry = registry
         self.heartbeat_interval_s = heartbeat_interval_s
+        self.experiments = experiments or []  # which experiment each robot belongs to (RobotInfo.experiment)
+
+    def _tag(self, info: control_pb2.RobotInfo) -> control_pb2.RobotInfo:
+        exp = experiment_for(info.spec, self.experiments)
+        info.experiment = exp.name if exp is not None else ""
+        return info
 
     def Connect(
         self, request_iterator: Iterator[control_pb2.EdgeMessage], context: grpc.ServicerContext
@@ -376,13 +385,14 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
     def ListRobots(
         self, request: control_pb2.ListRobotsRequest, context: grpc.ServicerContext
     ) -> control_pb2.ListRobotsResponse:
-        return control_pb2.ListRobotsResponse(robots=self.registry.list(request.include_offline))
+        robots = [self._tag(info) for info in self.registry.list(request.include_offline)]
+        return control_pb2.ListRobotsResponse(robots=robots)
 
     def GetRobot(self, request: control_pb2.GetRobotRequest, context: grpc.ServicerContext) -> control_pb2.RobotInfo:
         info = self.registry.info(request.robot_id)
         if info is None:
             context.abort(grpc.StatusCode.NOT_FOUND, f"unknown robot {request.robot_id!r}")
-        return info
+        return self._tag(info)
 
     def SendCommand(
         self, request: control_pb2.SendCommandRequest, context: grpc.ServicerContext
@@ -412,7 +422,7 @@ class ControlService(rpc.GrpcService):
         self.cfg = cfg
         c = cfg.control
         self.registry = Registry(c.lease_ttl_s, c.episodes_kept)
-        self.servicer = ControlServicer(self.registry, c.heartbeat_interval_s)
+        self.servicer = ControlServicer(self.registry, c.heartbeat_interval_s, cfg.resolved_experiments())
         self.start_metrics = start_metrics
         self.running: rpc.RunningServer | None = None
         self._stop = threading.Event()
