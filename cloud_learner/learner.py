@@ -42,6 +42,7 @@ from user.config import ExperimentConfig, StackConfig
 from user.experiments import EMBODIMENT_KEY, LayoutError, assign, check_plugins, layout_for, pad_action, ready
 from user.log import kv
 from user.policy import POLICIES, PolicyChoice
+from user.spec import action_dim
 from user.v1 import control_pb2, control_pb2_grpc, replay_pb2, replay_pb2_grpc, robot_pb2
 from user.weights import WeightStore
 from user.wire import WireError, from_tensor
@@ -515,6 +516,15 @@ class ExperimentRun:
 
     def publish(self, version: int) -> None:
         spec, tensors = self.algo.policy()
+        if self.exp.shared_embodiment:  # actors pad per robot kind; see user/policies/padded.py
+            from user.policies.padded import padded_spec
+
+            widths = {
+                k: int(f.shape[0]) for k, f in self.layout.observation.items() if not f.is_image and k != EMBODIMENT_KEY
+            }
+            with self._lock:
+                dims = {s.kind: action_dim(s) for s in self.specs.values()}
+            spec = padded_spec(spec, widths, {kind: dims[kind] for kind in self.layout.embodiments})
         self.learner.store.publish(version, spec, tensors, int(self.algo.updates), experiment=self.exp.name)
         st = self.state
         st.weight_version, st.policy_kind, st.last_publish_ns = version, spec.kind, time.time_ns()

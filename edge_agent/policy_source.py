@@ -130,11 +130,13 @@ class LocalPolicy(PolicySource):
         deterministic: bool = False,
         start: bool = True,
         experiment: str = "",
+        kinds: dict[str, str] | None = None,
     ) -> None:
         import user.policy  # noqa: F401 - torch loads now, not in the weight thread while robots run
         from user.weights import WeightSubscriber
 
         self._policy: Policy | None = None  # replaced whole, never mutated: reading it needs no lock
+        self._kinds = kinds or {}  # robot id -> kind: a policy shared by embodiments pads by kind
         self._deterministic = deterministic
         self._lock = threading.Lock()  # serialises forward passes of robots sharing this copy
         self._subscriber = WeightSubscriber(learner_addr, auth, client_id, self._on_weights, experiment=experiment)
@@ -162,11 +164,14 @@ class LocalPolicy(PolicySource):
         if policy is None:
             ACTION_TIMEOUTS.labels("local", "no_policy").inc()
             return None
+        from user.experiments import embodiment_inputs, fit_action
+
         start = time.perf_counter()
-        batched = {name: np.asarray(v)[None] for name, v in observation.items()}
+        kind = self._kinds.get(robot_id, "")
         try:
+            batched = {name: np.asarray(v)[None] for name, v in embodiment_inputs(policy, kind, observation).items()}
             with self._lock:
-                action = policy.act(batched, self._deterministic)
+                action = fit_action(policy, kind, policy.act(batched, self._deterministic))
         except ValueError as err:  # observation does not fit this policy: hold, say why once
             ACTION_TIMEOUTS.labels("local", "bad_observation").inc()
             log.warning("local policy refused the observation", extra=kv(robot_id=robot_id, error=str(err)))
@@ -219,8 +224,13 @@ def make_policy_source(cfg: StackConfig, client_id: str) -> PolicySource:
     if cfg.edge.policy_source == "local":
         routes = robot_experiments(cfg)
         names = sorted(set(routes.values()))
+        kinds = {r.id: r.kind for r in cfg.edge.robots}
         if len(names) <= 1:
-            return LocalPolicy(cfg.edge.learner_addr, cfg.auth, client_id, experiment=names[0] if names else "")
-        sources = {n: LocalPolicy(cfg.edge.learner_addr, cfg.auth, f"{client_id}-{n}", experiment=n) for n in names}
+            name = names[0] if names else ""
+            return LocalPolicy(cfg.edge.learner_addr, cfg.auth, client_id, experiment=name, kinds=kinds)
+        sources = {
+            n: LocalPolicy(cfg.edge.learner_addr, cfg.auth, f"{client_id}-{n}", experiment=n, kinds=kinds)
+            for n in names
+        }
         return RoutedPolicy({rid: sources[name] for rid, name in routes.items()})
     return RemotePolicy(cfg.edge.inference_addr, cfg.auth)

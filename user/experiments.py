@@ -110,6 +110,13 @@ def layout_for(exp: ExperimentConfig, specs: Sequence[robot_pb2.RobotSpec]) -> L
             else:
                 state[name] = max(state.get(name, 0), _flat(f.shape))
         action_dim = max(action_dim, contract.action_dim(spec))
+    for spec in specs:
+        lacking = sorted(set(images) - set(contract.features(spec)))
+        if lacking:
+            raise LayoutError(
+                f"experiment {exp.name}: {spec.robot_id} has no image {lacking}; shared embodiments pad state, "
+                "every robot needs the same images"
+            )
     if EMBODIMENT_KEY in state or EMBODIMENT_KEY in images:
         raise LayoutError(f"experiment {exp.name}: feature name {EMBODIMENT_KEY!r} is reserved")
     observation = {k: Feature((n,), "float32") for k, n in state.items()}
@@ -160,6 +167,27 @@ def pad_action(action: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
     mask = np.zeros((batch, width), bool)
     mask[:, :a] = True
     return padded, mask
+
+
+# --------------------------------------------------------------------------- acting with a shared policy
+
+
+def embodiment_inputs(policy: object, kind: str, observation: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """One robot's unbatched observation, plus its embodiment index when the policy spans embodiments."""
+    embodiments = getattr(policy, "embodiments", None)
+    if not embodiments:
+        return dict(observation)
+    if kind not in embodiments:
+        raise ValueError(f"robot kind {kind!r} is not one of the policy's embodiments {list(embodiments)}")
+    return {**observation, EMBODIMENT_KEY: np.asarray(embodiments.index(kind), np.int64)}
+
+
+def fit_action(policy: object, kind: str, action: np.ndarray) -> np.ndarray:
+    """Cut a padded action (or chunk) back to this robot kind's action dims."""
+    dims = getattr(policy, "action_dims", None)
+    if not dims or kind not in dims:
+        return action
+    return np.asarray(action)[..., : dims[kind]]
 
 
 # --------------------------------------------------------------------------- plug-in checks at start

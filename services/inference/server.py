@@ -24,6 +24,7 @@ import prometheus_client
 from services.inference.batcher import ActResult, MicroBatcher, NoPolicyError
 from user import rpc, wire
 from user.config import ConfigError, StackConfig
+from user.experiments import embodiment_inputs, fit_action
 from user.log import kv
 from user.policy import Policy, build_policy, check_device
 from user.v1 import inference_pb2, inference_pb2_grpc
@@ -131,24 +132,25 @@ class Router:
     def __init__(self, cfg: StackConfig) -> None:
         self.cfg = cfg
         self.experiments = cfg.resolved_experiments()
-        self._routes: dict[str, str] = {}
+        self._routes: dict[str, tuple[str, str]] = {}  # robot_id -> (experiment, robot kind)
         self._lock = threading.Lock()
         self._refreshed = 0.0
         self._channel: grpc.Channel | None = None
 
-    def experiment(self, robot_id: str) -> str:
-        if len(self.experiments) == 1:
-            return self.experiments[0].name
+    def route(self, robot_id: str) -> tuple[str, str]:
+        """(experiment, robot kind); the kind is "" when one experiment of one embodiment needs no lookup."""
+        if len(self.experiments) == 1 and not self.experiments[0].shared_embodiment:
+            return self.experiments[0].name, ""
         with self._lock:
-            name = self._routes.get(robot_id)
-            if name is None and time.monotonic() - self._refreshed >= self.REFRESH_S:
+            route = self._routes.get(robot_id)
+            if route is None and time.monotonic() - self._refreshed >= self.REFRESH_S:
                 self._refresh_locked()
-                name = self._routes.get(robot_id)
-        if name is None:
+                route = self._routes.get(robot_id)
+        if route is None:
             raise RoutingError(
                 grpc.StatusCode.FAILED_PRECONDITION, f"robot {robot_id!r} is in no experiment (unknown to control?)"
             )
-        return name
+        return route
 
     def _refresh_locked(self) -> None:
         from user.experiments import experiment_for
@@ -167,7 +169,7 @@ class Router:
         for info in resp.robots:
             exp = experiment_for(info.spec, self.experiments)
             if exp is not None:
-                self._routes[info.spec.robot_id] = exp.name
+                self._routes[info.spec.robot_id] = (exp.name, info.spec.kind)
 
     def close(self) -> None:
         if self._channel is not None:
@@ -185,14 +187,16 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
 
     def Act(self, request: inference_pb2.ActRequest, context: grpc.ServicerContext) -> inference_pb2.ActResponse:
         try:
-            slot = self.service.slot_for(request.robot_id)
+            experiment, kind = self.service.router.route(request.robot_id)
         except RoutingError as exc:
             self._abort(context, exc.code, str(exc))
+        slot = self.service.slots[experiment]
         policy = slot.policy
         if policy is None:
             self._abort(context, grpc.StatusCode.UNAVAILABLE, "no policy yet")
         try:
-            obs = validate_observation(wire.from_tensor_map(request.observation), policy)
+            raw = embodiment_inputs(policy, kind, wire.from_tensor_map(request.observation))
+            obs = validate_observation(raw, policy)
         except ValueError as exc:  # WireError is a ValueError
             self._abort(context, grpc.StatusCode.INVALID_ARGUMENT, f"bad observation: {exc}")
         try:
@@ -213,7 +217,7 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
         REQUESTS.labels("OK").inc()
         QUEUE_SECONDS.observe(result.queue_us / 1e6)
         return inference_pb2.ActResponse(
-            action=wire.to_tensor(np.asarray(result.action, dtype=np.float32)),
+            action=wire.to_tensor(np.asarray(fit_action(policy, kind, result.action), dtype=np.float32)),
             policy_version=result.version,
             queue_us=result.queue_us,
             compute_us=result.compute_us,
@@ -278,7 +282,7 @@ class InferenceService(rpc.GrpcService):
         return self._first.subscriber
 
     def slot_for(self, robot_id: str) -> PolicySlot:
-        return self.slots[self.router.experiment(robot_id)]
+        return self.slots[self.router.route(robot_id)[0]]
 
     def load_weights(self, weights: WeightSet, experiment: str = "") -> Policy:
         slot = self.slots[experiment] if experiment else self._first
