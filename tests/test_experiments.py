@@ -124,7 +124,10 @@ def stack_cfg(tmp_path: Path, experiments: list[dict]) -> StackConfig:
 
 @pytest.fixture
 def services(tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[tuple[StackConfig, LearnerService]]:
-    cfg = stack_cfg(tmp_path, request.param)
+    experiments, learner_overrides = request.param if isinstance(request.param, tuple) else (request.param, {})
+    cfg = stack_cfg(tmp_path, experiments)
+    for key, value in learner_overrides.items():
+        setattr(cfg.learner, key, value)
     control = ControlService(cfg, start_metrics=False).start()
     cfg.replay.control_addr = cfg.learner.control_addr = cfg.inference.control_addr = control.address
     replay = ReplayService(cfg, start_metrics=False).start()
@@ -239,3 +242,30 @@ def test_one_policy_shared_by_two_embodiments(services) -> None:
 
     infos = wait_for(acting, "both embodiments to act with the shared policy")
     assert {i.experiment for i in infos} == {"both"}
+
+
+SYNC = ([TWO[0]], {"mode": "sync", "sync_env_steps": 40, "sync_updates": 7})
+
+
+@pytest.mark.parametrize("services", [SYNC], indirect=True)
+def test_sync_mode_collects_trains_and_publishes_in_turn(services) -> None:
+    cfg, learner = services
+    stub = learner_pb2_grpc.LearnerStub(make_channel(learner.address, cfg.auth))
+
+    def rounds():
+        (e,) = stub.GetStatus(learner_pb2.LearnerStatusRequest(), timeout=5).experiments
+        return e if e.weight_version >= 4 else None
+
+    from prometheus_client import REGISTRY
+
+    def commands(kind: str) -> float:
+        return REGISTRY.get_sample_value("user_control_commands_total", {"kind": kind}) or 0.0
+
+    paused_before = commands("pause")
+    status = wait_for(rounds, "three sync rounds")
+    # Weights go out only at the end of a round: sync_updates per published version after v1.
+    assert 7 * (status.weight_version - 1) <= status.updates <= 7 * status.weight_version
+    assert status.env_steps >= 40 * (status.weight_version - 1)
+    # Each round paused the experiment's robot for training and resumed it for collection.
+    assert commands("pause") - paused_before >= 2
+    assert commands("resume") >= 3

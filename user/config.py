@@ -198,9 +198,12 @@ class UpConfig(Strict):
     runs_dir: Path = Path("runs")
     budget_s: float = Field(default=600.0, gt=0, description="stop after this many seconds")
     target_success: float = Field(default=0.9, gt=0, le=1, description="stop at this success rate")
-    window_episodes: int = Field(default=20, ge=1, description="over the last this many episodes, all robots")
+    window_episodes: int = Field(
+        default=20, ge=1, description="over the last this many episodes of the target experiment's robots"
+    )
     edge_agents: int = Field(default=2, ge=1, description="one process per simulated robot")
     console: bool = Field(default=True, description="live table; false prints only the summary")
+    target_experiment: str = Field(default="", description="whose success stops the run; empty = the first")
 
 
 class StackConfig(Strict):
