@@ -287,6 +287,7 @@ class ExperimentRun:
         self._threads: list[threading.Thread] = []
         self._last_ckpt_updates = -1
         self._lock = threading.Lock()  # robot set changes vs. sampling
+        self._tables_warned = False
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -362,10 +363,14 @@ class ExperimentRun:
     def _request(self, batch_size: int, robot_ids: list[str], req: BatchRequest) -> replay_pb2.SampleRequest:
         request = replay_pb2.SampleRequest(batch_size=batch_size, robot_ids=robot_ids)
         if "tables" in replay_pb2.SampleRequest.DESCRIPTOR.fields_by_name:  # replay with tables (RLPD's shares)
+            # The algorithm's default ("online" only) means the experiment's own table.
+            tables = {self.exp.table: 1.0} if dict(req.tables) == {"online": 1.0} else dict(req.tables)
             try:
-                request.tables.update(req.tables)  # type: ignore[attr-defined]
-            except (AttributeError, TypeError, ValueError):
-                pass
+                request.tables.update(tables)  # type: ignore[attr-defined]
+            except (AttributeError, TypeError, ValueError) as exc:
+                if not self._tables_warned:
+                    self._tables_warned = True
+                    log.warning("replay tables not requested", extra=kv(experiment=self.exp.name, error=str(exc)))
         return request
 
     def sample_once(self, stub: replay_pb2_grpc.ReplayStub) -> Prefetched | None:

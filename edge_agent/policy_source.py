@@ -20,7 +20,7 @@ from user import wire
 from user.config import AuthConfig, StackConfig
 from user.log import kv
 from user.rpc import make_channel
-from user.v1 import inference_pb2, inference_pb2_grpc
+from user.v1 import inference_pb2, inference_pb2_grpc, robot_pb2
 
 if TYPE_CHECKING:  # torch is imported only by edges that run a local copy
     from user.policy import Policy
@@ -208,23 +208,27 @@ class RoutedPolicy(PolicySource):
             source.close()
 
 
-def robot_experiments(cfg: StackConfig) -> dict[str, str]:
-    """robot id -> experiment name, from the robots' configured kinds (labels come with the spec)."""
+def robot_experiments(cfg: StackConfig, specs: list[robot_pb2.RobotSpec] | None = None) -> dict[str, str]:
+    """robot id -> experiment name, from the robots' specs (labels included) or else their configured kinds."""
     from user.experiments import experiment_for
-    from user.v1 import robot_pb2
 
+    if specs is None:
+        specs = [robot_pb2.RobotSpec(robot_id=r.id, kind=r.kind) for r in cfg.edge.robots]
     out = {}
-    for robot in cfg.edge.robots:
-        exp = experiment_for(robot_pb2.RobotSpec(robot_id=robot.id, kind=robot.kind), cfg.resolved_experiments())
-        out[robot.id] = exp.name if exp is not None else ""
+    for spec in specs:
+        exp = experiment_for(spec, cfg.resolved_experiments())
+        out[spec.robot_id] = exp.name if exp is not None else ""
     return out
 
 
-def make_policy_source(cfg: StackConfig, client_id: str) -> PolicySource:
+def make_policy_source(
+    cfg: StackConfig, client_id: str, specs: list[robot_pb2.RobotSpec] | None = None
+) -> PolicySource:
+    """Remote (one Inference address for every robot) or local copies, one per experiment of this agent's robots."""
     if cfg.edge.policy_source == "local":
-        routes = robot_experiments(cfg)
+        routes = robot_experiments(cfg, specs)
         names = sorted(set(routes.values()))
-        kinds = {r.id: r.kind for r in cfg.edge.robots}
+        kinds = {s.robot_id: s.kind for s in specs} if specs else {r.id: r.kind for r in cfg.edge.robots}
         if len(names) <= 1:
             name = names[0] if names else ""
             return LocalPolicy(cfg.edge.learner_addr, cfg.auth, client_id, experiment=name, kinds=kinds)
