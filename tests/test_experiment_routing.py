@@ -93,3 +93,43 @@ def test_local_copies_follow_their_robots_experiment() -> None:
         source.close()
         store.close()
         server.stop()
+
+
+def test_inference_routes_by_robot_and_says_why_it_cannot() -> None:
+    import grpc
+    import pytest
+
+    from services.control.server import ControlService
+    from services.inference.server import InferenceService
+    from user import wire
+    from user.v1 import inference_pb2, inference_pb2_grpc
+
+    cfg = StackConfig.model_validate(
+        {
+            "auth": AUTH.model_dump(),
+            "experiments": [{"name": "reach", "robots": {"kinds": ["sim_reach_arm"]}}, {"name": "pick"}],
+        }
+    )
+    for section in (cfg.control, cfg.inference):
+        section.server.port, section.server.metrics_port, section.server.grace_s = 0, 0, 0.2
+    cfg.inference.control_addr = f"127.0.0.1:{helpers.free_port()}"  # nothing there yet
+    inference = InferenceService(cfg, policy_source="manual", start_metrics=False).start()
+    stub = inference_pb2_grpc.InferenceStub(rpc.make_channel(inference.address, AUTH))
+    request = inference_pb2.ActRequest(
+        robot_id="arm-0", observation=wire.to_tensor_map({"state": np.zeros(15, np.float32)})
+    )
+    control = None
+    try:
+        with pytest.raises(grpc.RpcError) as err:
+            stub.Act(request, timeout=5)
+        assert err.value.code() == grpc.StatusCode.UNAVAILABLE and "control unreachable" in err.value.details()
+        control = ControlService(cfg, start_metrics=False).start()
+        inference.router.cfg.inference.control_addr = control.address
+        inference.router._channel, inference.router._refreshed = None, 0.0
+        with pytest.raises(grpc.RpcError) as err:
+            stub.Act(request, timeout=5)
+        assert err.value.code() == grpc.StatusCode.FAILED_PRECONDITION and "no experiment" in err.value.details()
+    finally:
+        inference.stop()
+        if control is not None:
+            control.stop()

@@ -143,8 +143,12 @@ class Router:
             return self.experiments[0].name, ""
         with self._lock:
             route = self._routes.get(robot_id)
-            if route is None and time.monotonic() - self._refreshed >= self.REFRESH_S:
-                self._refresh_locked()
+            refresh = route is None and time.monotonic() - self._refreshed >= self.REFRESH_S
+            if refresh:
+                self._refreshed = time.monotonic()
+        if refresh:  # outside the lock: known robots keep being served while Control answers
+            self._refresh()
+            with self._lock:
                 route = self._routes.get(robot_id)
         if route is None:
             raise RoutingError(
@@ -152,24 +156,29 @@ class Router:
             )
         return route
 
-    def _refresh_locked(self) -> None:
+    def _refresh(self) -> None:
         from user.experiments import experiment_for
         from user.v1 import control_pb2, control_pb2_grpc
 
-        self._refreshed = time.monotonic()
-        if self._channel is None:
-            self._channel = rpc.make_channel(self.cfg.inference.control_addr, self.cfg.auth)
-        stub = control_pb2_grpc.ControlStub(self._channel)
+        with self._lock:
+            if self._channel is None:
+                self._channel = rpc.make_channel(self.cfg.inference.control_addr, self.cfg.auth)
+            channel = self._channel
         try:
-            resp = stub.ListRobots(control_pb2.ListRobotsRequest(include_offline=True), timeout=2.0)
+            resp = control_pb2_grpc.ControlStub(channel).ListRobots(
+                control_pb2.ListRobotsRequest(include_offline=True), timeout=2.0
+            )
         except grpc.RpcError as err:
             raise RoutingError(
                 grpc.StatusCode.UNAVAILABLE, f"control unreachable for routing: {err.code().name}"
             ) from None
+        routes = {}
         for info in resp.robots:
             exp = experiment_for(info.spec, self.experiments)
             if exp is not None:
-                self._routes[info.spec.robot_id] = (exp.name, info.spec.kind)
+                routes[info.spec.robot_id] = (exp.name, info.spec.kind)
+        with self._lock:
+            self._routes.update(routes)
 
     def close(self) -> None:
         if self._channel is not None:
