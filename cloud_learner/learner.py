@@ -74,7 +74,9 @@ CHECKPOINT_SECONDS = prometheus_client.Histogram(
 CAPPED = prometheus_client.Counter(
     "user_learner_capped_total", "Times training paused at the update-to-data cap (max_updates_per_transition)"
 )
-EMPTY_DETAIL = "no sampleable transitions"  # replay's FAILED_PRECONDITION for an empty buffer (not an error)
+# Replay's FAILED_PRECONDITION details that mean "not enough data yet" (waiting, not an error); any other
+# FAILED_PRECONDITION (e.g. transitions of different layouts) is an error.
+EMPTY_DETAILS = ("no sampleable transitions", "min_size_to_sample")
 
 
 class LearnerError(RuntimeError):
@@ -363,8 +365,11 @@ class ExperimentRun:
     def _request(self, batch_size: int, robot_ids: list[str], req: BatchRequest) -> replay_pb2.SampleRequest:
         request = replay_pb2.SampleRequest(batch_size=batch_size, robot_ids=robot_ids)
         if "tables" in replay_pb2.SampleRequest.DESCRIPTOR.fields_by_name:  # replay with tables (RLPD's shares)
-            # The algorithm's default ("online" only) means the experiment's own table.
-            tables = {self.exp.table: 1.0} if dict(req.tables) == {"online": 1.0} else dict(req.tables)
+            # The algorithm's default ("online" only) means the experiment's own table; for "online" that is
+            # no tables at all (uniform over every transition, as before tables existed).
+            tables = dict(req.tables)
+            if tables == {"online": 1.0}:
+                tables = {} if self.exp.table == "online" else {self.exp.table: 1.0}
             try:
                 request.tables.update(tables)  # type: ignore[attr-defined]
             except (AttributeError, TypeError, ValueError) as exc:
@@ -386,7 +391,9 @@ class ExperimentRun:
                 resp = stub.Sample(self._request(share, robot_ids, req), timeout=self.lc.rpc_timeout_s)
             except grpc.RpcError as err:
                 details = err.details() if hasattr(err, "details") else ""
-                if err.code() == grpc.StatusCode.FAILED_PRECONDITION and EMPTY_DETAIL in (details or ""):
+                if err.code() == grpc.StatusCode.FAILED_PRECONDITION and any(
+                    d in (details or "") for d in EMPTY_DETAILS
+                ):
                     return None
                 self._sample_error(err.code().name.lower(), f"{err.code().name}: {details}")
                 return None

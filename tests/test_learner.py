@@ -247,3 +247,41 @@ def test_service_serves_status_while_waiting_for_a_robot(tmp_path: Path) -> None
         service.stop()
     assert not service.learner.failed
     assert load_latest(tmp_path / "ckpt" / "default") is None  # no robot, no model, nothing to save
+
+
+class _Refusal(grpc.RpcError):
+    def __init__(self, code: grpc.StatusCode, details: str) -> None:
+        self._code, self._details = code, details
+
+    def code(self) -> grpc.StatusCode:
+        return self._code
+
+    def details(self) -> str:
+        return self._details
+
+
+class _RefusingReplay:
+    """Stands in for a replay stub's Sample only, to drive the learner's error path (no service is mocked)."""
+
+    def __init__(self, code: grpc.StatusCode, details: str) -> None:
+        self.error = _Refusal(code, details)
+
+    def Sample(self, request, timeout):
+        raise self.error
+
+
+def test_refused_samples_are_errors_but_an_empty_buffer_is_not(tmp_path: Path) -> None:
+    import tests.plugins  # noqa: F401
+    from cloud_learner.learner import ExperimentRun, Learner
+    from tests.test_experiments import ARM
+    from user.weights import WeightStore
+
+    cfg = service_cfg(tmp_path, experiments=[{"name": "a", "algorithm": {"kind": "test_mean"}}])
+    learner = Learner(cfg, WeightStore())
+    run = ExperimentRun(learner, 0, cfg.experiments[0], [ARM])
+    empty = _RefusingReplay(grpc.StatusCode.FAILED_PRECONDITION, "no sampleable transitions in online yet")
+    assert run.sample_once(empty) is None and run.state.sample_errors == 0
+    layout = _RefusingReplay(grpc.StatusCode.FAILED_PRECONDITION, "sampled transitions have different layouts")
+    assert run.sample_once(layout) is None and run.state.sample_errors == 1
+    broken = _RefusingReplay(grpc.StatusCode.INVALID_ARGUMENT, "batch_size must be in 1..4096")
+    assert run.sample_once(broken) is None and run.state.sample_errors == 2
