@@ -269,3 +269,32 @@ def test_sync_mode_collects_trains_and_publishes_in_turn(services) -> None:
     # Each round paused the experiment's robot for training and resumed it for collection.
     assert commands("pause") - paused_before >= 2
     assert commands("resume") >= 3
+
+
+def test_console_shows_one_row_per_robot_and_per_experiment(tmp_path: Path) -> None:
+    from rich.console import Console
+
+    from user.config import load_config
+    from user.up import Episode, Monitor, Snapshot, _render, write_report
+
+    cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "demo.yaml")
+    mon = object.__new__(Monitor)  # no stack: only its episode bookkeeping is used
+    mon.episodes = {("arm-0", f"e{i}"): Episode("arm-0", f"e{i}", i, i > 2, 1.0, 20, 2, "reach") for i in range(5)}
+    mon.episodes[("panda-0", "p0")] = Episode("panda-0", "p0", 3.0, False, 0.5, 100, 1, "pick")
+    robots = [
+        control_pb2.RobotInfo(spec=ARM, online=True, experiment="reach"),
+        control_pb2.RobotInfo(spec=PANDA, online=True, experiment="pick"),
+    ]
+    status = learner_pb2.LearnerStatus(
+        experiments=[
+            learner_pb2.ExperimentStatus(name="reach", algorithm="sac", state="training", scalars={"alpha": 0.1}),
+            learner_pb2.ExperimentStatus(name="pick", algorithm="sac", state="waiting_for_data"),
+        ]
+    )
+    console = Console(width=160, record=True)
+    console.print(_render(Snapshot(5.0, robots, status, None), mon, cfg, 600))
+    text = console.export_text()
+    assert all(name in text for name in ("arm-0", "panda-0", "reach", "pick", "alpha=0.1", "waiting_for_data"))
+    assert mon.success_rate(2, "reach") == 1.0 and mon.success_rate(2, "pick") is None
+    write_report(tmp_path, mon.ordered(), {"name": "t", "target_success": 0.9, "time_to_target_s": None}, window=2)
+    assert (tmp_path / "report.png").exists()
