@@ -201,7 +201,9 @@ class UpConfig(Strict):
     window_episodes: int = Field(
         default=20, ge=1, description="over the last this many episodes of the target experiment's robots"
     )
-    edge_agents: int = Field(default=2, ge=1, description="one process per simulated robot")
+    edge_agents: int = Field(
+        default=2, ge=1, description="processes driving copies of the first edge.robots entry; others run once each"
+    )
     console: bool = Field(default=True, description="live table; false prints only the summary")
     target_experiment: str = Field(default="", description="whose success stops the run; empty = the first")
 
