@@ -13,7 +13,7 @@ FIND_PY312 := for c in python3.12 $$HOME/.pyenv/versions/3.12*/bin/python3.12 /u
 .PHONY: install proto demo test test-fast lint bench clean help
 
 help:
-	@echo "make demo   install + train two simulated arms through the five services (userctl up)"
+	@echo "make demo   install + train two embodiments at once (2 sim arms reach, a Panda picks) through the five services"
 	@echo "make test   install + run the test suite"
 	@echo "make proto | lint | bench | clean"
 

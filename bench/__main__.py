@@ -25,7 +25,9 @@ BENCHES = {
     "replay": "bench.replay_bench",
     "weights": "bench.weights_bench",
     "inference": "bench.inference_bench",
+    "learning": "bench.learning_bench",
 }
+SLOW = {"learning"}  # whole stacks as processes: minutes, not part of the --quick smoke run unless named
 
 
 DEFAULT_OUT = Path("runs/bench")
@@ -38,13 +40,17 @@ LEGEND = {
     "both real gRPC servers on 127.0.0.1, versions alternate.",
     "inference": "inference: ours InferenceService (micro-batching) vs the same Act proto served one forward per "
     "request in the handler; each robot is a separate process, windows alternate.",
+    "learning": "learning: the whole stack as processes, learner.mode=async (ours) vs learner.mode=sync (collect, "
+    "pause robots, train, publish in turn) on the same config; env steps/s and updates/s over the same window.",
 }
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m bench", description=__doc__)
     p.add_argument("--quick", action="store_true", help="tiny sizes (smoke test); numbers are not meaningful")
-    p.add_argument("--only", default=",".join(BENCHES), help=f"comma-separated subset of {list(BENCHES)}")
+    p.add_argument(
+        "--only", default=None, help=f"comma-separated subset of {list(BENCHES)} (--quick skips {sorted(SLOW)})"
+    )
     p.add_argument("--json", dest="json_path", help="rows as JSON (default runs/bench/latest.json, not with --quick)")
     p.add_argument(
         "--markdown", dest="md_path", help="table as Markdown (default runs/bench/latest.md, not with --quick)"
@@ -96,7 +102,8 @@ def main(argv: list[str] | None = None) -> int:
     if not args.quick:
         args.json_path = args.json_path or str(DEFAULT_OUT / "latest.json")
         args.md_path = args.md_path or str(DEFAULT_OUT / "latest.md")
-    names = [n.strip() for n in args.only.split(",") if n.strip()]
+    only = args.only or ",".join(n for n in BENCHES if not (args.quick and n in SLOW))
+    names = [n.strip() for n in only.split(",") if n.strip()]
     unknown = [n for n in names if n not in BENCHES]
     if unknown:
         print(f"unknown benchmark(s) {unknown}; known: {list(BENCHES)}", file=sys.stderr)

@@ -1,20 +1,33 @@
-"""The asynchronous learner: sample from Replay, update SAC, publish weight versions, checkpoint.
+"""The learner: one Algorithm per experiment, each sampling only its robots, publishing its own weights.
 
-Nothing here waits for an episode to end: a sampler thread keeps `prefetch_batches` decoded batches
-ready while the training thread updates as fast as it can, bounded by the update-to-data cap
-(max_updates_per_transition x sampleable transitions) so a tiny buffer is not overfitted. Every
-`publish_every` updates a new weight version goes to the WeightStore (streamed to inference and
-edges); every `checkpoint_every` updates, and on shutdown, an atomic checkpoint is written.
+The loop knows no algorithm by name. For each experiment of the stack config it waits until Control
+knows robots the experiment's selector picks, derives the `Layout` from their specs, builds the
+algorithm (`ALGORITHMS.build`, params checked against its typed model), resumes it from the
+experiment's checkpoint directory and publishes version 1 at once (actors get a policy before any
+training). Then:
+
+- async (default): a sampler thread keeps `prefetch_batches` decoded batches ready while the training
+  thread updates as fast as it can, bounded by the update-to-data cap (max_updates_per_transition x
+  sampleable transitions) so a tiny buffer is not overfitted;
+- sync: collect `sync_env_steps` new transitions, pause the experiment's robots (Control PAUSE),
+  run `sync_updates` updates, publish, resume; the baseline the asynchronous pipeline is measured against.
+
+Every `publish_every` updates a weight version goes to the WeightStore under the experiment's name;
+every `checkpoint_every` updates, and on shutdown, an atomic checkpoint is written to
+`checkpoint_dir/<experiment>/`. A sample replay refuses (e.g. robots of different shapes) is an
+error: logged, counted and reported in the experiment's status, never read as an empty buffer.
 """
 
 from __future__ import annotations
 
+import inspect
+import json
 import logging
-import math
 import queue
 import threading
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import grpc
@@ -22,154 +35,559 @@ import numpy as np
 import prometheus_client
 import torch
 
+from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
 from cloud_learner.checkpoint import load_latest, save_checkpoint
-from cloud_learner.sac import SAC
 from user import rpc
-from user.config import StackConfig
+from user.config import ExperimentConfig, StackConfig
+from user.experiments import EMBODIMENT_KEY, LayoutError, assign, check_plugins, layout_for, pad_action, ready
 from user.log import kv
-from user.policy import policy_spec_for
+from user.policy import POLICIES, PolicyChoice
+from user.spec import action_dim
 from user.v1 import control_pb2, control_pb2_grpc, replay_pb2, replay_pb2_grpc, robot_pb2
 from user.weights import WeightStore
 from user.wire import WireError, from_tensor
 
 log = logging.getLogger(__name__)
 
-OBS_KEY = "state"
-
-UPDATES = prometheus_client.Counter("user_learner_updates_total", "SAC gradient updates")
-UPDATES_PER_S = prometheus_client.Gauge("user_learner_updates_per_second", "SAC updates per second (last ~2 s)")
-WEIGHT_VERSION = prometheus_client.Gauge("user_learner_weight_version", "Latest published weight version")
-LOSS = prometheus_client.Gauge("user_learner_loss", "Last SAC losses", ["name"])
-ALPHA = prometheus_client.Gauge("user_learner_alpha", "SAC entropy temperature")
+UPDATES = prometheus_client.Counter("user_learner_updates_total", "Gradient updates", ["experiment"])
+UPDATES_PER_S = prometheus_client.Gauge(
+    "user_learner_updates_per_second", "Updates per second (last ~2 s)", ["experiment"]
+)
+WEIGHT_VERSION = prometheus_client.Gauge(
+    "user_learner_weight_version", "Latest published weight version", ["experiment"]
+)
+SCALARS = prometheus_client.Gauge("user_learner_scalar", "Last update's scalars (losses, ...)", ["experiment", "name"])
 BATCH_WAIT = prometheus_client.Histogram(
     "user_learner_batch_wait_seconds",
     "Time the training loop waited for a prefetched batch",
     buckets=(0.0001, 0.0005, 0.001, 0.005, 0.01, 0.05, 0.1, 0.5, 1, 5),
 )
-BUFFER_TRANSITIONS = prometheus_client.Gauge("user_learner_buffer_transitions", "Sampleable transitions in Replay")
+BUFFER_TRANSITIONS = prometheus_client.Gauge(
+    "user_learner_buffer_transitions", "Sampleable transitions of the experiment's robots", ["experiment"]
+)
+SAMPLE_ERRORS = prometheus_client.Counter(
+    "user_learner_sample_errors_total", "Samples replay refused or that did not decode", ["experiment", "reason"]
+)
 CHECKPOINT_SECONDS = prometheus_client.Histogram(
     "user_learner_checkpoint_seconds", "Time to write a checkpoint", buckets=(0.01, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 10)
 )
 CAPPED = prometheus_client.Counter(
     "user_learner_capped_total", "Times training paused at the update-to-data cap (max_updates_per_transition)"
 )
+# Replay's FAILED_PRECONDITION details that mean "not enough data yet" (waiting, not an error); any other
+# FAILED_PRECONDITION (e.g. transitions of different layouts) is an error.
+EMPTY_DETAILS = ("no sampleable transitions", "min_size_to_sample")
 
 
 class LearnerError(RuntimeError):
-    """The learner cannot go on (e.g. a checkpoint for a different robot)."""
+    """An experiment cannot go on (e.g. a checkpoint for different robots)."""
+
+
+# --------------------------------------------------------------------------- decoding
+
+
+def _decode(tensor: Any, what: str) -> np.ndarray:
+    try:
+        return from_tensor(tensor)
+    except WireError as exc:
+        raise WireError(f"{what}: {exc}") from None
+
+
+def decode_arrays(batch: replay_pb2.Batch, keys: list[str]) -> dict[str, Any]:
+    """Replay batch -> numpy arrays: observation/next_observation dicts for `keys`, action (n, a),
+    reward, terminated, intervention (n,). Images keep their dtype (uint8)."""
+    obs, nxt = {}, {}
+    for key in keys:
+        if key not in batch.observation.tensors or key not in batch.next_observation.tensors:
+            raise WireError(f"batch lacks observation[{key!r}]")
+        obs[key] = _decode(batch.observation.tensors[key], f"observation[{key!r}]")
+        nxt[key] = _decode(batch.next_observation.tensors[key], f"next_observation[{key!r}]")
+    action = _decode(batch.action, "action")
+    n = action.shape[0] if action.ndim else 0
+    if n < 1:
+        raise WireError("empty batch")
+    intervention = (
+        _decode(batch.intervention, "intervention").reshape(n).astype(bool)
+        if batch.HasField("intervention")
+        else np.zeros(n, bool)
+    )
+    out = {
+        "observation": obs,
+        "next_observation": nxt,
+        "action": action.reshape(n, -1).astype(np.float32, copy=False),
+        "reward": _decode(batch.reward, "reward").reshape(n).astype(np.float32, copy=False),
+        "terminated": _decode(batch.terminated, "terminated").reshape(n).astype(np.float32, copy=False),
+        "intervention": intervention,
+    }
+    for key in keys:
+        for part in (obs[key], nxt[key]):
+            if part.shape[:1] != (n,):
+                raise WireError(f"observation[{key!r}] has {part.shape[:1]} rows, the batch has {n}")
+    return out
+
+
+def _check_layout(arrays: dict[str, Any], layout: Layout) -> None:
+    n = arrays["action"].shape[0]
+    for key, feat in layout.observation.items():
+        for part in (arrays["observation"][key], arrays["next_observation"][key]):
+            if tuple(part.shape[1:]) != feat.shape:
+                raise WireError(
+                    f"observation[{key!r}] rows are {list(part.shape[1:])}, the layout has {list(feat.shape)}"
+                )
+    if arrays["action"].shape != (n, layout.action_dim):
+        raise WireError(f"actions are {list(arrays['action'].shape)}, the layout has {layout.action_dim} dims")
+
+
+def _pad(arrays: dict[str, Any], layout: Layout, kind: str) -> dict[str, Any]:
+    """One embodiment's arrays -> the shared layout (padded state, one-hot embodiment, action mask)."""
+    from user.experiments import pad_observation
+
+    n = arrays["action"].shape[0]
+    action, mask = pad_action(arrays["action"], layout.action_dim)
+    return {
+        **arrays,
+        "observation": pad_observation(layout, kind, arrays["observation"], n),
+        "next_observation": pad_observation(layout, kind, arrays["next_observation"], n),
+        "action": action,
+        "action_mask": mask,
+        "embodiment": np.full(n, layout.embodiments.index(kind), np.int64),
+    }
+
+
+def _concat(parts: list[dict[str, Any]]) -> dict[str, Any]:
+    if len(parts) == 1:
+        return parts[0]
+    out: dict[str, Any] = {}
+    for key, value in parts[0].items():
+        if isinstance(value, dict):
+            out[key] = {k: np.concatenate([p[key][k] for p in parts]) for k in value}
+        else:
+            out[key] = np.concatenate([p[key] for p in parts])
+    return out
+
+
+def to_batch(arrays: dict[str, Any], device: str | torch.device) -> Batch:
+    def t(a: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(a)).to(device)
+
+    return Batch(
+        observation={k: t(v) for k, v in arrays["observation"].items()},
+        action=t(arrays["action"]),
+        reward=t(arrays["reward"]),
+        next_observation={k: t(v) for k, v in arrays["next_observation"].items()},
+        terminated=t(arrays["terminated"]),
+        intervention=t(arrays["intervention"]),
+        embodiment=t(arrays["embodiment"]) if "embodiment" in arrays else None,
+        action_mask=t(arrays["action_mask"]) if "action_mask" in arrays else None,
+    )
+
+
+def decode_batch(batch: replay_pb2.Batch, layout: Layout, device: str | torch.device = "cpu") -> Batch:
+    """A replay batch of one layout (one embodiment, or robots of equal shape) -> Batch on `device`."""
+    arrays = decode_arrays(batch, sorted(layout.observation))
+    _check_layout(arrays, layout)
+    return to_batch(arrays, device)
+
+
+# --------------------------------------------------------------------------- checkpoints
+
+
+def layout_fingerprint(layout: Layout) -> str:
+    return json.dumps(
+        {
+            "observation": {k: [list(f.shape), f.dtype, f.is_image] for k, f in sorted(layout.observation.items())},
+            "action_low": [round(float(x), 6) for x in layout.action_low],
+            "action_high": [round(float(x), 6) for x in layout.action_high],
+            "embodiments": list(layout.embodiments),
+        },
+        sort_keys=True,
+    )
+
+
+def checkpoint_state(algo: Algorithm, kind: str, weight_version: int, layout: Layout) -> dict[str, Any]:
+    """Tensors, ints and strings only, so torch.load(weights_only=True) reads it back."""
+    return {
+        "algorithm": algo.state_dict(),
+        "kind": kind,
+        "weight_version": int(weight_version),
+        "updates": int(algo.updates),
+        "layout": layout_fingerprint(layout),
+    }
+
+
+def restore_checkpoint(algo: Algorithm, ckpt: dict[str, Any], kind: str, layout: Layout, where: object) -> int:
+    """Load `ckpt` after checking it was trained by this algorithm for this layout; returns the weight version."""
+    if ckpt.get("kind") != kind or ckpt.get("layout") != layout_fingerprint(layout):
+        raise LearnerError(
+            f"{where} holds a {ckpt.get('kind')!r} checkpoint for layout {ckpt.get('layout')}, the experiment runs "
+            f"{kind!r} on {layout_fingerprint(layout)}; use another learner.checkpoint_dir or experiment name"
+        )
+    algo.load_state_dict(ckpt["algorithm"])
+    algo.updates = int(ckpt["updates"])
+    return max(1, int(ckpt["weight_version"]))
+
+
+# --------------------------------------------------------------------------- one experiment
 
 
 @dataclass
-class RobotShape:
-    obs_dim: int
-    action_low: np.ndarray
-    action_high: np.ndarray
+class ExperimentState:
+    """What GetStatus reports for one experiment; written by its threads, read by RPC threads."""
 
-
-@dataclass
-class Prefetched:
-    batch: dict[str, torch.Tensor]
-    transitions: int
-
-
-@dataclass
-class LearnerState:
-    """What GetStatus reports; written by the training thread, read by RPC threads."""
-
+    name: str
+    algorithm: str
+    policy_kind: str = ""
+    state: str = "waiting_for_robots"
+    error: str = ""
     updates: int = 0
     weight_version: int = 0
     updates_per_s: float = 0.0
     buffer_transitions: int = 0
-    losses: dict[str, float] = field(default_factory=dict)
-    alpha: float = 0.0
+    scalars: dict[str, float] = field(default_factory=dict)
+    robot_ids: list[str] = field(default_factory=list)
+    sample_errors: int = 0
+    env_steps: int = 0
     last_publish_ns: int = 0
     last_update_mono: float = 0.0
 
 
-def robot_shape(spec: robot_pb2.RobotSpec) -> RobotShape:
-    """obs_dim from the "state" feature, flattened action bounds from the action space."""
-    feats = {f.name: f for f in spec.observation}
-    if OBS_KEY not in feats:
-        raise LearnerError(f"robot {spec.robot_id} ({spec.kind}) has no {OBS_KEY!r} observation feature")
-    obs_dim = int(math.prod(feats[OBS_KEY].shape))
-    low = np.asarray(spec.action.low, dtype=np.float32).reshape(-1)
-    high = np.asarray(spec.action.high, dtype=np.float32).reshape(-1)
-    if obs_dim < 1 or low.size < 1 or low.shape != high.shape:
-        raise LearnerError(
-            f"robot {spec.robot_id}: unusable spec (obs_dim {obs_dim}, action bounds {low.size}/{high.size})"
+@dataclass
+class Prefetched:
+    batch: Batch
+    transitions: int
+
+
+def build_algorithm(index: int, exp: ExperimentConfig, layout: Layout, device: str) -> Algorithm:
+    """ALGORITHMS.build with the experiment's params; the policy choice goes to algorithms that take one."""
+    where = f"experiments[{index}]"
+    context: dict[str, Any] = {"layout": layout, "device": torch.device(device)}
+    entry = ALGORITHMS.get(exp.algorithm.kind, f"{where}.algorithm.kind")
+    if exp.policy is not None:
+        choice = PolicyChoice(
+            exp.policy.kind, POLICIES.params(exp.policy.kind, exp.policy.params, f"{where}.policy.params")
         )
-    return RobotShape(obs_dim, low, high)
+        if "policy" not in inspect.signature(entry.cls.__init__).parameters:
+            raise LearnerError(f"{where}.policy: algorithm {exp.algorithm.kind!r} does not take a policy choice")
+        context["policy"] = choice
+    return ALGORITHMS.build(exp.algorithm.kind, exp.algorithm.params, where=f"{where}.algorithm.params", **context)
 
 
-def decode_batch(batch: replay_pb2.Batch, obs_dim: int, action_dim: int, device: str) -> dict[str, torch.Tensor]:
-    """Replay batch -> SAC batch (float32 tensors). Only the "state" features are decoded."""
-    if OBS_KEY not in batch.observation.tensors or OBS_KEY not in batch.next_observation.tensors:
-        raise WireError(f"batch lacks observation[{OBS_KEY!r}]")
-    obs = from_tensor(batch.observation.tensors[OBS_KEY])
-    n = obs.shape[0] if obs.ndim else 0
-    arrays = {
-        "obs": obs.reshape(n, -1),
-        "next_obs": from_tensor(batch.next_observation.tensors[OBS_KEY]).reshape(n, -1),
-        "action": from_tensor(batch.action).reshape(n, -1),
-        "reward": from_tensor(batch.reward).reshape(n),
-        "terminated": from_tensor(batch.terminated).reshape(n),
-    }
-    if n < 1 or arrays["obs"].shape[1] != obs_dim or arrays["next_obs"].shape[1] != obs_dim:
-        raise WireError(f"batch observations {arrays['obs'].shape} do not match obs_dim {obs_dim}")
-    if arrays["action"].shape[1] != action_dim:
-        raise WireError(f"batch actions {arrays['action'].shape} do not match action_dim {action_dim}")
-    return {k: torch.from_numpy(v.astype(np.float32, copy=False)).to(device) for k, v in arrays.items()}
+class ExperimentRun:
+    """One experiment's algorithm, sampler and training thread."""
+
+    def __init__(self, learner: Learner, index: int, exp: ExperimentConfig, specs: list[robot_pb2.RobotSpec]) -> None:
+        self.learner, self.index, self.exp = learner, index, exp
+        self.lc = learner.lc
+        self.state = learner.experiment_states[exp.name]
+        self.layout = layout_for(exp, specs)
+        self.specs = {s.robot_id: s for s in specs}
+        self.state.robot_ids = sorted(self.specs)
+        self.ckpt_dir = Path(self.lc.checkpoint_dir) / exp.name
+        self.algo = build_algorithm(index, exp, self.layout, self.lc.device)
+        self._stop = learner._stop
+        self._queue: queue.Queue[Prefetched] = queue.Queue(maxsize=self.lc.prefetch_batches)
+        self._threads: list[threading.Thread] = []
+        self._last_ckpt_updates = -1
+        self._lock = threading.Lock()  # robot set changes vs. sampling
+        self._tables_warned = False
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def start(self) -> None:
+        version = 1
+        ckpt = load_latest(self.ckpt_dir, map_location=self.lc.device)
+        if ckpt is not None:
+            version = restore_checkpoint(self.algo, ckpt, self.exp.algorithm.kind, self.layout, self.ckpt_dir)
+            self._last_ckpt_updates = int(ckpt["updates"])
+            log.info("resumed", extra=kv(experiment=self.exp.name, updates=self.algo.updates, weight_version=version))
+        self.state.updates = int(self.algo.updates)
+        self.publish(version)
+        self.state.state = "waiting_for_data"
+        if self.lc.mode == "async":
+            self._spawn(self._sample_loop, "sampler")
+            self._spawn(self._train_async, "train")
+        else:
+            self._spawn(self._train_sync, "train")
+
+    def _spawn(self, target: Any, what: str) -> None:
+        def run() -> None:
+            try:
+                target()
+            except BaseException as exc:
+                self.fail(exc)
+
+        thread = threading.Thread(target=run, name=f"learner-{self.exp.name}-{what}", daemon=True)
+        thread.start()
+        self._threads.append(thread)
+
+    def fail(self, exc: BaseException) -> None:
+        self.state.state, self.state.error = "failed", f"{type(exc).__name__}: {exc}"
+        log.error("experiment failed", exc_info=exc, extra=kv(experiment=self.exp.name))
+        self.learner.error = self.learner.error or exc
+        self._stop.set()
+
+    def join(self, timeout: float) -> None:
+        for thread in self._threads:
+            thread.join(timeout)
+
+    def add_robot(self, spec: robot_pb2.RobotSpec) -> None:
+        """A robot joined after the layout was fixed: it trains here only if it fits the layout."""
+        try:
+            fits = layout_fingerprint(layout_for(self.exp, [*self.specs.values(), spec])) == layout_fingerprint(
+                self.layout
+            )
+        except LayoutError:
+            fits = False
+        if not fits:
+            log.error(
+                "robot does not fit the experiment's layout; not trained",
+                extra=kv(experiment=self.exp.name, robot_id=spec.robot_id, kind=spec.kind),
+            )
+            return
+        with self._lock:
+            self.specs[spec.robot_id] = spec
+            self.state.robot_ids = sorted(self.specs)
+        log.info("robot joined", extra=kv(experiment=self.exp.name, robot_id=spec.robot_id))
+
+    # ------------------------------------------------------------------ sampling
+
+    def _groups(self) -> list[tuple[str, list[str]]]:
+        """(embodiment kind, robot ids) to sample separately: one group unless the embodiment is shared."""
+        with self._lock:
+            specs = list(self.specs.values())
+        if not self.exp.shared_embodiment:
+            return [("", sorted(s.robot_id for s in specs))]
+        kinds: dict[str, list[str]] = {}
+        for s in specs:
+            kinds.setdefault(s.kind, []).append(s.robot_id)
+        return sorted((k, sorted(v)) for k, v in kinds.items())
+
+    def _request(self, batch_size: int, robot_ids: list[str], req: BatchRequest) -> replay_pb2.SampleRequest:
+        request = replay_pb2.SampleRequest(batch_size=batch_size, robot_ids=robot_ids)
+        if "tables" in replay_pb2.SampleRequest.DESCRIPTOR.fields_by_name:  # replay with tables (RLPD's shares)
+            # The algorithm's default ("online" only) means the experiment's own table; for "online" that is
+            # no tables at all (uniform over every transition, as before tables existed).
+            tables = dict(req.tables)
+            if tables == {"online": 1.0}:
+                tables = {} if self.exp.table == "online" else {self.exp.table: 1.0}
+            try:
+                request.tables.update(tables)  # type: ignore[attr-defined]
+            except (AttributeError, TypeError, ValueError) as exc:
+                if not self._tables_warned:
+                    self._tables_warned = True
+                    log.warning("replay tables not requested", extra=kv(experiment=self.exp.name, error=str(exc)))
+        return request
+
+    def sample_once(self, stub: replay_pb2_grpc.ReplayStub) -> Prefetched | None:
+        """One batch for the algorithm, or None (empty buffer or an error, already logged and counted)."""
+        req = self.algo.batch_request()
+        groups = [g for g in self._groups() if g[1]]
+        if not groups:
+            return None
+        share = -(-req.batch_size // len(groups))  # equal share per embodiment (ceil)
+        parts, transitions = [], 0
+        for kind, robot_ids in groups:
+            try:
+                resp = stub.Sample(self._request(share, robot_ids, req), timeout=self.lc.rpc_timeout_s)
+            except grpc.RpcError as err:
+                details = err.details() if hasattr(err, "details") else ""
+                if err.code() == grpc.StatusCode.FAILED_PRECONDITION and any(
+                    d in (details or "") for d in EMPTY_DETAILS
+                ):
+                    return None
+                self._sample_error(err.code().name.lower(), f"{err.code().name}: {details}")
+                return None
+            transitions += int(resp.transitions)
+            try:
+                arrays = decode_arrays(resp.batch, sorted(k for k in self.layout.observation if k != EMBODIMENT_KEY))
+                if self.exp.shared_embodiment:
+                    arrays = _pad(arrays, self.layout, kind)
+                _check_layout(arrays, self.layout)
+            except (WireError, LayoutError) as exc:
+                self._sample_error("decode", str(exc))
+                return None
+            parts.append(arrays)
+        self._set_transitions(transitions)
+        return Prefetched(to_batch(_concat(parts), self.lc.device), transitions)
+
+    def _sample_error(self, reason: str, message: str) -> None:
+        self.state.sample_errors += 1
+        SAMPLE_ERRORS.labels(self.exp.name, reason).inc()
+        log.error("sample failed", extra=kv(experiment=self.exp.name, reason=reason, error=message))
+
+    def _set_transitions(self, n: int) -> None:
+        self.state.buffer_transitions = n
+        BUFFER_TRANSITIONS.labels(self.exp.name).set(n)
+
+    def _sample_loop(self) -> None:
+        backoff = rpc.Backoff(initial_s=0.1, max_s=5.0)
+        with rpc.make_channel(self.lc.replay_addr, self.learner.cfg.auth) as channel:
+            stub = replay_pb2_grpc.ReplayStub(channel)
+            while not self._stop.is_set():
+                item = self.sample_once(stub)
+                if item is None:
+                    backoff.sleep(self._stop)
+                    continue
+                backoff.reset()
+                if item.transitions < self.lc.min_transitions:
+                    self._stop.wait(0.5)
+                    continue
+                while not self._stop.is_set():
+                    try:
+                        self._queue.put(item, timeout=0.5)
+                        break
+                    except queue.Full:
+                        continue
+
+    # ------------------------------------------------------------------ training
+
+    def _train_async(self) -> None:
+        rate = _Rate(self.algo.updates)
+        while not self._stop.is_set():
+            start = time.perf_counter()
+            try:
+                item = self._queue.get(timeout=0.5)
+            except queue.Empty:
+                continue
+            BATCH_WAIT.observe(time.perf_counter() - start)
+            if self.algo.updates >= self.lc.max_updates_per_transition * item.transitions:
+                CAPPED.inc()  # at the update-to-data cap: drop this (stale) batch and let more data arrive
+                self._stop.wait(0.1)
+                continue
+            self.update(item.batch)
+            self._rate(rate)
+
+    def _train_sync(self) -> None:
+        """Collect K new transitions, pause the robots, U updates, publish, resume: in turn."""
+        rate = _Rate(self.algo.updates)
+        with (
+            rpc.make_channel(self.lc.replay_addr, self.learner.cfg.auth) as rch,
+            rpc.make_channel(self.lc.control_addr, self.learner.cfg.auth) as cch,
+        ):
+            replay = replay_pb2_grpc.ReplayStub(rch)
+            control = control_pb2_grpc.ControlStub(cch)
+            seen = 0
+            while not self._stop.is_set():
+                self._command(control, control_pb2.COMMAND_KIND_RESUME)
+                target = max(seen + self.lc.sync_env_steps, self.lc.min_transitions)
+                while not self._stop.is_set() and self._env_steps(replay) < target:
+                    self._stop.wait(0.05)
+                self._command(control, control_pb2.COMMAND_KIND_PAUSE)
+                seen = self._env_steps(replay)
+                done = 0
+                while done < self.lc.sync_updates and not self._stop.is_set():
+                    item = self.sample_once(replay)
+                    if item is None:
+                        self._stop.wait(0.1)
+                        continue
+                    self.update(item.batch, publish=False)
+                    done += 1
+                    self._rate(rate)
+                if not self._stop.is_set():
+                    self.publish(self.state.weight_version + 1)
+            self._command(control, control_pb2.COMMAND_KIND_RESUME)
+
+    def _env_steps(self, replay: replay_pb2_grpc.ReplayStub) -> int:
+        try:
+            stats = replay.Stats(replay_pb2.StatsRequest(), timeout=self.lc.rpc_timeout_s)
+        except grpc.RpcError:
+            return self.state.env_steps
+        with self._lock:
+            ids = list(self.specs)
+        self.state.env_steps = int(sum(stats.steps_per_robot.get(r, 0) for r in ids))
+        return self.state.env_steps
+
+    def _command(self, control: control_pb2_grpc.ControlStub, kind: int) -> None:
+        with self._lock:
+            ids = list(self.specs)
+        for rid in ids:
+            cmd = control_pb2.Command(command_id=f"{self.exp.name}-{time.time_ns()}", kind=kind, robot_id=rid)
+            try:
+                control.SendCommand(control_pb2.SendCommandRequest(command=cmd), timeout=self.lc.rpc_timeout_s)
+            except grpc.RpcError as err:
+                log.warning("command failed", extra=kv(robot_id=rid, code=str(err.code())))
+
+    def _rate(self, rate: _Rate) -> None:
+        value = rate.tick(self.algo.updates)
+        if value is not None:
+            self.state.updates_per_s = value
+            UPDATES_PER_S.labels(self.exp.name).set(value)
+
+    def update(self, batch: Batch, publish: bool = True) -> None:
+        scalars = self.algo.update(batch)
+        st = self.state
+        st.updates, st.scalars = int(self.algo.updates), {k: float(v) for k, v in scalars.items()}
+        st.state, st.last_update_mono = "training", time.monotonic()
+        UPDATES.labels(self.exp.name).inc()
+        for name, value in st.scalars.items():
+            SCALARS.labels(self.exp.name, name).set(value)
+        if publish and st.updates % self.lc.publish_every == 0:
+            self.publish(st.weight_version + 1)
+        if st.updates % self.lc.checkpoint_every == 0:
+            self.checkpoint()
+
+    def publish(self, version: int) -> None:
+        spec, tensors = self.algo.policy()
+        if self.exp.shared_embodiment:  # actors pad per robot kind; see user/policies/padded.py
+            from user.policies.padded import padded_spec
+
+            widths = {
+                k: int(f.shape[0]) for k, f in self.layout.observation.items() if not f.is_image and k != EMBODIMENT_KEY
+            }
+            with self._lock:
+                dims = {s.kind: action_dim(s) for s in self.specs.values()}
+            spec = padded_spec(spec, widths, {kind: dims[kind] for kind in self.layout.embodiments})
+        self.learner.store.publish(version, spec, tensors, int(self.algo.updates), experiment=self.exp.name)
+        st = self.state
+        st.weight_version, st.policy_kind, st.last_publish_ns = version, spec.kind, time.time_ns()
+        WEIGHT_VERSION.labels(self.exp.name).set(version)
+        log.info("weights published", extra=kv(experiment=self.exp.name, version=version, updates=self.algo.updates))
+
+    def checkpoint(self) -> None:
+        updates = int(self.algo.updates)
+        if updates == self._last_ckpt_updates:
+            return
+        start = time.perf_counter()
+        state = checkpoint_state(self.algo, self.exp.algorithm.kind, self.state.weight_version, self.layout)
+        save_checkpoint(self.ckpt_dir, state)
+        self._last_ckpt_updates = updates
+        CHECKPOINT_SECONDS.observe(time.perf_counter() - start)
 
 
-def checkpoint_state(sac: Any, weight_version: int, shape: RobotShape) -> dict[str, Any]:
-    """What a checkpoint holds: SAC (nets, optimizers, log_alpha, updates) plus what it was trained for."""
-    return {
-        "sac": sac.state_dict(),
-        "weight_version": int(weight_version),
-        "updates": int(sac.updates),
-        "obs_dim": shape.obs_dim,
-        # tensors, not numpy: torch.load(weights_only=True) accepts them without extra globals
-        "action_low": torch.from_numpy(shape.action_low.copy()),
-        "action_high": torch.from_numpy(shape.action_high.copy()),
-    }
+class _Rate:
+    """Updates per second over windows of >= 2 s."""
+
+    def __init__(self, count: int) -> None:
+        self.t, self.n = time.monotonic(), count
+
+    def tick(self, count: int) -> float | None:
+        now = time.monotonic()
+        if now - self.t < 2.0:
+            return None
+        value = (count - self.n) / (now - self.t)
+        self.t, self.n = now, count
+        return value
 
 
-def restore_checkpoint(sac: Any, ckpt: dict[str, Any], shape: RobotShape, where: object = "checkpoint") -> int:
-    """Load `ckpt` into `sac` after checking it was trained for this robot; returns the weight version."""
-    low = np.asarray(ckpt["action_low"], dtype=np.float32).reshape(-1)
-    high = np.asarray(ckpt["action_high"], dtype=np.float32).reshape(-1)
-    same = (
-        int(ckpt["obs_dim"]) == shape.obs_dim
-        and low.shape == shape.action_low.shape
-        and np.allclose(low, shape.action_low)
-        and np.allclose(high, shape.action_high)
-    )
-    if not same:
-        raise LearnerError(
-            f"{where} is for obs_dim {int(ckpt['obs_dim'])} and {low.size}-d actions in [{low}, {high}], the robot "
-            f"has obs_dim {shape.obs_dim} and {shape.action_low.size}-d actions; use another learner.checkpoint_dir"
-        )
-    sac.load_state_dict(ckpt["sac"])
-    version = max(1, int(ckpt["weight_version"]))
-    log.info("resumed", extra=kv(updates=int(sac.updates), weight_version=version))
-    return version
+# --------------------------------------------------------------------------- the learner
 
 
 class Learner:
-    """start() runs setup + training in a thread; stop() ends it and writes the final checkpoint."""
+    """start() finds robots and runs every experiment in threads; stop() ends them and writes final checkpoints."""
 
     def __init__(self, cfg: StackConfig, store: WeightStore) -> None:
         self.cfg, self.lc = cfg, cfg.learner
         self.store = store
-        self.state = LearnerState()
+        self.experiments = cfg.resolved_experiments()
+        check_plugins(self.experiments)  # a typo in a param fails here, naming experiments[i]...
+        self.experiment_states = {
+            e.name: ExperimentState(e.name, e.algorithm.kind, policy_kind=e.policy.kind if e.policy else "")
+            for e in self.experiments
+        }
+        self.runs: dict[str, ExperimentRun] = {}
         self.error: BaseException | None = None
         self._stop = threading.Event()
-        self._queue: queue.Queue[Prefetched] = queue.Queue(maxsize=self.lc.prefetch_batches)
         self._thread: threading.Thread | None = None
-        self._sampler: threading.Thread | None = None
-        self._sac: Any = None
-        self._shape: RobotShape | None = None
-        self._last_ckpt_updates = -1
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -189,33 +607,27 @@ class Learner:
 
     @property
     def training(self) -> bool:
-        last = self.state.last_update_mono
-        return last > 0 and time.monotonic() - last < 2.0
+        now = time.monotonic()
+        return any(s.last_update_mono > 0 and now - s.last_update_mono < 2.0 for s in self.experiment_states.values())
 
     def _main(self) -> None:
+        torch.manual_seed(self.lc.seed)
         try:
-            shape = self._wait_for_robot()
-            if shape is None:
-                return
-            self._setup(shape)
-            self._sampler = threading.Thread(target=self._sample_loop, name="learner-sampler", daemon=True)
-            self._sampler.start()
-            self._train_loop()
+            self._discover_loop()
         except BaseException as exc:
             self.error = exc
             log.exception("learner failed")
         finally:
             self._stop.set()
-            if self._sampler is not None:
-                self._sampler.join(self.lc.rpc_timeout_s + 1)
-            if self._sac is not None and self.error is None:
-                self._checkpoint()
+            for run in self.runs.values():
+                run.join(self.lc.rpc_timeout_s + 1)
+            for run in self.runs.values():
+                if run.state.state != "failed":
+                    run.checkpoint()
 
-    # ------------------------------------------------------------------ setup
-
-    def _wait_for_robot(self) -> RobotShape | None:
-        """Poll Control until a robot of cfg.learner.robot_kind is known; None if stopped first."""
-        backoff = rpc.Backoff(initial_s=0.2, max_s=5.0)
+    def _discover_loop(self) -> None:
+        """Poll Control: start each experiment once its robots are known; add robots that join later."""
+        backoff = rpc.Backoff(initial_s=0.2, max_s=2.0)
         with rpc.make_channel(self.lc.control_addr, self.cfg.auth) as channel:
             stub = control_pb2_grpc.ControlStub(channel)
             while not self._stop.is_set():
@@ -223,126 +635,51 @@ class Learner:
                     resp = stub.ListRobots(
                         control_pb2.ListRobotsRequest(include_offline=True), timeout=self.lc.rpc_timeout_s
                     )
-                    for info in resp.robots:
-                        if info.spec.kind == self.lc.robot_kind:
-                            log.info("robot found", extra=kv(robot_id=info.spec.robot_id, kind=info.spec.kind))
-                            return robot_shape(info.spec)
-                    log.info("waiting for a robot", extra=kv(kind=self.lc.robot_kind, known=len(resp.robots)))
                 except grpc.RpcError as err:
                     log.warning("ListRobots failed", extra=kv(addr=self.lc.control_addr, code=str(err.code())))
+                    backoff.sleep(self._stop)
+                    continue
+                self._on_robots([info.spec for info in resp.robots])
                 if not backoff.sleep(self._stop):
                     break
-        return None
 
-    def _setup(self, shape: RobotShape) -> None:
-        torch.manual_seed(self.lc.seed)
-        self._shape = shape
-        self._sac = SAC(shape.obs_dim, shape.action_low, shape.action_high, self.lc, device=self.lc.device)
-        version = 1
-        ckpt = load_latest(self.lc.checkpoint_dir, map_location=self.lc.device)
-        if ckpt is not None:
-            version = restore_checkpoint(self._sac, ckpt, shape, self.lc.checkpoint_dir)
-            self._last_ckpt_updates = int(ckpt["updates"])
-        self.state.updates = int(self._sac.updates)
-        self.state.alpha = float(self._sac.alpha)
-        self._publish(version)  # immediately: actors get a policy before any training
-
-    # ------------------------------------------------------------------ sampling
-
-    def _sample_loop(self) -> None:
-        assert self._shape is not None
-        backoff = rpc.Backoff(initial_s=0.1, max_s=5.0)
-        action_dim = int(self._shape.action_low.size)
-        request = replay_pb2.SampleRequest(batch_size=self.lc.batch_size)
-        with rpc.make_channel(self.lc.replay_addr, self.cfg.auth) as channel:
-            stub = replay_pb2_grpc.ReplayStub(channel)
-            while not self._stop.is_set():
-                try:
-                    resp = stub.Sample(request, timeout=self.lc.rpc_timeout_s)
-                except grpc.RpcError as err:
-                    if err.code() == grpc.StatusCode.FAILED_PRECONDITION:  # empty buffer: not an error
-                        self._set_transitions(0)
-                    else:
-                        log.warning("Sample failed", extra=kv(addr=self.lc.replay_addr, code=str(err.code())))
-                    backoff.sleep(self._stop)
-                    continue
-                backoff.reset()
-                self._set_transitions(int(resp.transitions))
-                if resp.transitions < self.lc.min_transitions:
-                    self._stop.wait(0.5)
-                    continue
-                try:
-                    batch = decode_batch(resp.batch, self._shape.obs_dim, action_dim, self.lc.device)
-                except WireError as exc:
-                    log.error("undecodable batch", extra=kv(error=str(exc)))
-                    backoff.sleep(self._stop)
-                    continue
-                self._put(Prefetched(batch, int(resp.transitions)))
-
-    def _set_transitions(self, n: int) -> None:
-        self.state.buffer_transitions = n
-        BUFFER_TRANSITIONS.set(n)
-
-    def _put(self, item: Prefetched) -> None:
-        while not self._stop.is_set():
+    def _on_robots(self, specs: list[robot_pb2.RobotSpec]) -> None:
+        assigned = assign(specs, self.experiments)
+        for index, exp in enumerate(self.experiments):
+            mine = assigned[exp.name]
+            run = self.runs.get(exp.name)
+            if run is not None:
+                for spec in mine:
+                    if spec.robot_id not in run.specs:
+                        run.add_robot(spec)
+                continue
+            if not ready(exp, mine):
+                continue
+            log.info("experiment starts", extra=kv(experiment=exp.name, robots=[s.robot_id for s in mine]))
             try:
-                self._queue.put(item, timeout=0.5)
-                return
-            except queue.Full:
+                run = ExperimentRun(self, index, exp, mine)
+            except LayoutError as exc:  # this experiment cannot train; the others go on
+                state = self.experiment_states[exp.name]
+                state.state, state.error = "failed", str(exc)
+                log.error("experiment cannot start", extra=kv(experiment=exp.name, error=str(exc)))
+                self.runs[exp.name] = _FailedRun(exp, mine)  # type: ignore[assignment]
                 continue
+            self.runs[exp.name] = run
+            run.start()
 
-    # ------------------------------------------------------------------ training
 
-    def _train_loop(self) -> None:
-        rate_t, rate_n = time.monotonic(), self._sac.updates
-        while not self._stop.is_set():
-            start = time.perf_counter()
-            try:
-                item = self._queue.get(timeout=0.5)
-            except queue.Empty:
-                continue
-            BATCH_WAIT.observe(time.perf_counter() - start)
-            if self._sac.updates >= self.lc.max_updates_per_transition * item.transitions:
-                # At the update-to-data cap: drop this (stale) batch and let more data arrive.
-                CAPPED.inc()
-                self._stop.wait(0.1)
-                continue
-            self._update(item.batch)
-            now = time.monotonic()
-            if now - rate_t >= 2.0:
-                self.state.updates_per_s = (self._sac.updates - rate_n) / (now - rate_t)
-                UPDATES_PER_S.set(self.state.updates_per_s)
-                rate_t, rate_n = now, self._sac.updates
+class _FailedRun:
+    """Placeholder for an experiment whose robots cannot share a layout (reported, never retried silently)."""
 
-    def _update(self, batch: dict[str, torch.Tensor]) -> None:
-        losses = self._sac.update(batch)
-        updates = int(self._sac.updates)
-        st = self.state
-        st.updates, st.losses, st.alpha = updates, dict(losses), float(self._sac.alpha)
-        st.last_update_mono = time.monotonic()
-        UPDATES.inc()
-        ALPHA.set(st.alpha)
-        for name, value in losses.items():
-            LOSS.labels(name).set(value)
-        if updates % self.lc.publish_every == 0:
-            self._publish(st.weight_version + 1)
-        if updates % self.lc.checkpoint_every == 0:
-            self._checkpoint()
+    def __init__(self, exp: ExperimentConfig, specs: list[robot_pb2.RobotSpec]) -> None:
+        self.exp, self.specs = exp, {s.robot_id: s for s in specs}
+        self.state = ExperimentState(exp.name, exp.algorithm.kind, state="failed")
 
-    def _publish(self, version: int) -> None:
-        actor_config = {"obs_keys": [OBS_KEY], **self._sac.actor_config()}
-        self.store.publish(version, policy_spec_for(actor_config), self._sac.actor_tensors(), int(self._sac.updates))
-        self.state.weight_version = version
-        self.state.last_publish_ns = time.time_ns()
-        WEIGHT_VERSION.set(version)
-        log.info("weights published", extra=kv(version=version, updates=int(self._sac.updates)))
+    def add_robot(self, spec: robot_pb2.RobotSpec) -> None:
+        self.specs[spec.robot_id] = spec
 
-    def _checkpoint(self) -> None:
-        updates = int(self._sac.updates)
-        if updates == self._last_ckpt_updates:
-            return
-        assert self._shape is not None
-        start = time.perf_counter()
-        save_checkpoint(self.lc.checkpoint_dir, checkpoint_state(self._sac, self.state.weight_version, self._shape))
-        self._last_ckpt_updates = updates
-        CHECKPOINT_SECONDS.observe(time.perf_counter() - start)
+    def join(self, timeout: float) -> None:
+        pass
+
+    def checkpoint(self) -> None:
+        pass

@@ -12,11 +12,12 @@ import logging
 import grpc
 import torch
 
-from cloud_learner.learner import Learner
+from cloud_learner.learner import ExperimentState, Learner
 from user import rpc
 from user.config import ConfigError, StackConfig
 from user.log import kv
 from user.policy import check_device
+from user.registry import PluginError
 from user.v1 import learner_pb2, learner_pb2_grpc
 from user.weights import WeightServicer, WeightStore
 
@@ -33,18 +34,38 @@ class LearnerServicer(WeightServicer):
     def GetStatus(
         self, request: learner_pb2.LearnerStatusRequest, context: grpc.ServicerContext
     ) -> learner_pb2.LearnerStatus:
-        st = self.learner.state
+        states = list(self.learner.experiment_states.values())
+        first = states[0]
         return learner_pb2.LearnerStatus(
-            updates=st.updates,
-            weight_version=st.weight_version,
-            updates_per_s=st.updates_per_s,
-            buffer_transitions=st.buffer_transitions,
-            losses=dict(st.losses),
-            alpha=st.alpha,
-            last_publish_ns=st.last_publish_ns,
+            updates=sum(st.updates for st in states),
+            weight_version=first.weight_version,
+            updates_per_s=sum(st.updates_per_s for st in states),
+            buffer_transitions=sum(st.buffer_transitions for st in states),
+            losses=dict(first.scalars),
+            last_publish_ns=max(st.last_publish_ns for st in states),
             training=self.learner.training,
             subscribers=self.subscribers,
+            scalars=dict(first.scalars),
+            experiments=[experiment_status(st) for st in states],
         )
+
+
+def experiment_status(st: ExperimentState) -> learner_pb2.ExperimentStatus:
+    return learner_pb2.ExperimentStatus(
+        name=st.name,
+        algorithm=st.algorithm,
+        policy_kind=st.policy_kind,
+        updates=st.updates,
+        weight_version=st.weight_version,
+        updates_per_s=st.updates_per_s,
+        buffer_transitions=st.buffer_transitions,
+        scalars=dict(st.scalars),
+        robot_ids=list(st.robot_ids),
+        state=st.state,
+        error=st.error,
+        sample_errors=st.sample_errors,
+        env_steps=st.env_steps,
+    )
 
 
 class LearnerService(rpc.GrpcService):
@@ -58,7 +79,10 @@ class LearnerService(rpc.GrpcService):
         self.cfg = cfg
         self.start_metrics = start_metrics
         self.store = WeightStore()
-        self.learner = Learner(cfg, self.store)
+        try:
+            self.learner = Learner(cfg, self.store)
+        except PluginError as exc:  # a bad experiment entry fails at start, naming the field
+            raise ConfigError(str(exc)) from None
         self.servicer = LearnerServicer(self.learner, self.store, cfg.learner.max_chunk_bytes)
         self.running: rpc.RunningServer | None = None
 

@@ -403,7 +403,7 @@ class EdgeAgent:
         self.sender = sender or ReplaySender(
             edge.replay_addr, cfg.auth, max_unacked=edge.max_unacked_steps, start=False
         )
-        self.policy = policy or make_policy_source(cfg, client_id=edge.agent_id)
+        self.policy = policy or make_policy_source(cfg, edge.agent_id, [r.spec for r in self.robots])
         self.loops = {
             r.spec.robot_id: RobotLoop(r, self.policy, self.sender, edge.mode, edge.action_deadline_ms / 1000.0)
             for r in self.robots

@@ -20,7 +20,7 @@ from user import wire
 from user.config import AuthConfig, StackConfig
 from user.log import kv
 from user.rpc import make_channel
-from user.v1 import inference_pb2, inference_pb2_grpc
+from user.v1 import inference_pb2, inference_pb2_grpc, robot_pb2
 
 if TYPE_CHECKING:  # torch is imported only by edges that run a local copy
     from user.policy import Policy
@@ -123,15 +123,23 @@ class LocalPolicy(PolicySource):
     """A local policy copy kept fresh by a WeightSubscriber; new weights swap in atomically."""
 
     def __init__(
-        self, learner_addr: str, auth: AuthConfig, client_id: str, deterministic: bool = False, start: bool = True
+        self,
+        learner_addr: str,
+        auth: AuthConfig,
+        client_id: str,
+        deterministic: bool = False,
+        start: bool = True,
+        experiment: str = "",
+        kinds: dict[str, str] | None = None,
     ) -> None:
         import user.policy  # noqa: F401 - torch loads now, not in the weight thread while robots run
         from user.weights import WeightSubscriber
 
         self._policy: Policy | None = None  # replaced whole, never mutated: reading it needs no lock
+        self._kinds = kinds or {}  # robot id -> kind: a policy shared by embodiments pads by kind
         self._deterministic = deterministic
         self._lock = threading.Lock()  # serialises forward passes of robots sharing this copy
-        self._subscriber = WeightSubscriber(learner_addr, auth, client_id, self._on_weights)
+        self._subscriber = WeightSubscriber(learner_addr, auth, client_id, self._on_weights, experiment=experiment)
         if start:
             self._subscriber.start()
 
@@ -156,11 +164,14 @@ class LocalPolicy(PolicySource):
         if policy is None:
             ACTION_TIMEOUTS.labels("local", "no_policy").inc()
             return None
+        from user.experiments import embodiment_inputs, fit_action
+
         start = time.perf_counter()
-        batched = {name: np.asarray(v)[None] for name, v in observation.items()}
+        kind = self._kinds.get(robot_id, "")
         try:
+            batched = {name: np.asarray(v)[None] for name, v in embodiment_inputs(policy, kind, observation).items()}
             with self._lock:
-                action = policy.act(batched, self._deterministic)
+                action = fit_action(policy, kind, policy.act(batched, self._deterministic))
         except ValueError as err:  # observation does not fit this policy: hold, say why once
             ACTION_TIMEOUTS.labels("local", "bad_observation").inc()
             log.warning("local policy refused the observation", extra=kv(robot_id=robot_id, error=str(err)))
@@ -176,7 +187,54 @@ class LocalPolicy(PolicySource):
         self._subscriber.stop()
 
 
-def make_policy_source(cfg: StackConfig, client_id: str) -> PolicySource:
+class RoutedPolicy(PolicySource):
+    """Robots of one agent in different experiments: each robot asks its experiment's source."""
+
+    def __init__(self, routes: dict[str, PolicySource]) -> None:
+        self.routes = routes
+
+    @property
+    def version(self) -> int:
+        return max((s.version for s in set(self.routes.values())), default=0)
+
+    def act(
+        self, robot_id: str, observation: dict[str, np.ndarray], deadline_s: float
+    ) -> tuple[np.ndarray, int] | None:
+        source = self.routes.get(robot_id)
+        return source.act(robot_id, observation, deadline_s) if source is not None else None
+
+    def close(self) -> None:
+        for source in set(self.routes.values()):
+            source.close()
+
+
+def robot_experiments(cfg: StackConfig, specs: list[robot_pb2.RobotSpec] | None = None) -> dict[str, str]:
+    """robot id -> experiment name, from the robots' specs (labels included) or else their configured kinds."""
+    from user.experiments import experiment_for
+
+    if specs is None:
+        specs = [robot_pb2.RobotSpec(robot_id=r.id, kind=r.kind) for r in cfg.edge.robots]
+    out = {}
+    for spec in specs:
+        exp = experiment_for(spec, cfg.resolved_experiments())
+        out[spec.robot_id] = exp.name if exp is not None else ""
+    return out
+
+
+def make_policy_source(
+    cfg: StackConfig, client_id: str, specs: list[robot_pb2.RobotSpec] | None = None
+) -> PolicySource:
+    """Remote (one Inference address for every robot) or local copies, one per experiment of this agent's robots."""
     if cfg.edge.policy_source == "local":
-        return LocalPolicy(cfg.edge.learner_addr, cfg.auth, client_id)
+        routes = robot_experiments(cfg, specs)
+        names = sorted(set(routes.values()))
+        kinds = {s.robot_id: s.kind for s in specs} if specs else {r.id: r.kind for r in cfg.edge.robots}
+        if len(names) <= 1:
+            name = names[0] if names else ""
+            return LocalPolicy(cfg.edge.learner_addr, cfg.auth, client_id, experiment=name, kinds=kinds)
+        sources = {
+            n: LocalPolicy(cfg.edge.learner_addr, cfg.auth, f"{client_id}-{n}", experiment=n, kinds=kinds)
+            for n in names
+        }
+        return RoutedPolicy({rid: sources[name] for rid, name in routes.items()})
     return RemotePolicy(cfg.edge.inference_addr, cfg.auth)

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from user import spec as spec_contract
 from user.v1 import robot_pb2
 
 
@@ -52,19 +53,9 @@ class Robot(ABC):
         """Release hardware or simulator resources."""
 
 
-def action_bounds(spec: robot_pb2.RobotSpec) -> tuple[np.ndarray, np.ndarray]:
-    shape = tuple(spec.action.shape)
-    low = np.asarray(spec.action.low, dtype=np.float32).reshape(shape)
-    high = np.asarray(spec.action.high, dtype=np.float32).reshape(shape)
-    return low, high
-
-
-def clip_action(spec: robot_pb2.RobotSpec, action: np.ndarray) -> np.ndarray:
-    """Clip to declared limits; NaN/Inf become the hold value 0 clipped into range."""
-    low, high = action_bounds(spec)
-    act = np.asarray(action, dtype=np.float32).reshape(low.shape)
-    act = np.where(np.isfinite(act), act, 0.0)
-    return np.clip(act, low, high).astype(np.float32)
+# The action contract lives in user.spec (one place for every organ); re-exported for robot plug-ins.
+action_bounds = spec_contract.action_bounds
+clip_action = spec_contract.clip_action
 
 
 RobotFactory = Callable[..., Robot]

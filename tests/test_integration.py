@@ -1,5 +1,6 @@
-"""The whole stack as real processes: control, replay, learner, inference and two edge agents
-(one acting through the inference service, one through its weight-streamed local copy)."""
+"""The whole stack as real processes: control, replay, learner, inference and three edge agents: two sim
+arms (one acting through the inference service, one through its weight-streamed local copy) in the reach
+experiment and a gym-hil Panda in the pick experiment, two embodiments training at once."""
 
 from __future__ import annotations
 
@@ -58,31 +59,40 @@ def test_stack_learns_through_all_services(tmp_path: Path) -> None:
 
         def online_robots():
             robots = control.ListRobots(control_pb2.ListRobotsRequest(), timeout=5).robots
-            return [r for r in robots if r.online] if len(robots) == 2 else None
+            return [r for r in robots if r.online] if len(robots) == 3 else None
 
-        robots = wait_for(online_robots, "two robots online")
-        assert sorted(r.spec.robot_id for r in robots) == ["arm-0", "arm-1"]
+        robots = wait_for(online_robots, "three robots online")
+        assert {r.spec.robot_id: r.experiment for r in robots} == {
+            "arm-0": "reach",
+            "arm-1": "reach",
+            "panda-0": "pick",
+        }
 
-        # The learner trains and publishes; both edges act with versions newer than the first.
-        status = wait_for(
-            lambda: (s := learner.GetStatus(learner_pb2.LearnerStatusRequest(), timeout=5)).weight_version >= 4 and s,
-            "learner to publish weight version 4",
-        )
-        assert status.updates > 0
+        # Both experiments train and publish, each sampling only its own robots (no layout errors).
+        def both_published():
+            status = learner.GetStatus(learner_pb2.LearnerStatusRequest(), timeout=5)
+            exps = {e.name: e for e in status.experiments}
+            return exps if all(e.weight_version >= 4 and e.updates > 0 for e in exps.values()) else None
+
+        exps = wait_for(both_published, "both experiments to publish weight version 4")
+        assert set(exps) == {"reach", "pick"}
+        assert all(e.sample_errors == 0 and e.state == "training" for e in exps.values())
+        assert sorted(exps["reach"].robot_ids) == ["arm-0", "arm-1"] and list(exps["pick"].robot_ids) == ["panda-0"]
+        assert "alpha" in exps["reach"].scalars and "qf_loss" in exps["pick"].scalars
 
         def edge_versions():
             infos = control.ListRobots(control_pb2.ListRobotsRequest(), timeout=5).robots
             versions = {r.spec.robot_id: r.status.policy_version for r in infos}
-            return versions if len(versions) == 2 and min(versions.values()) >= 3 else None
+            return versions if len(versions) == 3 and min(versions.values()) >= 3 else None
 
-        versions = wait_for(edge_versions, "both edges (remote and local policy) to act with version >= 3")
+        versions = wait_for(edge_versions, "every edge (remote and local policy, both embodiments) at version >= 3")
         assert min(versions.values()) >= 3
 
         # Steps reached replay, stamped with the versions that produced them.
         stats = replay.Stats(replay_pb2.StatsRequest(), timeout=5)
-        assert set(stats.steps_per_robot) == {"arm-0", "arm-1"}
+        assert set(stats.steps_per_robot) == {"arm-0", "arm-1", "panda-0"}
         assert stats.steps > 200
-        batch = replay.Sample(replay_pb2.SampleRequest(batch_size=256), timeout=5).batch
+        batch = replay.Sample(replay_pb2.SampleRequest(batch_size=256, robot_ids=["arm-0", "arm-1"]), timeout=5).batch
         versions_in_batch = wire.from_tensor(batch.policy_version)
         assert versions_in_batch.max() >= 2
         assert wire.from_tensor(batch.action).shape == (256, 3)
@@ -96,6 +106,7 @@ def test_stack_learns_through_all_services(tmp_path: Path) -> None:
             "inference": "user_inference_",
             "edge-0": "user_edge_",
             "edge-1": "user_edge_",
+            "edge-2": "user_edge_",
         }
         for name, prefix in expected.items():
             body = urllib.request.urlopen(stack.child(name).metrics_url, timeout=5).read().decode()
@@ -113,7 +124,8 @@ def test_stack_learns_through_all_services(tmp_path: Path) -> None:
         codes = stack.stop()
     assert codes == {name: 0 for name in codes}, f"unclean exits: {codes}"
     # The learner wrote its final checkpoint on SIGTERM.
-    assert (tmp_path / "checkpoints" / "latest").exists()
+    assert (tmp_path / "checkpoints" / "reach" / "latest").exists()
+    assert (tmp_path / "checkpoints" / "pick" / "latest").exists()
     # Every log line is structured JSON.
     for log_file in (tmp_path / "logs").glob("*.log"):
         for line in log_file.read_text().splitlines()[:50]:

@@ -1,8 +1,8 @@
-"""Learner checkpoints (atomic, pruned, resumable), batch decoding, published weights, service lifecycle."""
+"""Learner: checkpoints (atomic, pruned, resumable per experiment), generic batch decoding, plug-in
+algorithms built from config, and a real in-process stack (control, replay, edge) training two experiments."""
 
 from __future__ import annotations
 
-import functools
 from pathlib import Path
 
 import grpc
@@ -10,46 +10,53 @@ import numpy as np
 import pytest
 import torch
 
+from cloud_learner.algorithm import ALGORITHMS, Batch, Feature, Layout
 from cloud_learner.checkpoint import LATEST, list_checkpoints, load_latest, save_checkpoint
-from cloud_learner.learner import (
-    LearnerError,
-    RobotShape,
-    checkpoint_state,
-    decode_batch,
-    restore_checkpoint,
-    robot_shape,
-)
-from cloud_learner.sac import SAC
+from cloud_learner.learner import LearnerError, checkpoint_state, decode_batch, restore_checkpoint
 from cloud_learner.server import LearnerService
 from tests import helpers
-from user.config import LearnerConfig, ServerConfig, StackConfig
-from user.policy import build_policy, policy_spec_for
+from user.config import ConfigError, ServerConfig, StackConfig
+from user.policy import build_policy
 from user.rpc import make_channel
-from user.v1 import learner_pb2, learner_pb2_grpc, replay_pb2, robot_pb2
-from user.weights import WeightAssembler, iter_weight_messages, pack_weights
+from user.v1 import learner_pb2, learner_pb2_grpc, replay_pb2
+from user.weights import WeightAssembler, iter_weight_messages
 from user.wire import WireError, to_tensor
 
 torch.set_num_threads(1)
 
 OBS_DIM, ACT_DIM = 6, 3
-SHAPE = RobotShape(OBS_DIM, np.full(ACT_DIM, -1.0, np.float32), np.array([1.0, 2.0, 0.5], np.float32))
-SMALL = LearnerConfig(hidden=[32, 32], batch_size=16)
+LOW, HIGH = np.full(ACT_DIM, -1.0, np.float32), np.array([1.0, 2.0, 0.5], np.float32)
+LAYOUT = Layout(
+    {"state": Feature((OBS_DIM,), "float32"), "camera.front": Feature((8, 8, 3), "uint8", is_image=True)}, LOW, HIGH
+)
+SMALL = {"hidden": [32, 32], "batch_size": 16}
 
 
-random_batch = functools.partial(helpers.random_sac_batch, OBS_DIM, ACT_DIM)
+def sac_batch(seed: int) -> Batch:
+    raw = helpers.random_sac_batch(OBS_DIM, ACT_DIM, seed)
+    n = raw["obs"].shape[0]
+    images = torch.zeros((n, 8, 8, 3), dtype=torch.uint8)
+    return Batch(
+        observation={"state": raw["obs"], "camera.front": images},
+        action=raw["action"],
+        reward=raw["reward"],
+        next_observation={"state": raw["next_obs"], "camera.front": images},
+        terminated=raw["terminated"],
+        intervention=torch.zeros(n, dtype=torch.bool),
+    )
 
 
-def trained_sac(updates: int = 5) -> SAC:
-    torch.manual_seed(0)
-    sac = SAC(OBS_DIM, SHAPE.action_low, SHAPE.action_high, SMALL)
+def trained_sac(updates: int = 5, seed: int = 0):
+    torch.manual_seed(seed)
+    algo = ALGORITHMS.build("sac", SMALL, layout=LAYOUT, device=torch.device("cpu"))
     for i in range(updates):
-        sac.update(random_batch(i))
-    return sac
+        algo.update(sac_batch(i))
+    return algo
 
 
-def mean_actions(sac: SAC, obs: torch.Tensor) -> torch.Tensor:
+def mean_actions(algo, obs: torch.Tensor) -> torch.Tensor:
     with torch.no_grad():
-        return sac.actor(obs)[2]
+        return algo.sac.actor(obs)[2]
 
 
 # --------------------------------------------------------------------------- checkpoint files
@@ -106,73 +113,54 @@ def test_missing_or_stale_pointer_falls_back_to_newest(tmp_path: Path) -> None:
 
 
 def test_resume_gives_identical_actor_and_training(tmp_path: Path) -> None:
-    sac = trained_sac(updates=5)
-    save_checkpoint(tmp_path, checkpoint_state(sac, weight_version=3, shape=SHAPE))
+    algo = trained_sac(updates=5)
+    save_checkpoint(tmp_path, checkpoint_state(algo, "sac", weight_version=3, layout=LAYOUT))
 
     ckpt = load_latest(tmp_path)
     assert ckpt is not None
-    torch.manual_seed(123)  # a different init: everything must come from the checkpoint
-    resumed = SAC(OBS_DIM, SHAPE.action_low, SHAPE.action_high, SMALL)
-    assert restore_checkpoint(resumed, ckpt, SHAPE) == 3
-    assert resumed.updates == sac.updates == 5
-    assert resumed.alpha == pytest.approx(sac.alpha)
+    resumed = trained_sac(updates=0, seed=123)  # a different init: everything must come from the checkpoint
+    assert restore_checkpoint(resumed, ckpt, "sac", LAYOUT, tmp_path) == 3
+    assert resumed.updates == algo.updates == 5
 
     obs = torch.randn(32, OBS_DIM)
-    torch.testing.assert_close(mean_actions(resumed, obs), mean_actions(sac, obs), rtol=0, atol=0)
-    for name, arr in sac.actor_tensors().items():
-        np.testing.assert_array_equal(resumed.actor_tensors()[name], arr)
-
+    torch.testing.assert_close(mean_actions(resumed, obs), mean_actions(algo, obs), rtol=0, atol=0)
     # Optimizer moments and targets came back too: the next update is the same on both.
     torch.manual_seed(7)
-    a = sac.update(random_batch(99))
+    a = algo.update(sac_batch(99))
     torch.manual_seed(7)
-    b = resumed.update(random_batch(99))
+    b = resumed.update(sac_batch(99))
     assert a == pytest.approx(b)
-    torch.testing.assert_close(mean_actions(resumed, obs), mean_actions(sac, obs))
 
 
-def test_resume_refuses_checkpoint_of_another_robot(tmp_path: Path) -> None:
-    sac = trained_sac(updates=1)
-    ckpt = checkpoint_state(sac, 1, SHAPE)
-    other = RobotShape(OBS_DIM + 1, SHAPE.action_low, SHAPE.action_high)
-    with pytest.raises(LearnerError, match="obs_dim"):
-        restore_checkpoint(sac, ckpt, other)
+def test_resume_refuses_checkpoint_of_another_layout_or_algorithm(tmp_path: Path) -> None:
+    algo = trained_sac(updates=1)
+    ckpt = checkpoint_state(algo, "sac", 1, LAYOUT)
+    other = Layout({"state": Feature((OBS_DIM + 1,), "float32")}, LOW, HIGH)
+    with pytest.raises(LearnerError, match="layout"):
+        restore_checkpoint(algo, ckpt, "sac", other, tmp_path)
+    with pytest.raises(LearnerError, match="test_mean"):
+        restore_checkpoint(algo, ckpt, "test_mean", LAYOUT, tmp_path)
 
 
 # --------------------------------------------------------------------------- wire side
 
 
 def test_published_weights_rebuild_the_same_policy() -> None:
-    sac = trained_sac(updates=3)
-    packed = pack_weights(4, policy_spec_for(sac.actor_config()), sac.actor_tensors(), learner_updates=sac.updates)
+    from user.weights import pack_weights
+
+    algo = trained_sac(updates=3)
+    spec, tensors = algo.policy()
+    assert spec.kind == "sac_mlp"
+    packed = pack_weights(4, spec, tensors, learner_updates=algo.updates)
     asm, weights = WeightAssembler(), None
     for msg in iter_weight_messages(packed, 1024):
         weights = asm.feed(msg) or weights
     assert weights is not None and weights.learner_updates == 3
     policy = build_policy(weights.policy, weights.tensors, weights.version)
+    assert policy.observation_keys == ("state",) and policy.action_shape == (ACT_DIM,) and policy.chunk_horizon == 1
     obs = np.random.default_rng(0).standard_normal((8, OBS_DIM)).astype(np.float32)
-    expected = mean_actions(sac, torch.from_numpy(obs)).numpy()
+    expected = mean_actions(algo, torch.from_numpy(obs)).numpy()
     np.testing.assert_allclose(policy.act({"state": obs}, deterministic=True), expected, rtol=0, atol=1e-6)
-
-
-def robot_spec(obs_shape: list[int]) -> robot_pb2.RobotSpec:
-    spec = robot_pb2.RobotSpec(robot_id="arm-0", kind="sim_reach_arm")
-    spec.action.shape.append(ACT_DIM)
-    spec.action.low.extend(SHAPE.action_low.tolist())
-    spec.action.high.extend(SHAPE.action_high.tolist())
-    spec.observation.add(name="state", dtype=1, shape=obs_shape)
-    spec.observation.add(name="camera.front", dtype=5, shape=[8, 8, 3], is_image=True)
-    return spec
-
-
-def test_robot_shape_from_spec() -> None:
-    shape = robot_shape(robot_spec([2, 3]))
-    assert shape.obs_dim == 6
-    np.testing.assert_array_equal(shape.action_high, SHAPE.action_high)
-    spec = robot_spec([6])
-    del spec.observation[0]
-    with pytest.raises(LearnerError):
-        robot_shape(spec)
 
 
 def replay_batch(n: int, obs_dim: int = OBS_DIM) -> replay_pb2.Batch:
@@ -181,38 +169,35 @@ def replay_batch(n: int, obs_dim: int = OBS_DIM) -> replay_pb2.Batch:
         action=to_tensor(rng.standard_normal((n, ACT_DIM)).astype(np.float32)),
         reward=to_tensor(rng.standard_normal(n).astype(np.float32)),
         terminated=to_tensor(rng.random(n) < 0.5),
+        intervention=to_tensor(np.arange(n) % 2 == 0),
     )
-    batch.observation.tensors["state"].CopyFrom(to_tensor(rng.standard_normal((n, obs_dim)).astype(np.float32)))
-    batch.observation.tensors["camera.front"].CopyFrom(to_tensor(np.zeros((n, 8, 8, 3), np.uint8)))
-    batch.next_observation.tensors["state"].CopyFrom(to_tensor(rng.standard_normal((n, obs_dim)).astype(np.float32)))
+    for tmap in (batch.observation, batch.next_observation):
+        tmap.tensors["state"].CopyFrom(to_tensor(rng.standard_normal((n, obs_dim)).astype(np.float32)))
+        tmap.tensors["camera.front"].CopyFrom(to_tensor(np.full((n, 8, 8, 3), 7, np.uint8)))
     return batch
 
 
-def test_decode_batch() -> None:
-    out = decode_batch(replay_batch(5), OBS_DIM, ACT_DIM, "cpu")
-    assert {k: tuple(v.shape) for k, v in out.items()} == {
-        "obs": (5, OBS_DIM),
-        "next_obs": (5, OBS_DIM),
-        "action": (5, ACT_DIM),
-        "reward": (5,),
-        "terminated": (5,),
-    }
-    assert all(v.dtype == torch.float32 for v in out.values())
-    assert set(out["terminated"].tolist()) <= {0.0, 1.0}
-    with pytest.raises(WireError):
-        decode_batch(replay_batch(5, obs_dim=OBS_DIM + 1), OBS_DIM, ACT_DIM, "cpu")
-    no_state = replay_batch(5)
-    del no_state.observation.tensors["state"]
-    with pytest.raises(WireError):
-        decode_batch(no_state, OBS_DIM, ACT_DIM, "cpu")
+def test_decode_batch_keeps_every_feature_images_uint8_and_interventions() -> None:
+    out = decode_batch(replay_batch(5), LAYOUT)
+    assert out.observation["state"].shape == (5, OBS_DIM) and out.observation["state"].dtype == torch.float32
+    assert out.observation["camera.front"].shape == (5, 8, 8, 3)
+    assert out.observation["camera.front"].dtype == torch.uint8 and int(out.observation["camera.front"].max()) == 7
+    assert out.intervention.dtype == torch.bool and out.intervention.tolist() == [True, False, True, False, True]
+    assert out.action.shape == (5, ACT_DIM) and out.reward.shape == (5,) and out.terminated.shape == (5,)
+    assert set(out.terminated.tolist()) <= {0.0, 1.0}
+    with pytest.raises(WireError, match="layout"):
+        decode_batch(replay_batch(5, obs_dim=OBS_DIM + 1), LAYOUT)
+    no_camera = replay_batch(5)
+    del no_camera.observation.tensors["camera.front"]
+    with pytest.raises(WireError, match=r"camera\.front"):
+        decode_batch(no_camera, LAYOUT)
 
 
-# --------------------------------------------------------------------------- service lifecycle
+# --------------------------------------------------------------------------- plug-ins from config
 
 
-def test_service_serves_status_while_waiting_for_a_robot(tmp_path: Path) -> None:
-    # Control is unreachable: the learner keeps retrying, GetStatus answers, stop() is prompt and clean.
-    cfg = StackConfig.model_validate(
+def service_cfg(tmp_path: Path, **extra) -> StackConfig:
+    return StackConfig.model_validate(
         {
             "auth": {"token": "test-token"},
             "learner": {
@@ -222,14 +207,37 @@ def test_service_serves_status_while_waiting_for_a_robot(tmp_path: Path) -> None
                 "checkpoint_dir": str(tmp_path / "ckpt"),
                 "rpc_timeout_s": 1.0,
             },
+            **extra,
         }
     )
+
+
+def test_bad_algorithm_params_fail_at_start_naming_the_field(tmp_path: Path) -> None:
+    import tests.plugins  # noqa: F401 - registers test_mean
+
+    bad = {"experiments": [{"name": "a", "algorithm": {"kind": "test_mean", "params": {"batch_sise": 3}}}]}
+    with pytest.raises(ConfigError, match=r"experiments\[0\]\.algorithm\.params\.batch_sise"):
+        LearnerService(service_cfg(tmp_path, **bad), start_metrics=False)
+    unknown = {"experiments": [{"name": "a", "algorithm": {"kind": "sacc"}}]}
+    with pytest.raises(ConfigError, match=r"experiments\[0\]\.algorithm\.kind: unknown algorithm kind 'sacc'"):
+        LearnerService(service_cfg(tmp_path, **unknown), start_metrics=False)
+    policy = {"experiments": [{"name": "a", "policy": {"kind": "sac_mlp", "params": {"hiden": [8]}}}]}
+    with pytest.raises(ConfigError, match=r"experiments\[0\]\.policy\.params\.hiden"):
+        LearnerService(service_cfg(tmp_path, **policy), start_metrics=False)
+
+
+def test_service_serves_status_while_waiting_for_a_robot(tmp_path: Path) -> None:
+    # Control is unreachable: the learner keeps retrying, GetStatus answers, stop() is prompt and clean.
+    cfg = service_cfg(tmp_path)
     service = LearnerService(cfg, start_metrics=False).start()
     try:
         with make_channel(service.address, cfg.auth) as channel:
             stub = learner_pb2_grpc.LearnerStub(channel)
             status = stub.GetStatus(learner_pb2.LearnerStatusRequest(), timeout=5)
             assert (status.weight_version, status.updates, status.training) == (0, 0, False)
+            assert [(e.name, e.algorithm, e.state) for e in status.experiments] == [
+                ("default", "sac", "waiting_for_robots")
+            ]
             # No version yet: a subscriber waits (here until its deadline).
             call = stub.SubscribeWeights(learner_pb2.SubscribeWeightsRequest(client_id="t"), timeout=0.5)
             with pytest.raises(grpc.RpcError) as err:
@@ -238,4 +246,42 @@ def test_service_serves_status_while_waiting_for_a_robot(tmp_path: Path) -> None
     finally:
         service.stop()
     assert not service.learner.failed
-    assert load_latest(tmp_path / "ckpt") is None  # no robot, no model, nothing to save
+    assert load_latest(tmp_path / "ckpt" / "default") is None  # no robot, no model, nothing to save
+
+
+class _Refusal(grpc.RpcError):
+    def __init__(self, code: grpc.StatusCode, details: str) -> None:
+        self._code, self._details = code, details
+
+    def code(self) -> grpc.StatusCode:
+        return self._code
+
+    def details(self) -> str:
+        return self._details
+
+
+class _RefusingReplay:
+    """Stands in for a replay stub's Sample only, to drive the learner's error path (no service is mocked)."""
+
+    def __init__(self, code: grpc.StatusCode, details: str) -> None:
+        self.error = _Refusal(code, details)
+
+    def Sample(self, request, timeout):
+        raise self.error
+
+
+def test_refused_samples_are_errors_but_an_empty_buffer_is_not(tmp_path: Path) -> None:
+    import tests.plugins  # noqa: F401
+    from cloud_learner.learner import ExperimentRun, Learner
+    from tests.test_experiments import ARM
+    from user.weights import WeightStore
+
+    cfg = service_cfg(tmp_path, experiments=[{"name": "a", "algorithm": {"kind": "test_mean"}}])
+    learner = Learner(cfg, WeightStore())
+    run = ExperimentRun(learner, 0, cfg.experiments[0], [ARM])
+    empty = _RefusingReplay(grpc.StatusCode.FAILED_PRECONDITION, "no sampleable transitions in online yet")
+    assert run.sample_once(empty) is None and run.state.sample_errors == 0
+    layout = _RefusingReplay(grpc.StatusCode.FAILED_PRECONDITION, "sampled transitions have different layouts")
+    assert run.sample_once(layout) is None and run.state.sample_errors == 1
+    broken = _RefusingReplay(grpc.StatusCode.INVALID_ARGUMENT, "batch_size must be in 1..4096")
+    assert run.sample_once(broken) is None and run.state.sample_errors == 2

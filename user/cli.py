@@ -3,6 +3,7 @@
 userctl control|replay|inference|learner|edge --config configs/demo.yaml [--set a.b=c] [--ready-file F]
 userctl up --config configs/demo.yaml      # the whole stack locally, with a live console
 userctl health HOST:PORT                   # exit 0 when SERVING (docker health checks)
+userctl plugins                            # every registered kind: `interface kind description` per line
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ def _parser() -> argparse.ArgumentParser:
             p.add_argument("--ready-file", help="write bound ports here as JSON once serving")
         else:
             p.add_argument("--fresh", action="store_true", help="delete runs/<name> first instead of resuming it")
+    sub.add_parser("plugins", help="list registered robots, tasks, teleoperators, policies, algorithms")
     h = sub.add_parser("health", help="gRPC health check of HOST:PORT")
     h.add_argument("target")
     h.add_argument("--config", "-c")
@@ -43,8 +45,27 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _plugins() -> int:
+    from user.registry import Registry, plugin_lines
+
+    lines = plugin_lines()
+    if not any(line.startswith("robot ") for line in lines):  # robots not yet on user.registry
+        from edge_agent.robot import _REGISTRY, known_robot_kinds
+
+        for kind in known_robot_kinds():
+            doc = (getattr(_REGISTRY[kind], "__doc__", "") or "").strip().splitlines()
+            lines.append(f"robot {kind} {doc[0] if doc else ''}".rstrip())
+    print("\n".join(sorted(lines)))
+    for reg in Registry._all.values():
+        for module, error in sorted(reg.import_errors.items()):
+            print(f"userctl plugins: {reg.interface} module {module} not loaded: {error}", file=sys.stderr)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    if args.command == "plugins":
+        return _plugins()
     try:
         cfg: StackConfig = load_config(args.config, args.overrides)
     except ConfigError as exc:

@@ -86,6 +86,7 @@ class ReplayConfig(_ServerSection):
 class InferenceConfig(_ServerSection):
     server: ServerConfig = ServerConfig(port=50053, metrics_port=9103)
     learner_addr: str = Field(default="127.0.0.1:50054", description="learner whose weight stream is served")
+    control_addr: str = Field(default="127.0.0.1:50051", description="control: which robot is in which experiment")
     max_batch: int = Field(default=64, ge=1, description="most requests per policy forward")
     max_wait_ms: float = Field(default=2.0, ge=0, description="longest a request waits for others to batch with")
     device: str = DEVICE
@@ -96,7 +97,9 @@ class LearnerConfig(_ServerSection):
     replay_addr: str = Field(default="127.0.0.1:50052", description="replay service to sample from")
     control_addr: str = Field(default="127.0.0.1:50051", description="control service: robot specs")
     checkpoint_dir: Path = Field(default=Path("runs/default/checkpoints"), description="resumes from the newest here")
-    robot_kind: str = Field(default="sim_reach_arm", description="train on the robots of this kind")
+    robot_kind: str = Field(
+        default="sim_reach_arm", description="deprecated shortcut, used only when `experiments` is empty"
+    )
     device: str = DEVICE
     torch_threads: int = Field(default=1, ge=1, description="intra-op threads for training")
     seed: int = 0
@@ -117,6 +120,41 @@ class LearnerConfig(_ServerSection):
     prefetch_batches: int = Field(default=4, ge=1, description="batches sampled ahead while the learner trains")
     max_chunk_bytes: int = Field(default=1 << 20, ge=1024, description="weight stream chunk size cap")
     rpc_timeout_s: float = Field(default=10.0, gt=0, description="deadline on calls to replay and control")
+    mode: Literal["async", "sync"] = Field(
+        default="async", description="async: collect and train at once; sync: collect, pause robots, train, publish"
+    )
+    sync_env_steps: int = Field(default=200, ge=1, description="sync mode: new transitions per experiment per round")
+    sync_updates: int = Field(default=200, ge=1, description="sync mode: updates per experiment per round")
+
+
+class RobotSelector(Strict):
+    """Which robots an experiment trains on: every given criterion must hold (an empty one holds for all)."""
+
+    kinds: list[str] = Field(default=[], description="robot kinds (RobotSpec.kind)")
+    labels: dict[str, str] = Field(default={}, description="RobotSpec.labels that must all match")
+    ids: list[str] = Field(default=[], description="robot ids")
+
+
+class PluginChoice(Strict):
+    kind: str = Field(min_length=1, description="a registered kind (`userctl plugins`)")
+    params: dict[str, Any] = Field(default={}, description="the kind's typed params, checked at start")
+
+
+class ExperimentConfig(Strict):
+    """One learning problem: robots (selector), policy, algorithm, replay table. Several train at once."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9_.\-]{1,64}$", description="names checkpoints, weights and metrics")
+    robots: RobotSelector = RobotSelector()
+    policy: PluginChoice | None = Field(default=None, description="policy kind and params; None = the algorithm's")
+    algorithm: PluginChoice = PluginChoice(kind="sac")
+    table: str = Field(default="online", description="replay table the experiment's robots fill")
+    shared_embodiment: bool = Field(
+        default=False, description="one policy for robots of different shapes: pad state/action, mask, embodiment id"
+    )
+
+
+# SAC fields of the learner section that the implicit default experiment (learner.robot_kind) passes on.
+LEGACY_SAC_FIELDS = ("hidden", "batch_size", "gamma", "tau", "actor_lr", "critic_lr", "alpha_lr", "init_alpha")
 
 
 class RobotConfig(Strict):
@@ -160,9 +198,14 @@ class UpConfig(Strict):
     runs_dir: Path = Path("runs")
     budget_s: float = Field(default=600.0, gt=0, description="stop after this many seconds")
     target_success: float = Field(default=0.9, gt=0, le=1, description="stop at this success rate")
-    window_episodes: int = Field(default=20, ge=1, description="over the last this many episodes, all robots")
-    edge_agents: int = Field(default=2, ge=1, description="one process per simulated robot")
+    window_episodes: int = Field(
+        default=20, ge=1, description="over the last this many episodes of the target experiment's robots"
+    )
+    edge_agents: int = Field(
+        default=2, ge=1, description="processes driving copies of the first edge.robots entry; others run once each"
+    )
     console: bool = Field(default=True, description="live table; false prints only the summary")
+    target_experiment: str = Field(default="", description="whose success stops the run; empty = the first")
 
 
 class StackConfig(Strict):
@@ -175,6 +218,30 @@ class StackConfig(Strict):
     learner: LearnerConfig = LearnerConfig()
     edge: EdgeConfig = EdgeConfig()
     up: UpConfig = UpConfig()
+    experiments: list[ExperimentConfig] = Field(
+        default=[], description="what the learner trains; empty = one `default` sac experiment on learner.robot_kind"
+    )
+
+    @model_validator(mode="after")
+    def _experiment_names_unique(self) -> StackConfig:
+        names = [e.name for e in self.experiments]
+        if len(names) != len(set(names)):
+            raise ValueError(f"experiments: names must be unique, got {names}")
+        return self
+
+    def resolved_experiments(self) -> list[ExperimentConfig]:
+        """The configured experiments, or the deprecated shortcut: one sac experiment on learner.robot_kind
+        with the learner section's SAC fields as its params."""
+        if self.experiments:
+            return list(self.experiments)
+        params = {k: getattr(self.learner, k) for k in LEGACY_SAC_FIELDS}
+        return [
+            ExperimentConfig(
+                name="default",
+                robots=RobotSelector(kinds=[self.learner.robot_kind]),
+                algorithm=PluginChoice(kind="sac", params=params),
+            )
+        ]
 
 
 class ConfigError(ValueError):

@@ -1,8 +1,8 @@
 """Policy networks shared by the learner, the inference service and edge agents.
 
 A policy travels as a PolicySpec (kind + architecture JSON) plus named weight tensors, so any
-process can rebuild it without unpickling anything. New kinds are one class plus
-`@register_policy("kind")`.
+process can rebuild it without unpickling anything. New kinds are one class in a module of
+`user.policies` plus `@POLICIES.register("kind")` (found without an import list).
 """
 
 from __future__ import annotations
@@ -10,12 +10,14 @@ from __future__ import annotations
 import json
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
 from torch import nn
 
+from user.registry import PluginError, PluginParams, Registry
 from user.v1 import learner_pb2
 
 LOG_STD_MIN = -5.0
@@ -73,27 +75,60 @@ class SquashedGaussianActor(nn.Module):
 
 
 class Policy(ABC):
-    """A versioned, ready-to-run policy: batched observations in, batched actions out."""
+    """A versioned, ready-to-run policy: batched observations in, batched actions out.
+
+    A kind is one class in a module of `user.policies` plus `@POLICIES.register("kind")`. It is
+    rebuilt anywhere from the wire as `cls(spec, tensors, version, device)` (see `from_wire`) and
+    declares what it reads and returns, so inference and edges can check requests before a forward.
+    `Params` types the architecture choices an experiment's `policy.params` may set (widths, encoder).
+    """
+
+    Params: type[PluginParams] = PluginParams
 
     version: int
     spec: learner_pb2.PolicySpec
 
+    @classmethod
+    def from_wire(
+        cls, spec: learner_pb2.PolicySpec, tensors: Mapping[str, np.ndarray], version: int, device: str
+    ) -> Policy:
+        """Build from PolicySpec + named tensors; any mismatch raises ValueError."""
+        return cls(spec, tensors, version, device)  # type: ignore[call-arg]
+
+    @property
+    @abstractmethod
+    def observation_keys(self) -> tuple[str, ...]:
+        """The observation features `act` reads (others are ignored)."""
+
+    @property
+    @abstractmethod
+    def action_shape(self) -> tuple[int, ...]:
+        """Shape of one action (without batch or chunk dims)."""
+
+    @property
+    def chunk_horizon(self) -> int:
+        """Actions per forward: 1 = a single action (B, *action_shape); H > 1 = a chunk (B, H, *action_shape)."""
+        return 1
+
     @abstractmethod
     def act(self, observation: Mapping[str, np.ndarray], deterministic: bool = False) -> np.ndarray:
-        """observation values are (B, ...) arrays; returns (B, action_dim) float32."""
+        """observation values are (B, ...) arrays; returns (B, *action_shape) or (B, H, *action_shape) float32."""
 
 
-# (spec, tensors, version, device) -> Policy
-PolicyFactory = Callable[[learner_pb2.PolicySpec, Mapping[str, np.ndarray], int, str], Policy]
-_REGISTRY: dict[str, PolicyFactory] = {}
+POLICIES: Registry[Policy] = Registry("policy", Policy, "user.policies")
 
 
-def register_policy(kind: str) -> Callable[[PolicyFactory], PolicyFactory]:
-    def deco(factory: PolicyFactory) -> PolicyFactory:
-        _REGISTRY[kind] = factory
-        return factory
+@dataclass(frozen=True)
+class PolicyChoice:
+    """An experiment's policy: a registered kind and its validated params (handed to the algorithm)."""
 
-    return deco
+    kind: str
+    params: PluginParams
+
+
+def register_policy(kind: str, description: str | None = None) -> Callable[[type[Policy]], type[Policy]]:
+    """`@register_policy("kind")` on a Policy subclass (same as `@POLICIES.register`)."""
+    return POLICIES.register(kind, description)
 
 
 def build_policy(
@@ -101,10 +136,10 @@ def build_policy(
 ) -> Policy:
     """Rebuild a policy from the wire on `device` (e.g. "cpu", "cuda:0"); any mismatch raises ValueError."""
     try:
-        factory = _REGISTRY[spec.kind]
-    except KeyError:
-        raise ValueError(f"unknown policy kind {spec.kind!r}; known: {sorted(_REGISTRY)}") from None
-    return factory(spec, tensors, version, device)
+        entry = POLICIES.get(spec.kind, "policy.kind")
+    except PluginError as exc:
+        raise ValueError(str(exc)) from None
+    return entry.cls.from_wire(spec, tensors, version, device)
 
 
 def check_device(device: str) -> torch.device:
@@ -119,7 +154,7 @@ def check_device(device: str) -> torch.device:
 
 
 def known_policy_kinds() -> list[str]:
-    return sorted(_REGISTRY)
+    return POLICIES.kinds()
 
 
 # --- sac_mlp --------------------------------------------------------------------------------------
@@ -127,7 +162,7 @@ def known_policy_kinds() -> list[str]:
 SAC_MLP = "sac_mlp"
 
 
-def _check_config(config: Mapping[str, Any]) -> dict[str, Any]:
+def check_sac_mlp_config(config: Mapping[str, Any]) -> dict[str, Any]:
     required = ("obs_keys", "obs_dim", "action_dim", "hidden", "action_low", "action_high")
     missing = [k for k in required if k not in config]
     if missing:
@@ -141,23 +176,23 @@ def _check_config(config: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def actor_from_config(config: Mapping[str, Any]) -> SquashedGaussianActor:
-    cfg = _check_config(config)
+    cfg = check_sac_mlp_config(config)
     return SquashedGaussianActor(
         int(cfg["obs_dim"]), int(cfg["action_dim"]), list(cfg["hidden"]), cfg["action_low"], cfg["action_high"]
     )
 
 
 def policy_spec_for(actor_config: Mapping[str, Any]) -> learner_pb2.PolicySpec:
-    cfg = _check_config(actor_config)
+    cfg = check_sac_mlp_config(actor_config)
     return learner_pb2.PolicySpec(kind=SAC_MLP, config_json=json.dumps(cfg, sort_keys=True))
 
 
 def module_tensors(module: nn.Module) -> dict[str, np.ndarray]:
-    """A module's weights as named numpy copies: what a weight set carries (the inverse of _load_tensors)."""
+    """A module's weights as named numpy copies: what a weight set carries (the inverse of load_tensors)."""
     return {k: v.detach().cpu().numpy().copy() for k, v in module.state_dict().items()}
 
 
-def _load_tensors(module: nn.Module, tensors: Mapping[str, np.ndarray]) -> None:
+def load_tensors(module: nn.Module, tensors: Mapping[str, np.ndarray]) -> None:
     expected = module.state_dict()
     if set(tensors) != set(expected):
         missing, extra = sorted(set(expected) - set(tensors)), sorted(set(tensors) - set(expected))
@@ -169,49 +204,3 @@ def _load_tensors(module: nn.Module, tensors: Mapping[str, np.ndarray]) -> None:
             raise ValueError(f"tensor {name!r} has shape {tuple(arr.shape)}, expected {tuple(ref.shape)}")
         state[name] = torch.from_numpy(np.array(arr, dtype=np.float32, copy=True))
     module.load_state_dict(state, strict=True)
-
-
-class SacMlpPolicy(Policy):
-    def __init__(
-        self, spec: learner_pb2.PolicySpec, tensors: Mapping[str, np.ndarray], version: int, device: str = "cpu"
-    ) -> None:
-        try:
-            config = json.loads(spec.config_json)
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"sac_mlp config_json is not JSON: {exc}") from None
-        if not isinstance(config, dict):
-            raise ValueError("sac_mlp config_json must be an object")
-        cfg = _check_config(config)
-        self.spec = spec
-        self.version = int(version)
-        self.obs_keys: list[str] = list(cfg["obs_keys"])
-        self.obs_dim = int(cfg["obs_dim"])
-        self.action_dim = int(cfg["action_dim"])
-        self.actor = actor_from_config(cfg)
-        _load_tensors(self.actor, tensors)
-        self.device = check_device(device)
-        self.actor.to(self.device).eval()
-
-    def obs_vector(self, observation: Mapping[str, np.ndarray]) -> np.ndarray:
-        """Concatenate obs_keys (each flattened after the batch dim) into (B, obs_dim) float32."""
-        missing = [k for k in self.obs_keys if k not in observation]
-        if missing:
-            raise ValueError(f"observation lacks {missing}")
-        parts = [np.asarray(observation[k], dtype=np.float32) for k in self.obs_keys]
-        batch = parts[0].shape[0] if parts[0].ndim else 0
-        if batch < 1 or any(p.ndim == 0 or p.shape[0] != batch for p in parts):
-            raise ValueError("observation values need the same leading batch dimension")
-        vec = np.concatenate([p.reshape(batch, -1) for p in parts], axis=1)
-        if vec.shape[1] != self.obs_dim:
-            raise ValueError(f"observation has {vec.shape[1]} features, the policy expects {self.obs_dim}")
-        return vec
-
-    @torch.no_grad()
-    def act(self, observation: Mapping[str, np.ndarray], deterministic: bool = False) -> np.ndarray:
-        obs = torch.from_numpy(self.obs_vector(observation)).to(self.device)
-        action, _, mean_action = self.actor(obs)
-        out = mean_action if deterministic else action
-        return out.cpu().numpy().astype(np.float32, copy=False)
-
-
-register_policy(SAC_MLP)(SacMlpPolicy)

@@ -21,6 +21,7 @@ import importlib
 import importlib.metadata
 import logging
 import pkgutil
+import threading
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -30,6 +31,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 log = logging.getLogger(__name__)
 
 ENTRY_POINT_GROUP = "user.plugins"
+_DISCOVERY_LOCK = threading.RLock()  # one lock for all registries: plug-in imports may touch several
 
 
 class PluginParams(BaseModel):
@@ -82,18 +84,22 @@ class Registry[T]:
     # ------------------------------------------------------------------ discovery
 
     def discover(self) -> None:
-        if self._discovered:
-            return
-        self._discovered = True
-        try:
-            pkg = importlib.import_module(self.package)
-        except ImportError as exc:
-            self.import_errors[self.package] = str(exc)
-            return
-        for info in pkgutil.iter_modules(getattr(pkg, "__path__", []), prefix=f"{self.package}."):
-            self._import(info.name)
-        for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
-            self._import(ep.value.split(":")[0])
+        # Threads (weight subscribers building policies) may look up kinds at once: the first discovers
+        # while the others wait, so no one sees a half-imported registry. Re-entrant: a plug-in module
+        # that looks up kinds while being imported does not deadlock.
+        with _DISCOVERY_LOCK:
+            if self._discovered:
+                return
+            self._discovered = True
+            try:
+                pkg = importlib.import_module(self.package)
+            except ImportError as exc:
+                self.import_errors[self.package] = str(exc)
+                return
+            for info in pkgutil.iter_modules(getattr(pkg, "__path__", []), prefix=f"{self.package}."):
+                self._import(info.name)
+            for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
+                self._import(ep.value.split(":")[0])
 
     def _import(self, module: str) -> None:
         try:

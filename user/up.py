@@ -179,14 +179,15 @@ class Stack:
         inference = self._spawn(
             "inference",
             "inference",
-            [*(f"inference.{x}" for x in listen), f"inference.learner_addr={learner.grpc_addr}"],
+            [
+                *(f"inference.{x}" for x in listen),
+                f"inference.learner_addr={learner.grpc_addr}",
+                f"inference.control_addr={control.grpc_addr}",
+            ],
         )
         self._wait_ready(inference)
-        template = self.cfg.edge.robots[0]
-        base_id = re.sub(r"-\d+$", "", template.id)  # arm-0 -> arm-0, arm-1, ...; panda -> panda-0, ...
         edges = []
-        for i in range(self.cfg.up.edge_agents):
-            robot = {"id": f"{base_id}-{i}", "kind": template.kind, "params": template.params}
+        for i, robot in enumerate(self._edge_robots()):
             on_progress(f"edge-{i}")
             edges.append(
                 self._spawn(
@@ -207,6 +208,14 @@ class Stack:
             )
         for edge in edges:
             self._wait_ready(edge)
+
+    def _edge_robots(self) -> list[dict[str, Any]]:
+        """One edge agent per robot: up.edge_agents copies of the first robot entry (arm-0, arm-1, ...;
+        panda -> panda-0, ...), then each further entry once (another embodiment beside them)."""
+        first, *others = self.cfg.edge.robots
+        base_id = re.sub(r"-\d+$", "", first.id)
+        robots = [{**first.model_dump(mode="json"), "id": f"{base_id}-{i}"} for i in range(self.cfg.up.edge_agents)]
+        return robots + [r.model_dump(mode="json") for r in others]
 
     def dead_children(self) -> list[Child]:
         return [c for c in self.children if c.proc.poll() is not None]
@@ -236,6 +245,7 @@ class Episode:
     episode_return: float
     length: int
     policy_version: int
+    experiment: str = ""
 
 
 @dataclass
@@ -279,36 +289,53 @@ class Monitor:
                 key = (ep.robot_id or info.spec.robot_id, ep.episode_id)
                 if key not in self.episodes:
                     self.episodes[key] = Episode(
-                        key[0], ep.episode_id, now, ep.success, ep.episode_return, ep.length, ep.policy_version
+                        key[0],
+                        ep.episode_id,
+                        now,
+                        ep.success,
+                        ep.episode_return,
+                        ep.length,
+                        ep.policy_version,
+                        info.experiment,
                     )
         return Snapshot(now, robots, learner, replay)
 
     def ordered(self) -> list[Episode]:
         return sorted(self.episodes.values(), key=lambda e: (e.t, e.robot_id, e.episode_id))
 
-    def success_rate(self, window: int) -> float | None:
-        eps = self.ordered()[-window:]
+    def success_rate(self, window: int, experiment: str | None = None) -> float | None:
+        """Over the last `window` episodes (of `experiment`'s robots when given); None until there are that many."""
+        eps = [e for e in self.ordered() if experiment is None or e.experiment == experiment][-window:]
         if len(eps) < window:
             return None
         return sum(e.success for e in eps) / len(eps)
+
+
+def target_experiment(cfg: StackConfig) -> str:
+    """The experiment whose success stops `userctl up` (up.target_experiment, default the first)."""
+    return cfg.up.target_experiment or cfg.resolved_experiments()[0].name
+
+
+def _scalars_text(scalars: Any, limit: int = 2) -> str:
+    return " ".join(f"{k}={v:.3g}" for k, v in sorted(scalars.items())[:limit]) or "-"
 
 
 def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
     from rich.console import Group
     from rich.table import Table
 
-    learner_version = snap.learner.weight_version if snap.learner else 0
+    versions = {e.name: e.weight_version for e in snap.learner.experiments} if snap.learner else {}
     window = cfg.up.window_episodes
     robots = Table(
         title=f"USER · {cfg.up.name} · {snap.t:5.0f}s / {budget_s:.0f}s",
-        caption=f"success: each robot's last {window} episodes (the stop rule counts all robots')"
-        " · stale = learner version - acting version · p99 = control-loop period (ms)",
+        caption=f"success: each robot's last {window} episodes (the stop rule counts experiment "
+        f"{target_experiment(cfg)}'s) · stale = learner version - acting version · p99 = control-loop period (ms)",
         expand=True,
     )
     # Short headers: the table must stay readable in an 80-column terminal.
-    for col in ("robot", "state", "eps", "success", "steps", "steps/s", "policy", "stale", "p99"):
-        robots.add_column(col, justify="right" if col != "robot" else "left")
-    for info in snap.robots:
+    for col in ("robot", "exp", "state", "eps", "success", "steps", "steps/s", "policy", "stale", "p99"):
+        robots.add_column(col, justify="right" if col not in ("robot", "exp") else "left")
+    for info in sorted(snap.robots, key=lambda i: (i.experiment, i.spec.robot_id)):
         st = info.status
         rid = info.spec.robot_id
         mine = [e for e in mon.ordered() if e.robot_id == rid][-window:]
@@ -316,28 +343,31 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
         state = control_pb2.RobotState.Name(st.state).removeprefix("ROBOT_STATE_").lower() if info.online else "offline"
         robots.add_row(
             rid,
+            info.experiment or "-",
             state,
             str(st.episodes),
             rate,
             str(st.env_steps),
             f"{st.env_steps_per_s:.1f}",
             str(st.policy_version),
-            str(max(0, learner_version - st.policy_version)),
+            str(max(0, versions.get(info.experiment, 0) - st.policy_version)),
             f"{st.loop_period_p99_ms:.1f}",
         )
     learner = Table(expand=True)
-    for col in ("learner updates", "updates/s", "weights", "buffer", "alpha", "success, all"):
-        learner.add_column(col, justify="right")
-    overall = mon.success_rate(window)
-    if snap.learner:
-        lr = snap.learner
+    for col in ("experiment", "algo", "state", "updates", "updates/s", "weights", "buffer", "scalars", "success"):
+        learner.add_column(col, justify="left" if col in ("experiment", "algo", "state", "scalars") else "right")
+    for exp in snap.learner.experiments if snap.learner else []:
+        rate = mon.success_rate(window, exp.name)
         learner.add_row(
-            str(lr.updates),
-            f"{lr.updates_per_s:.1f}",
-            str(lr.weight_version),
-            str(snap.replay.transitions if snap.replay else lr.buffer_transitions),
-            f"{lr.alpha:.3f}",
-            "-" if overall is None else f"{100 * overall:.0f} %",
+            exp.name,
+            exp.algorithm,
+            exp.state if not exp.error else f"{exp.state}: {exp.error[:40]}",
+            str(exp.updates),
+            f"{exp.updates_per_s:.1f}",
+            str(exp.weight_version),
+            str(exp.buffer_transitions),
+            _scalars_text(exp.scalars),
+            "-" if rate is None else f"{100 * rate:.0f} %",
         )
     return Group(robots, learner)
 
@@ -359,6 +389,7 @@ def write_report(run_dir: Path, episodes: list[Episode], summary: dict[str, Any]
                 "return": e.episode_return,
                 "length": e.length,
                 "policy_version": e.policy_version,
+                "experiment": e.experiment,
             }
             for e in episodes
         ],
@@ -374,8 +405,14 @@ def write_report(run_dir: Path, episodes: list[Episode], summary: dict[str, Any]
     import matplotlib.pyplot as plt
 
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
-    ts = [e.t for e in episodes]
-    ax1.plot(ts, [100 * r for r in rolling], color="tab:green")
+    for name in sorted({e.experiment for e in episodes}):
+        mine = [e for e in episodes if e.experiment == name]
+        curve = [
+            sum(x.success for x in mine[max(0, i + 1 - window) : i + 1]) / min(i + 1, window) for i in range(len(mine))
+        ]
+        ax1.plot([e.t for e in mine], [100 * r for r in curve], label=name or "no experiment")
+    if episodes:
+        ax1.legend(loc="lower right")
     ax1.axhline(100 * summary.get("target_success", 0.9), color="grey", linestyle="--", linewidth=1)
     ax1.set_ylabel(f"success rate, last {window} episodes (%)")
     ax1.set_ylim(-2, 102)
@@ -434,7 +471,7 @@ def run_up(cfg: StackConfig, config_path: str | None, overrides: list[str], fres
                 snap = mon.poll()
                 if live is not None:
                     live.update(_render(snap, mon, cfg, budget_s))
-                rate = mon.success_rate(cfg.up.window_episodes)
+                rate = mon.success_rate(cfg.up.window_episodes, target_experiment(cfg))
                 if rate is not None and rate >= cfg.up.target_success:
                     reason, time_to_target = "target reached", snap.t
                     break
@@ -497,17 +534,37 @@ def _summary(
         "edge_mode": cfg.edge.mode,
         "policy_source": cfg.edge.policy_source,
         "robots": robots,
+        "target_experiment": target_experiment(cfg),
         "learner": None
         if learner is None
         else {
             "updates": learner.updates,
             "weight_version": learner.weight_version,
             "updates_per_s": round(learner.updates_per_s, 1),
-            "alpha": round(learner.alpha, 4),
+            "experiments": {
+                e.name: {
+                    "algorithm": e.algorithm,
+                    "state": e.state,
+                    "updates": e.updates,
+                    "weight_version": e.weight_version,
+                    "robots": list(e.robot_ids),
+                    "sample_errors": e.sample_errors,
+                    "scalars": {k: round(v, 4) for k, v in sorted(e.scalars.items())},
+                    "final_success_rate": _rate(
+                        [x for x in episodes if x.experiment == e.name], cfg.up.window_episodes
+                    ),
+                }
+                for e in learner.experiments
+            },
         },
         "replay_steps": final.replay.steps if final and final.replay else None,
         "exit_codes": codes,
     }
+
+
+def _rate(episodes: list[Episode], window: int) -> float | None:
+    recent = episodes[-window:]
+    return round(sum(e.success for e in recent) / len(recent), 3) if recent else None
 
 
 def _print_summary(console, summary: dict[str, Any], run_dir: Path) -> None:
@@ -523,7 +580,12 @@ def _print_summary(console, summary: dict[str, Any], run_dir: Path) -> None:
         table.add_row("success, last episodes", f"{100 * summary['final_success_rate']:.0f} %")
     if summary["learner"]:
         table.add_row("learner updates", str(summary["learner"]["updates"]))
-        table.add_row("weight version", str(summary["learner"]["weight_version"]))
+        for name, exp in summary["learner"]["experiments"].items():
+            rate = "-" if exp["final_success_rate"] is None else f"{100 * exp['final_success_rate']:.0f} %"
+            table.add_row(
+                f"experiment {name}",
+                f"{exp['algorithm']}, {exp['updates']} updates, weights v{exp['weight_version']}, success {rate}",
+            )
     for rid, st in summary["robots"].items():
         table.add_row(rid, f"{st['env_steps']} steps, {st['episodes']} episodes, policy v{st['policy_version']}")
     bad = {k: v for k, v in summary["exit_codes"].items() if v not in (0, None)}

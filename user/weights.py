@@ -298,12 +298,17 @@ class WeightAssembler:
 
 
 class WeightStore:
-    """The latest packed weight set and the streams waiting for a newer one (thread-safe)."""
+    """The latest packed weight set per experiment and the streams waiting for a newer one (thread-safe).
+
+    Each experiment has its own version sequence. Experiment "" means the first one published, and a
+    publisher that names none serves every subscriber: single-experiment clients keep working.
+    """
 
     def __init__(self, encoding: int = ENCODING_RAW) -> None:
         self.encoding = encoding
         self._cond = threading.Condition()
-        self._latest: PackedWeights | None = None
+        self._latest: dict[str, PackedWeights] = {}
+        self._default = ""
         self._closed = False
 
     def publish(
@@ -312,35 +317,56 @@ class WeightStore:
         policy: learner_pb2.PolicySpec,
         tensors: Mapping[str, np.ndarray],
         learner_updates: int = 0,
+        experiment: str = "",
     ) -> PackedWeights:
         packed = pack_weights(version, policy, tensors, learner_updates, self.encoding)  # outside the lock
-        self.publish_packed(packed)
+        self.publish_packed(packed, experiment)
         return packed
 
-    def publish_packed(self, packed: PackedWeights) -> None:
+    def publish_packed(self, packed: PackedWeights, experiment: str = "") -> None:
         with self._cond:
-            if self._latest is not None and packed.version <= self._latest.version:
-                raise ValueError(f"weight version {packed.version} is not newer than {self._latest.version}")
-            self._latest = packed
+            if not self._latest:
+                self._default = experiment
+            key = self._key(experiment)
+            latest = self._latest.get(key)
+            if latest is not None and packed.version <= latest.version:
+                raise ValueError(f"weight version {packed.version} is not newer than {latest.version}")
+            self._latest[key] = packed
             self._cond.notify_all()
 
-    def latest(self) -> PackedWeights | None:
+    def latest(self, experiment: str = "") -> PackedWeights | None:
         with self._cond:
-            return self._latest
+            return self._latest.get(self._key(experiment))
+
+    def _key(self, experiment: str) -> str:
+        if experiment in self._latest or not self._latest:
+            return experiment
+        if experiment == "" or set(self._latest) == {""}:
+            return self._default
+        return experiment
+
+    def experiments(self) -> list[str]:
+        with self._cond:
+            return sorted(self._latest)
 
     @property
     def version(self) -> int:
         latest = self.latest()
         return latest.version if latest else 0
 
-    def wait_newer(self, have_version: int, timeout: float | None) -> PackedWeights | None:
+    def wait_newer(self, have_version: int, timeout: float | None, experiment: str = "") -> PackedWeights | None:
         """The latest set if it is newer than have_version (waiting up to timeout); None on timeout/close."""
         with self._cond:
-            self._cond.wait_for(lambda: self._closed or self._newer(have_version), timeout)
-            return self._latest if self._newer(have_version) and not self._closed else None
+            self._cond.wait_for(lambda: self._closed or self._newer(have_version, experiment), timeout)
+            return (
+                self._latest.get(self._key(experiment))
+                if self._newer(have_version, experiment) and not self._closed
+                else None
+            )
 
-    def _newer(self, have_version: int) -> bool:
-        return self._latest is not None and self._latest.version > have_version
+    def _newer(self, have_version: int, experiment: str = "") -> bool:
+        latest = self._latest.get(self._key(experiment))
+        return latest is not None and latest.version > have_version
 
     def wake(self) -> None:
         """Wake waiters so they re-check their stream (e.g. a client went away)."""
@@ -393,7 +419,7 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         log.info("weight subscriber joined", extra=kv(client_id=request.client_id, have_version=have))
         try:
             while context.is_active() and not self.store.closed:
-                packed = self.store.wait_newer(have, self.poll_s)
+                packed = self.store.wait_newer(have, self.poll_s, request.experiment)
                 if packed is None:
                     continue
                 yield from iter_weight_messages(packed, chunk_bytes)
@@ -420,8 +446,10 @@ class WeightSubscriber:
         on_weights: Callable[[WeightSet], None],
         max_chunk_bytes: int = 0,
         have_version: int = 0,
+        experiment: str = "",
     ) -> None:
         self.addr, self.auth, self.client_id = addr, auth, client_id
+        self.experiment = experiment
         self.on_weights = on_weights
         self.max_chunk_bytes = max_chunk_bytes
         self._version = have_version
@@ -479,7 +507,10 @@ class WeightSubscriber:
         with rpc.make_channel(self.addr, self.auth) as channel:
             stub = learner_pb2_grpc.LearnerStub(channel)
             request = learner_pb2.SubscribeWeightsRequest(
-                client_id=self.client_id, have_version=self.version, max_chunk_bytes=self.max_chunk_bytes
+                client_id=self.client_id,
+                have_version=self.version,
+                max_chunk_bytes=self.max_chunk_bytes,
+                experiment=self.experiment,
             )
             self._call = call = stub.SubscribeWeights(request)
             self.connects += 1

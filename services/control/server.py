@@ -10,9 +10,7 @@ can keep validating steps that arrive late.
 from __future__ import annotations
 
 import logging
-import math
 import queue
-import re
 import threading
 import time
 import uuid
@@ -24,17 +22,15 @@ import grpc
 import prometheus_client
 
 from user import rpc
-from user.config import StackConfig
+from user.config import ExperimentConfig, StackConfig
+from user.experiments import experiment_for
 from user.log import kv
+from user.spec import ROBOT_ID_RE, SpecError, validate_spec
 from user.v1 import control_pb2, control_pb2_grpc, robot_pb2
-from user.v1 import tensor_pb2 as tpb
-from user.wire import WireError, dtype_from_proto
 
 log = logging.getLogger(__name__)
 
 SERVICE_NAME = control_pb2.DESCRIPTOR.services_by_name["Control"].full_name
-ROBOT_ID_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
-FLOAT_DTYPES = (tpb.DTYPE_UNSPECIFIED, tpb.DTYPE_FLOAT32, tpb.DTYPE_FLOAT64, tpb.DTYPE_FLOAT16)
 QUEUE_POLL_S = 0.25  # how often a Connect stream notices its client went away
 
 ROBOTS_ONLINE = prometheus_client.Gauge("user_control_robots_online", "Robots with a live lease")
@@ -49,59 +45,8 @@ EPISODES = prometheus_client.Counter(
 )
 
 
-class SpecError(ValueError):
-    """A registration that breaks the RobotSpec contract (-> INVALID_ARGUMENT)."""
-
-
 # --------------------------------------------------------------------------- validation
-
-
-def validate_spec(spec: robot_pb2.RobotSpec) -> None:
-    """Raise SpecError naming the robot and the offending field."""
-    rid = spec.robot_id
-    if not ROBOT_ID_RE.match(rid):
-        raise SpecError(f"robot_id {rid!r} must match {ROBOT_ID_RE.pattern}")
-    where = f"robot {rid}"
-    act = spec.action
-    if not act.shape or any(d <= 0 for d in act.shape):
-        raise SpecError(f"{where}: action.shape must be non-empty with positive dims, got {list(act.shape)}")
-    size = math.prod(act.shape)
-    if len(act.low) != size or len(act.high) != size:
-        raise SpecError(
-            f"{where}: action.low/high need {size} values for shape {list(act.shape)}, "
-            f"got {len(act.low)} and {len(act.high)}"
-        )
-    for i, (lo, hi) in enumerate(zip(act.low, act.high, strict=True)):
-        if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
-            raise SpecError(f"{where}: action bound {i} needs finite low <= high, got low={lo} high={hi}")
-    if act.names and len(act.names) != size:
-        raise SpecError(f"{where}: action.names has {len(act.names)} entries for {size} action elements")
-    if act.dtype not in FLOAT_DTYPES:
-        raise SpecError(f"{where}: action.dtype must be a float type, got {tpb.DType.Name(act.dtype)}")
-    _validate_features(where, spec.observation)
-    for cam in spec.cameras:
-        if not cam.name or cam.width <= 0 or cam.height <= 0:
-            raise SpecError(f"{where}: camera {cam.name!r} needs a name and positive width/height")
-    if not (math.isfinite(spec.control_rate_hz) and spec.control_rate_hz > 0):
-        raise SpecError(f"{where}: control_rate_hz must be > 0, got {spec.control_rate_hz}")
-
-
-def _validate_features(where: str, features: list[robot_pb2.FeatureSpec]) -> None:
-    if not features:
-        raise SpecError(f"{where}: observation needs at least one feature")
-    seen: set[str] = set()
-    for feat in features:
-        if not feat.name or feat.name in seen:
-            raise SpecError(f"{where}: observation feature names must be non-empty and unique, got {feat.name!r}")
-        seen.add(feat.name)
-        if not feat.shape or any(d <= 0 for d in feat.shape):
-            raise SpecError(
-                f"{where}: observation {feat.name!r} needs a non-empty shape with positive dims, got {list(feat.shape)}"
-            )
-        try:
-            dtype_from_proto(feat.dtype)
-        except WireError as exc:
-            raise SpecError(f"{where}: observation {feat.name!r}: {exc}") from None
+# The RobotSpec checks live in user.spec (shared with replay, inference, edge and learner).
 
 
 def validate_register(req: control_pb2.RegisterRequest) -> None:
@@ -331,9 +276,17 @@ class Registry:
 
 
 class ControlServicer(control_pb2_grpc.ControlServicer):
-    def __init__(self, registry: Registry, heartbeat_interval_s: float) -> None:
+    def __init__(
+        self, registry: Registry, heartbeat_interval_s: float, experiments: list[ExperimentConfig] | None = None
+    ) -> None:
         self.registry = registry
         self.heartbeat_interval_s = heartbeat_interval_s
+        self.experiments = experiments or []  # which experiment each robot belongs to (RobotInfo.experiment)
+
+    def _tag(self, info: control_pb2.RobotInfo) -> control_pb2.RobotInfo:
+        exp = experiment_for(info.spec, self.experiments)
+        info.experiment = exp.name if exp is not None else ""
+        return info
 
     def Connect(
         self, request_iterator: Iterator[control_pb2.EdgeMessage], context: grpc.ServicerContext
@@ -432,13 +385,14 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
     def ListRobots(
         self, request: control_pb2.ListRobotsRequest, context: grpc.ServicerContext
     ) -> control_pb2.ListRobotsResponse:
-        return control_pb2.ListRobotsResponse(robots=self.registry.list(request.include_offline))
+        robots = [self._tag(info) for info in self.registry.list(request.include_offline)]
+        return control_pb2.ListRobotsResponse(robots=robots)
 
     def GetRobot(self, request: control_pb2.GetRobotRequest, context: grpc.ServicerContext) -> control_pb2.RobotInfo:
         info = self.registry.info(request.robot_id)
         if info is None:
             context.abort(grpc.StatusCode.NOT_FOUND, f"unknown robot {request.robot_id!r}")
-        return info
+        return self._tag(info)
 
     def SendCommand(
         self, request: control_pb2.SendCommandRequest, context: grpc.ServicerContext
@@ -468,7 +422,7 @@ class ControlService(rpc.GrpcService):
         self.cfg = cfg
         c = cfg.control
         self.registry = Registry(c.lease_ttl_s, c.episodes_kept)
-        self.servicer = ControlServicer(self.registry, c.heartbeat_interval_s)
+        self.servicer = ControlServicer(self.registry, c.heartbeat_interval_s, cfg.resolved_experiments())
         self.start_metrics = start_metrics
         self.running: rpc.RunningServer | None = None
         self._stop = threading.Event()

@@ -24,6 +24,7 @@ import prometheus_client
 from services.inference.batcher import ActResult, MicroBatcher, NoPolicyError
 from user import rpc, wire
 from user.config import ConfigError, StackConfig
+from user.experiments import embodiment_inputs, fit_action
 from user.log import kv
 from user.policy import Policy, build_policy, check_device
 from user.v1 import inference_pb2, inference_pb2_grpc
@@ -59,7 +60,7 @@ def _observe_batch(size: int, compute_s: float) -> None:
 
 def validate_observation(observation: Mapping[str, np.ndarray], policy: Policy) -> dict[str, np.ndarray]:
     """Keep the keys the policy reads, as float32 (uint8 images stay uint8); ValueError on a mismatch."""
-    keys: list[str] = list(getattr(policy, "obs_keys", None) or observation)
+    keys: list[str] = list(policy.observation_keys or observation)
     missing = [k for k in keys if k not in observation]
     if missing:
         raise ValueError(f"observation lacks {missing}; the policy reads {keys}")
@@ -80,6 +81,110 @@ def validate_observation(observation: Mapping[str, np.ndarray], policy: Policy) 
     return out
 
 
+class RoutingError(LookupError):
+    """An Act for a robot no experiment trains (-> FAILED_PRECONDITION), or Control unreachable (-> UNAVAILABLE)."""
+
+    def __init__(self, code: grpc.StatusCode, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+class PolicySlot:
+    """One experiment's served policy: its weight subscriber, its micro-batcher and the current policy."""
+
+    def __init__(self, service: InferenceService, experiment: str) -> None:
+        icfg = service.cfg.inference
+        self.service, self.experiment = service, experiment
+        self.batcher = MicroBatcher(
+            icfg.max_batch, icfg.max_wait_ms, on_batch=_observe_batch, name=f"inference-batch-{experiment}"
+        )
+        self.policy: Policy | None = None
+        self.subscriber: WeightSubscriber | None = None
+        self._load_lock = threading.Lock()
+
+    def load_weights(self, weights: WeightSet) -> Policy:
+        """Rebuild the policy from a weight set and serve it; raises ValueError (keeping the old one) if bad."""
+        start = time.perf_counter()
+        policy = build_policy(weights.policy, weights.tensors, weights.version, self.service.cfg.inference.device)
+        with self._load_lock:
+            self.policy = policy
+            self.batcher.set_policy(policy.act, policy.version)
+        WEIGHT_UPDATES.inc()
+        POLICY_VERSION.set(policy.version)
+        log.info(
+            "policy loaded",
+            extra=kv(
+                experiment=self.experiment,
+                version=policy.version,
+                kind=weights.policy.kind,
+                build_ms=round((time.perf_counter() - start) * 1e3, 2),
+            ),
+        )
+        return policy
+
+
+class Router:
+    """robot_id -> experiment: from Control's ListRobots and the experiments' selectors, cached; an
+    unknown robot refreshes the cache (at most every REFRESH_S). One experiment needs no Control."""
+
+    REFRESH_S = 1.0
+
+    def __init__(self, cfg: StackConfig) -> None:
+        self.cfg = cfg
+        self.experiments = cfg.resolved_experiments()
+        self._routes: dict[str, tuple[str, str]] = {}  # robot_id -> (experiment, robot kind)
+        self._lock = threading.Lock()
+        self._refreshed = 0.0
+        self._channel: grpc.Channel | None = None
+
+    def route(self, robot_id: str) -> tuple[str, str]:
+        """(experiment, robot kind); the kind is "" when one experiment of one embodiment needs no lookup."""
+        if len(self.experiments) == 1 and not self.experiments[0].shared_embodiment:
+            return self.experiments[0].name, ""
+        with self._lock:
+            route = self._routes.get(robot_id)
+            refresh = route is None and time.monotonic() - self._refreshed >= self.REFRESH_S
+            if refresh:
+                self._refreshed = time.monotonic()
+        if refresh:  # outside the lock: known robots keep being served while Control answers
+            self._refresh()
+            with self._lock:
+                route = self._routes.get(robot_id)
+        if route is None:
+            raise RoutingError(
+                grpc.StatusCode.FAILED_PRECONDITION, f"robot {robot_id!r} is in no experiment (unknown to control?)"
+            )
+        return route
+
+    def _refresh(self) -> None:
+        from user.experiments import experiment_for
+        from user.v1 import control_pb2, control_pb2_grpc
+
+        with self._lock:
+            if self._channel is None:
+                self._channel = rpc.make_channel(self.cfg.inference.control_addr, self.cfg.auth)
+            channel = self._channel
+        try:
+            resp = control_pb2_grpc.ControlStub(channel).ListRobots(
+                control_pb2.ListRobotsRequest(include_offline=True), timeout=2.0
+            )
+        except grpc.RpcError as err:
+            raise RoutingError(
+                grpc.StatusCode.UNAVAILABLE, f"control unreachable for routing: {err.code().name}"
+            ) from None
+        routes = {}
+        for info in resp.robots:
+            exp = experiment_for(info.spec, self.experiments)
+            if exp is not None:
+                routes[info.spec.robot_id] = (exp.name, info.spec.kind)
+        with self._lock:
+            self._routes.update(routes)
+
+    def close(self) -> None:
+        if self._channel is not None:
+            self._channel.close()
+
+
 class InferenceServicer(inference_pb2_grpc.InferenceServicer):
     def __init__(self, service: InferenceService) -> None:
         self.service = service
@@ -90,15 +195,21 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
         context.abort(code, message)
 
     def Act(self, request: inference_pb2.ActRequest, context: grpc.ServicerContext) -> inference_pb2.ActResponse:
-        policy = self.service.policy
+        try:
+            experiment, kind = self.service.router.route(request.robot_id)
+        except RoutingError as exc:
+            self._abort(context, exc.code, str(exc))
+        slot = self.service.slots[experiment]
+        policy = slot.policy
         if policy is None:
             self._abort(context, grpc.StatusCode.UNAVAILABLE, "no policy yet")
         try:
-            obs = validate_observation(wire.from_tensor_map(request.observation), policy)
+            raw = embodiment_inputs(policy, kind, wire.from_tensor_map(request.observation))
+            obs = validate_observation(raw, policy)
         except ValueError as exc:  # WireError is a ValueError
             self._abort(context, grpc.StatusCode.INVALID_ARGUMENT, f"bad observation: {exc}")
         try:
-            future = self.service.batcher.submit(obs, request.deterministic, key=request.robot_id)
+            future = slot.batcher.submit(obs, request.deterministic, key=request.robot_id)
         except NoPolicyError:
             self._abort(context, grpc.StatusCode.UNAVAILABLE, "no policy yet")
         remaining = context.time_remaining()
@@ -115,7 +226,7 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
         REQUESTS.labels("OK").inc()
         QUEUE_SECONDS.observe(result.queue_us / 1e6)
         return inference_pb2.ActResponse(
-            action=wire.to_tensor(np.asarray(result.action, dtype=np.float32)),
+            action=wire.to_tensor(np.asarray(fit_action(policy, kind, result.action), dtype=np.float32)),
             policy_version=result.version,
             queue_us=result.queue_us,
             compute_us=result.compute_us,
@@ -126,20 +237,25 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
         self, request: inference_pb2.InferenceStatusRequest, context: grpc.ServicerContext
     ) -> inference_pb2.InferenceStatus:
         policy = self.service.policy
-        batcher = self.service.batcher
+        slots = self.service.slots.values()
+        requests = sum(s.batcher.requests for s in slots)
+        batches = sum(s.batcher.batches for s in slots)
         return inference_pb2.InferenceStatus(
             policy_version=policy.version if policy else 0,
             policy_kind=policy.spec.kind if policy else "",
-            requests=batcher.requests,
-            mean_batch_size=batcher.mean_batch_size,
+            requests=requests,
+            mean_batch_size=requests / batches if batches else 0.0,
         )
 
 
 class InferenceService(rpc.GrpcService):
     """In-process inference server: start() binds (port 0 works), stop() drains and shuts down.
 
-    policy_source: "learner" (default, also None) streams weights from cfg.inference.learner_addr;
-    "manual" waits for load_weights() calls (tests, or a caller with its own weight source).
+    One policy per experiment of the stack config, each with its own weight stream and batcher; an
+    Act goes to its robot's experiment. policy_source: "learner" (default, also None) streams weights
+    from cfg.inference.learner_addr; "manual" waits for load_weights() calls (tests, or a caller with
+    its own weight source). `policy`, `batcher` and `load_weights` without an experiment are the first
+    experiment's.
     """
 
     def __init__(
@@ -153,40 +269,37 @@ class InferenceService(rpc.GrpcService):
         if self.policy_source not in ("learner", "manual"):
             raise ValueError(f"policy_source must be 'learner' or 'manual', got {policy_source!r}")
         self.start_metrics = start_metrics
-        icfg = cfg.inference
-        self.batcher = MicroBatcher(icfg.max_batch, icfg.max_wait_ms, on_batch=_observe_batch, name="inference-batch")
-        self._policy: Policy | None = None
-        self._load_lock = threading.Lock()
-        self.subscriber: WeightSubscriber | None = None
+        self.router = Router(cfg)
+        self.slots = {e.name: PolicySlot(self, e.name) for e in self.router.experiments}
+        self._first = next(iter(self.slots.values()))
         self.running: rpc.RunningServer | None = None
         try:
-            check_device(icfg.device)
+            check_device(cfg.inference.device)
         except ValueError as exc:
             raise ConfigError(f"inference.device: {exc}") from None
 
     @property
     def policy(self) -> Policy | None:
-        return self._policy
+        return self._first.policy
 
-    def load_weights(self, weights: WeightSet) -> Policy:
-        """Rebuild the policy from a weight set and serve it; raises ValueError (keeping the old one) if bad."""
-        start = time.perf_counter()
-        policy = build_policy(weights.policy, weights.tensors, weights.version, self.cfg.inference.device)
-        with self._load_lock:
-            self._policy = policy
-            self.batcher.set_policy(policy.act, policy.version)
-        WEIGHT_UPDATES.inc()
-        POLICY_VERSION.set(policy.version)
-        log.info(
-            "policy loaded",
-            extra=kv(
-                version=policy.version, kind=weights.policy.kind, build_ms=round((time.perf_counter() - start) * 1e3, 2)
-            ),
-        )
-        return policy
+    @property
+    def batcher(self) -> MicroBatcher:
+        return self._first.batcher
+
+    @property
+    def subscriber(self) -> WeightSubscriber | None:
+        return self._first.subscriber
+
+    def slot_for(self, robot_id: str) -> PolicySlot:
+        return self.slots[self.router.route(robot_id)[0]]
+
+    def load_weights(self, weights: WeightSet, experiment: str = "") -> Policy:
+        slot = self.slots[experiment] if experiment else self._first
+        return slot.load_weights(weights)
 
     def start(self) -> InferenceService:
-        self.batcher.start()
+        for slot in self.slots.values():
+            slot.batcher.start()
         self.running = rpc.start_server(
             "inference",
             lambda server: inference_pb2_grpc.add_InferenceServicer_to_server(InferenceServicer(self), server),
@@ -196,12 +309,14 @@ class InferenceService(rpc.GrpcService):
             start_metrics=self.start_metrics,
         )
         if self.policy_source == "learner":
-            self.subscriber = WeightSubscriber(
-                self.cfg.inference.learner_addr,
-                self.cfg.auth,
-                client_id=f"inference-{socket.gethostname()}-{self.running.port}",
-                on_weights=self.load_weights,
-            ).start()
+            for name, slot in self.slots.items():
+                slot.subscriber = WeightSubscriber(
+                    self.cfg.inference.learner_addr,
+                    self.cfg.auth,
+                    client_id=f"inference-{socket.gethostname()}-{self.running.port}-{name}",
+                    on_weights=slot.load_weights,
+                    experiment=name,
+                ).start()
         return self
 
     def stop(self) -> None:
@@ -209,10 +324,12 @@ class InferenceService(rpc.GrpcService):
         if self.running is not None:
             self.running.stop()
             self.running = None
-        if self.subscriber is not None:
-            self.subscriber.stop()
-            self.subscriber = None
-        self.batcher.stop()
+        for slot in self.slots.values():
+            if slot.subscriber is not None:
+                slot.subscriber.stop()
+                slot.subscriber = None
+            slot.batcher.stop()
+        self.router.close()
 
 
 def run(cfg: StackConfig, ready_file: str | None) -> int:

@@ -1,0 +1,135 @@
+"""Per-experiment weights: the store keeps one version sequence per experiment, local edge copies subscribe
+to their robot's experiment (by labels), and a real weight server delivers each its own weights."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import torch
+
+from edge_agent.policy_source import LocalPolicy, RoutedPolicy, make_policy_source
+from tests import helpers
+from tests.helpers import wait_for
+from user import rpc
+from user.config import AuthConfig, ServerConfig, StackConfig
+from user.v1 import learner_pb2_grpc, robot_pb2
+from user.weights import WeightServicer, WeightStore
+
+torch.set_num_threads(1)
+
+AUTH = AuthConfig(token="test-token")
+
+
+def actor(obs_dim: int, action_dim: int) -> dict:
+    return {
+        "obs_keys": ["state"],
+        "obs_dim": obs_dim,
+        "action_dim": action_dim,
+        "hidden": [8],
+        "action_low": [-1.0] * action_dim,
+        "action_high": [1.0] * action_dim,
+    }
+
+
+arm_weights = functools.partial(helpers.random_weights, actor(15, 3))
+panda_weights = functools.partial(helpers.random_weights, actor(21, 7))
+
+
+def test_store_keeps_one_version_sequence_per_experiment() -> None:
+    store = WeightStore()
+    a1 = arm_weights(1)
+    store.publish(1, a1.policy, a1.tensors, experiment="reach")
+    for version in (1, 2):
+        w = panda_weights(version)
+        store.publish(version, w.policy, w.tensors, experiment="pick")
+    assert store.latest("reach").version == 1 and store.latest("pick").version == 2
+    assert store.latest().version == 1  # "" = the first experiment published
+    assert store.wait_newer(0, 0.01, "pick").version == 2
+    assert store.wait_newer(1, 0.01, "reach") is None
+    assert store.experiments() == ["pick", "reach"]
+
+
+def test_local_copies_follow_their_robots_experiment() -> None:
+    cfg = StackConfig.model_validate(
+        {
+            "auth": AUTH.model_dump(),
+            "experiments": [
+                {"name": "reach", "robots": {"labels": {"arm": "sim"}}},
+                {"name": "pick", "robots": {"labels": {"arm": "panda"}}},
+            ],
+        }
+    )
+    store = WeightStore()
+    server = rpc.start_server(
+        "learner-weights",
+        lambda s: learner_pb2_grpc.add_LearnerServicer_to_server(WeightServicer(store, poll_s=0.1), s),
+        ["user.v1.Learner"],
+        ServerConfig(port=0, metrics_port=0, grace_s=0.2),
+        AUTH,
+        start_metrics=False,
+    )
+    cfg.edge.learner_addr, cfg.edge.policy_source = server.address(), "local"
+    specs = [
+        robot_pb2.RobotSpec(robot_id="arm-0", kind="sim_reach_arm", labels={"arm": "sim"}),
+        robot_pb2.RobotSpec(robot_id="panda-0", kind="gym_hil_panda", labels={"arm": "panda"}),
+    ]
+    source = make_policy_source(cfg, "edge-0", specs)
+    try:
+        assert isinstance(source, RoutedPolicy)
+        assert {rid: s._subscriber.experiment for rid, s in source.routes.items()} == {  # type: ignore[attr-defined]
+            "arm-0": "reach",
+            "panda-0": "pick",
+        }
+        a, p = arm_weights(4), panda_weights(9)
+        store.publish(4, a.policy, a.tensors, experiment="reach")
+        store.publish(9, p.policy, p.tensors, experiment="pick")
+        arm = wait_for(lambda: source.act("arm-0", {"state": np.zeros(15, np.float32)}, 5.0), "arm action")
+        panda = wait_for(lambda: source.act("panda-0", {"state": np.zeros(21, np.float32)}, 5.0), "panda action")
+        assert (arm[0].shape, arm[1]) == ((3,), 4)
+        assert (panda[0].shape, panda[1]) == ((7,), 9)
+        assert all(isinstance(s, LocalPolicy) for s in source.routes.values())
+    finally:
+        source.close()
+        store.close()
+        server.stop()
+
+
+def test_inference_routes_by_robot_and_says_why_it_cannot() -> None:
+    import grpc
+    import pytest
+
+    from services.control.server import ControlService
+    from services.inference.server import InferenceService
+    from user import wire
+    from user.v1 import inference_pb2, inference_pb2_grpc
+
+    cfg = StackConfig.model_validate(
+        {
+            "auth": AUTH.model_dump(),
+            "experiments": [{"name": "reach", "robots": {"kinds": ["sim_reach_arm"]}}, {"name": "pick"}],
+        }
+    )
+    for section in (cfg.control, cfg.inference):
+        section.server.port, section.server.metrics_port, section.server.grace_s = 0, 0, 0.2
+    cfg.inference.control_addr = f"127.0.0.1:{helpers.free_port()}"  # nothing there yet
+    inference = InferenceService(cfg, policy_source="manual", start_metrics=False).start()
+    stub = inference_pb2_grpc.InferenceStub(rpc.make_channel(inference.address, AUTH))
+    request = inference_pb2.ActRequest(
+        robot_id="arm-0", observation=wire.to_tensor_map({"state": np.zeros(15, np.float32)})
+    )
+    control = None
+    try:
+        with pytest.raises(grpc.RpcError) as err:
+            stub.Act(request, timeout=5)
+        assert err.value.code() == grpc.StatusCode.UNAVAILABLE and "control unreachable" in err.value.details()
+        control = ControlService(cfg, start_metrics=False).start()
+        inference.router.cfg.inference.control_addr = control.address
+        inference.router._channel, inference.router._refreshed = None, 0.0
+        with pytest.raises(grpc.RpcError) as err:
+            stub.Act(request, timeout=5)
+        assert err.value.code() == grpc.StatusCode.FAILED_PRECONDITION and "no experiment" in err.value.details()
+    finally:
+        inference.stop()
+        if control is not None:
+            control.stop()

@@ -1,0 +1,204 @@
+"""Experiments: which robot trains what, and the tensor layout an experiment's robots imply.
+
+Control, the learner, inference and edges all answer "which experiment is this robot in?" the same
+way: the first experiment in the config whose selector (kinds, labels, ids) holds for the robot's
+spec. The learner derives each experiment's `Layout` from its robots' specs; robots of different
+shapes share one policy only when the experiment says `shared_embodiment: true`: state features and
+actions are then padded to the largest robot's size, an `embodiment` one-hot feature says which
+robot kind a row came from, and an action mask marks the real action dims (RLinf-USER's approach).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from user import spec as contract
+from user.config import ExperimentConfig, RobotSelector, StackConfig
+from user.v1 import robot_pb2
+
+if TYPE_CHECKING:  # torch-free for control and edges
+    from cloud_learner.algorithm import Layout
+
+EMBODIMENT_KEY = "embodiment"  # the one-hot feature a shared-embodiment layout adds
+
+
+class LayoutError(ValueError):
+    """An experiment's robots cannot share one layout (different shapes without shared_embodiment)."""
+
+
+def matches(selector: RobotSelector, spec: robot_pb2.RobotSpec) -> bool:
+    if selector.kinds and spec.kind not in selector.kinds:
+        return False
+    if selector.ids and spec.robot_id not in selector.ids:
+        return False
+    return all(spec.labels.get(k) == v for k, v in selector.labels.items())
+
+
+def experiment_for(spec: robot_pb2.RobotSpec, experiments: Sequence[ExperimentConfig]) -> ExperimentConfig | None:
+    """The first experiment whose selector holds for `spec` (None: the robot is not trained)."""
+    return next((e for e in experiments if matches(e.robots, spec)), None)
+
+
+def experiment_name(spec: robot_pb2.RobotSpec, cfg: StackConfig) -> str:
+    exp = experiment_for(spec, cfg.resolved_experiments())
+    return exp.name if exp is not None else ""
+
+
+def assign(
+    specs: Iterable[robot_pb2.RobotSpec], experiments: Sequence[ExperimentConfig]
+) -> dict[str, list[robot_pb2.RobotSpec]]:
+    """experiment name -> its robots' specs (every experiment present, possibly with no robots)."""
+    out: dict[str, list[robot_pb2.RobotSpec]] = {e.name: [] for e in experiments}
+    for spec in specs:
+        exp = experiment_for(spec, experiments)
+        if exp is not None:
+            out[exp.name].append(spec)
+    return out
+
+
+def ready(exp: ExperimentConfig, specs: Sequence[robot_pb2.RobotSpec]) -> bool:
+    """Enough robots to fix the layout: one at least, and for a shared embodiment one of every listed kind."""
+    if not specs:
+        return False
+    if exp.shared_embodiment and exp.robots.kinds:
+        return set(exp.robots.kinds) <= {s.kind for s in specs}
+    return True
+
+
+def _flat(shape: Sequence[int]) -> int:
+    return int(math.prod(shape)) if shape else 1
+
+
+def layout_for(exp: ExperimentConfig, specs: Sequence[robot_pb2.RobotSpec]) -> Layout:
+    """The Layout of `exp`'s transitions; LayoutError names the robots that do not fit."""
+    from cloud_learner.algorithm import Feature, Layout
+
+    if not specs:
+        raise LayoutError(f"experiment {exp.name}: no robots")
+    first = specs[0]
+    feats0 = contract.features(first)
+    low0, high0 = (a.reshape(-1) for a in contract.action_bounds(first))
+    if not exp.shared_embodiment:
+        for spec in specs[1:]:
+            low, high = (a.reshape(-1) for a in contract.action_bounds(spec))
+            same = contract.features(spec) == feats0 and low.shape == low0.shape
+            if not same or not (np.allclose(low, low0) and np.allclose(high, high0)):
+                raise LayoutError(
+                    f"experiment {exp.name}: robots {first.robot_id} ({first.kind}) and {spec.robot_id} ({spec.kind}) "
+                    "have different observations or actions; put them in separate experiments or set "
+                    "shared_embodiment: true"
+                )
+        observation = {k: Feature(f.shape, f.dtype, f.is_image) for k, f in feats0.items()}
+        return Layout(observation, low0.astype(np.float32), high0.astype(np.float32))
+
+    kinds = sorted({s.kind for s in specs})
+    state: dict[str, int] = {}
+    images: dict[str, tuple[tuple[int, ...], str]] = {}
+    action_dim = 0
+    for spec in specs:
+        for name, f in contract.features(spec).items():
+            if f.is_image:
+                if images.setdefault(name, (f.shape, f.dtype)) != (f.shape, f.dtype):
+                    raise LayoutError(
+                        f"experiment {exp.name}: image {name!r} of {spec.robot_id} is {f.shape} {f.dtype}, "
+                        f"others have {images[name]}; shared embodiments pad state, not images"
+                    )
+            else:
+                state[name] = max(state.get(name, 0), _flat(f.shape))
+        action_dim = max(action_dim, contract.action_dim(spec))
+    for spec in specs:
+        lacking = sorted(set(images) - set(contract.features(spec)))
+        if lacking:
+            raise LayoutError(
+                f"experiment {exp.name}: {spec.robot_id} has no image {lacking}; shared embodiments pad state, "
+                "every robot needs the same images"
+            )
+    if EMBODIMENT_KEY in state or EMBODIMENT_KEY in images:
+        raise LayoutError(f"experiment {exp.name}: feature name {EMBODIMENT_KEY!r} is reserved")
+    observation = {k: Feature((n,), "float32") for k, n in state.items()}
+    observation.update({k: Feature(shape, dtype, True) for k, (shape, dtype) in images.items()})
+    observation[EMBODIMENT_KEY] = Feature((len(kinds),), "float32")
+    # Each dim spans every embodiment's range; dims no robot has get [-1, 1] (the mask drops them).
+    low = np.full(action_dim, np.inf, np.float32)
+    high = np.full(action_dim, -np.inf, np.float32)
+    for spec in specs:
+        lo, hi = (a.reshape(-1) for a in contract.action_bounds(spec))
+        low[: lo.size] = np.minimum(low[: lo.size], lo)
+        high[: hi.size] = np.maximum(high[: hi.size], hi)
+    low[~np.isfinite(low)], high[~np.isfinite(high)] = -1.0, 1.0
+    return Layout(observation, low, high, embodiments=tuple(kinds))
+
+
+# --------------------------------------------------------------------------- padding (shared embodiment)
+
+
+def pad_observation(
+    layout: Layout, kind: str, observation: Mapping[str, np.ndarray], batch: int
+) -> dict[str, np.ndarray]:
+    """A robot's batched features (B, ...) -> the layout's: state flattened and zero-padded, one-hot embodiment."""
+    out: dict[str, np.ndarray] = {}
+    for name, feat in layout.observation.items():
+        if name == EMBODIMENT_KEY:
+            onehot = np.zeros((batch, feat.shape[0]), np.float32)
+            onehot[:, layout.embodiments.index(kind)] = 1.0
+            out[name] = onehot
+        elif feat.is_image:
+            if name not in observation:
+                raise LayoutError(f"robot kind {kind} has no image {name!r} the layout needs")
+            out[name] = np.asarray(observation[name])
+        else:
+            padded = np.zeros((batch, feat.shape[0]), np.float32)
+            if name in observation:
+                flat = np.asarray(observation[name], np.float32).reshape(batch, -1)
+                padded[:, : flat.shape[1]] = flat
+            out[name] = padded
+    return out
+
+
+def pad_action(action: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """(B, a) -> (B, width) zero-padded actions and the (B, width) bool mask of real dims."""
+    batch, a = action.shape[0], int(np.prod(action.shape[1:])) if action.ndim > 1 else 1
+    padded = np.zeros((batch, width), np.float32)
+    padded[:, :a] = action.reshape(batch, a)
+    mask = np.zeros((batch, width), bool)
+    mask[:, :a] = True
+    return padded, mask
+
+
+# --------------------------------------------------------------------------- acting with a shared policy
+
+
+def embodiment_inputs(policy: object, kind: str, observation: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """One robot's unbatched observation, plus its embodiment index when the policy spans embodiments."""
+    embodiments = getattr(policy, "embodiments", None)
+    if not embodiments:
+        return dict(observation)
+    if kind not in embodiments:
+        raise ValueError(f"robot kind {kind!r} is not one of the policy's embodiments {list(embodiments)}")
+    return {**observation, EMBODIMENT_KEY: np.asarray(embodiments.index(kind), np.int64)}
+
+
+def fit_action(policy: object, kind: str, action: np.ndarray) -> np.ndarray:
+    """Cut a padded action (or chunk) back to this robot kind's action dims."""
+    dims = getattr(policy, "action_dims", None)
+    if not dims or kind not in dims:
+        return action
+    return np.asarray(action)[..., : dims[kind]]
+
+
+# --------------------------------------------------------------------------- plug-in checks at start
+
+
+def check_plugins(experiments: Sequence[ExperimentConfig]) -> None:
+    """Validate every experiment's algorithm and policy params (PluginError names experiments[i]...)."""
+    from cloud_learner.algorithm import ALGORITHMS
+    from user.policy import POLICIES
+
+    for i, exp in enumerate(experiments):
+        ALGORITHMS.params(exp.algorithm.kind, exp.algorithm.params, where=f"experiments[{i}].algorithm.params")
+        if exp.policy is not None:
+            POLICIES.params(exp.policy.kind, exp.policy.params, where=f"experiments[{i}].policy.params")

@@ -1,0 +1,1 @@
+"""Built-in policy kinds: each module registers with user.policy.POLICIES (found without an import list)."""

@@ -1,0 +1,273 @@
+"""The RobotSpec contract, in one place: every organ checks robots, steps, observations and actions here.
+
+A RobotSpec (user/v1/robot.proto) is what a robot promises: its action space with limits and its
+observation features with dtype and shape. Control validates the spec at registration
+(`validate_spec`), replay validates each step against it (`validate_step`), the edge clips every
+action to it (`clip_action`), inference checks observations (`check_observation`) and the learner
+derives its tensor layout from it (`features`, `action_bounds`). Errors name the field.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from user import wire
+from user.v1 import robot_pb2, step_pb2
+from user.v1 import tensor_pb2 as tpb
+
+ROBOT_ID_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
+FLOAT_DTYPES = (tpb.DTYPE_UNSPECIFIED, tpb.DTYPE_FLOAT32, tpb.DTYPE_FLOAT64, tpb.DTYPE_FLOAT16)
+# The edge clips every action; beyond float noise an out-of-range action is a bug upstream.
+ACTION_ATOL = 1e-4
+ACTION_RTOL = 1e-6
+MAX_EPISODE_ID_BYTES = 256  # keys stay well under LMDB's 511-byte limit
+MAX_ROBOT_ID_BYTES = 128
+
+
+class SpecError(ValueError):
+    """A RobotSpec that breaks the contract (-> INVALID_ARGUMENT at registration)."""
+
+
+class StepError(wire.WireError):
+    """A step or observation that breaks its robot's spec; `reason` labels the rejected-steps metric."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+# --------------------------------------------------------------------------- the spec itself
+
+
+def validate_spec(spec: robot_pb2.RobotSpec) -> None:
+    """Raise SpecError naming the robot and the offending field."""
+    rid = spec.robot_id
+    if not ROBOT_ID_RE.match(rid):
+        raise SpecError(f"robot_id {rid!r} must match {ROBOT_ID_RE.pattern}")
+    where = f"robot {rid}"
+    act = spec.action
+    if not act.shape or any(d <= 0 for d in act.shape):
+        raise SpecError(f"{where}: action.shape must be non-empty with positive dims, got {list(act.shape)}")
+    size = math.prod(act.shape)
+    if len(act.low) != size or len(act.high) != size:
+        raise SpecError(
+            f"{where}: action.low/high need {size} values for shape {list(act.shape)}, "
+            f"got {len(act.low)} and {len(act.high)}"
+        )
+    for i, (lo, hi) in enumerate(zip(act.low, act.high, strict=True)):
+        if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
+            raise SpecError(f"{where}: action bound {i} needs finite low <= high, got low={lo} high={hi}")
+    if act.names and len(act.names) != size:
+        raise SpecError(f"{where}: action.names has {len(act.names)} entries for {size} action elements")
+    if act.dtype not in FLOAT_DTYPES:
+        raise SpecError(f"{where}: action.dtype must be a float type, got {tpb.DType.Name(act.dtype)}")
+    validate_features(where, spec.observation)
+    for cam in spec.cameras:
+        if not cam.name or cam.width <= 0 or cam.height <= 0:
+            raise SpecError(f"{where}: camera {cam.name!r} needs a name and positive width/height")
+    if not (math.isfinite(spec.control_rate_hz) and spec.control_rate_hz > 0):
+        raise SpecError(f"{where}: control_rate_hz must be > 0, got {spec.control_rate_hz}")
+
+
+def validate_features(where: str, features: Sequence[robot_pb2.FeatureSpec]) -> None:
+    if not features:
+        raise SpecError(f"{where}: observation needs at least one feature")
+    seen: set[str] = set()
+    for feat in features:
+        if not feat.name or feat.name in seen:
+            raise SpecError(f"{where}: observation feature names must be non-empty and unique, got {feat.name!r}")
+        seen.add(feat.name)
+        if not feat.shape or any(d <= 0 for d in feat.shape):
+            raise SpecError(
+                f"{where}: observation {feat.name!r} needs a non-empty shape with positive dims, got {list(feat.shape)}"
+            )
+        try:
+            wire.dtype_from_proto(feat.dtype)
+        except wire.WireError as exc:
+            raise SpecError(f"{where}: observation {feat.name!r}: {exc}") from None
+
+
+# --------------------------------------------------------------------------- layout
+
+
+@dataclass(frozen=True)
+class FeatureInfo:
+    shape: tuple[int, ...]
+    dtype: str  # numpy dtype name ("float32", "uint8", ...)
+    is_image: bool
+
+
+def features(spec: robot_pb2.RobotSpec) -> dict[str, FeatureInfo]:
+    """The observation layout a spec declares: name -> shape, numpy dtype, image or not."""
+    return {
+        f.name: FeatureInfo(tuple(int(d) for d in f.shape), wire.dtype_from_proto(f.dtype).name, bool(f.is_image))
+        for f in spec.observation
+    }
+
+
+def action_dim(spec: robot_pb2.RobotSpec) -> int:
+    return int(math.prod(spec.action.shape)) if spec.action.shape else 0
+
+
+# --------------------------------------------------------------------------- actions
+
+
+def action_bounds(spec: robot_pb2.RobotSpec) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high) float32 arrays shaped like the action."""
+    shape = tuple(spec.action.shape)
+    low = np.asarray(spec.action.low, dtype=np.float32).reshape(shape)
+    high = np.asarray(spec.action.high, dtype=np.float32).reshape(shape)
+    return low, high
+
+
+def clip_action(spec: robot_pb2.RobotSpec, action: np.ndarray) -> np.ndarray:
+    """Clip to declared limits; NaN/Inf become the hold value 0 clipped into range."""
+    low, high = action_bounds(spec)
+    act = np.asarray(action, dtype=np.float32).reshape(low.shape)
+    act = np.where(np.isfinite(act), act, 0.0)
+    return np.clip(act, low, high).astype(np.float32)
+
+
+def hold_action(spec: robot_pb2.RobotSpec) -> np.ndarray:
+    """The action that keeps the robot still: zero, clipped into range."""
+    return clip_action(spec, np.zeros(action_bounds(spec)[0].shape, np.float32))
+
+
+# --------------------------------------------------------------------------- observations and steps
+
+
+def _dtype_name(code: int) -> str:
+    return wire.dtype_name(code) if code in tpb.DType.values() else str(code)
+
+
+def check_observation(
+    where: str, observation: Mapping[str, np.ndarray], spec_features: Sequence[robot_pb2.FeatureSpec]
+) -> None:
+    """Decoded arrays (no batch dim) against the spec: same names, dtype, shape; finite unless allowed."""
+    wanted = {f.name for f in spec_features}
+    if set(observation) != wanted:
+        missing, extra = sorted(wanted - set(observation)), sorted(set(observation) - wanted)
+        raise StepError("keys", f"{where}: keys do not match the spec (missing {missing}, extra {extra})")
+    for feat in spec_features:
+        arr = np.asarray(observation[feat.name])
+        name = f"{where}[{feat.name!r}]"
+        want = wire.dtype_from_proto(feat.dtype)
+        if arr.dtype != want:
+            raise StepError("dtype", f"{name}: dtype {arr.dtype.name}, spec says {want.name}")
+        if tuple(arr.shape) != tuple(feat.shape):
+            raise StepError("shape", f"{name}: shape {list(arr.shape)}, spec says {list(feat.shape)}")
+        if not feat.allow_nan and arr.dtype.kind == "f" and not np.isfinite(arr).all():
+            raise StepError("non_finite", f"{name}: NaN or Inf where the spec does not allow it")
+
+
+def check_tensor_map(where: str, tmap: tpb.TensorMap, spec_features: Sequence[robot_pb2.FeatureSpec]) -> None:
+    """Wire tensors against the spec (checked before decoding: names, dtype, shape, then finiteness)."""
+    given = set(tmap.tensors)
+    wanted = {f.name for f in spec_features}
+    if given != wanted:
+        missing, extra = sorted(wanted - given), sorted(given - wanted)
+        raise StepError(
+            "keys", f"{where}: keys {sorted(given)} do not match the spec (missing {missing}, extra {extra})"
+        )
+    for feat in spec_features:
+        tensor = tmap.tensors[feat.name]
+        name = f"{where}[{feat.name!r}]"
+        if tensor.dtype != feat.dtype:
+            raise StepError("dtype", f"{name}: dtype {_dtype_name(tensor.dtype)}, spec says {_dtype_name(feat.dtype)}")
+        if tuple(tensor.shape) != tuple(feat.shape):
+            raise StepError("shape", f"{name}: shape {list(tensor.shape)}, spec says {list(feat.shape)}")
+        array = _decode(name, tensor)
+        if not feat.allow_nan and array.dtype.kind == "f" and not np.isfinite(array).all():
+            raise StepError("non_finite", f"{name}: NaN or Inf where the spec does not allow it")
+
+
+def _decode(where: str, tensor: tpb.Tensor) -> np.ndarray:
+    try:
+        return wire.from_tensor(tensor)  # checks the byte count against dtype x shape
+    except wire.WireError as exc:
+        raise StepError("decode", f"{where}: {exc}") from None
+
+
+def _check_id(field: str, value: str, limit: int) -> None:
+    if not value:
+        raise StepError(field, f"{field} is empty")
+    if "/" in value or "\0" in value:
+        raise StepError(field, f"{field} {value!r} must not contain '/' or NUL")
+    if len(value.encode()) > limit:
+        raise StepError(field, f"{field} is longer than {limit} bytes")
+
+
+class ActionCheck:
+    """What one spec implies for actions, computed once per spec instead of once per step."""
+
+    def __init__(self, spec: robot_pb2.RobotSpec) -> None:
+        act = spec.action
+        self.dtype = act.dtype or tpb.DTYPE_FLOAT32
+        self.shape = tuple(act.shape)
+        size = math.prod(self.shape) if self.shape else 0
+        self.bounded = len(act.low) == size and len(act.high) == size
+        self.low = np.asarray(act.low, np.float64)
+        self.high = np.asarray(act.high, np.float64)
+        self.low_limit = self.low - (ACTION_ATOL + ACTION_RTOL * np.abs(self.low))
+        self.high_limit = self.high + (ACTION_ATOL + ACTION_RTOL * np.abs(self.high))
+
+    def __call__(self, tensor: tpb.Tensor) -> None:
+        if tensor.dtype != self.dtype:
+            raise StepError("dtype", f"action: dtype {_dtype_name(tensor.dtype)}, spec says {_dtype_name(self.dtype)}")
+        if tuple(tensor.shape) != self.shape:
+            raise StepError("shape", f"action: shape {list(tensor.shape)}, spec says {list(self.shape)}")
+        self.check_values(_decode("action", tensor).reshape(-1))
+
+    def check_values(self, values: np.ndarray) -> None:
+        if not np.isfinite(values).all():
+            raise StepError("non_finite", "action: NaN or Inf")
+        if self.bounded and ((values < self.low_limit).any() or (values > self.high_limit).any()):
+            i = int(np.flatnonzero((values < self.low_limit) | (values > self.high_limit))[0])
+            raise StepError(
+                "action_bounds",
+                f"action[{i}] = {values[i]:.6g} is outside [{self.low[i]:.6g}, {self.high[i]:.6g}] "
+                "(the edge must clip)",
+            )
+
+
+# Compiled checks keyed by the serialized action space (~0.5 us), so a spec edited in place is recompiled.
+_COMPILED: dict[bytes, ActionCheck] = {}
+_COMPILED_MAX = 256
+
+
+def action_check(spec: robot_pb2.RobotSpec) -> ActionCheck:
+    key = spec.action.SerializeToString()
+    check = _COMPILED.get(key)
+    if check is None:
+        if len(_COMPILED) >= _COMPILED_MAX:
+            _COMPILED.clear()
+        check = _COMPILED[key] = ActionCheck(spec)
+    return check
+
+
+def validate_step(step: step_pb2.Step, spec: robot_pb2.RobotSpec) -> None:
+    """Raise StepError naming the first thing in `step` that does not match `spec`."""
+    _check_id("robot_id", step.robot_id, MAX_ROBOT_ID_BYTES)
+    if step.robot_id != spec.robot_id:
+        raise StepError("robot_id", f"robot_id {step.robot_id!r} does not match the spec's {spec.robot_id!r}")
+    _check_id("episode_id", step.episode_id, MAX_EPISODE_ID_BYTES)
+    check_tensor_map("observation", step.observation, list(spec.observation))
+    action_check(spec)(step.action)
+    if not math.isfinite(step.reward):
+        raise StepError("non_finite", "reward: NaN or Inf")
+    last = step.terminated or step.truncated
+    has_final = step.HasField("final_observation")
+    if last and not has_final:
+        raise StepError("final_observation", "final_observation is required on the last step (terminated or truncated)")
+    if has_final:
+        if not last:
+            raise StepError(
+                "final_observation",
+                "final_observation is set only on the last step of an episode (terminated or truncated)",
+            )
+        check_tensor_map("final_observation", step.final_observation, list(spec.observation))
