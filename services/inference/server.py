@@ -32,6 +32,7 @@ from user.weights import WeightSet, WeightSubscriber
 log = logging.getLogger(__name__)
 
 SERVICE_NAME = inference_pb2.DESCRIPTOR.services_by_name["Inference"].full_name
+MAX_INSTRUCTION_CHARS = 1024  # a task in words, not a document
 MAX_ACT_WAIT_S = 10.0  # a caller without a deadline still gets an answer (or an error) in bounded time
 
 REQUESTS = prometheus_client.Counter("user_inference_requests_total", "Act requests by status code", ["code"])
@@ -97,8 +98,12 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
             obs = validate_observation(wire.from_tensor_map(request.observation), policy)
         except ValueError as exc:  # WireError is a ValueError
             self._abort(context, grpc.StatusCode.INVALID_ARGUMENT, f"bad observation: {exc}")
+        if len(request.instruction) > MAX_INSTRUCTION_CHARS:
+            self._abort(context, grpc.StatusCode.INVALID_ARGUMENT, f"instruction over {MAX_INSTRUCTION_CHARS} chars")
         try:
-            future = self.service.batcher.submit(obs, request.deterministic, key=request.robot_id)
+            future = self.service.batcher.submit(
+                obs, request.deterministic, key=request.robot_id, instruction=request.instruction
+            )
         except NoPolicyError:
             self._abort(context, grpc.StatusCode.UNAVAILABLE, "no policy yet")
         remaining = context.time_remaining()
@@ -114,12 +119,17 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
             self._abort(context, grpc.StatusCode.INTERNAL, f"policy forward failed: {exc}")
         REQUESTS.labels("OK").inc()
         QUEUE_SECONDS.observe(result.queue_us / 1e6)
+        action = np.asarray(result.action, dtype=np.float32)
         return inference_pb2.ActResponse(
-            action=wire.to_tensor(np.asarray(result.action, dtype=np.float32)),
+            action=wire.to_tensor(action),
             policy_version=result.version,
             queue_us=result.queue_us,
             compute_us=result.compute_us,
             batch_size=result.batch_size,
+            preprocess_us=result.preprocess_us,
+            forward_us=result.compute_us,
+            postprocess_us=result.postprocess_us,
+            horizon=action.shape[0] if action.ndim == 2 else 1,
         )
 
     def Status(
@@ -174,7 +184,10 @@ class InferenceService(rpc.GrpcService):
         policy = build_policy(weights.policy, weights.tensors, weights.version, self.cfg.inference.device)
         with self._load_lock:
             self._policy = policy
-            self.batcher.set_policy(policy.act, policy.version)
+            # A policy with its own batched preprocess gets it run in the batcher thread, not per request.
+            preprocess = getattr(policy, "preprocess", None)
+            act = policy.forward if preprocess is not None else policy.act  # type: ignore[attr-defined]
+            self.batcher.set_policy(act, policy.version, preprocess)
         WEIGHT_UPDATES.inc()
         POLICY_VERSION.set(policy.version)
         log.info(
