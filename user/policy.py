@@ -100,6 +100,8 @@ def build_policy(
     spec: learner_pb2.PolicySpec, tensors: Mapping[str, np.ndarray], version: int, device: str = "cpu"
 ) -> Policy:
     """Rebuild a policy from the wire on `device` (e.g. "cpu", "cuda:0"); any mismatch raises ValueError."""
+    if spec.kind not in _REGISTRY:
+        _import_policy_modules()
     try:
         factory = _REGISTRY[spec.kind]
     except KeyError:
@@ -119,7 +121,22 @@ def check_device(device: str) -> torch.device:
 
 
 def known_policy_kinds() -> list[str]:
+    _import_policy_modules()
     return sorted(_REGISTRY)
+
+
+def _import_policy_modules() -> None:
+    """Import every module of user.policies (each registers its kinds); one that fails to import is skipped."""
+    import importlib
+    import pkgutil
+
+    import user.policies
+
+    for info in pkgutil.iter_modules(user.policies.__path__, prefix="user.policies."):
+        try:
+            importlib.import_module(info.name)
+        except ImportError:
+            continue
 
 
 # --- sac_mlp --------------------------------------------------------------------------------------

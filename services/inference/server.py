@@ -61,6 +61,8 @@ def _observe_batch(size: int, compute_s: float) -> None:
 def validate_observation(observation: Mapping[str, np.ndarray], policy: Policy) -> dict[str, np.ndarray]:
     """Keep the keys the policy reads, as float32 (uint8 images stay uint8); ValueError on a mismatch."""
     keys: list[str] = list(getattr(policy, "obs_keys", None) or observation)
+    # A feature the policy can do without (e.g. the instruction, which may come in the request instead).
+    keys += [k for k in getattr(policy, "optional_obs_keys", ()) if k in observation and k not in keys]
     missing = [k for k in keys if k not in observation]
     if missing:
         raise ValueError(f"observation lacks {missing}; the policy reads {keys}")
