@@ -25,6 +25,7 @@ BENCHES = {
     "replay": "bench.replay_bench",
     "weights": "bench.weights_bench",
     "inference": "bench.inference_bench",
+    "inference_vla": "bench.inference_vla_bench",
 }
 
 
@@ -38,6 +39,9 @@ LEGEND = {
     "both real gRPC servers on 127.0.0.1, versions alternate.",
     "inference": "inference: ours InferenceService (micro-batching) vs the same Act proto served one forward per "
     "request in the handler; each robot is a separate process, windows alternate.",
+    "inference_vla": "inference_vla: ours InferenceService (dynamic batching, batched preprocess) vs the same flow_vla "
+    "model served one request at a time (openpi / lerobot policy-server style); robots are separate processes "
+    "sending a 64x64 image, state and an instruction; windows alternate.",
 }
 
 
