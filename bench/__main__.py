@@ -26,6 +26,7 @@ BENCHES = {
     "weights": "bench.weights_bench",
     "inference": "bench.inference_bench",
     "inference_vla": "bench.inference_vla_bench",
+    "hg_dagger": "bench.hg_dagger_bench",
 }
 
 
@@ -42,6 +43,8 @@ LEGEND = {
     "inference_vla": "inference_vla: ours InferenceService (dynamic batching, batched preprocess) vs the same flow_vla "
     "model served one request at a time (openpi / lerobot policy-server style); robots are separate processes "
     "sending a 64x64 image, state and an instruction; windows alternate.",
+    "hg_dagger": "hg_dagger: flow_vla on lang_reach_arm (real MuJoCo, scripted expert), in one process with in-memory "
+    "tables: HG-DAgger (demos + interventions) vs BC given the same expert steps as more demos; async vs sync learner.",
 }
 
 

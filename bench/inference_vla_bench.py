@@ -104,11 +104,11 @@ def start_peer(cfg: StackConfig, weights: Any) -> tuple[str, Callable[[], None]]
     return running.address(), running.stop
 
 
-def _robot(task: tuple[str, int, float, float]) -> tuple[list[float], list[int], list[list[int]]]:
+def _robot(task: tuple[str, int, float, float]) -> tuple[list[float], list[int], list[list[int]], list[str]]:
     """One robot process: Act in a loop inside the window; (latencies ms, batch sizes, stage times us)."""
     addr, index, start_at, end_at = task
     rng = np.random.default_rng(index)
-    latencies, batches, stages = [], [], []
+    latencies, batches, stages, errors = [], [], [], []
     with rpc.make_channel(addr, AuthConfig(token=TOKEN)) as channel:
         stub = inference_pb2_grpc.InferenceStub(channel)
 
@@ -128,11 +128,15 @@ def _robot(task: tuple[str, int, float, float]) -> tuple[list[float], list[int],
         while time.time() < end_at:
             req = request()
             start = time.perf_counter()
-            resp = stub.Act(req, timeout=RPC_TIMEOUT_S)
+            try:
+                resp = stub.Act(req, timeout=RPC_TIMEOUT_S)
+            except grpc.RpcError as err:  # counted, not raised: RpcError does not cross processes
+                errors.append(f"{err.code().name}: {err.details()}")
+                continue
             latencies.append((time.perf_counter() - start) * 1e3)
             batches.append(resp.batch_size)
             stages.append([resp.queue_us, resp.preprocess_us, resp.forward_us, resp.postprocess_us])
-    return latencies, batches, stages
+    return latencies, batches, stages, errors
 
 
 def _warm(_: int) -> int:
@@ -143,9 +147,12 @@ def _warm(_: int) -> int:
 def drive(pool: Any, addr: str, clients: int, seconds: float) -> tuple[int, list[float], list[int], np.ndarray]:
     start_at = time.time() + START_MARGIN_S + 0.05 * clients
     results = pool.map(_robot, [(addr, i, start_at, start_at + seconds) for i in range(clients)], chunksize=1)
-    lat = [x for per, _, _ in results for x in per]
-    sizes = [b for _, per, _ in results for b in per]
-    stages = np.array([s for _, _, per in results for s in per], dtype=np.float64).reshape(-1, 4)
+    lat = [x for r in results for x in r[0]]
+    sizes = [b for r in results for b in r[1]]
+    stages = np.array([s for r in results for s in r[2]], dtype=np.float64).reshape(-1, 4)
+    errors = [e for r in results for e in r[3]]
+    if errors:
+        raise RuntimeError(f"{len(errors)} Act calls failed at {clients} robots, e.g. {errors[:3]}")
     return len(lat), lat, sizes, stages
 
 

@@ -193,3 +193,43 @@ def test_chunk_targets_need_chunks() -> None:
         algo.update(batch)
     batch.action_chunk = batch.action[:, None, :].repeat(1, 4, 1)  # type: ignore[attr-defined]
     assert np.isfinite(algo.update(batch)["flow_loss"])
+
+
+def test_weight_swaps_under_grpc_load_fail_no_request(service: InferenceService) -> None:
+    import threading
+
+    obs = wire.to_tensor_map({k: v[0] for k, v in observation(1).items()})
+    errors: list[str] = []
+    versions: list[int] = []
+    per_robot: dict[int, list[int]] = {i: [] for i in range(3)}
+    stop = threading.Event()
+
+    def robot(i: int) -> None:
+        stub = inference_pb2_grpc.InferenceStub(make_channel(service.address, AUTH))
+        while not stop.is_set():
+            try:
+                resp = stub.Act(inference_pb2.ActRequest(robot_id=f"arm-{i}", observation=obs), timeout=30)
+                versions.append(resp.policy_version)
+                per_robot[i].append(resp.policy_version)
+            except grpc.RpcError as err:
+                errors.append(f"{err.code().name}: {err.details()}")
+
+    threads = [threading.Thread(target=robot, args=(i,)) for i in range(3)]
+    for t in threads:
+        t.start()
+    try:
+        for version in range(6, 12):  # the learner's stream delivers new weights while robots act
+            seen = len(versions)
+            while len(versions) < seen + 3 and not errors:
+                stop.wait(0.005)
+            service.load_weights(weights(version, seed=version))
+        seen = len(versions)
+        while len(versions) < seen + 3 and not errors:
+            stop.wait(0.005)
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(30)
+    assert not errors, errors[:3]
+    assert max(versions) == 11
+    assert all(v == sorted(v) for v in per_robot.values())  # each robot only ever sees newer versions
