@@ -59,6 +59,9 @@ class PolicySource(ABC):
     def version(self) -> int:
         """Latest policy version seen (0 = none yet)."""
 
+    def reset(self, robot_id: str) -> None:  # noqa: B027 - optional hook
+        """A new episode starts for robot_id: chunks planned for the old one must not run on."""
+
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release channels and threads."""
 
@@ -87,6 +90,11 @@ class _Chunked:
                 lambda obs: self._fetch(robot_id, obs, self._deadline_s[robot_id])
             )
         return executor.tick(observation)
+
+    def reset(self, robot_id: str) -> None:
+        executor = self.executors.get(robot_id)
+        if executor is not None:
+            executor.reset()
 
 
 class RemotePolicy(PolicySource):
@@ -140,6 +148,9 @@ class RemotePolicy(PolicySource):
             self._last_error = None
         self._version = int(resp.policy_version)
         return action, self._version
+
+    def reset(self, robot_id: str) -> None:
+        self._chunks.reset(robot_id)
 
     def _note_error(self, code: grpc.StatusCode, err: grpc.RpcError) -> None:
         ACTION_TIMEOUTS.labels("remote", code.name.lower()).inc()
@@ -211,6 +222,9 @@ class LocalPolicy(PolicySource):
             return None
         ACTION_LATENCY.labels("local").observe(elapsed)
         return _as_chunk(np.asarray(action)[0]), int(policy.version)
+
+    def reset(self, robot_id: str) -> None:
+        self._chunks.reset(robot_id)
 
     def close(self) -> None:
         self._subscriber.stop()

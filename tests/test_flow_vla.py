@@ -12,6 +12,7 @@ import torch
 from cloud_learner.algorithm import ALGORITHMS, Batch, Feature, Layout
 from edge_agent.policy_source import RemotePolicy
 from services.inference.server import InferenceService
+from tests import helpers
 from user import wire
 from user.config import AuthConfig, StackConfig
 from user.policies.flow_vla import FlowVlaConfig, policy_spec, random_weights
@@ -233,3 +234,41 @@ def test_weight_swaps_under_grpc_load_fail_no_request(service: InferenceService)
     assert not errors, errors[:3]
     assert max(versions) == 11
     assert all(v == sorted(v) for v in per_robot.values())  # each robot only ever sees newer versions
+
+
+def test_robot_loop_runs_served_chunks_at_the_control_rate(service: InferenceService) -> None:
+    from edge_agent.agent import RobotLoop
+    from edge_agent.robot import make_robot
+    from tests.test_edge_agent import ListSink
+
+    lang_cfg = FlowVlaConfig(
+        image_keys=["camera.front"],
+        state_keys=["state"],
+        state_dim=18,
+        action_dim=3,
+        action_low=[-1.0] * 3,
+        action_high=[1.0] * 3,
+        horizon=8,
+        hidden=32,
+        flow_steps=2,
+    )
+    service.load_weights(WeightSet(version=9, policy=policy_spec(lang_cfg), tensors=random_weights(lang_cfg)))
+    served_before = service.batcher.requests
+    robot = make_robot("lang_reach_arm", "lang-0", {"control_rate_hz": 20, "max_episode_steps": 1000}, seed=0)
+    source = RemotePolicy(service.address, AUTH)
+    sink = ListSink()
+    loop = RobotLoop(robot, source, sink, mode="realtime", action_deadline_s=2.0)
+    loop.start()
+    try:
+        helpers.wait_for(lambda: len(sink.steps) >= 24, "24 control ticks")
+    finally:
+        loop.stop()
+        source.close()
+        robot.close()
+    steps = sink.snapshot()
+    acted = [s for s in steps if not s.held]
+    requests = service.batcher.requests - served_before
+    assert acted and all(s.policy_version == 9 for s in acted)
+    assert requests < len(steps) / 2  # one request per chunk of 8 (prefetched), not one per tick
+    executor = source._chunks.executors["lang-0"]
+    assert executor.received == requests and executor.last_latency_s > 0

@@ -7,7 +7,8 @@ target. Reward: progress toward it, plus a bonus on success; touching another ta
 episode as a failure.
 
 Observation: `state` = end-effector (3), joints (3), scaled joint velocities (3) and, with
-`target_state` on (default), the three targets' positions in red, green, blue order (9): the
+`target_state` on (default), the three targets' offsets from the hand in red, green, blue order
+(9, in decimetres): the
 instruction still decides which one counts, so the policy must ground the words. With
 `target_state` off only the camera shows where the targets are. `camera.front` is rendered
 (64x64 by default, shadows off) when `camera` is on.
@@ -15,6 +16,7 @@ instruction still decides which one counts, so the policy must ground the words.
 
 from __future__ import annotations
 
+import threading
 from typing import Any
 
 import mujoco
@@ -31,6 +33,7 @@ SUCCESS_RADIUS = 0.03  # m
 WRONG_RADIUS = 0.03  # m: reaching another target ends the episode
 MIN_SEPARATION = 0.15  # m between targets
 SUCCESS_BONUS = 5.0
+TARGET_SCALE = 10.0  # target offsets in the state are in decimetres
 
 
 def _xml() -> str:
@@ -79,7 +82,9 @@ class LangReachArm(SimReachArm):
         self._jacp = np.zeros((3, self.model.nv))
         self._rng = np.random.default_rng(seed)
         self.camera_size = int(camera_size)
-        self._renderer = mujoco.Renderer(self.model, self.camera_size, self.camera_size) if camera else None
+        self._renderer = None  # SimReachArm's; cameras here render through _camera() (one per thread)
+        self.camera = bool(camera)
+        self._renderers: dict[int, mujoco.Renderer] = {}
         self.targets = np.zeros((len(COLOURS), 3))
         self.goal = 0
         self._target = self.targets[0]
@@ -128,12 +133,30 @@ class LangReachArm(SimReachArm):
     def _state(self) -> np.ndarray:
         ee = self.data.site_xpos[self._site]
         parts = [ee, self.data.qpos, 0.1 * self.data.qvel]
-        if self.target_state:
-            parts.append(self.targets.reshape(-1))
+        if self.target_state:  # where each target is from the hand, in decimetres (O(1) numbers)
+            parts.append(TARGET_SCALE * (self.targets - ee).reshape(-1))
         return np.concatenate(parts).astype(np.float32)
+
+    def _camera(self) -> mujoco.Renderer:
+        """An EGL context belongs to the thread that made it: the robot loop's thread gets its own."""
+        key = threading.get_ident()
+        if key not in self._renderers:
+            self._renderers[key] = mujoco.Renderer(self.model, self.camera_size, self.camera_size)
+        return self._renderers[key]
+
+    def close(self) -> None:
+        key = threading.get_ident()
+        for owner, renderer in list(self._renderers.items()):
+            if owner == key:  # other threads' contexts cannot be released from here; they go at exit
+                renderer.close()
+        self._renderers.clear()
 
     def observe(self) -> Observation:
         obs = super().observe()
+        if self.camera:
+            renderer = self._camera()
+            renderer.update_scene(self.data, camera="front")
+            obs.features["camera.front"] = renderer.render().copy()
         obs.features[INSTRUCTION_KEY] = encode_instruction(self.instruction)
         obs.info.update(
             goal=self.goal, instruction=self.instruction, goal_pos=self._target.copy(), targets=self.targets.copy()
