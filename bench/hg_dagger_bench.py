@@ -189,7 +189,7 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
     # a benchmark run; the vision path is exercised by the tests and the inference benchmark.
     camera = False
     demo_episodes, pre_updates, rounds, round_episodes, round_updates, eval_n = (
-        (4, 30, 1, 2, 20, 4) if quick else (30, 1000, 3, 10, 500, 40)
+        (4, 30, 1, 2, 20, 4) if quick else (60, 1500, 5, 20, 600, 40)
     )
     s = setup(camera)
     eval_seeds = list(range(10_000, 10_000 + eval_n))

@@ -32,7 +32,7 @@ RPC_TIMEOUT_S = 30.0
 TOKEN = "bench-token"
 CONCURRENCY = [1, 4, 16, 32]
 START_MARGIN_S = 1.0
-IMAGE, STATE_DIM = 64, 18
+IMAGE, STATE_DIM = 64, 15
 INSTRUCTIONS = ["reach the red target", "reach the green target", "reach the blue target"]
 
 

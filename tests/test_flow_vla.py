@@ -244,7 +244,7 @@ def test_robot_loop_runs_served_chunks_at_the_control_rate(service: InferenceSer
     lang_cfg = FlowVlaConfig(
         image_keys=["camera.front"],
         state_keys=["state"],
-        state_dim=18,
+        state_dim=15,
         action_dim=3,
         action_low=[-1.0] * 3,
         action_high=[1.0] * 3,

@@ -29,7 +29,7 @@ def test_observation_names_one_of_three_rendered_targets() -> None:
     try:
         obs = robot.reset()
         spec = {f.name: tuple(f.shape) for f in robot.spec.observation}
-        assert spec == {"state": (18,), INSTRUCTION_KEY: (64,), "camera.front": (64, 64, 3)}
+        assert spec == {"state": (15,), INSTRUCTION_KEY: (64,), "camera.front": (64, 64, 3)}
         for name, shape in spec.items():
             assert obs.features[name].shape == shape
         text = decode_instruction(obs.features[INSTRUCTION_KEY])

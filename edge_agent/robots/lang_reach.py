@@ -6,7 +6,7 @@ uint8 (64,), see user/text.py) and in `info`. Success: the end-effector within 3
 target. Reward: progress toward it, plus a bonus on success; touching another target ends the
 episode as a failure.
 
-Observation: `state` = end-effector (3), joints (3), scaled joint velocities (3) and, with
+Observation: `state` = end-effector (3), scaled joint velocities (3) and, with
 `target_state` on (default), the three targets' offsets from the hand in red, green, blue order
 (9, in decimetres): the
 instruction still decides which one counts, so the policy must ground the words. With
@@ -94,7 +94,7 @@ class LangReachArm(SimReachArm):
         self.reset()
 
     def _build_spec(self, camera: bool) -> robot_pb2.RobotSpec:
-        state_dim = 9 + (9 if self.target_state else 0)
+        state_dim = 6 + (9 if self.target_state else 0)
         observation = [
             robot_pb2.FeatureSpec(name="state", dtype=tensor_pb2.DTYPE_FLOAT32, shape=[state_dim], allow_nan=False),
             robot_pb2.FeatureSpec(name=INSTRUCTION_KEY, dtype=tensor_pb2.DTYPE_UINT8, shape=[INSTRUCTION_BYTES]),
@@ -132,7 +132,9 @@ class LangReachArm(SimReachArm):
 
     def _state(self) -> np.ndarray:
         ee = self.data.site_xpos[self._site]
-        parts = [ee, self.data.qpos, 0.1 * self.data.qvel]
+        # No joint angles: within one demonstration they track the actions so closely that a cloned
+        # policy keys on them instead of on where the named target is (causal confusion).
+        parts = [ee, 0.1 * self.data.qvel]
         if self.target_state:  # where each target is from the hand, in decimetres (O(1) numbers)
             parts.append(TARGET_SCALE * (self.targets - ee).reshape(-1))
         return np.concatenate(parts).astype(np.float32)

@@ -96,6 +96,9 @@ class FlowVla(nn.Module):
         self.words = nn.Embedding(cfg.vocab_size, cfg.embed_dim, padding_idx=0)
         self.language = nn.Sequential(nn.Linear(cfg.embed_dim, h // 2), nn.SiLU())
         self.state = nn.Sequential(nn.Linear(cfg.state_dim, h // 2), nn.SiLU()) if cfg.state_dim else None
+        # FiLM: the instruction scales and shifts the state and image features, so "which target" can
+        # select features multiplicatively instead of the MLP having to learn that gating from sums.
+        self.film = nn.Linear(h // 2, 2 * (h // 2))
         parts = len(cfg.image_keys) + 1 + (1 if cfg.state_dim else 0)
         self.context = nn.Sequential(nn.Linear(parts * (h // 2), h), nn.SiLU(), nn.Linear(h, h))
         chunk = cfg.horizon * cfg.action_dim
@@ -105,13 +108,15 @@ class FlowVla(nn.Module):
 
     def encode(self, images: list[torch.Tensor], state: torch.Tensor | None, tokens: torch.Tensor) -> torch.Tensor:
         """images: float (B, 3, S, S) each; state (B, state_dim); tokens (B, max_words) -> context (B, hidden)."""
-        feats = [enc(img) for enc, img in zip(self.cameras, images, strict=True)]
         mask = (tokens > 0).float()
         words = (self.words(tokens) * mask[..., None]).sum(1) / mask.sum(1, keepdim=True).clamp(min=1.0)
-        feats.append(self.language(words))
+        language = self.language(words)
+        feats = [enc(img) for enc, img in zip(self.cameras, images, strict=True)]
         if self.state is not None and state is not None:
             feats.append(self.state(state))
-        return self.context(torch.cat(feats, dim=-1))
+        gamma, beta = self.film(language).chunk(2, dim=-1)
+        feats = [f * (1 + gamma) + beta for f in feats]
+        return self.context(torch.cat([*feats, language], dim=-1))
 
     def velocity(self, x: torch.Tensor, t: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
         """x: (B, horizon, A) noisy chunk at flow time t (B,) -> predicted velocity, same shape."""
