@@ -180,6 +180,10 @@ def hg_dagger_round(
     return expert_steps, robot_steps
 
 
+def _rate(success: float, episodes: int) -> str:
+    return f"{round(success * episodes)}/{episodes} ({success:.2f})"
+
+
 def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Row]:
     import copy
 
@@ -262,7 +266,17 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
     note = f"{len(eval_seeds)} fixed eval episodes, interventions off; before (demos BC) {before:.2f}"
     sync = "sync (collect, then train, in turn)"
     return [
-        Row(group, "eval success after correction", after, peer_after, "", True, note, PEER),
+        # A count, not a ratio: a success rate of 0 on either side has no meaningful "x times better".
+        Row(
+            group,
+            "eval success after correction",
+            _rate(after, eval_n),
+            _rate(peer_after, eval_n),
+            "",
+            None,
+            note,
+            PEER,
+        ),
         Row(group, "expert steps used (after demos)", float(expert_steps), float(extra), "steps", False, "", PEER),
         Row(
             f"{group}: async vs sync", "learner updates/s", updates[0] / async_s, sync_rate, "updates/s", True, "", sync
