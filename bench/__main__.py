@@ -26,6 +26,8 @@ BENCHES = {
     "weights": "bench.weights_bench",
     "inference": "bench.inference_bench",
     "learning": "bench.learning_bench",
+    "inference_vla": "bench.inference_vla_bench",
+    "hg_dagger": "bench.hg_dagger_bench",
 }
 SLOW = {"learning"}  # whole stacks as processes: minutes, not part of the --quick smoke run unless named
 
@@ -42,6 +44,11 @@ LEGEND = {
     "request in the handler; each robot is a separate process, windows alternate.",
     "learning": "learning: the whole stack as processes, learner.mode=async (ours) vs learner.mode=sync (collect, "
     "pause robots, train, publish in turn) on the same config; env steps/s and updates/s over the same window.",
+    "inference_vla": "inference_vla: ours InferenceService (dynamic batching, batched preprocess) vs the same flow_vla "
+    "model served one request at a time (openpi / lerobot policy-server style); robots are separate processes "
+    "sending a 64x64 image, state and an instruction; windows alternate.",
+    "hg_dagger": "hg_dagger: flow_vla on lang_reach_arm (real MuJoCo, scripted expert), in one process with in-memory "
+    "tables: HG-DAgger (demos + interventions) vs BC given the same expert steps as more demos; async vs sync learner.",
 }
 
 

@@ -1,7 +1,9 @@
 """Where a robot's actions come from: the Inference service (remote) or a weight-streamed local copy.
 
 Both answer within a deadline or return None, and the robot holds still: the control loop never
-waits on the network or the learner.
+waits on the network or the learner. A policy answering with action chunks (horizon, A) has them
+executed one action per tick by an edge_agent.chunks.ChunkExecutor per robot, which asks for the
+next chunk in the background before the current one runs out and blends overlapping chunks.
 """
 
 from __future__ import annotations
@@ -10,12 +12,14 @@ import logging
 import threading
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import grpc
 import numpy as np
 import prometheus_client
 
+from edge_agent.chunks import ChunkExecutor
 from user import wire
 from user.config import AuthConfig, StackConfig
 from user.log import kv
@@ -55,21 +59,51 @@ class PolicySource(ABC):
     def version(self) -> int:
         """Latest policy version seen (0 = none yet)."""
 
+    def reset(self, robot_id: str) -> None:  # noqa: B027 - optional hook
+        """A new episode starts for robot_id: chunks planned for the old one must not run on."""
+
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release channels and threads."""
 
 
-def _first_action(action: np.ndarray) -> np.ndarray:
-    """A chunk (horizon, A) is reduced to its first action; the loop re-plans every tick."""
+def _as_chunk(action: np.ndarray) -> np.ndarray:
+    """(A,) or (horizon, A) -> (horizon, A) float32; anything else is flattened to one action."""
     arr = np.asarray(action, dtype=np.float32)
-    return arr[0] if arr.ndim == 2 else arr.reshape(-1)
+    return arr if arr.ndim == 2 else arr.reshape(1, -1)
+
+
+class _Chunked:
+    """A ChunkExecutor per robot around a fetch(robot_id, observation, deadline_s) function."""
+
+    def __init__(self, fetch: Callable[[str, dict[str, np.ndarray], float], tuple[np.ndarray, int] | None]) -> None:
+        self._fetch = fetch
+        self.executors: dict[str, ChunkExecutor] = {}
+        self._deadline_s: dict[str, float] = {}
+
+    def act(
+        self, robot_id: str, observation: dict[str, np.ndarray], deadline_s: float
+    ) -> tuple[np.ndarray, int] | None:
+        self._deadline_s[robot_id] = deadline_s
+        executor = self.executors.get(robot_id)
+        if executor is None:
+            executor = self.executors[robot_id] = ChunkExecutor(
+                lambda obs: self._fetch(robot_id, obs, self._deadline_s[robot_id])
+            )
+        return executor.tick(observation)
+
+    def reset(self, robot_id: str) -> None:
+        executor = self.executors.get(robot_id)
+        if executor is not None:
+            executor.reset()
 
 
 class RemotePolicy(PolicySource):
     """Inference.Act with timeout=deadline: DEADLINE_EXCEEDED, UNAVAILABLE ("no policy yet") -> None."""
 
-    def __init__(self, addr: str, auth: AuthConfig, deterministic: bool = False) -> None:
+    def __init__(self, addr: str, auth: AuthConfig, deterministic: bool = False, instruction: str = "") -> None:
         self.addr = addr
+        self.instruction = instruction  # sent with every request; "" = the policy's default
+        self._chunks = _Chunked(self._fetch)
         self._channel = make_channel(addr, auth)
         self._stub = inference_pb2_grpc.InferenceStub(self._channel)
         # Connect now (a cheap Status call, result unused), so the first action does not pay the
@@ -86,13 +120,21 @@ class RemotePolicy(PolicySource):
     def act(
         self, robot_id: str, observation: dict[str, np.ndarray], deadline_s: float
     ) -> tuple[np.ndarray, int] | None:
+        return self._chunks.act(robot_id, observation, deadline_s)
+
+    def _fetch(
+        self, robot_id: str, observation: dict[str, np.ndarray], deadline_s: float
+    ) -> tuple[np.ndarray, int] | None:
         request = inference_pb2.ActRequest(
-            robot_id=robot_id, observation=wire.to_tensor_map(observation), deterministic=self._deterministic
+            robot_id=robot_id,
+            observation=wire.to_tensor_map(observation),
+            deterministic=self._deterministic,
+            instruction=self.instruction,
         )
         start = time.perf_counter()
         try:
             resp = self._stub.Act(request, timeout=deadline_s)
-            action = _first_action(wire.from_tensor(resp.action))
+            action = _as_chunk(wire.from_tensor(resp.action))
         except grpc.RpcError as err:
             self._note_error(err.code() if hasattr(err, "code") else grpc.StatusCode.UNKNOWN, err)
             return None
@@ -106,6 +148,9 @@ class RemotePolicy(PolicySource):
             self._last_error = None
         self._version = int(resp.policy_version)
         return action, self._version
+
+    def reset(self, robot_id: str) -> None:
+        self._chunks.reset(robot_id)
 
     def _note_error(self, code: grpc.StatusCode, err: grpc.RpcError) -> None:
         ACTION_TIMEOUTS.labels("remote", code.name.lower()).inc()
@@ -139,6 +184,7 @@ class LocalPolicy(PolicySource):
         self._kinds = kinds or {}  # robot id -> kind: a policy shared by embodiments pads by kind
         self._deterministic = deterministic
         self._lock = threading.Lock()  # serialises forward passes of robots sharing this copy
+        self._chunks = _Chunked(self._fetch)
         self._subscriber = WeightSubscriber(learner_addr, auth, client_id, self._on_weights, experiment=experiment)
         if start:
             self._subscriber.start()
@@ -158,6 +204,11 @@ class LocalPolicy(PolicySource):
         log.info("local policy updated", extra=kv(version=int(policy.version)))
 
     def act(
+        self, robot_id: str, observation: dict[str, np.ndarray], deadline_s: float
+    ) -> tuple[np.ndarray, int] | None:
+        return self._chunks.act(robot_id, observation, deadline_s)
+
+    def _fetch(
         self, robot_id: str, observation: dict[str, np.ndarray], deadline_s: float
     ) -> tuple[np.ndarray, int] | None:
         policy = self._policy
@@ -181,7 +232,10 @@ class LocalPolicy(PolicySource):
             ACTION_TIMEOUTS.labels("local", "late").inc()
             return None
         ACTION_LATENCY.labels("local").observe(elapsed)
-        return _first_action(np.asarray(action)[0]), int(policy.version)
+        return _as_chunk(np.asarray(action)[0]), int(policy.version)
+
+    def reset(self, robot_id: str) -> None:
+        self._chunks.reset(robot_id)
 
     def close(self) -> None:
         self._subscriber.stop()

@@ -5,6 +5,12 @@ takes the first waiting request, then collects more until max_batch, or until ma
 the first one arrived, or until every robot seen recently has a request in (waiting longer could
 only add latency). Requests are grouped by (deterministic, observation shapes), stacked, and the
 policy runs once per group; each future gets its own row of the result.
+
+Heavy preprocessing stays off the gRPC threads: a policy that defines
+`preprocess(batched observation, instructions)` (resize and normalize images, tokenize
+instructions, copy to the device in one go) has it run here, once per group, and its `act` then
+receives what preprocess returned. Every answer carries its stage times: queue (submit -> its
+group starts), preprocess, forward and postprocess (un-batching).
 """
 
 from __future__ import annotations
@@ -13,9 +19,10 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -23,8 +30,11 @@ from user.log import kv
 
 log = logging.getLogger(__name__)
 
-# Batched observation (values with a leading batch dim), deterministic -> (B, action_dim).
-ActFn = Callable[[Mapping[str, np.ndarray], bool], np.ndarray]
+# Batched observation (values with a leading batch dim) or what preprocess made of it, deterministic
+# -> (B, action_dim) or chunks (B, horizon, action_dim).
+ActFn = Callable[[Any, bool], np.ndarray]
+# (batched observation, one instruction per row, "" = the policy's default) -> the input of ActFn.
+PreprocessFn = Callable[[Mapping[str, np.ndarray], Sequence[str]], Any]
 # Called once per policy forward: (batch size, compute seconds).
 BatchObserver = Callable[[int, float], None]
 ACTIVE_WINDOW_S = 1.0  # a robot counts as active this long after its last request
@@ -41,6 +51,8 @@ class ActResult:
     queue_us: int  # submit -> start of the forward that served it
     compute_us: int  # the whole forward of its group
     batch_size: int  # requests in that forward
+    preprocess_us: int = 0  # batched preprocessing of its group
+    postprocess_us: int = 0  # splitting the batch result into rows
 
 
 @dataclass
@@ -49,11 +61,19 @@ class _Request:
     deterministic: bool
     key: str
     future: Future
+    instruction: str = ""
     submitted: float = field(default_factory=time.perf_counter)
 
     def group(self) -> tuple:
         shapes = tuple(sorted((k, v.shape, v.dtype.str) for k, v in self.observation.items()))
         return (self.deterministic, shapes)
+
+
+@dataclass(frozen=True)
+class _Served:
+    act: ActFn
+    version: int
+    preprocess: PreprocessFn | None = None
 
 
 class MicroBatcher:
@@ -73,7 +93,7 @@ class MicroBatcher:
         self.on_batch = on_batch
         self.name = name
         self._queue: queue.Queue[_Request] = queue.Queue()
-        self._policy: tuple[ActFn, int] | None = None
+        self._policy: _Served | None = None
         self._lock = threading.Lock()
         self._active: dict[str, float] = {}  # robot key -> last submit (perf_counter)
         self._stop = threading.Event()
@@ -96,32 +116,35 @@ class MicroBatcher:
             self._thread = None
         self._fail_pending(RuntimeError("batcher stopped"))
 
-    def set_policy(self, act: ActFn, version: int) -> None:
-        """Swap the policy; a batch in progress finishes with the one it started with."""
+    def set_policy(self, act: ActFn, version: int, preprocess: PreprocessFn | None = None) -> None:
+        """Swap the policy; a batch in progress finishes with the one it started with (no request fails)."""
         with self._lock:
-            self._policy = (act, int(version))
+            self._policy = _Served(act, int(version), preprocess)
 
     @property
     def version(self) -> int | None:
         with self._lock:
-            return self._policy[1] if self._policy else None
+            return self._policy.version if self._policy else None
 
     @property
     def mean_batch_size(self) -> float:
         with self._lock:
             return self.requests / self.batches if self.batches else 0.0
 
-    def submit(self, observation: Mapping[str, np.ndarray], deterministic: bool = False, key: str = "") -> Future:
+    def submit(
+        self, observation: Mapping[str, np.ndarray], deterministic: bool = False, key: str = "", instruction: str = ""
+    ) -> Future:
         """Queue one observation (no batch dim); the future resolves to an ActResult.
 
         `key` names the caller (e.g. robot_id): the batcher closes a batch early once every
-        recently active key is in it.
+        recently active key is in it. `instruction` reaches the policy's preprocess.
         """
         if self._stop.is_set():
             raise RuntimeError("batcher stopped")
         if self.version is None:
             raise NoPolicyError("no policy yet")
-        req = _Request({k: np.asarray(v) for k, v in observation.items()}, bool(deterministic), key, Future())
+        arrays = {k: np.asarray(v) for k, v in observation.items()}
+        req = _Request(arrays, bool(deterministic), key, Future(), instruction)
         if key:
             with self._lock:
                 self._active[key] = req.submitted
@@ -190,29 +213,37 @@ class MicroBatcher:
         for reqs in groups.values():
             self._forward(policy, reqs)
 
-    def _forward(self, policy: tuple[ActFn, int], reqs: list[_Request]) -> None:
-        act, version = policy
+    def _forward(self, policy: _Served, reqs: list[_Request]) -> None:
         start = time.perf_counter()
         try:
             stacked = {k: np.stack([r.observation[k] for r in reqs]) for k in reqs[0].observation}
-            actions = np.asarray(act(stacked, reqs[0].deterministic))
+            if policy.preprocess is not None:
+                stacked = policy.preprocess(stacked, [r.instruction for r in reqs])
+            forward_start = time.perf_counter()
+            actions = np.asarray(policy.act(stacked, reqs[0].deterministic))
+            forward_end = time.perf_counter()
             if actions.shape[:1] != (len(reqs),):
                 raise ValueError(f"policy returned shape {actions.shape} for a batch of {len(reqs)}")
+            rows = [np.array(actions[i], dtype=np.float32) for i in range(len(reqs))]
         except Exception as exc:
-            log.exception("policy forward failed", extra=kv(size=len(reqs), version=version))
+            log.exception("policy forward failed", extra=kv(size=len(reqs), version=policy.version))
             for req in reqs:
                 req.future.set_exception(exc)
             return
-        compute_s = time.perf_counter() - start
+        end = time.perf_counter()
+        compute_s = forward_end - forward_start
         with self._lock:
             self.requests += len(reqs)
             self.batches += 1
         if self.on_batch is not None:
             self.on_batch(len(reqs), compute_s)
-        compute_us = int(compute_s * 1e6)
-        for i, req in enumerate(reqs):
+        preprocess_us, compute_us = int((forward_start - start) * 1e6), int(compute_s * 1e6)
+        postprocess_us = int((end - forward_end) * 1e6)
+        for req, row in zip(reqs, rows, strict=True):
             queue_us = int((start - req.submitted) * 1e6)
-            req.future.set_result(ActResult(actions[i].copy(), version, queue_us, compute_us, len(reqs)))
+            req.future.set_result(
+                ActResult(row, policy.version, queue_us, compute_us, len(reqs), preprocess_us, postprocess_us)
+            )
 
     def _fail_pending(self, exc: Exception) -> None:
         while True:

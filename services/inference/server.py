@@ -33,6 +33,7 @@ from user.weights import WeightSet, WeightSubscriber
 log = logging.getLogger(__name__)
 
 SERVICE_NAME = inference_pb2.DESCRIPTOR.services_by_name["Inference"].full_name
+MAX_INSTRUCTION_CHARS = 1024  # a task in words, not a document
 MAX_ACT_WAIT_S = 10.0  # a caller without a deadline still gets an answer (or an error) in bounded time
 
 REQUESTS = prometheus_client.Counter("user_inference_requests_total", "Act requests by status code", ["code"])
@@ -60,7 +61,10 @@ def _observe_batch(size: int, compute_s: float) -> None:
 
 def validate_observation(observation: Mapping[str, np.ndarray], policy: Policy) -> dict[str, np.ndarray]:
     """Keep the keys the policy reads, as float32 (uint8 images stay uint8); ValueError on a mismatch."""
-    keys: list[str] = list(policy.observation_keys or observation)
+    # A feature the policy can do without (e.g. the instruction, which may come in the request instead).
+    optional = list(getattr(policy, "optional_obs_keys", ()))
+    keys: list[str] = [k for k in (policy.observation_keys or observation) if k not in optional]
+    keys += [k for k in optional if k in observation and k not in keys]
     missing = [k for k in keys if k not in observation]
     if missing:
         raise ValueError(f"observation lacks {missing}; the policy reads {keys}")
@@ -108,7 +112,10 @@ class PolicySlot:
         policy = build_policy(weights.policy, weights.tensors, weights.version, self.service.cfg.inference.device)
         with self._load_lock:
             self.policy = policy
-            self.batcher.set_policy(policy.act, policy.version)
+            # A policy with its own batched preprocess gets it run in the batcher thread, not per request.
+            preprocess = getattr(policy, "preprocess", None)
+            act = policy.forward if preprocess is not None else policy.act  # type: ignore[attr-defined]
+            self.batcher.set_policy(act, policy.version, preprocess)
         WEIGHT_UPDATES.inc()
         POLICY_VERSION.set(policy.version)
         log.info(
@@ -208,8 +215,12 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
             obs = validate_observation(raw, policy)
         except ValueError as exc:  # WireError is a ValueError
             self._abort(context, grpc.StatusCode.INVALID_ARGUMENT, f"bad observation: {exc}")
+        if len(request.instruction) > MAX_INSTRUCTION_CHARS:
+            self._abort(context, grpc.StatusCode.INVALID_ARGUMENT, f"instruction over {MAX_INSTRUCTION_CHARS} chars")
         try:
-            future = slot.batcher.submit(obs, request.deterministic, key=request.robot_id)
+            future = slot.batcher.submit(
+                obs, request.deterministic, key=request.robot_id, instruction=request.instruction
+            )
         except NoPolicyError:
             self._abort(context, grpc.StatusCode.UNAVAILABLE, "no policy yet")
         remaining = context.time_remaining()
@@ -225,12 +236,17 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
             self._abort(context, grpc.StatusCode.INTERNAL, f"policy forward failed: {exc}")
         REQUESTS.labels("OK").inc()
         QUEUE_SECONDS.observe(result.queue_us / 1e6)
+        action = np.asarray(result.action, dtype=np.float32)
         return inference_pb2.ActResponse(
             action=wire.to_tensor(np.asarray(fit_action(policy, kind, result.action), dtype=np.float32)),
             policy_version=result.version,
             queue_us=result.queue_us,
             compute_us=result.compute_us,
             batch_size=result.batch_size,
+            preprocess_us=result.preprocess_us,
+            forward_us=result.compute_us,
+            postprocess_us=result.postprocess_us,
+            horizon=action.shape[0] if action.ndim == 2 else 1,
         )
 
     def Status(

@@ -1,0 +1,126 @@
+"""ChunkExecutor: one action per tick, the next chunk fetched in the background and blended, hold when stale."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+
+from edge_agent.chunks import ChunkExecutor
+
+H, A = 5, 2
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class Runner:
+    """Holds background fetches until the test lets them finish (the network 'is slow')."""
+
+    def __init__(self) -> None:
+        self.jobs: list[Callable[[], None]] = []
+
+    def __call__(self, job: Callable[[], None]) -> None:
+        self.jobs.append(job)
+
+    def finish_all(self) -> None:
+        jobs, self.jobs = self.jobs, []
+        for job in jobs:
+            job()
+
+
+def chunk(base: float) -> np.ndarray:
+    """Row k holds base + k in every dim, so a served action tells which chunk and row it came from."""
+    return np.repeat((base + np.arange(H, dtype=np.float32))[:, None], A, axis=1)
+
+
+def make(prefetch: int = 2, decay: float = 0.0, max_age_s: float = 1.0):
+    clock, runner = Clock(), Runner()
+    answers: list[np.ndarray] = [chunk(0.0), chunk(100.0), chunk(200.0)]
+    asked: list[dict[str, np.ndarray]] = []
+
+    def fetch(obs: dict[str, np.ndarray]) -> tuple[np.ndarray, int] | None:
+        asked.append(obs)
+        return (answers.pop(0), len(asked)) if answers else None
+
+    ex = ChunkExecutor(fetch, prefetch=prefetch, max_age_s=max_age_s, decay=decay, clock=clock, runner=runner)
+    ex.answers = answers  # type: ignore[attr-defined] - tests empty it to cut the link
+    return ex, clock, runner, asked
+
+
+def obs(i: int) -> dict[str, np.ndarray]:
+    return {"state": np.full(3, i, np.float32)}
+
+
+def test_chunk_runs_at_the_control_rate_and_blends_with_the_next() -> None:
+    ex, clock, runner, asked = make(prefetch=2, decay=0.0)
+    served = []
+    for i in range(3):  # ticks 0..2: the first chunk, row by row; one synchronous request at the start
+        served.append(ex.tick(obs(i)))
+        clock.t += 0.05
+    assert [a[0][0] for a in served] == [0.0, 1.0, 2.0] and len(asked) == 1
+    # Tick 3: 2 rows left (<= prefetch): the next request goes out in the background with this tick's
+    # observation, and the robot keeps running on the old chunk meanwhile.
+    action, version = ex.tick(obs(3))
+    assert action[0] == 3.0 and version == 1 and len(runner.jobs) == 1
+    clock.t += 0.05
+    runner.finish_all()  # the answer for tick 3 lands before tick 4
+    assert asked[-1]["state"][0] == 3.0
+    action, version = ex.tick(obs(4))  # old row 4 and new row 1 overlap: mean with decay 0
+    np.testing.assert_allclose(action, [(4.0 + 101.0) / 2] * A)
+    assert version == 2
+    clock.t += 0.05
+    action, _ = ex.tick(obs(5))  # the old chunk is used up: the new one alone (row 2)
+    np.testing.assert_allclose(action, [102.0] * A)
+    assert ex.received == 2 and ex.holds == 0
+
+
+def test_ensembling_weights_the_older_chunk_more() -> None:
+    ex, _clock, runner, _ = make(prefetch=2, decay=np.log(3.0))  # weights 1 and 1/3
+    for i in range(4):
+        ex.tick(obs(i))
+    runner.finish_all()
+    action, _ = ex.tick(obs(4))
+    np.testing.assert_allclose(action, [(4.0 * 1 + 101.0 / 3) / (4 / 3)] * A, rtol=1e-6)
+
+
+def test_late_chunk_skips_rows_already_past() -> None:
+    ex, _clock, runner, _ = make(prefetch=2, decay=0.0)
+    for i in range(5):  # the request from tick 3 is still in flight at tick 4
+        ex.tick(obs(i))
+    runner.finish_all()  # lands for tick 5: its rows 0 and 1 (ticks 3, 4) are past
+    action, _ = ex.tick(obs(5))
+    np.testing.assert_allclose(action, [102.0] * A)
+
+
+def test_holds_when_nothing_fresh_is_left() -> None:
+    ex, clock, _runner, _ = make(prefetch=0, max_age_s=0.2)
+    assert ex.tick(obs(0)) is not None
+    ex.answers.clear()  # the link is gone: requests get no answer
+    clock.t = 0.5  # and the chunk in hand is too old to act on
+    assert ex.tick(obs(1)) is None
+    assert ex.holds == 1
+
+
+def test_no_answer_holds_and_single_actions_work_per_tick() -> None:
+    calls = []
+
+    def fetch(o: dict[str, np.ndarray]) -> tuple[np.ndarray, int] | None:
+        calls.append(o)
+        return (np.array([len(calls), 0.0], np.float32), 7) if len(calls) != 2 else None
+
+    ex = ChunkExecutor(fetch, prefetch=1, runner=lambda job: pytest.fail("a one-action policy needs no prefetch"))
+    results = [ex.tick(obs(i)) for i in range(3)]
+    assert results[0][0][0] == 1.0 and results[1] is None and results[2][0][0] == 3.0  # asked every tick
+    assert results[0][1] == 7 and len(calls) == 3
+
+
+def test_bad_params_are_refused() -> None:
+    with pytest.raises(ValueError):
+        ChunkExecutor(lambda o: None, prefetch=-1)

@@ -1,0 +1,274 @@
+"""flow_vla policy and its flow_bc learner: chunks, instructions, serving, and learning from interventions."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import grpc
+import numpy as np
+import pytest
+import torch
+
+from cloud_learner.algorithm import ALGORITHMS, Batch, Feature, Layout
+from edge_agent.policy_source import RemotePolicy
+from services.inference.server import InferenceService
+from tests import helpers
+from user import wire
+from user.config import AuthConfig, StackConfig
+from user.policies.flow_vla import FlowVlaConfig, policy_spec, random_weights
+from user.policy import build_policy
+from user.rpc import make_channel
+from user.text import INSTRUCTION_KEY, encode_instruction
+from user.v1 import inference_pb2, inference_pb2_grpc
+from user.weights import WeightSet
+
+torch.set_num_threads(1)
+AUTH = AuthConfig(token="test-token")
+H, A = 4, 3
+CFG = FlowVlaConfig(
+    image_keys=["camera.front"],
+    state_keys=["state"],
+    state_dim=5,
+    action_dim=A,
+    action_low=[-1.0, -1.0, 0.0],
+    action_high=[1.0, 1.0, 0.5],
+    horizon=H,
+    hidden=32,
+    flow_steps=3,
+    default_instruction="reach the red target",
+)
+
+
+def observation(batch: int, size: int = 64, seed: int = 0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return {
+        "camera.front": rng.integers(0, 256, size=(batch, size, size, 3), dtype=np.uint8),
+        "state": rng.normal(size=(batch, 5)).astype(np.float32),
+    }
+
+
+def weights(version: int, seed: int = 0) -> WeightSet:
+    return WeightSet(version=version, policy=policy_spec(CFG), tensors=random_weights(CFG, seed))
+
+
+def test_chunks_in_bounds_and_instruction_matters() -> None:
+    policy = build_policy(policy_spec(CFG), random_weights(CFG), version=3)
+    assert policy.chunk_horizon == H and policy.action_shape == (A,)
+    obs = observation(2)
+    chunk = policy.act(obs, deterministic=True)
+    assert chunk.shape == (2, H, A) and chunk.dtype == np.float32
+    assert (chunk >= np.array(CFG.action_low) - 1e-6).all() and (chunk <= np.array(CFG.action_high) + 1e-6).all()
+    red = policy.forward(policy.preprocess(obs, ["reach the red target"] * 2), True)
+    blue = policy.forward(policy.preprocess(obs, ["reach the blue target"] * 2), True)
+    np.testing.assert_allclose(red, chunk, atol=1e-6)  # "" falls back to the default instruction
+    assert not np.allclose(red, blue)
+    # The instruction may also ride in the observation as bytes; the request's wins over it.
+    with_bytes = dict(obs, **{INSTRUCTION_KEY: np.stack([encode_instruction("reach the blue target")] * 2)})
+    np.testing.assert_allclose(policy.forward(policy.preprocess(with_bytes, ["", ""]), True), blue, atol=1e-6)
+    np.testing.assert_allclose(policy.forward(policy.preprocess(with_bytes, ["reach the red target"] * 2), True), red)
+
+
+def test_images_of_another_size_are_resized_and_bad_input_is_refused() -> None:
+    policy = build_policy(policy_spec(CFG), random_weights(CFG), version=1)
+    assert policy.act(observation(1, size=96)).shape == (1, H, A)
+    with pytest.raises(ValueError, match="lacks"):
+        policy.act({"state": np.zeros((1, 5), np.float32)})
+    with pytest.raises(ValueError, match="features"):
+        policy.act(dict(observation(1), state=np.zeros((1, 7), np.float32)))
+    tensors = random_weights(CFG)
+    tensors.pop(next(iter(tensors)))
+    with pytest.raises(ValueError, match="missing"):
+        build_policy(policy_spec(CFG), tensors, version=1)
+    bad = policy_spec(CFG)
+    bad.config_json = '{"action_dim": 0}'
+    with pytest.raises(ValueError, match="config_json"):
+        build_policy(bad, random_weights(CFG), version=1)
+
+
+@pytest.fixture
+def service() -> Iterator[InferenceService]:
+    cfg = StackConfig(auth=AUTH)
+    cfg.inference.server.port = 0
+    cfg.inference.server.metrics_port = 0
+    cfg.inference.server.grace_s = 1.0
+    svc = InferenceService(cfg, policy_source="manual", start_metrics=False).start()
+    svc.load_weights(weights(version=5))
+    yield svc
+    svc.stop()
+
+
+def test_served_chunks_with_instruction_and_stage_times(service: InferenceService) -> None:
+    stub = inference_pb2_grpc.InferenceStub(make_channel(service.address, AUTH))
+    obs = {k: v[0] for k, v in observation(1).items()}
+    answers = {}
+    for text in ("reach the red target", "reach the blue target"):
+        req = inference_pb2.ActRequest(
+            robot_id="arm-0", observation=wire.to_tensor_map(obs), deterministic=True, instruction=text
+        )
+        resp = stub.Act(req, timeout=10)
+        answers[text] = wire.from_tensor(resp.action)
+        assert answers[text].shape == (H, A) and resp.horizon == H and resp.policy_version == 5
+        assert resp.forward_us > 0 and resp.preprocess_us > 0 and resp.postprocess_us >= 0 and resp.queue_us >= 0
+    assert not np.allclose(answers["reach the red target"], answers["reach the blue target"])
+    too_long = inference_pb2.ActRequest(robot_id="arm-0", observation=wire.to_tensor_map(obs), instruction="x" * 2000)
+    with pytest.raises(grpc.RpcError) as err:
+        stub.Act(too_long, timeout=10)
+    assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+
+
+def test_edge_executes_the_served_chunk_row_by_row(service: InferenceService) -> None:
+    source = RemotePolicy(service.address, AUTH, deterministic=True, instruction="reach the red target")
+    try:
+        obs = {k: v[0] for k, v in observation(1).items()}
+        expected = service.policy.forward(service.policy.preprocess({k: v[None] for k, v in obs.items()}, [""]), True)
+        first, version = source.act("arm-0", obs, deadline_s=10.0)
+        second, _ = source.act("arm-0", obs, deadline_s=10.0)
+        np.testing.assert_allclose(first, expected[0, 0], atol=1e-5)
+        np.testing.assert_allclose(second, expected[0, 1], atol=1e-5)  # the next row, not a new request's first
+        assert version == 5
+    finally:
+        source.close()
+
+
+# --- flow_bc: the learner side of HG-DAgger ----------------------------------------------------------
+
+LAYOUT = Layout(
+    observation={"state": Feature((5,), "float32"), INSTRUCTION_KEY: Feature((64,), "uint8")},
+    action_low=np.array([-1.0, -1.0, -1.0], np.float32),
+    action_high=np.array([1.0, 1.0, 1.0], np.float32),
+)
+
+
+def human_batch(intervention: bool, n: int = 32) -> tuple[Batch, np.ndarray]:
+    rng = np.random.default_rng(1)
+    state = torch.from_numpy(rng.normal(size=(n, 5)).astype(np.float32))
+    text = torch.from_numpy(np.stack([encode_instruction("reach the green target")] * n))
+    target = np.array([0.8, -0.6, 0.4], np.float32)  # what the human did in these states
+    obs = {"state": state, INSTRUCTION_KEY: text}
+    batch = Batch(
+        observation=obs,
+        action=torch.from_numpy(np.tile(target, (n, 1))),
+        reward=torch.zeros(n),
+        next_observation=obs,
+        terminated=torch.zeros(n),
+        intervention=torch.full((n,), intervention),
+    )
+    return batch, target
+
+
+def test_an_intervention_reaches_the_learner_and_changes_the_policy() -> None:
+    algo = ALGORITHMS.build(
+        "flow_bc", {"batch_size": 32, "lr": 3e-3, "hidden": 64}, layout=LAYOUT, device=torch.device("cpu")
+    )
+    batch, target = human_batch(intervention=True)
+    obs = {k: v[:4].numpy() for k, v in batch.observation.items()}
+
+    def served_action() -> np.ndarray:
+        spec, tensors = algo.policy()
+        return build_policy(spec, tensors, version=algo.updates).act(obs, deterministic=True)[:, 0]
+
+    before = np.abs(served_action() - target).mean()
+    for _ in range(150):
+        stats = algo.update(batch)
+    after = np.abs(served_action() - target).mean()
+    assert stats["human_rows"] == 32 and np.isfinite(stats["flow_loss"])
+    assert after < 0.1 < before
+
+
+def test_the_policys_own_steps_are_not_imitated_from_a_mixed_table() -> None:
+    params = {"batch_size": 32, "tables": {"online": 1.0}, "hidden": 32}
+    algo = ALGORITHMS.build("flow_bc", params, layout=LAYOUT, device=torch.device("cpu"))
+    assert algo.batch_request().tables == {"online": 1.0}
+    before = {k: v.copy() for k, v in algo.policy()[1].items()}
+    stats = algo.update(human_batch(intervention=False)[0])
+    assert stats["human_rows"] == 0
+    assert all(np.array_equal(before[k], v) for k, v in algo.policy()[1].items())
+    assert algo.update(human_batch(intervention=True)[0])["human_rows"] == 32
+
+
+def test_chunk_targets_need_chunks() -> None:
+    algo = ALGORITHMS.build("flow_bc", {"horizon": 4, "hidden": 32}, layout=LAYOUT, device=torch.device("cpu"))
+    assert algo.batch_request().tables == {"demos": 0.5, "interventions": 0.5}
+    batch, _ = human_batch(intervention=True)
+    with pytest.raises(ValueError, match="action_chunk"):
+        algo.update(batch)
+    batch.action_chunk = batch.action[:, None, :].repeat(1, 4, 1)  # type: ignore[attr-defined]
+    assert np.isfinite(algo.update(batch)["flow_loss"])
+
+
+def test_weight_swaps_under_grpc_load_fail_no_request(service: InferenceService) -> None:
+    import threading
+
+    obs = wire.to_tensor_map({k: v[0] for k, v in observation(1).items()})
+    errors: list[str] = []
+    versions: list[int] = []
+    per_robot: dict[int, list[int]] = {i: [] for i in range(3)}
+    stop = threading.Event()
+
+    def robot(i: int) -> None:
+        stub = inference_pb2_grpc.InferenceStub(make_channel(service.address, AUTH))
+        while not stop.is_set():
+            try:
+                resp = stub.Act(inference_pb2.ActRequest(robot_id=f"arm-{i}", observation=obs), timeout=30)
+                versions.append(resp.policy_version)
+                per_robot[i].append(resp.policy_version)
+            except grpc.RpcError as err:
+                errors.append(f"{err.code().name}: {err.details()}")
+
+    threads = [threading.Thread(target=robot, args=(i,)) for i in range(3)]
+    for t in threads:
+        t.start()
+    try:
+        for version in range(6, 12):  # the learner's stream delivers new weights while robots act
+            seen = len(versions)
+            while len(versions) < seen + 3 and not errors:
+                stop.wait(0.005)
+            service.load_weights(weights(version, seed=version))
+        seen = len(versions)
+        while len(versions) < seen + 3 and not errors:
+            stop.wait(0.005)
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(30)
+    assert not errors, errors[:3]
+    assert max(versions) == 11
+    assert all(v == sorted(v) for v in per_robot.values())  # each robot only ever sees newer versions
+
+
+def test_robot_loop_runs_served_chunks_at_the_control_rate(service: InferenceService) -> None:
+    from edge_agent.agent import RobotLoop
+    from edge_agent.robot import make_robot
+    from tests.test_edge_agent import ListSink
+
+    lang_cfg = FlowVlaConfig(
+        image_keys=["camera.front"],
+        state_keys=["state"],
+        state_dim=15,
+        action_dim=3,
+        action_low=[-1.0] * 3,
+        action_high=[1.0] * 3,
+        horizon=8,
+        hidden=32,
+        flow_steps=2,
+    )
+    service.load_weights(WeightSet(version=9, policy=policy_spec(lang_cfg), tensors=random_weights(lang_cfg)))
+    served_before = service.batcher.requests
+    robot = make_robot("lang_reach_arm", "lang-0", {"control_rate_hz": 20, "max_episode_steps": 1000}, seed=0)
+    source = RemotePolicy(service.address, AUTH)
+    sink = ListSink()
+    loop = RobotLoop(robot, source, sink, mode="realtime", action_deadline_s=2.0)
+    loop.start()
+    try:
+        helpers.wait_for(lambda: len(sink.steps) >= 24, "24 control ticks")
+    finally:
+        loop.stop()
+        source.close()
+        robot.close()
+    steps = sink.snapshot()
+    acted = [s for s in steps if not s.held]
+    requests = service.batcher.requests - served_before
+    assert acted and all(s.policy_version == 9 for s in acted)
+    assert requests < len(steps) / 2  # one request per chunk of 8 (prefetched), not one per tick
+    executor = source._chunks.executors["lang-0"]
+    assert executor.received == requests and executor.last_latency_s > 0

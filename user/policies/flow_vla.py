@@ -1,0 +1,285 @@
+"""flow_vla: a small vision-language-action policy that produces action chunks by flow matching.
+
+    cameras (uint8 HxWx3)  --per-camera CNN-->  \
+    instruction (words)    --hashed embedding--> +-> context --> action expert v(x_t, t, context)
+    state (floats)         --linear-->          /                 x_0 ~ N(0, I) --Euler steps--> chunk
+
+Trained with the flow-matching loss (cloud_learner/algorithms/flow_bc.py): for a demonstrated chunk
+a (normalised to [-1, 1]), noise e and t ~ U(0, 1), regress v(t*a + (1-t)*e, t) onto a - e.
+Acting integrates dx/dt = v from noise (zeros when deterministic) in `flow_steps` Euler steps.
+
+Small enough to train on two CPU cores (~0.2 M parameters at 64x64). The instruction comes from
+the request (ActRequest.instruction), else from the observation's `instruction` feature (UTF-8
+bytes, see user/text.py), else from the config's default (e.g. the robot's RobotSpec.task).
+Weights travel as named raw tensors like every policy; the spec's JSON holds the architecture.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from torch import nn
+
+from user.policy import Policy, check_device, load_tensors, module_tensors, register_policy
+from user.text import INSTRUCTION_KEY, decode_instruction, word_ids
+from user.v1 import learner_pb2
+
+KIND = "flow_vla"
+
+
+class FlowVlaConfig(BaseModel):
+    """Architecture: what the PolicySpec's config_json holds."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    image_keys: list[str] = Field(default_factory=list, description="camera features, uint8 (H, W, 3)")
+    state_keys: list[str] = Field(default_factory=list, description="float features, flattened and concatenated")
+    state_dim: int = Field(0, ge=0)
+    instruction_key: str | None = Field(INSTRUCTION_KEY, description="uint8 observation feature with the instruction")
+    default_instruction: str = ""
+    action_dim: int = Field(ge=1)
+    action_low: list[float]
+    action_high: list[float]
+    horizon: int = Field(8, ge=1, description="actions per chunk")
+    image_size: int = Field(64, ge=16, description="images are resized to this square size")
+    vocab_size: int = Field(1024, ge=2)
+    max_words: int = Field(16, ge=1)
+    embed_dim: int = Field(32, ge=1)
+    hidden: int = Field(128, ge=8)
+    flow_steps: int = Field(5, ge=1, description="Euler steps from noise to a chunk")
+
+    def observation_keys(self) -> list[str]:
+        keys = [*self.image_keys, *self.state_keys]
+        return [*keys, self.instruction_key] if self.instruction_key else keys
+
+
+def policy_spec(config: FlowVlaConfig) -> learner_pb2.PolicySpec:
+    return learner_pb2.PolicySpec(kind=KIND, config_json=config.model_dump_json())
+
+
+def _camera_encoder(out_dim: int) -> nn.Sequential:
+    # 64 -> 31 -> 14 -> 6 spatial; a flattened small map keeps where things are (targets' positions).
+    return nn.Sequential(
+        nn.Conv2d(3, 16, 4, stride=2),
+        nn.SiLU(),
+        nn.Conv2d(16, 32, 4, stride=2),
+        nn.SiLU(),
+        nn.Conv2d(32, 16, 3, stride=2),
+        nn.SiLU(),
+        nn.AdaptiveAvgPool2d(4),
+        nn.Flatten(),
+        nn.Linear(16 * 4 * 4, out_dim),
+        nn.SiLU(),
+    )
+
+
+def _time_embedding(t: torch.Tensor, dim: int = 32) -> torch.Tensor:
+    """Sinusoidal features of the flow time t in [0, 1], (B,) -> (B, dim)."""
+    freqs = torch.exp(torch.linspace(0.0, math.log(1000.0), dim // 2, device=t.device))
+    angles = t[:, None] * freqs[None] * math.pi
+    return torch.cat([angles.sin(), angles.cos()], dim=-1)
+
+
+class FlowVla(nn.Module):
+    def __init__(self, cfg: FlowVlaConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        h = cfg.hidden
+        self.cameras = nn.ModuleList(_camera_encoder(h // 2) for _ in cfg.image_keys)
+        self.words = nn.Embedding(cfg.vocab_size, cfg.embed_dim, padding_idx=0)
+        self.language = nn.Sequential(nn.Linear(cfg.embed_dim, h // 2), nn.SiLU())
+        self.state = nn.Sequential(nn.Linear(cfg.state_dim, h // 2), nn.SiLU()) if cfg.state_dim else None
+        # FiLM: the instruction scales and shifts the state and image features, so "which target" can
+        # select features multiplicatively instead of the MLP having to learn that gating from sums.
+        self.film = nn.Linear(h // 2, 2 * (h // 2))
+        parts = len(cfg.image_keys) + 1 + (1 if cfg.state_dim else 0)
+        self.context = nn.Sequential(nn.Linear(parts * (h // 2), h), nn.SiLU(), nn.Linear(h, h))
+        chunk = cfg.horizon * cfg.action_dim
+        self.expert = nn.Sequential(
+            nn.Linear(chunk + 32 + h, h), nn.SiLU(), nn.Linear(h, h), nn.SiLU(), nn.Linear(h, chunk)
+        )
+
+    def encode(self, images: list[torch.Tensor], state: torch.Tensor | None, tokens: torch.Tensor) -> torch.Tensor:
+        """images: float (B, 3, S, S) each; state (B, state_dim); tokens (B, max_words) -> context (B, hidden)."""
+        mask = (tokens > 0).float()
+        words = (self.words(tokens) * mask[..., None]).sum(1) / mask.sum(1, keepdim=True).clamp(min=1.0)
+        language = self.language(words)
+        feats = [enc(img) for enc, img in zip(self.cameras, images, strict=True)]
+        if self.state is not None and state is not None:
+            feats.append(self.state(state))
+        gamma, beta = self.film(language).chunk(2, dim=-1)
+        feats = [f * (1 + gamma) + beta for f in feats]
+        return self.context(torch.cat([*feats, language], dim=-1))
+
+    def velocity(self, x: torch.Tensor, t: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+        """x: (B, horizon, A) noisy chunk at flow time t (B,) -> predicted velocity, same shape."""
+        inp = torch.cat([x.flatten(1), _time_embedding(t), context], dim=-1)
+        return self.expert(inp).view_as(x)
+
+    def flow_loss(self, context: torch.Tensor, chunk: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
+        """Flow-matching loss for normalised target chunks (B, horizon, A) in [-1, 1]."""
+        noise = torch.randn_like(chunk)
+        t = torch.rand(chunk.shape[0], device=chunk.device)
+        x_t = t[:, None, None] * chunk + (1 - t[:, None, None]) * noise
+        err = (self.velocity(x_t, t, context) - (chunk - noise)).pow(2).mean(dim=(1, 2))
+        return (err * weight).sum() / weight.sum().clamp(min=1e-6) if weight is not None else err.mean()
+
+    def sample(self, context: torch.Tensor, deterministic: bool) -> torch.Tensor:
+        """Integrate from noise (zeros when deterministic) to a normalised chunk (B, horizon, A)."""
+        shape = (context.shape[0], self.cfg.horizon, self.cfg.action_dim)
+        x = torch.zeros(shape, device=context.device) if deterministic else torch.randn(shape, device=context.device)
+        dt = 1.0 / self.cfg.flow_steps
+        for i in range(self.cfg.flow_steps):
+            t = torch.full((shape[0],), i * dt, device=context.device)
+            x = x + dt * self.velocity(x, t, context)
+        return x.clamp(-1.0, 1.0)
+
+
+class Prepared:
+    """What preprocess hands to forward: device tensors for one batch."""
+
+    def __init__(self, images: list[torch.Tensor], state: torch.Tensor | None, tokens: torch.Tensor) -> None:
+        self.images, self.state, self.tokens = images, state, tokens
+
+    def __len__(self) -> int:
+        return int(self.tokens.shape[0])
+
+
+class Preprocessor:
+    """Numpy batch + instructions -> device tensors: resize/normalise images, tokenize, one copy per key.
+
+    Used by the policy (inference, edge) and by the learner (training), so both see the same inputs.
+    """
+
+    def __init__(self, cfg: FlowVlaConfig, device: torch.device) -> None:
+        self.cfg, self.device = cfg, device
+        self.pinned = device.type == "cuda"  # page-locked host buffers make the copy asynchronous
+
+    def _to_device(self, array: np.ndarray) -> torch.Tensor:
+        tensor = torch.from_numpy(np.ascontiguousarray(array))
+        if self.pinned:
+            return tensor.pin_memory().to(self.device, non_blocking=True)
+        return tensor.to(self.device)
+
+    def images(self, batch: torch.Tensor) -> torch.Tensor:
+        """uint8 (B, H, W, 3) on the device -> float (B, 3, S, S) in [-1, 1]."""
+        x = batch.permute(0, 3, 1, 2).float().div_(127.5).sub_(1.0)
+        size = self.cfg.image_size
+        if x.shape[-2:] != (size, size):
+            x = F.interpolate(x, size=(size, size), mode="bilinear", align_corners=False, antialias=True)
+        return x
+
+    def tokens(self, texts: Sequence[str]) -> np.ndarray:
+        return np.stack([word_ids(t, self.cfg.vocab_size, self.cfg.max_words) for t in texts])
+
+    def instructions(self, observation: Mapping[str, Any], given: Sequence[str] | None, batch: int) -> list[str]:
+        """Per row: the given instruction, else the observation's, else the default."""
+        key = self.cfg.instruction_key
+        from_obs = observation.get(key) if key else None
+        texts = []
+        for i in range(batch):
+            text = given[i] if given is not None and i < len(given) else ""
+            if not text and from_obs is not None:
+                text = decode_instruction(np.asarray(from_obs[i]))
+            texts.append(text or self.cfg.default_instruction)
+        return texts
+
+    def __call__(self, observation: Mapping[str, Any], instructions: Sequence[str] | None = None) -> Prepared:
+        missing = [k for k in [*self.cfg.image_keys, *self.cfg.state_keys] if k not in observation]
+        if missing:
+            raise ValueError(f"observation lacks {missing}")
+        batch = len(next(iter(observation.values())))
+        images = [self.images(self._to_device(np.asarray(observation[k], dtype=np.uint8))) for k in self.cfg.image_keys]
+        state = None
+        if self.cfg.state_keys:
+            parts = [np.asarray(observation[k], dtype=np.float32).reshape(batch, -1) for k in self.cfg.state_keys]
+            flat = np.concatenate(parts, axis=1)
+            if flat.shape[1] != self.cfg.state_dim:
+                raise ValueError(f"state has {flat.shape[1]} features, the policy expects {self.cfg.state_dim}")
+            state = self._to_device(flat)
+        tokens = self._to_device(self.tokens(self.instructions(observation, instructions, batch)))
+        return Prepared(images, state, tokens)
+
+
+class ActionScaler:
+    """[low, high] <-> [-1, 1] per action dim."""
+
+    def __init__(self, cfg: FlowVlaConfig, device: torch.device) -> None:
+        low = torch.tensor(cfg.action_low, dtype=torch.float32, device=device)
+        high = torch.tensor(cfg.action_high, dtype=torch.float32, device=device)
+        if low.shape != (cfg.action_dim,) or high.shape != (cfg.action_dim,) or not bool((high > low).all()):
+            raise ValueError(f"{KIND}: action_low/high need {cfg.action_dim} elements each with high > low")
+        self.scale, self.bias = (high - low) / 2, (high + low) / 2
+
+    def normalize(self, action: torch.Tensor) -> torch.Tensor:
+        return ((action - self.bias) / self.scale).clamp(-1.0, 1.0)
+
+    def unnormalize(self, x: torch.Tensor) -> torch.Tensor:
+        return x * self.scale + self.bias
+
+
+def parse_config(spec: learner_pb2.PolicySpec) -> FlowVlaConfig:
+    try:
+        return FlowVlaConfig.model_validate(json.loads(spec.config_json))
+    except (json.JSONDecodeError, ValidationError) as exc:
+        raise ValueError(f"{KIND} config_json: {exc}") from None
+
+
+@register_policy(KIND)
+class FlowVlaPolicy(Policy):
+    """Chunks (B, horizon, action_dim) from cameras, state and an instruction."""
+
+    def __init__(
+        self, spec: learner_pb2.PolicySpec, tensors: Mapping[str, np.ndarray], version: int, device: str = "cpu"
+    ) -> None:
+        self.spec, self.version = spec, int(version)
+        self.config = parse_config(spec)
+        self.device = check_device(device)
+        self.model = FlowVla(self.config)
+        load_tensors(self.model, tensors)
+        self.model.to(self.device).eval()
+        self.prep = Preprocessor(self.config, self.device)
+        self.scaler = ActionScaler(self.config, self.device)
+        # What the core's Policy declarations ask for (observation keys, action shape, chunk horizon).
+        self._observation_keys = tuple(self.config.observation_keys())
+        self.obs_keys = [k for k in self.observation_keys if k != self.config.instruction_key]
+        self.optional_obs_keys = [self.config.instruction_key] if self.config.instruction_key else []
+        self._action_shape = (self.config.action_dim,)
+        self._chunk_horizon = self.config.horizon
+
+    @property
+    def observation_keys(self) -> tuple[str, ...]:
+        return self._observation_keys
+
+    @property
+    def action_shape(self) -> tuple[int, ...]:
+        return self._action_shape
+
+    @property
+    def chunk_horizon(self) -> int:
+        return self._chunk_horizon
+
+    def preprocess(self, observation: Mapping[str, np.ndarray], instructions: Sequence[str]) -> Prepared:
+        return self.prep(observation, instructions)
+
+    @torch.no_grad()
+    def forward(self, prepared: Prepared, deterministic: bool = False) -> np.ndarray:
+        context = self.model.encode(prepared.images, prepared.state, prepared.tokens)
+        chunk = self.scaler.unnormalize(self.model.sample(context, deterministic))
+        return chunk.cpu().numpy().astype(np.float32, copy=False)
+
+    def act(self, observation: Mapping[str, np.ndarray], deterministic: bool = False) -> np.ndarray:
+        return self.forward(self.preprocess(observation, []), deterministic)
+
+
+def random_weights(config: FlowVlaConfig, seed: int = 0) -> dict[str, np.ndarray]:
+    """Freshly initialised weights (what a learner publishes before its first update)."""
+    torch.manual_seed(seed)
+    return module_tensors(FlowVla(config))

@@ -1,0 +1,311 @@
+"""smolvla: lerobot 0.6.1's SmolVLA behind the Policy interface, from a local checkpoint folder.
+
+A lerobot checkpoint folder (what `hf download lerobot/smolvla_base` leaves on disk, or what
+`save_checkpoint` writes) holds config.json (SmolVLAConfig), model.safetensors and the
+pre/post-processor pipelines; the config's `vlm_model_name` names the VLM backbone folder (its
+config, tokenizer and processor). Nothing is downloaded at run time: both are paths.
+
+- `load_checkpoint(folder)` is the one loading path, for a user's downloaded checkpoint and for
+  the tiny ones tests build with `make_tiny_backbone` + `save_checkpoint`: lerobot's own
+  `SmolVLAPolicy.from_pretrained` and `make_pre_post_processors(pretrained_path=...)`.
+- On the wire it is like every policy: PolicySpec(kind="smolvla", config_json={"checkpoint":
+  folder, feature mapping, action bounds}) + the module's named raw tensors. `build_policy`
+  rebuilds the architecture from the folder's config and loads the streamed tensors (not the
+  folder's weights), so learner updates reach inference and edges without pickle.
+
+Observation mapping: camera features (uint8 H, W, 3) become `observation.images.<name>` floats in
+[0, 1], state features are concatenated into `observation.state`, the instruction becomes the
+`task` string lerobot's tokenizer step reads.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from user.policy import Policy, check_device, load_tensors, module_tensors, register_policy
+from user.text import INSTRUCTION_KEY, decode_instruction
+from user.v1 import learner_pb2
+
+KIND = "smolvla"
+SPECIAL_TOKENS = {
+    "fake_image_token": "<fake_token_around_image>",
+    "image_token": "<image>",
+    "global_image_token": "<global-img>",
+    "end_of_utterance_token": "<end_of_utterance>",
+}
+
+
+class SmolVlaSpec(BaseModel):
+    """What the PolicySpec's config_json holds: where the architecture lives and how features map."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    checkpoint: str = Field(description="local lerobot checkpoint folder (config.json, processors)")
+    image_keys: dict[str, str] = Field(default_factory=dict, description="robot camera feature -> lerobot camera name")
+    state_keys: list[str] = Field(default_factory=list)
+    action_dim: int = Field(ge=1)
+    action_low: list[float]
+    action_high: list[float]
+    default_instruction: str = ""
+
+
+def policy_spec(spec: SmolVlaSpec) -> learner_pb2.PolicySpec:
+    return learner_pb2.PolicySpec(kind=KIND, config_json=spec.model_dump_json())
+
+
+# --- folders --------------------------------------------------------------------------------------
+
+
+def make_tiny_backbone(folder: str | Path, words: Sequence[str], image_size: int = 64) -> Path:
+    """A SmolVLM backbone folder at test size (~100k parameters): config, word-level tokenizer, processor.
+
+    Stands in for HuggingFaceTB/SmolVLM2-500M-Video-Instruct, which cannot be downloaded here; the
+    real one is used by pointing the SmolVLA config's vlm_model_name at its local folder.
+    """
+    from tokenizers import Tokenizer, models, pre_tokenizers
+    from transformers import Idefics3ImageProcessor, Idefics3Processor, PreTrainedTokenizerFast, SmolVLMConfig
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    tokens = ["<pad>", "<unk>", *SPECIAL_TOKENS.values(), *dict.fromkeys(w.lower() for w in words), "\n"]
+    vocab = {t: i for i, t in enumerate(tokens)}
+    backend = Tokenizer(models.WordLevel(vocab=vocab, unk_token="<unk>"))
+    backend.pre_tokenizer = pre_tokenizers.Whitespace()
+    tokenizer = PreTrainedTokenizerFast(
+        tokenizer_object=backend, pad_token="<pad>", unk_token="<unk>", extra_special_tokens=SPECIAL_TOKENS
+    )
+    images = Idefics3ImageProcessor(
+        do_resize=True,
+        size={"longest_edge": image_size},
+        max_image_size={"longest_edge": image_size},
+        do_image_splitting=False,
+    )
+    Idefics3Processor(image_processor=images, tokenizer=tokenizer, image_seq_len=4).save_pretrained(folder)
+    SmolVLMConfig(
+        text_config={
+            "model_type": "llama",
+            "vocab_size": len(vocab),
+            "hidden_size": 32,
+            "intermediate_size": 64,
+            "num_hidden_layers": 2,
+            "num_attention_heads": 2,
+            "num_key_value_heads": 1,
+            "head_dim": 16,
+            "max_position_embeddings": 256,
+            "pad_token_id": 0,
+        },
+        vision_config={
+            "model_type": "smolvlm_vision",
+            "hidden_size": 32,
+            "intermediate_size": 64,
+            "num_hidden_layers": 1,
+            "num_attention_heads": 2,
+            "image_size": image_size,
+            "patch_size": 16,
+        },
+        scale_factor=2,
+        image_token_id=vocab["<image>"],
+        vocab_size=len(vocab),
+    ).save_pretrained(folder)
+    return folder
+
+
+def tiny_smolvla_config(
+    backbone: str | Path,
+    cameras: Sequence[str],
+    state_dim: int,
+    action_dim: int,
+    horizon: int = 8,
+    image_size: int = 64,
+) -> Any:
+    """A SmolVLAConfig over a (tiny) backbone folder, with lerobot's feature names."""
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
+
+    inputs = {
+        f"observation.images.{c}": PolicyFeature(FeatureType.VISUAL, (3, image_size, image_size)) for c in cameras
+    }
+    inputs["observation.state"] = PolicyFeature(FeatureType.STATE, (state_dim,))
+    return SmolVLAConfig(
+        vlm_model_name=str(backbone),
+        load_vlm_weights=False,
+        chunk_size=horizon,
+        n_action_steps=horizon,
+        max_state_dim=max(state_dim, 1),
+        max_action_dim=action_dim,
+        resize_imgs_with_padding=(image_size, image_size),
+        num_vlm_layers=2,
+        num_steps=3,
+        tokenizer_max_length=16,
+        device="cpu",
+        input_features=inputs,
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (action_dim,))},
+    )
+
+
+def save_checkpoint(model: Any, folder: str | Path, preprocessor: Any = None, postprocessor: Any = None) -> Path:
+    """Write a lerobot checkpoint folder (config.json, model.safetensors, processor pipelines)."""
+    from lerobot.policies.factory import make_pre_post_processors
+
+    folder = Path(folder)
+    model.save_pretrained(folder)
+    if preprocessor is None or postprocessor is None:
+        preprocessor, postprocessor = make_pre_post_processors(model.config)
+    preprocessor.save_pretrained(folder)
+    postprocessor.save_pretrained(folder)
+    return folder
+
+
+def _processors(folder: str | Path, config: Any, device: torch.device) -> tuple[Any, Any]:
+    from lerobot.policies.factory import make_pre_post_processors
+
+    return make_pre_post_processors(
+        config,
+        pretrained_path=str(folder),
+        preprocessor_overrides={"device_processor": {"device": str(device)}},
+    )
+
+
+def load_checkpoint(folder: str | Path, device: str = "cpu") -> tuple[Any, Any, Any]:
+    """(SmolVLAPolicy with the folder's weights, preprocessor, postprocessor): lerobot's own loading path."""
+    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+
+    dev = check_device(device)
+    model = SmolVLAPolicy.from_pretrained(str(folder))
+    model.to(dev).eval()
+    pre, post = _processors(folder, model.config, dev)
+    return model, pre, post
+
+
+def _architecture(folder: str | Path, device: torch.device) -> Any:
+    """The folder's architecture with fresh weights (streamed tensors replace them)."""
+    from lerobot.configs.policies import PreTrainedConfig
+    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+
+    config = PreTrainedConfig.from_pretrained(str(folder))
+    if config.type != KIND:
+        raise ValueError(f"{folder} holds a {config.type!r} policy, not {KIND!r}")
+    config.load_vlm_weights = False  # weights come from the stream
+    return SmolVLAPolicy(config).to(device).eval()
+
+
+def parse_spec(spec: learner_pb2.PolicySpec) -> SmolVlaSpec:
+    try:
+        parsed = SmolVlaSpec.model_validate(json.loads(spec.config_json))
+    except (json.JSONDecodeError, ValidationError) as exc:
+        raise ValueError(f"{KIND} config_json: {exc}") from None
+    if not (Path(parsed.checkpoint) / "config.json").is_file():
+        raise ValueError(f"{KIND}: no checkpoint folder at {parsed.checkpoint!r} (config.json missing)")
+    return parsed
+
+
+# --- the policy -----------------------------------------------------------------------------------
+
+
+class SmolVlaPolicy(Policy):
+    """SmolVLA chunks (B, chunk_size, action_dim); preprocess (tokenize, normalise) runs batched."""
+
+    def __init__(
+        self,
+        spec: learner_pb2.PolicySpec,
+        tensors: Mapping[str, np.ndarray] | None,
+        version: int,
+        device: str = "cpu",
+        model: Any = None,
+    ) -> None:
+        self.spec, self.version = spec, int(version)
+        self.params = parse_spec(spec)
+        self.device = check_device(device)
+        try:
+            self.model = model if model is not None else _architecture(self.params.checkpoint, self.device)
+        except (OSError, KeyError, TypeError) as exc:
+            raise ValueError(f"{KIND}: cannot build from {self.params.checkpoint!r}: {exc}") from None
+        if tensors is not None:
+            load_tensors(self.model, tensors)
+            self.model.to(self.device).eval()
+        self.pre, self.post = _processors(self.params.checkpoint, self.model.config, self.device)
+        self.horizon = int(self.model.config.chunk_size)
+        self.optional_obs_keys = [INSTRUCTION_KEY]
+        self.obs_keys = [*self.params.image_keys, *self.params.state_keys]
+        self._observation_keys = tuple([*self.obs_keys, INSTRUCTION_KEY])
+        self._action_shape = (self.params.action_dim,)
+        self._chunk_horizon = self.horizon
+        self._low = np.asarray(self.params.action_low, np.float32)
+        self._high = np.asarray(self.params.action_high, np.float32)
+
+    @property
+    def observation_keys(self) -> tuple[str, ...]:
+        return self._observation_keys
+
+    @property
+    def action_shape(self) -> tuple[int, ...]:
+        return self._action_shape
+
+    @property
+    def chunk_horizon(self) -> int:
+        return self._chunk_horizon
+
+    @classmethod
+    def from_checkpoint(
+        cls, folder: str | Path, spec: SmolVlaSpec | None = None, version: int = 0, device: str = "cpu"
+    ) -> SmolVlaPolicy:
+        """A policy with the folder's own weights (a downloaded pretrained checkpoint, or a saved one)."""
+        model, _, _ = load_checkpoint(folder, device)
+        if spec is None:
+            raise ValueError("from_checkpoint needs the feature mapping (SmolVlaSpec)")
+        spec = spec.model_copy(update={"checkpoint": str(folder)})
+        return cls(policy_spec(spec), None, version, device, model=model)
+
+    def tensors(self) -> dict[str, np.ndarray]:
+        """The weights as named raw arrays: what a weight set streams."""
+        return module_tensors(self.model)
+
+    def preprocess(self, observation: Mapping[str, np.ndarray], instructions: Sequence[str]) -> dict[str, Any]:
+        missing = [k for k in self.obs_keys if k not in observation]
+        if missing:
+            raise ValueError(f"observation lacks {missing}")
+        batch_size = len(next(iter(observation.values())))
+        batch: dict[str, Any] = {}
+        for key, camera in self.params.image_keys.items():
+            img = torch.from_numpy(np.asarray(observation[key], dtype=np.uint8)).permute(0, 3, 1, 2)
+            batch[f"observation.images.{camera}"] = img.float().div_(255.0)
+        state = [np.asarray(observation[k], np.float32).reshape(batch_size, -1) for k in self.params.state_keys]
+        batch["observation.state"] = torch.from_numpy(
+            np.concatenate(state, axis=1) if state else np.zeros((batch_size, 0))
+        )
+        from_obs = observation.get(INSTRUCTION_KEY)
+        texts = []
+        for i in range(batch_size):
+            text = instructions[i] if i < len(instructions) else ""
+            if not text and from_obs is not None:
+                text = decode_instruction(np.asarray(from_obs[i]))
+            texts.append(text or self.params.default_instruction)
+        batch["task"] = texts
+        return self.pre(batch)
+
+    @torch.no_grad()
+    def forward(self, prepared: dict[str, Any], deterministic: bool = False) -> np.ndarray:
+        batch_size = int(prepared["observation.state"].shape[0])
+        cfg = self.model.config
+        noise = None
+        if deterministic:  # the mean path: start the flow from zeros
+            noise = torch.zeros(batch_size, cfg.chunk_size, cfg.max_action_dim, device=self.device)
+        self.model.reset()  # no action queue across calls: every request gets a whole chunk
+        chunk = self.post(self.model.predict_action_chunk(prepared, noise=noise))
+        out = np.asarray(chunk.detach().cpu().numpy(), dtype=np.float32)[..., : self.params.action_dim]
+        return np.clip(out, self._low, self._high)
+
+    def act(self, observation: Mapping[str, np.ndarray], deterministic: bool = False) -> np.ndarray:
+        return self.forward(self.preprocess(observation, []), deterministic)
+
+
+register_policy(KIND, "lerobot SmolVLA from a local checkpoint folder; chunks from cameras, state and an instruction")(
+    SmolVlaPolicy
+)
