@@ -9,6 +9,7 @@ can keep validating steps that arrive late.
 
 from __future__ import annotations
 
+import fnmatch
 import logging
 import math
 import queue
@@ -24,7 +25,7 @@ import grpc
 import prometheus_client
 
 from user import rpc
-from user.config import StackConfig
+from user.config import ReplayShard, StackConfig
 from user.log import kv
 from user.v1 import control_pb2, control_pb2_grpc, robot_pb2
 from user.v1 import tensor_pb2 as tpb
@@ -330,10 +331,21 @@ class Registry:
 # --------------------------------------------------------------------------- gRPC servicer
 
 
+def replay_shard_for(shards: list[ReplayShard], agent_id: str, site: str) -> str:
+    """The replay address of the first shard serving this site or agent; "" = the edge keeps its own."""
+    for shard in shards:
+        if (site and site in shard.sites) or any(fnmatch.fnmatchcase(agent_id, p) for p in shard.agents):
+            return shard.addr
+    return ""
+
+
 class ControlServicer(control_pb2_grpc.ControlServicer):
-    def __init__(self, registry: Registry, heartbeat_interval_s: float) -> None:
+    def __init__(
+        self, registry: Registry, heartbeat_interval_s: float, replay_shards: list[ReplayShard] | None = None
+    ) -> None:
         self.registry = registry
         self.heartbeat_interval_s = heartbeat_interval_s
+        self.replay_shards = replay_shards or []
 
     def Connect(
         self, request_iterator: Iterator[control_pb2.EdgeMessage], context: grpc.ServicerContext
@@ -354,6 +366,7 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
         for old in replaced:
             old.outbox.put(Abort(grpc.StatusCode.ABORTED, "superseded by a newer registration of this agent"))
         REGISTRATIONS.inc()
+        replay_addr = replay_shard_for(self.replay_shards, req.agent_id, req.site)
         log.info(
             "agent registered",
             extra=kv(
@@ -363,6 +376,8 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
                 lease_id=conn.lease_id,
                 software_version=req.software_version,
                 replaced=len(replaced),
+                site=req.site,
+                replay_addr=replay_addr,
             ),
         )
         yield control_pb2.ControlMessage(
@@ -370,6 +385,7 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
                 lease_id=conn.lease_id,
                 lease_ttl_s=self.registry.lease_ttl_s,
                 heartbeat_interval_s=self.heartbeat_interval_s,
+                replay_addr=replay_addr,
             )
         )
         reader_done = threading.Event()
@@ -468,7 +484,7 @@ class ControlService(rpc.GrpcService):
         self.cfg = cfg
         c = cfg.control
         self.registry = Registry(c.lease_ttl_s, c.episodes_kept)
-        self.servicer = ControlServicer(self.registry, c.heartbeat_interval_s)
+        self.servicer = ControlServicer(self.registry, c.heartbeat_interval_s, c.replay_shards)
         self.start_metrics = start_metrics
         self.running: rpc.RunningServer | None = None
         self._stop = threading.Event()
