@@ -23,12 +23,13 @@ import prometheus_client
 import torch
 
 from cloud_learner.checkpoint import load_latest, save_checkpoint
+from cloud_learner.replay_sampler import replay_source
 from cloud_learner.sac import SAC
 from user import rpc
 from user.config import StackConfig
 from user.log import kv
 from user.policy import policy_spec_for
-from user.v1 import control_pb2, control_pb2_grpc, replay_pb2, replay_pb2_grpc, robot_pb2
+from user.v1 import control_pb2, control_pb2_grpc, replay_pb2, robot_pb2
 from user.weights import WeightStore
 from user.wire import WireError, from_tensor
 
@@ -255,7 +256,7 @@ class Learner:
         action_dim = int(self._shape.action_low.size)
         request = replay_pb2.SampleRequest(batch_size=self.lc.batch_size)
         with rpc.make_channel(self.lc.replay_addr, self.cfg.auth) as channel:
-            stub = replay_pb2_grpc.ReplayStub(channel)
+            stub = replay_source(self.lc, self.cfg.auth, channel)  # one replay, or shards
             while not self._stop.is_set():
                 try:
                     resp = stub.Sample(request, timeout=self.lc.rpc_timeout_s)
