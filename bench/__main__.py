@@ -25,6 +25,7 @@ BENCHES = {
     "replay": "bench.replay_bench",
     "weights": "bench.weights_bench",
     "inference": "bench.inference_bench",
+    "spool": "bench.spool_bench",
 }
 
 
@@ -38,6 +39,9 @@ LEGEND = {
     "both real gRPC servers on 127.0.0.1, versions alternate.",
     "inference": "inference: ours InferenceService (micro-batching) vs the same Act proto served one forward per "
     "request in the handler; each robot is a separate process, windows alternate.",
+    "spool": "spool: ours edge_agent.spool.LmdbSpool (steps on disk until replay acks) vs the same edge agent with "
+    "edge.spool_dir null (RAM outbox); real edge processes, kill -9 during a replay outage, restart; lost = "
+    "collected - stored.",
 }
 
 
