@@ -11,6 +11,7 @@ status and delivers PAUSE / RESUME / RESET commands.
 from __future__ import annotations
 
 import logging
+import secrets
 import threading
 import time
 from collections import deque
@@ -146,6 +147,9 @@ class RobotLoop:
         self._rate_samples: deque[tuple[float, int]] = deque()
         self._new_episodes: list[control_pb2.EpisodeSummary] = []
         self._labels = {"robot_id": self.robot_id}
+        # Replay keys steps by (robot, episode, step) and the spool re-sends an earlier life's steps after a
+        # restart: a per-life tag keeps episode ids unique even if the wall clock steps back meanwhile.
+        self._life = secrets.token_hex(3)
 
     # ------------------------------------------------------------------ lifecycle and commands
 
@@ -236,7 +240,7 @@ class RobotLoop:
 
     def _begin_episode(self) -> None:
         start_ns = time.time_ns()
-        self.episode_id = f"{self.robot_id}-{start_ns}"
+        self.episode_id = f"{self.robot_id}-{start_ns}-{self._life}"
         self.step_index = 0
         self._return = 0.0
         self._success = False
