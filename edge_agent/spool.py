@@ -13,7 +13,8 @@ Two kinds behind one small interface:
   every second; with it, every commit is flushed (power loss too, ~2 ms a step on these disks).
 - `MemoryOutbox`: the same in RAM, bounded by a step count (today's behaviour; lost on a crash).
 
-A full spool (the next step would pass `max_bytes`) follows its policy: `drop_oldest` deletes the oldest steps
+A full spool (the next step would pass `max_bytes`, itself at most what half the free disk holds)
+follows its policy: `drop_oldest` deletes the oldest steps
 to make room (counted); `pause` keeps every step and reports `accepting = False`, which the robot
 loop obeys by holding still until acks free space.
 """
@@ -23,6 +24,7 @@ from __future__ import annotations
 import logging
 import shutil
 import threading
+import time
 from abc import ABC, abstractmethod
 from collections import OrderedDict
 from collections.abc import Iterable
@@ -50,6 +52,7 @@ SPOOL_FULL = prometheus_client.Gauge(
 )
 
 _SYNC_EVERY_S = 1.0
+_DROP_LOG_EVERY_S = 10.0
 _MAP_HEADROOM = 64 << 20  # LMDB pages cost more than the step bytes they hold; the map grows past this too
 
 
@@ -190,6 +193,8 @@ class LmdbSpool(Outbox):
         self.policy = policy
         self._lock = threading.Lock()
         self._last_size = 0  # bytes of the newest step: "full" means the next one like it would not fit
+        self._disk_error = False
+        self._last_drop_log = -float("inf")
         self._env = lmdb.open(
             str(self.path), map_size=2 * max_bytes + _MAP_HEADROOM, max_dbs=2, sync=fsync, metasync=fsync
         )
@@ -208,11 +213,14 @@ class LmdbSpool(Outbox):
         if not fsync:
             self._syncer = threading.Thread(target=self._sync_loop, name="spool-sync", daemon=True)
             self._syncer.start()
-        free = shutil.disk_usage(self.path).free
-        if free < max_bytes:
+        # LMDB needs free pages even to delete (copy-on-write): the cap leaves half the free disk spare,
+        # so a full spool is reached, and drained by acks, before the disk is.
+        room = self._bytes + shutil.disk_usage(self.path).free // 2
+        if room < max_bytes:
+            self.max_bytes = room
             log.warning(
-                "spool cap is larger than the free disk; a full disk stops the spool before its cap",
-                extra=kv(path=str(self.path), max_bytes=max_bytes, free_bytes=free),
+                "spool cap lowered to half the free disk",
+                extra=kv(path=str(self.path), asked_bytes=max_bytes, max_bytes=room),
             )
         self._publish_metrics()
         log.info(
@@ -228,14 +236,51 @@ class LmdbSpool(Outbox):
         data = step.SerializeToString()
         with self._lock:
             seq = self._next_seq
-            dropped = self._write(seq, data)
+            try:
+                dropped = self._write(seq, data)
+                self._disk_error = False
+            except lmdb.Error as exc:  # the disk filled before the cap
+                dropped = self._disk_full(seq, data, exc)
             self._next_seq += 1
             self._last_size = len(data)
         if dropped:
             SPOOL_DROPPED.inc(dropped)
-            log.warning("spool full; dropped the oldest steps", extra=kv(dropped=dropped, total=self.dropped))
+            now = time.monotonic()
+            if now - self._last_drop_log >= _DROP_LOG_EVERY_S:  # at the cap every step drops one: log rarely
+                self._last_drop_log = now
+                log.warning("spool full; dropping the oldest steps", extra=kv(path=str(self.path), total=self.dropped))
         self._publish_metrics()
         return seq
+
+    def _disk_full(self, seq: int, data: bytes, exc: lmdb.Error) -> int:
+        """Caller holds the lock. The disk filled before the cap: the cap drops to the bytes held now.
+        drop_oldest frees the oldest 1 % in a transaction of its own and retries; pause loses this one
+        step (counted) and reports full, so the robots hold until acks free space."""
+        if not self._disk_error:
+            log.error("spool disk full; cap lowered to what it holds", extra=kv(path=str(self.path), error=str(exc)))
+        self._disk_error = True
+        self.max_bytes = max(1, self._bytes)
+        if self.policy == "drop_oldest":
+            try:
+                freed = self._drop_oldest(max(1, self._count // 100))
+                return freed + self._write(seq, data)
+            except lmdb.Error:
+                pass
+        self.dropped += 1
+        return 1
+
+    def _drop_oldest(self, n: int) -> int:
+        with self._env.begin(write=True) as txn:
+            cursor, nbytes, dropped = txn.cursor(self._steps), self._bytes, 0
+            while dropped < n and cursor.first():
+                nbytes -= len(cursor.value())
+                cursor.delete()
+                dropped += 1
+            txn.put(b"bytes", _key(nbytes), db=self._meta)
+            txn.put(b"dropped", _key(self.dropped + dropped), db=self._meta)
+        self._bytes, self._count = nbytes, self._count - dropped
+        self.dropped += dropped
+        return dropped
 
     def _write(self, seq: int, data: bytes) -> int:
         """Caller holds the lock. One transaction: make room (drop_oldest), put, update meta."""
@@ -283,15 +328,19 @@ class LmdbSpool(Outbox):
     def ack(self, seqs: Iterable[int]) -> int:
         n = 0
         with self._lock:
-            with self._env.begin(write=True) as txn:
-                nbytes = self._bytes
-                for seq in seqs:
-                    value = txn.pop(_key(seq), db=self._steps)
-                    if value is not None:
-                        nbytes -= len(value)
-                        n += 1
-                if n:
-                    txn.put(b"bytes", _key(nbytes), db=self._meta)
+            try:
+                with self._env.begin(write=True) as txn:
+                    nbytes = self._bytes
+                    for seq in seqs:
+                        value = txn.pop(_key(seq), db=self._steps)
+                        if value is not None:
+                            nbytes -= len(value)
+                            n += 1
+                    if n:
+                        txn.put(b"bytes", _key(nbytes), db=self._meta)
+            except lmdb.Error as exc:  # a full disk: the steps stay and go again later (replay dedupes)
+                log.warning("spool could not forget acked steps", extra=kv(path=str(self.path), error=str(exc)))
+                return 0
             self._bytes, self._count = nbytes, self._count - n
         self._publish_metrics()
         return n

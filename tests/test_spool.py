@@ -352,3 +352,46 @@ def test_heartbeat_reports_the_spool(tmp_path: Path, control: ControlService, po
             wait_for(lambda: robot_info(control, "arm-0").status.spool_dropped > 0)
     finally:
         agent.stop(flush_timeout_s=0.1)
+
+
+# --------------------------------------------------------------------------- a disk smaller than the cap
+
+
+@pytest.fixture
+def small_disk(tmp_path: Path) -> Iterator[Path]:
+    """A real 2 MiB filesystem (tmpfs), so the disk is smaller than the spool's configured cap."""
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    mount = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(mnt)], capture_output=True)
+    if mount.returncode != 0:
+        pytest.skip("mounting a tmpfs needs root")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", str(mnt)], check=False)
+
+
+@pytest.mark.parametrize("policy", ["pause", "drop_oldest"])
+def test_a_small_disk_lowers_the_cap_so_the_policy_applies_before_the_disk_fills(small_disk: Path, policy: str) -> None:
+    steps = sim_steps(200)
+    spool = LmdbSpool(small_disk / "spool", max_bytes=100 << 20, policy=policy)
+    try:
+        assert spool.max_bytes <= 1 << 20  # half of the 2 MiB disk at most
+        i = 0
+        while spool.accepting and spool.dropped == 0:
+            spool.put(steps[i % len(steps)])
+            i += 1
+        assert spool.full
+        if policy == "pause":
+            assert spool.dropped == 0 and not spool.accepting
+        for _ in range(500):  # at the cap: drop_oldest goes on; pause keeps the steps still in progress
+            spool.put(steps[0])
+        kept = spool.count
+        assert spool.dropped == (0 if policy == "pause" else i + 500 - kept)
+        assert spool.ack([r.seq for r in spool.read(0, kept // 2)]) == kept // 2  # deletes work on the full disk
+        assert spool.accepting and not spool.full
+        for step in steps:
+            spool.put(step)
+        assert spool.count == kept - kept // 2 + len(steps)
+    finally:
+        spool.close()
