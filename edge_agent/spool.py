@@ -21,7 +21,9 @@ loop obeys by holding still until acks free space.
 
 from __future__ import annotations
 
+import fcntl
 import logging
+import os
 import shutil
 import threading
 import time
@@ -181,6 +183,10 @@ def _key(seq: int) -> bytes:
     return seq.to_bytes(8, "big")
 
 
+class SpoolInUse(RuntimeError):
+    """Another live process owns this spool (two agents with one agent_id on one machine)."""
+
+
 class LmdbSpool(Outbox):
     """Steps in a local LMDB environment at `path` until acked; see the module docstring."""
 
@@ -189,6 +195,14 @@ class LmdbSpool(Outbox):
             raise ValueError(f"spool full policy must be pause or drop_oldest, got {policy!r}")
         self.path = Path(path)
         self.path.mkdir(parents=True, exist_ok=True)
+        # One owner at a time: two writers would hand out the same seqs. The kernel drops the lock when
+        # its process dies, kill -9 included, so a restarted edge takes it over at once.
+        self._owner = os.open(self.path / "owner.lock", os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(self._owner, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(self._owner)
+            raise SpoolInUse(f"spool {self.path} is used by another live process (same edge.agent_id?)") from None
         self.max_bytes = max_bytes
         self.policy = policy
         self._lock = threading.Lock()
@@ -377,6 +391,7 @@ class LmdbSpool(Outbox):
         with self._lock:
             self._env.sync(True)
             self._env.close()
+        os.close(self._owner)  # releases the owner lock
 
 
 def open_outbox(edge: EdgeConfig) -> Outbox:

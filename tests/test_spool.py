@@ -17,7 +17,7 @@ from edge_agent.agent import EdgeAgent, RobotLoop
 from edge_agent.policy_source import RemotePolicy
 from edge_agent.replay_client import ReplaySender
 from edge_agent.robot import make_robot
-from edge_agent.spool import LmdbSpool, MemoryOutbox, open_outbox
+from edge_agent.spool import LmdbSpool, MemoryOutbox, SpoolInUse, open_outbox
 from services.control.server import ControlService, replay_shard_for
 from services.replay.server import ReplayService
 from tests.helpers import free_port, wait_for
@@ -67,6 +67,14 @@ def test_spool_keeps_steps_across_reopen_and_never_reuses_a_seq(tmp_path: Path) 
     assert spool.count == 0 and spool.nbytes == 0
     assert spool.put(steps[0]) == 6  # seqs go on after everything was acked
     spool.close()
+
+
+def test_a_spool_has_one_owner_at_a_time(tmp_path: Path) -> None:
+    spool = LmdbSpool(tmp_path / "spool", max_bytes=1 << 20)
+    with pytest.raises(SpoolInUse):
+        LmdbSpool(tmp_path / "spool", max_bytes=1 << 20)
+    spool.close()
+    LmdbSpool(tmp_path / "spool", max_bytes=1 << 20).close()  # free again once closed
 
 
 def test_spool_drop_oldest_keeps_the_newest_under_the_cap(tmp_path: Path) -> None:
