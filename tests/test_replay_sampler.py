@@ -164,3 +164,41 @@ def test_learner_uses_the_sampler_only_for_several_shards(shards: dict[str, Shar
         sharded.close()
     with pytest.raises(ValueError):
         ShardedSampler([shards["a"].addr, shards["a"].addr], AUTH)
+
+
+def test_the_learner_trains_from_every_shard_and_through_a_shard_outage(
+    tmp_path: Path, shards: dict[str, Shard]
+) -> None:
+    import torch
+
+    from cloud_learner.learner import Learner
+    from edge_agent.control_client import ControlClient
+    from services.control.server import ControlService
+    from user.weights import WeightStore
+
+    torch.set_num_threads(1)
+    control = ControlService(stack_cfg(tmp_path / "control"), start_metrics=False).start()
+    edge = ControlClient(control.address, AUTH, "edge-a", [SPECS["arm-a"]], status_fn=list, on_command=lambda c: None)
+    cfg = stack_cfg(tmp_path)
+    lc = cfg.learner
+    lc.control_addr, lc.replay_addrs = control.address, [s.addr for s in shards.values()]
+    lc.checkpoint_dir, lc.hidden, lc.batch_size, lc.min_transitions = tmp_path / "ckpt", [16], 32, 50
+    lc.max_updates_per_transition, lc.rpc_timeout_s = 1000.0, 2.0
+    learner = Learner(cfg, WeightStore())
+    total = sum(replay_stats(s.addr).transitions for s in shards.values())
+    only_a = replay_stats(shards["a"].addr).transitions
+    try:
+        assert edge.wait_registered(30)
+        learner.start()
+        wait_for(lambda: learner.state.updates > 0 and learner.state.buffer_transitions == total, "training on both")
+        shards["b"].down()
+        wait_for(lambda: learner.state.buffer_transitions == only_a, "shard b skipped")
+        updates = learner.state.updates
+        wait_for(lambda: learner.state.updates > updates + 50, "training on shard a alone")
+        shards["b"].up()
+        wait_for(lambda: learner.state.buffer_transitions == total, "shard b back")
+    finally:
+        learner.stop()
+        edge.close()
+        control.stop()
+    assert not learner.failed
