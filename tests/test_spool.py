@@ -223,33 +223,41 @@ def _settled_env_steps(svc: ControlService, robot_id: str) -> int:
     return wait_for(settled, "a paused robot's settled step count")
 
 
+@pytest.mark.parametrize("online_first", [False, True], ids=["outage-from-start", "online-then-outage"])
 def test_kill_9_during_an_outage_then_restart_stores_every_step_exactly_once(
-    tmp_path: Path, control: ControlService
+    tmp_path: Path, control: ControlService, online_first: bool
 ) -> None:
     cfg = stack_cfg(tmp_path)
     cfg.edge.control_addr = control.address
     cfg.replay.control_addr = control.address  # replay validates steps against the registered spec
-    cfg.replay.server.port = free_port()  # the outage: replay is not there while the first edge runs
+    cfg.replay.server.port = free_port()  # fixed: replay goes away and comes back on the same port and dir
     replay_addr = f"127.0.0.1:{cfg.replay.server.port}"
     spool_dir = tmp_path / "spool"
+    replay = ReplayService(cfg, start_metrics=False).start() if online_first else None
     edge = _edge_proc(cfg, spool_dir, replay_addr, tmp_path / "edge1.json")
-    replay = None
     try:
-        wait_for(lambda: (info := robot_info(control, "arm-0")) is not None and info.status.env_steps >= 150)
+        if replay is not None:  # some steps acked and gone from the spool, then the outage
+            wait_for(lambda: replay_stats(replay_addr).steps >= 100)
+            replay.stop()
+            replay = None
+        outage_start = robot_info(control, "arm-0").status.env_steps
+        wait_for(lambda: robot_info(control, "arm-0").status.env_steps >= outage_start + 150)
         control_stub(control).SendCommand(
             control_pb2.SendCommandRequest(command=control_pb2.Command(kind=control_pb2.COMMAND_KIND_PAUSE)), timeout=5
         )
         collected = _settled_env_steps(control, "arm-0")
-        assert robot_info(control, "arm-0").status.spool_steps == collected  # the console's number
+        reported = robot_info(control, "arm-0").status.spool_steps  # the console's number
         edge.send_signal(signal.SIGKILL)
         edge.wait(timeout=30)
-        spool = LmdbSpool(spool_dir / "edge-k9", 1 << 30)  # what the killed edge left on disk
-        assert spool.count == collected and spool.dropped == 0
-        keys = {(r.step.episode_id, r.step.step_index) for r in spool.read(0, collected + 1)}
-        assert len(keys) == collected
-        spool.close()
-
         replay = ReplayService(cfg, start_metrics=False).start()  # the link is back
+        stored_before = replay_stats(replay_addr).steps  # acked steps are among these
+        spool = LmdbSpool(spool_dir / "edge-k9", 1 << 30)  # what the killed edge left on disk
+        assert spool.count == reported and spool.dropped == 0
+        assert spool.count >= collected - stored_before > 0  # every step not in replay is in the spool
+        assert spool.count == collected or online_first
+        keys = {(r.step.episode_id, r.step.step_index) for r in spool.read(0, collected + 1)}
+        assert len(keys) == spool.count
+        spool.close()
         edge = _edge_proc(cfg, spool_dir, replay_addr, tmp_path / "edge2.json")  # the edge restarts
         wait_for(lambda: replay_stats(replay_addr).steps >= collected + 50)
         edge.send_signal(signal.SIGTERM)
