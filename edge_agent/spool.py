@@ -249,6 +249,7 @@ class LmdbSpool(Outbox):
     def put(self, step: step_pb2.Step) -> int:
         data = step.SerializeToString()
         with self._lock:
+            was_full = self.full
             seq = self._next_seq
             try:
                 dropped = self._write(seq, data)
@@ -257,6 +258,11 @@ class LmdbSpool(Outbox):
                 dropped = self._disk_full(seq, data, exc)
             self._next_seq += 1
             self._last_size = len(data)
+        if self.policy == "pause" and self.full and not was_full:
+            log.warning(
+                "spool full; robots hold until replay acknowledges steps",
+                extra=kv(path=str(self.path), steps=self._count, bytes=self._bytes),
+            )
         if dropped:
             SPOOL_DROPPED.inc(dropped)
             now = time.monotonic()
