@@ -239,7 +239,7 @@ class LmdbSpool(Outbox):
         self._publish_metrics()
         log.info(
             "spool opened",
-            extra=kv(path=str(self.path), steps=self._count, bytes=self._bytes, policy=policy, max_bytes=max_bytes),
+            extra=kv(path=str(self.path), steps=self._count, bytes=self._bytes, policy=policy, max_bytes=self.max_bytes),
         )
 
     def _meta_int(self, txn: lmdb.Transaction, name: bytes, default: int) -> int:
@@ -280,6 +280,7 @@ class LmdbSpool(Outbox):
             log.error("spool disk full; cap lowered to what it holds", extra=kv(path=str(self.path), error=str(exc)))
         self._disk_error = True
         self.max_bytes = max(1, self._bytes)
+        freed = 0
         if self.policy == "drop_oldest":
             try:
                 freed = self._drop_oldest(max(1, self._count // 100))
@@ -287,7 +288,7 @@ class LmdbSpool(Outbox):
             except lmdb.Error:
                 pass
         self.dropped += 1
-        return 1
+        return freed + 1
 
     def _drop_oldest(self, n: int) -> int:
         with self._env.begin(write=True) as txn:
