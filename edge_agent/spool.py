@@ -239,7 +239,7 @@ class LmdbSpool(Outbox):
         self._publish_metrics()
         log.info(
             "spool opened",
-            extra=kv(path=str(self.path), steps=self._count, bytes=self._bytes, policy=policy, max_bytes=self.max_bytes),
+            extra=kv(path=str(self.path), steps=self._count, bytes=self._bytes, policy=policy, cap=self.max_bytes),
         )
 
     def _meta_int(self, txn: lmdb.Transaction, name: bytes, default: int) -> int:
