@@ -18,7 +18,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 
 import grpc
@@ -64,6 +64,7 @@ class Shard:
     up: bool = False
     known: bool = False  # answered at least once since it was last down
     retry_at: float = 0.0  # down, or empty: next Stats probe at this time
+    probing: bool = False  # a Stats probe is in flight
     backoff_s: float = 0.0
 
 
@@ -91,7 +92,8 @@ class ShardedSampler:
         for addr in addrs:
             channel = rpc.make_channel(addr, auth)
             self.shards.append(Shard(addr, channel, replay_pb2_grpc.ReplayStub(channel)))
-        self._pool = ThreadPoolExecutor(max_workers=len(addrs), thread_name_prefix="replay-shard")
+        # A probe of a silent shard may hold a worker for `timeout` while the others are sampled.
+        self._pool = ThreadPoolExecutor(max_workers=2 * len(addrs), thread_name_prefix="replay-shard")
 
     # ------------------------------------------------------------------ the stub's call
 
@@ -130,11 +132,16 @@ class ShardedSampler:
     # ------------------------------------------------------------------ shard health
 
     def _probe(self, timeout: float) -> None:
-        """Stats of every shard that is not known up with data and whose retry time has come."""
+        """Stats of every shard not known up with data whose retry time has come. Waited for only when no
+        shard can be sampled now: an unreachable shard (a black-holed link) must not stall the others."""
         now = self._clock()
-        due = [s for s in self.shards if not (s.up and s.transitions > 0) and now >= s.retry_at]
-        for future in [self._pool.submit(self._stats, s, timeout) for s in due]:
-            future.result()
+        due = [s for s in self.shards if not (s.up and s.transitions > 0) and now >= s.retry_at and not s.probing]
+        for shard in due:
+            shard.probing = True
+        pending = {self._pool.submit(self._stats, s, timeout) for s in due}
+        end = self._clock() + timeout
+        while pending and not any(s.up and s.transitions > 0 for s in self.shards) and self._clock() < end:
+            _, pending = wait(pending, timeout=max(0.0, end - self._clock()), return_when=FIRST_COMPLETED)
 
     def _stats(self, shard: Shard, timeout: float) -> None:
         try:
@@ -142,6 +149,8 @@ class ShardedSampler:
         except grpc.RpcError as err:
             self._mark_down(shard, err)
             return
+        finally:
+            shard.probing = False
         self._mark_up(shard, int(stats.transitions))
         if not shard.transitions:  # empty: look again later, without hammering it
             shard.retry_at = self._clock() + self.min_backoff_s

@@ -3,6 +3,7 @@ a shard down then back, errors shaped like the stub's."""
 
 from __future__ import annotations
 
+import socket
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -122,6 +123,22 @@ def test_a_shard_down_is_skipped_and_its_data_returns_with_it(shards: dict[str, 
         assert sampler.shards[1].transitions == replay_stats(shards["b"].addr).transitions  # all of it is back
     finally:
         sampler.close()
+
+
+def test_a_silent_shard_does_not_stop_sampling(shards: dict[str, Shard]) -> None:
+    """A shard that accepts connections and never answers (a black-holed link): batches come from the others."""
+    silent = socket.socket()
+    silent.bind(("127.0.0.1", 0))
+    silent.listen()
+    addrs = [shards["a"].addr, f"127.0.0.1:{silent.getsockname()[1]}"]
+    sampler = ShardedSampler(addrs, AUTH, timeout_s=1, seed=0, max_backoff_s=0.5)
+    try:
+        for _ in range(3):
+            assert origins(sampler.Sample(replay_pb2.SampleRequest(batch_size=64)))["a"] == 64
+        wait_for(lambda: sampler.shards[1].known and not sampler.shards[1].up, "the silent shard marked down")
+    finally:
+        sampler.close()
+        silent.close()
 
 
 def test_errors_look_like_the_stubs(tmp_path: Path) -> None:
