@@ -114,6 +114,13 @@ def test_stack_learns_through_all_services(tmp_path: Path) -> None:
     assert codes == {name: 0 for name in codes}, f"unclean exits: {codes}"
     # The learner wrote its final checkpoint on SIGTERM.
     assert (tmp_path / "checkpoints" / "latest").exists()
+    # Each edge spooled its steps on disk and every one was acknowledged before its clean exit.
+    from edge_agent.spool import LmdbSpool
+
+    for i in range(2):
+        spool = LmdbSpool(tmp_path / "spool" / f"edge-{i}", 1 << 20)
+        assert spool.count == 0 and spool.last_seq > 0  # steps went through it, none left
+        spool.close()
     # Every log line is structured JSON.
     for log_file in (tmp_path / "logs").glob("*.log"):
         for line in log_file.read_text().splitlines()[:50]:
