@@ -132,13 +132,17 @@ class ShardedSampler:
     # ------------------------------------------------------------------ shard health
 
     def _probe(self, timeout: float) -> None:
-        """Stats of every shard not known up with data whose retry time has come. Waited for only when no
-        shard can be sampled now: an unreachable shard (a black-holed link) must not stall the others."""
+        """Stats of every shard not known up with data whose retry time has come. The first probe of a shard
+        is waited for (the first batches must see every shard); a re-probe only while no shard can be
+        sampled: a shard gone silent (a black-holed link) must not stall the others."""
         now = self._clock()
         due = [s for s in self.shards if not (s.up and s.transitions > 0) and now >= s.retry_at and not s.probing]
+        first = [s for s in due if not s.known]
         for shard in due:
             shard.probing = True
-        pending = {self._pool.submit(self._stats, s, timeout) for s in due}
+        futures = {self._pool.submit(self._stats, s, timeout): s for s in due}
+        wait([f for f, s in futures.items() if s in first], timeout=timeout)
+        pending = {f for f in futures if not f.done()}
         end = self._clock() + timeout
         while pending and not any(s.up and s.transitions > 0 for s in self.shards) and self._clock() < end:
             _, pending = wait(pending, timeout=max(0.0, end - self._clock()), return_when=FIRST_COMPLETED)
