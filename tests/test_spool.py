@@ -163,11 +163,12 @@ def test_full_spool_with_pause_policy_holds_the_robot_until_replay_acks(tmp_path
     replay = None
     loop.start()
     try:
-        wait_for(lambda: loop.status(drain=False).state == control_pb2.ROBOT_STATE_PAUSED)
+        wait_for(lambda: loop.status(drain=False).state == control_pb2.ROBOT_STATE_PAUSED, limit_s=120)
         collected = loop.status(drain=False).env_steps
         assert spool.full and collected == spool.count and spool.dropped == 0  # every collected step is on disk
         replay = start_replay(cfg)
-        wait_for(lambda: loop.status(drain=False).env_steps > collected + 40)  # acks freed space: it goes on
+        # acks freed space: it goes on
+        wait_for(lambda: loop.status(drain=False).env_steps > collected + 40, limit_s=120)
         loop.stop()
         assert sender.flush(30)
         assert replay_stats(replay.address).steps == loop.env_steps
@@ -201,7 +202,7 @@ def _edge_proc(cfg, spool_dir: Path, replay_addr: str, ready: Path) -> subproces
         cmd += ["--set", f"{key}={value}"]
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "MUJOCO_GL": "egl"}
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    wait_for(lambda: ready.exists() or proc.poll() is not None, "edge ready", limit_s=90)
+    wait_for(lambda: ready.exists() or proc.poll() is not None, "edge ready", limit_s=120)
     assert proc.poll() is None, "edge process died at start"
     return proc
 
@@ -220,7 +221,7 @@ def _settled_env_steps(svc: ControlService, robot_id: str) -> int:
             return beats[-1][1] or None
         return None
 
-    return wait_for(settled, "a paused robot's settled step count")
+    return wait_for(settled, "a paused robot's settled step count", limit_s=120)
 
 
 @pytest.mark.parametrize("online_first", [False, True], ids=["outage-from-start", "online-then-outage"])
@@ -237,11 +238,11 @@ def test_kill_9_during_an_outage_then_restart_stores_every_step_exactly_once(
     edge = _edge_proc(cfg, spool_dir, replay_addr, tmp_path / "edge1.json")
     try:
         if replay is not None:  # some steps acked and gone from the spool, then the outage
-            wait_for(lambda: replay_stats(replay_addr).steps >= 100)
+            wait_for(lambda: replay_stats(replay_addr).steps >= 100, limit_s=120)
             replay.stop()
             replay = None
         outage_start = robot_info(control, "arm-0").status.env_steps
-        wait_for(lambda: robot_info(control, "arm-0").status.env_steps >= outage_start + 150)
+        wait_for(lambda: robot_info(control, "arm-0").status.env_steps >= outage_start + 150, limit_s=120)
         control_stub(control).SendCommand(
             control_pb2.SendCommandRequest(command=control_pb2.Command(kind=control_pb2.COMMAND_KIND_PAUSE)), timeout=5
         )
@@ -259,7 +260,7 @@ def test_kill_9_during_an_outage_then_restart_stores_every_step_exactly_once(
         assert len(keys) == spool.count
         spool.close()
         edge = _edge_proc(cfg, spool_dir, replay_addr, tmp_path / "edge2.json")  # the edge restarts
-        wait_for(lambda: replay_stats(replay_addr).steps >= collected + 50)
+        wait_for(lambda: replay_stats(replay_addr).steps >= collected + 50, limit_s=120)
         edge.send_signal(signal.SIGTERM)
         assert edge.wait(timeout=60) == 0
         after_restart = robot_info(control, "arm-0").status.env_steps  # the final heartbeat's count
@@ -311,7 +312,7 @@ def test_control_sends_each_edge_to_its_sites_shard(tmp_path: Path) -> None:
     agent.start()
     try:
         assert agent.sender.addr == near.address
-        wait_for(lambda: replay_stats(near.address).steps >= 50)
+        wait_for(lambda: replay_stats(near.address).steps >= 50, limit_s=120)
     finally:
         agent.stop()
         stats = replay_stats(near.address)
@@ -359,13 +360,14 @@ def test_heartbeat_reports_the_spool(tmp_path: Path, control: ControlService, po
     agent.sender.outbox.max_bytes = 40 * sim_steps(1)[0].ByteSize()  # a tiny cap, so it fills fast
     agent.start()
     try:
-        info = wait_for(lambda: (i := robot_info(control, "arm-0")) is not None and i.status.spool_full and i)
+        full = lambda: (i := robot_info(control, "arm-0")) is not None and i.status.spool_full and i  # noqa: E731
+        info = wait_for(full, "a full spool in the heartbeat", limit_s=120)
         st = info.status
         assert st.spool_steps > 0 and st.spool_bytes > 0 and st.steps_unacked == st.spool_steps
         if policy == "pause":
             assert st.state == control_pb2.ROBOT_STATE_PAUSED and st.spool_dropped == 0
         else:
-            wait_for(lambda: robot_info(control, "arm-0").status.spool_dropped > 0)
+            wait_for(lambda: robot_info(control, "arm-0").status.spool_dropped > 0, limit_s=120)
     finally:
         agent.stop(flush_timeout_s=0.1)
 
