@@ -28,6 +28,7 @@ BENCHES = {
     "learning": "bench.learning_bench",
     "inference_vla": "bench.inference_vla_bench",
     "hg_dagger": "bench.hg_dagger_bench",
+    "spool": "bench.spool_bench",
 }
 SLOW = {"learning"}  # whole stacks as processes: minutes, not part of the --quick smoke run unless named
 
@@ -49,6 +50,9 @@ LEGEND = {
     "sending a 64x64 image, state and an instruction; windows alternate.",
     "hg_dagger": "hg_dagger: flow_vla on lang_reach_arm (real MuJoCo, scripted expert), in one process with in-memory "
     "tables: HG-DAgger (demos + interventions) vs BC given the same expert steps as more demos; async vs sync learner.",
+    "spool": "spool: ours edge_agent.spool.LmdbSpool (steps on disk until replay acks) vs the same edge agent with "
+    "edge.spool_dir null (RAM outbox); real edge processes, kill -9 during a replay outage, restart; lost = "
+    "collected - stored.",
 }
 
 

@@ -37,6 +37,7 @@ import torch
 
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
 from cloud_learner.checkpoint import load_latest, save_checkpoint
+from cloud_learner.replay_sampler import replay_source
 from user import rpc
 from user.config import ExperimentConfig, StackConfig
 from user.experiments import EMBODIMENT_KEY, LayoutError, assign, check_plugins, layout_for, pad_action, ready
@@ -422,7 +423,7 @@ class ExperimentRun:
     def _sample_loop(self) -> None:
         backoff = rpc.Backoff(initial_s=0.1, max_s=5.0)
         with rpc.make_channel(self.lc.replay_addr, self.learner.cfg.auth) as channel:
-            stub = replay_pb2_grpc.ReplayStub(channel)
+            stub = replay_source(self.lc, self.learner.cfg.auth, channel)  # one replay, or shards
             while not self._stop.is_set():
                 item = self.sample_once(stub)
                 if item is None:

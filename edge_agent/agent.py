@@ -11,6 +11,7 @@ status and delivers PAUSE / RESUME / RESET commands.
 from __future__ import annotations
 
 import logging
+import secrets
 import threading
 import time
 from collections import deque
@@ -24,6 +25,7 @@ from edge_agent.control_client import ControlClient
 from edge_agent.policy_source import PolicySource, make_policy_source
 from edge_agent.replay_client import ReplaySender
 from edge_agent.robot import Observation, Robot, action_bounds, clip_action, make_robot
+from edge_agent.spool import open_outbox
 from user import rpc, wire
 from user.config import StackConfig
 from user.log import kv
@@ -145,6 +147,9 @@ class RobotLoop:
         self._rate_samples: deque[tuple[float, int]] = deque()
         self._new_episodes: list[control_pb2.EpisodeSummary] = []
         self._labels = {"robot_id": self.robot_id}
+        # Replay keys steps by (robot, episode, step) and the spool re-sends an earlier life's steps after a
+        # restart: a per-life tag keeps episode ids unique even if the wall clock steps back meanwhile.
+        self._life = secrets.token_hex(3)
 
     # ------------------------------------------------------------------ lifecycle and commands
 
@@ -189,7 +194,7 @@ class RobotLoop:
                 if self._stop.is_set():
                     break
                 last_tick = self._record_period(last_tick, tick_start)
-                if self._paused.is_set():
+                if self._paused.is_set() or not self._sink_accepting():
                     self.robot.hold()
                     stale = True
                     if self.mode == "fast":
@@ -207,6 +212,10 @@ class RobotLoop:
                 self.robot.hold()
             except Exception:
                 log.exception("robot hold failed", extra=kv(robot_id=self.robot_id))
+
+    def _sink_accepting(self) -> bool:
+        """A full spool under the pause policy: hold still, collect nothing, until acks free space."""
+        return getattr(self.sink, "accepting", True)
 
     def _wait_tick(self) -> float:
         if self.mode == "realtime":
@@ -231,7 +240,7 @@ class RobotLoop:
 
     def _begin_episode(self) -> None:
         start_ns = time.time_ns()
-        self.episode_id = f"{self.robot_id}-{start_ns}"
+        self.episode_id = f"{self.robot_id}-{start_ns}-{self._life}"
         self.step_index = 0
         self._return = 0.0
         self._success = False
@@ -369,7 +378,7 @@ class RobotLoop:
         return (n1 - n0) / (t1 - t0) if t1 > t0 else 0.0
 
     def _state_locked(self) -> int:
-        if self._paused.is_set():
+        if self._paused.is_set() or not self._sink_accepting():
             return control_pb2.ROBOT_STATE_PAUSED
         if self.error is not None:
             return control_pb2.ROBOT_STATE_OFFLINE
@@ -400,9 +409,7 @@ class EdgeAgent:
         self.cfg = cfg
         edge = cfg.edge
         self.robots = robots if robots is not None else self._build_robots(cfg)
-        self.sender = sender or ReplaySender(
-            edge.replay_addr, cfg.auth, max_unacked=edge.max_unacked_steps, start=False
-        )
+        self.sender = sender or ReplaySender(edge.replay_addr, cfg.auth, start=False, outbox=open_outbox(edge))
         self.policy = policy or make_policy_source(cfg, edge.agent_id, [r.spec for r in self.robots])
         self.loops = {
             r.spec.robot_id: RobotLoop(r, self.policy, self.sender, edge.mode, edge.action_deadline_ms / 1000.0)
@@ -415,6 +422,8 @@ class EdgeAgent:
             [r.spec for r in self.robots],
             status_fn=self.status,
             on_command=self.on_command,
+            on_registered=self.on_registered,
+            site=edge.site,
             start=False,
         )
 
@@ -431,8 +440,10 @@ class EdgeAgent:
         return robots
 
     def start(self) -> None:
-        self.sender.start()
         self.control.start()
+        # Control names this agent's replay shard on registration: wait briefly so the first steps go there.
+        self.control.wait_registered(self.cfg.edge.rpc_timeout_s)
+        self.sender.start()
         for loop in self.loops.values():
             loop.start()
         log.info(
@@ -465,7 +476,16 @@ class EdgeAgent:
         log.info("edge agent stopped", extra=kv(agent_id=self.cfg.edge.agent_id, flushed=flushed))
 
     def status(self) -> list[control_pb2.RobotStatus]:
-        return [loop.status() for loop in self.loops.values()]
+        statuses = [loop.status() for loop in self.loops.values()]
+        outbox = self.sender.outbox
+        for st in statuses:  # one outbox per agent: every robot reports it
+            st.spool_steps, st.spool_bytes, st.spool_dropped = outbox.count, outbox.nbytes, outbox.dropped
+            st.spool_full = outbox.full
+        return statuses
+
+    def on_registered(self, registered: control_pb2.Registered) -> None:
+        if registered.replay_addr:
+            self.sender.retarget(registered.replay_addr)
 
     def on_command(self, cmd: control_pb2.Command) -> tuple[bool, str]:
         return apply_command(self.loops, cmd)

@@ -42,6 +42,7 @@ _POLL_S = 0.2
 
 StatusFn = Callable[[], list[control_pb2.RobotStatus]]
 CommandFn = Callable[[control_pb2.Command], "tuple[bool, str] | None"]
+RegisteredFn = Callable[[control_pb2.Registered], None]
 
 
 class ControlClient:
@@ -57,6 +58,8 @@ class ControlClient:
         backoff: Backoff | None = None,
         slow_retry_s: float = 10.0,
         start: bool = True,
+        on_registered: RegisteredFn | None = None,
+        site: str = "",
     ) -> None:
         self.addr = addr
         self.agent_id = agent_id
@@ -65,7 +68,9 @@ class ControlClient:
             hostname=hostname or socket.gethostname(),
             robots=specs,
             software_version=user.__version__,
+            site=site,
         )
+        self._on_registered = on_registered
         self._status_fn = status_fn
         self._on_command = on_command
         self._channel = make_channel(addr, auth)
@@ -168,6 +173,11 @@ class ControlClient:
         kind = msg.WhichOneof("msg")
         if kind == "registered":
             self._registered = msg.registered
+            if self._on_registered is not None:  # before wait_registered() returns: the shard is set first
+                try:
+                    self._on_registered(msg.registered)
+                except Exception:  # a bad callback must not kill the stream
+                    log.exception("on_registered handler failed", extra=kv(agent_id=self.agent_id))
             self._registered_event.set()
             self._backoff.reset()
             CONNECTED.set(1)
@@ -177,6 +187,7 @@ class ControlClient:
                     agent_id=self.agent_id,
                     lease_id=msg.registered.lease_id,
                     heartbeat_interval_s=msg.registered.heartbeat_interval_s,
+                    replay_addr=msg.registered.replay_addr,
                 ),
             )
         elif kind == "command":

@@ -1,8 +1,13 @@
 """Steps to the Replay service without ever blocking the control loop.
 
-send() only numbers the step and appends it to a bounded in-memory outbox; a background thread owns
-the Replay.Insert stream. A step stays in memory until an InsertAck lists its seq, so after a broken
-stream every unacked step is re-sent in order (replay dedupes by key, re-sends are harmless).
+send() only hands the step to the outbox (edge_agent/spool.py: an LMDB spool by default, durable
+before anything is sent; or RAM) and returns its seq; a background thread owns the Replay.Insert
+stream and reads the outbox in seq order. A step leaves the outbox only when an InsertAck lists its
+seq, so after a broken stream, a restart of the edge or a kill -9, every unacked step is re-sent
+(replay dedupes by key: each step is stored once).
+
+retarget(addr) moves the stream to another replay shard (control's assignment): the current stream
+is half-closed so replay commits and acks what it holds, then the unacked rest goes to the new shard.
 """
 
 from __future__ import annotations
@@ -11,12 +16,12 @@ import logging
 import re
 import threading
 import time
-from collections import OrderedDict, deque
 from collections.abc import Iterator
 
 import grpc
 import prometheus_client
 
+from edge_agent.spool import MemoryOutbox, Outbox
 from user.config import AuthConfig
 from user.log import kv
 from user.rpc import Backoff, make_channel
@@ -28,19 +33,16 @@ STEPS_SENT = prometheus_client.Counter(
     "user_edge_steps_sent_total", "Steps written to the replay stream (re-sends too)"
 )
 STEPS_ACKED = prometheus_client.Counter("user_edge_steps_acked_total", "Steps acknowledged by replay (committed)")
-STEPS_UNACKED = prometheus_client.Gauge(
-    "user_edge_steps_unacked", "Steps kept in memory until replay acknowledges them"
-)
-STEPS_DROPPED = prometheus_client.Counter(
-    "user_edge_steps_dropped_total", "Oldest unacked steps dropped because max_unacked_steps was exceeded"
-)
+STEPS_UNACKED = prometheus_client.Gauge("user_edge_steps_unacked", "Steps kept in the outbox until replay acks them")
 STEPS_REJECTED = prometheus_client.Counter(
     "user_edge_steps_rejected_total", "Steps replay refused with INVALID_ARGUMENT (dropped, never retried)"
 )
 RECONNECTS = prometheus_client.Counter("user_edge_replay_reconnects_total", "Replay Insert streams re-opened")
+RETARGETS = prometheus_client.Counter("user_edge_replay_retargets_total", "Moves to another replay shard")
 
 _SEQ_IN_MESSAGE = re.compile(r"\bseq\s*[=:]?\s*(\d+)")
 _POLL_S = 0.2  # how often an idle request iterator re-checks for shutdown or a stream change
+_READ_CHUNK = 64  # steps read from the outbox at a time
 
 
 class ReplaySender:
@@ -51,22 +53,24 @@ class ReplaySender:
         max_unacked: int = 100_000,
         backoff: Backoff | None = None,
         start: bool = True,
+        outbox: Outbox | None = None,
     ) -> None:
+        """`outbox` (owned, closed with the sender) defaults to RAM bounded by max_unacked steps."""
         self.addr = addr
-        self.max_unacked = max_unacked
+        self.outbox = outbox if outbox is not None else MemoryOutbox(max_unacked)
+        self._auth = auth
         self._channel = make_channel(addr, auth)
         self._stub = replay_pb2_grpc.ReplayStub(self._channel)
         self._backoff = backoff or Backoff(initial_s=0.1, max_s=2.0)
         self._cond = threading.Condition()
-        self._unacked: OrderedDict[int, replay_pb2.InsertRequest] = OrderedDict()
-        self._outbox: deque[int] = deque()  # seqs still to write on the current stream
-        self._next_seq = 1
         self._stream_gen = 0  # bumped on every (re)connect; stale request iterators exit
+        self._next_addr: str | None = None  # set by retarget(), taken between streams
         self._stopping = threading.Event()
         self._call: grpc.Call | None = None
         # per-instance counters (the Prometheus ones are process-wide)
-        self.sent = self.acked = self.dropped = self.rejected = self.reconnects = 0
+        self.sent = self.acked = self.rejected = self.reconnects = self.retargets = 0
         self._thread = threading.Thread(target=self._run, name="replay-sender", daemon=True)
+        STEPS_UNACKED.set(self.outbox.count)
         if start:
             self.start()
 
@@ -77,35 +81,47 @@ class ReplaySender:
             self._thread.start()
 
     def send(self, step: step_pb2.Step) -> int:
-        """Queue a step; returns its seq. O(1), never waits on the network."""
+        """Keep the step in the outbox (a local commit for a spool) and return its seq; never waits on the network."""
+        seq = self.outbox.put(step)
+        STEPS_UNACKED.set(self.outbox.count)
         with self._cond:
-            seq = self._next_seq
-            self._next_seq += 1
-            self._unacked[seq] = replay_pb2.InsertRequest(seq=seq, step=step)
-            self._outbox.append(seq)
-            while len(self._unacked) > self.max_unacked:
-                self._unacked.popitem(last=False)
-                self.dropped += 1
-                STEPS_DROPPED.inc()
-            if len(self._outbox) > 2 * self.max_unacked:  # dropped seqs linger while disconnected
-                self._outbox = deque(s for s in self._outbox if s in self._unacked)
-            STEPS_UNACKED.set(len(self._unacked))
             self._cond.notify_all()
         return seq
 
     @property
     def unacked(self) -> int:
-        return len(self._unacked)
+        return self.outbox.count
+
+    @property
+    def dropped(self) -> int:
+        return self.outbox.dropped
+
+    @property
+    def accepting(self) -> bool:
+        """False while a full spool under the pause policy wants the robots to hold."""
+        return self.outbox.accepting
+
+    def retarget(self, addr: str) -> None:
+        """Write to another replay shard from now on (before start() too). Unacked steps follow."""
+        with self._cond:
+            if addr == (self._next_addr or self.addr):
+                return
+            self._next_addr = addr
+            if not self._thread.is_alive():
+                self._switch_locked()
+                return
+            self._stream_gen += 1  # the request iterator half-closes: replay acks what it holds
+            self._cond.notify_all()
 
     def flush(self, timeout: float) -> bool:
-        """Wait until every queued step is acknowledged (shutdown); False on timeout."""
+        """Wait until every kept step is acknowledged (shutdown); False on timeout."""
         end = time.monotonic() + timeout
         with self._cond:
-            while self._unacked:
+            while self.outbox.count:
                 left = end - time.monotonic()
                 if left <= 0:
                     return False
-                self._cond.wait(left)
+                self._cond.wait(min(left, _POLL_S))
         return True
 
     def close(self) -> None:
@@ -119,31 +135,46 @@ class ReplaySender:
         if self._thread.is_alive():
             self._thread.join(timeout=5.0)
         self._channel.close()
+        self.outbox.close()
 
     # ------------------------------------------------------------------ stream side
+
+    def _switch_locked(self) -> None:
+        if self._next_addr is None or self._next_addr == self.addr:
+            self._next_addr = None
+            return
+        old, self.addr, self._next_addr = self.addr, self._next_addr, None
+        self._channel.close()
+        self._channel = make_channel(self.addr, self._auth)
+        self._stub = replay_pb2_grpc.ReplayStub(self._channel)
+        self.retargets += 1
+        RETARGETS.inc()
+        log.info("replay shard changed", extra=kv(old=old, new=self.addr, unacked=self.outbox.count))
 
     def _run(self) -> None:
         first = True
         while not self._stopping.is_set():
-            if not first:
+            with self._cond:
+                moved = self._next_addr is not None
+                self._switch_locked()
+            if not first and not moved:
                 self.reconnects += 1
                 RECONNECTS.inc()
             first = False
             code = self._stream_once()
             if self._stopping.is_set():
                 return
-            if code == grpc.StatusCode.INVALID_ARGUMENT:
-                continue  # the bad step is gone; resume at once with the rest
+            if self._next_addr is not None or code == grpc.StatusCode.INVALID_ARGUMENT:
+                continue  # a new shard, or the bad step is gone: resume at once
             if code == grpc.StatusCode.UNAUTHENTICATED:
                 log.error("replay rejects our token; retrying", extra=kv(addr=self.addr))
             self._backoff.sleep(self._stopping)
 
     def _stream_once(self) -> grpc.StatusCode | None:
-        """One Insert stream: re-send every unacked step, then follow send(). Returns the end status."""
+        """One Insert stream: re-send every kept step, then follow send(). Returns the end status."""
         with self._cond:
             self._stream_gen += 1
             gen = self._stream_gen
-            self._outbox = deque(self._unacked)
         call = self._stub.Insert(self._requests(gen))
         with self._cond:
             self._call = call
@@ -168,44 +199,50 @@ class ReplaySender:
                 self._cond.notify_all()
 
     def _requests(self, gen: int) -> Iterator[replay_pb2.InsertRequest]:
+        cursor = 0  # the newest seq written on this stream
         while True:
             with self._cond:
-                while not self._outbox and gen == self._stream_gen:
+                while gen == self._stream_gen and self.outbox.last_seq <= cursor:
                     self._cond.wait(_POLL_S)
                 if gen != self._stream_gen:
                     return
-                req = self._unacked.get(self._outbox.popleft())
-            if req is not None:  # None: dropped or acked meanwhile
+                last = self.outbox.last_seq
+            batch = self.outbox.read(cursor, _READ_CHUNK)
+            if not batch:  # everything up to `last` was acked or dropped meanwhile
+                cursor = last
+            for req in batch:
+                if gen != self._stream_gen:
+                    return
+                cursor = req.seq
                 self.sent += 1
                 STEPS_SENT.inc()
                 yield req
 
     def _on_ack(self, ack: replay_pb2.InsertAck) -> None:
+        n = self.outbox.ack(ack.seqs)
+        self.acked += n
+        STEPS_ACKED.inc(n)
+        STEPS_UNACKED.set(self.outbox.count)
         with self._cond:
-            n = sum(self._unacked.pop(seq, None) is not None for seq in ack.seqs)
-            self.acked += n
-            STEPS_ACKED.inc(n)
-            STEPS_UNACKED.set(len(self._unacked))
             self._cond.notify_all()
         self._backoff.reset()
 
     def _drop_rejected(self, details: str) -> None:
-        """Replay acks every step before the bad one, so the bad one is named or the oldest unacked."""
-        with self._cond:
-            match = _SEQ_IN_MESSAGE.search(details)
-            seq = int(match.group(1)) if match and int(match.group(1)) in self._unacked else None
-            if seq is None and self._unacked:
-                seq = next(iter(self._unacked))
-            bad = self._unacked.pop(seq, None) if seq is not None else None
-            STEPS_UNACKED.set(len(self._unacked))
-            self._cond.notify_all()
-        if bad is not None:
+        """Replay acks every step before the bad one, so the bad one is named or the oldest kept."""
+        match = _SEQ_IN_MESSAGE.search(details)
+        named = int(match.group(1)) if match else 0
+        found = self.outbox.read(named - 1, 1) if named else []
+        bad = found[0] if found and found[0].seq == named else next(iter(self.outbox.read(0, 1)), None)
+        if bad is not None and self.outbox.ack([bad.seq]):
             self.rejected += 1
             STEPS_REJECTED.inc()
+        STEPS_UNACKED.set(self.outbox.count)
+        with self._cond:
+            self._cond.notify_all()
         log.error(
             "replay rejected a step; dropped it",
             extra=kv(
-                seq=seq,
+                seq=bad.seq if bad else None,
                 robot_id=bad.step.robot_id if bad else None,
                 episode_id=bad.step.episode_id if bad else None,
                 step_index=bad.step.step_index if bad else None,

@@ -147,6 +147,14 @@ def test_state_lives_on_the_named_volumes(services: dict[str, dict[str, Any]], c
     assert learner_mounts.get(str(cfg.learner.checkpoint_dir)) == "checkpoints"
 
 
+def test_edges_spool_where_the_image_lets_them_write(services: dict[str, dict[str, Any]]) -> None:
+    dockerfile = (ROOT / "Dockerfile").read_text()
+    for name in EDGES:
+        spool = _edge_cfg(services[name]).edge.spool_dir
+        assert spool is not None and spool.is_absolute(), f"{name}: spool_dir {spool} (relative: under root-owned /app)"
+        assert f" {spool} " in dockerfile or f" {spool}\n" in dockerfile, f"{name}: the Dockerfile must create {spool}"
+
+
 def test_token_comes_from_the_environment_and_is_required(
     services: dict[str, dict[str, Any]], cfg: StackConfig
 ) -> None:

@@ -481,6 +481,7 @@ def edge_cfg(
     cfg.edge.mode = "fast"
     cfg.edge.metrics_port = 0
     cfg.edge.robots = [RobotConfig(id="arm-0", kind="sim_reach_arm", params={"max_episode_steps": 20})]
+    cfg.edge.spool_dir = cfg.replay.path.parent / "spool"
     return cfg
 
 
@@ -537,6 +538,7 @@ def test_edge_process_serves_metrics_and_stops_on_sigterm(cloud: StackConfig, tm
         "edge.control_addr": cloud.edge.control_addr,
         "edge.replay_addr": cloud.edge.replay_addr,
         "edge.inference_addr": cloud.edge.inference_addr,
+        "edge.spool_dir": str(tmp_path / "spool"),
         "edge.robots": json.dumps([{"id": "arm-0", "kind": "sim_reach_arm", "params": {"max_episode_steps": 20}}]),
         "log_json": "true",
     }

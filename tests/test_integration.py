@@ -126,6 +126,15 @@ def test_stack_learns_through_all_services(tmp_path: Path) -> None:
     # The learner wrote its final checkpoint on SIGTERM.
     assert (tmp_path / "checkpoints" / "reach" / "latest").exists()
     assert (tmp_path / "checkpoints" / "pick" / "latest").exists()
+    # Each edge spooled its steps on disk and every one was acknowledged before its clean exit.
+    from edge_agent.spool import LmdbSpool
+
+    spools = sorted(p for p in (tmp_path / "spool").iterdir() if p.is_dir())
+    assert spools, "no edge spool was written"
+    for path in spools:
+        spool = LmdbSpool(path, 1 << 20)
+        assert spool.count == 0 and spool.last_seq > 0, path  # steps went through it, none left
+        spool.close()
     # Every log line is structured JSON.
     for log_file in (tmp_path / "logs").glob("*.log"):
         for line in log_file.read_text().splitlines()[:50]:

@@ -65,11 +65,22 @@ class _ServerSection(Strict):
         return data
 
 
+class ReplayShard(Strict):
+    """One replay process and the edges that write to it (traffic stays in the site)."""
+
+    addr: str = Field(description="replay address the matching edges write to")
+    sites: list[str] = Field(default=[], description="edge.site labels served by this shard")
+    agents: list[str] = Field(default=[], description="agent id patterns (fnmatch, e.g. lab-a-*)")
+
+
 class ControlConfig(_ServerSection):
     server: ServerConfig = ServerConfig(port=50051, metrics_port=9101)
     lease_ttl_s: float = Field(default=10.0, gt=0, description="a robot without a heartbeat this long goes offline")
     heartbeat_interval_s: float = Field(default=1.0, gt=0, description="heartbeat period asked of edge agents")
     episodes_kept: int = Field(default=200, ge=1, description="recent episodes kept per robot")
+    replay_shards: list[ReplayShard] = Field(
+        default=[], description="replay shard per site/agent, first match wins; none: each edge its own replay_addr"
+    )
 
 
 class ReplayConfig(_ServerSection):
@@ -95,6 +106,9 @@ class InferenceConfig(_ServerSection):
 class LearnerConfig(_ServerSection):
     server: ServerConfig = ServerConfig(port=50054, metrics_port=9104)
     replay_addr: str = Field(default="127.0.0.1:50052", description="replay service to sample from")
+    replay_addrs: list[str] = Field(
+        default=[], description="replay shards sampled in proportion to their size; empty = replay_addr alone"
+    )
     control_addr: str = Field(default="127.0.0.1:50051", description="control service: robot specs")
     checkpoint_dir: Path = Field(default=Path("runs/default/checkpoints"), description="resumes from the newest here")
     robot_kind: str = Field(
@@ -181,9 +195,21 @@ class EdgeConfig(Strict):
     seed: int = 0
     robots: list[RobotConfig] = Field(default=[RobotConfig(id="arm-0")], description="robots this agent drives")
     max_unacked_steps: int = Field(
-        default=100_000, ge=1, description="steps kept for re-send while replay is away; the oldest drop beyond"
+        default=100_000, ge=1, description="spool_dir null: steps kept in RAM for re-send; the oldest drop beyond"
     )
     rpc_timeout_s: float = Field(default=5.0, gt=0, description="deadline on unary calls")
+    site: str = Field(default="", description="where this robot PC stands; control maps it to a replay shard")
+    spool_dir: Path | None = Field(
+        default=Path("runs/default/spool"),
+        description="LMDB outbox (a subdir per agent_id): steps stay until replay acks them; null = RAM only",
+    )
+    spool_max_mb: int = Field(default=1024, ge=1, description="spool byte cap (step bytes)")
+    spool_full_policy: Literal["pause", "drop_oldest"] = Field(
+        default="pause", description="at the cap: pause collection (robots hold) or drop the oldest steps"
+    )
+    spool_fsync: bool = Field(
+        default=False, description="fsync every spooled step (survives power loss); off: synced each second"
+    )
 
     @model_validator(mode="after")
     def _unique_ids(self) -> EdgeConfig:

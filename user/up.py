@@ -202,6 +202,7 @@ class Stack:
                         f"edge.replay_addr={replay.grpc_addr}",
                         f"edge.inference_addr={inference.grpc_addr}",
                         f"edge.learner_addr={learner.grpc_addr}",
+                        f"edge.spool_dir={rd / 'spool'}",
                         *self.per_edge_overrides.get(i, []),
                     ],
                 )
@@ -329,11 +330,12 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
     robots = Table(
         title=f"USER · {cfg.up.name} · {snap.t:5.0f}s / {budget_s:.0f}s",
         caption=f"success: each robot's last {window} episodes (the stop rule counts experiment "
-        f"{target_experiment(cfg)}'s) · stale = learner version - acting version · p99 = control-loop period (ms)",
+        f"{target_experiment(cfg)}'s) · stale = learner version - acting version · p99 = control-loop period (ms)"
+        " · spool = steps on the edge awaiting replay's ack (FULL: at its cap)",
         expand=True,
     )
     # Short headers: the table must stay readable in an 80-column terminal.
-    for col in ("robot", "exp", "state", "eps", "success", "steps", "steps/s", "policy", "stale", "p99"):
+    for col in ("robot", "exp", "state", "eps", "success", "steps", "steps/s", "policy", "stale", "p99", "spool"):
         robots.add_column(col, justify="right" if col not in ("robot", "exp") else "left")
     for info in sorted(snap.robots, key=lambda i: (i.experiment, i.spec.robot_id)):
         st = info.status
@@ -352,6 +354,7 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
             str(st.policy_version),
             str(max(0, versions.get(info.experiment, 0) - st.policy_version)),
             f"{st.loop_period_p99_ms:.1f}",
+            f"{st.spool_steps}{' FULL' if st.spool_full else ''}",
         )
     learner = Table(expand=True)
     for col in ("experiment", "algo", "state", "updates", "updates/s", "weights", "buffer", "scalars", "success"):

@@ -9,6 +9,7 @@ can keep validating steps that arrive late.
 
 from __future__ import annotations
 
+import fnmatch
 import logging
 import queue
 import threading
@@ -22,7 +23,7 @@ import grpc
 import prometheus_client
 
 from user import rpc
-from user.config import ExperimentConfig, StackConfig
+from user.config import ExperimentConfig, ReplayShard, StackConfig
 from user.experiments import experiment_for
 from user.log import kv
 from user.spec import ROBOT_ID_RE, SpecError, validate_spec
@@ -275,13 +276,26 @@ class Registry:
 # --------------------------------------------------------------------------- gRPC servicer
 
 
+def replay_shard_for(shards: list[ReplayShard], agent_id: str, site: str) -> str:
+    """The replay address of the first shard serving this site or agent; "" = the edge keeps its own."""
+    for shard in shards:
+        if (site and site in shard.sites) or any(fnmatch.fnmatchcase(agent_id, p) for p in shard.agents):
+            return shard.addr
+    return ""
+
+
 class ControlServicer(control_pb2_grpc.ControlServicer):
     def __init__(
-        self, registry: Registry, heartbeat_interval_s: float, experiments: list[ExperimentConfig] | None = None
+        self,
+        registry: Registry,
+        heartbeat_interval_s: float,
+        experiments: list[ExperimentConfig] | None = None,
+        replay_shards: list[ReplayShard] | None = None,
     ) -> None:
         self.registry = registry
         self.heartbeat_interval_s = heartbeat_interval_s
         self.experiments = experiments or []  # which experiment each robot belongs to (RobotInfo.experiment)
+        self.replay_shards = replay_shards or []
 
     def _tag(self, info: control_pb2.RobotInfo) -> control_pb2.RobotInfo:
         exp = experiment_for(info.spec, self.experiments)
@@ -307,6 +321,7 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
         for old in replaced:
             old.outbox.put(Abort(grpc.StatusCode.ABORTED, "superseded by a newer registration of this agent"))
         REGISTRATIONS.inc()
+        replay_addr = replay_shard_for(self.replay_shards, req.agent_id, req.site)
         log.info(
             "agent registered",
             extra=kv(
@@ -316,6 +331,8 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
                 lease_id=conn.lease_id,
                 software_version=req.software_version,
                 replaced=len(replaced),
+                site=req.site,
+                replay_addr=replay_addr,
             ),
         )
         yield control_pb2.ControlMessage(
@@ -323,6 +340,7 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
                 lease_id=conn.lease_id,
                 lease_ttl_s=self.registry.lease_ttl_s,
                 heartbeat_interval_s=self.heartbeat_interval_s,
+                replay_addr=replay_addr,
             )
         )
         reader_done = threading.Event()
@@ -422,7 +440,9 @@ class ControlService(rpc.GrpcService):
         self.cfg = cfg
         c = cfg.control
         self.registry = Registry(c.lease_ttl_s, c.episodes_kept)
-        self.servicer = ControlServicer(self.registry, c.heartbeat_interval_s, cfg.resolved_experiments())
+        self.servicer = ControlServicer(
+            self.registry, c.heartbeat_interval_s, cfg.resolved_experiments(), c.replay_shards
+        )
         self.start_metrics = start_metrics
         self.running: rpc.RunningServer | None = None
         self._stop = threading.Event()

@@ -1,0 +1,249 @@
+"""Sampling from several replay shards as if they were one buffer.
+
+Each site writes to its own replay process (control assigns the shard, see ControlConfig.replay_shards);
+the learner asks `ShardedSampler.Sample` for a batch like it asks one replay's stub. A batch of n is
+split across the live shards by a multinomial draw with probabilities proportional to their sampleable
+transitions (so every stored transition is equally likely, whichever shard holds it), the shards are
+asked in parallel and their Batch protos concatenated. A shard that fails is marked down and skipped,
+re-probed with Stats after a growing backoff, and sampled again as soon as it answers (its data is on
+its disk: it is back with it). The part of a batch a shard failed to deliver is re-asked of the others.
+
+Errors look like the stub's (grpc.RpcError with code()): FAILED_PRECONDITION when every live shard is
+empty, UNAVAILABLE when none is live.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+from dataclasses import dataclass
+
+import grpc
+import numpy as np
+import prometheus_client
+
+from user import rpc, wire
+from user.config import AuthConfig, LearnerConfig
+from user.log import kv
+from user.v1 import replay_pb2, replay_pb2_grpc, tensor_pb2
+
+log = logging.getLogger(__name__)
+
+SHARD_UP = prometheus_client.Gauge("user_learner_replay_shard_up", "1 while a replay shard answers", ["addr"])
+SHARD_TRANSITIONS = prometheus_client.Gauge(
+    "user_learner_replay_shard_transitions", "Sampleable transitions last reported by a replay shard", ["addr"]
+)
+SHARD_SAMPLED = prometheus_client.Counter(
+    "user_learner_replay_shard_sampled_total", "Transitions sampled from a replay shard", ["addr"]
+)
+
+
+class SamplerError(grpc.RpcError):
+    """What Sample raises, shaped like a stub's error so callers handle both alike."""
+
+    def __init__(self, code: grpc.StatusCode, details: str) -> None:
+        super().__init__(details)
+        self._code, self._details = code, details
+
+    def code(self) -> grpc.StatusCode:
+        return self._code
+
+    def details(self) -> str:
+        return self._details
+
+
+@dataclass
+class Shard:
+    addr: str
+    channel: grpc.Channel
+    stub: replay_pb2_grpc.ReplayStub
+    transitions: int = 0
+    up: bool = False
+    known: bool = False  # answered at least once since it was last down
+    retry_at: float = 0.0  # down, or empty: next Stats probe at this time
+    probing: bool = False  # a Stats probe is in flight
+    backoff_s: float = 0.0
+
+
+class ShardedSampler:
+    """`Sample(request, timeout)` over `addrs`, like ReplayStub.Sample over one replay."""
+
+    def __init__(
+        self,
+        addrs: list[str],
+        auth: AuthConfig,
+        timeout_s: float = 10.0,
+        seed: int | None = None,
+        min_backoff_s: float = 0.2,
+        max_backoff_s: float = 5.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if not addrs or len(set(addrs)) != len(addrs):
+            raise ValueError(f"need distinct replay addresses, got {addrs}")
+        self.timeout_s = timeout_s
+        self.min_backoff_s, self.max_backoff_s = min_backoff_s, max_backoff_s
+        self._clock = clock
+        self._rng = np.random.default_rng(seed)
+        self._lock = threading.Lock()  # one Sample at a time: shard state and rng are not shared
+        self.shards = []
+        for addr in addrs:
+            channel = rpc.make_channel(addr, auth)
+            self.shards.append(Shard(addr, channel, replay_pb2_grpc.ReplayStub(channel)))
+        # A probe of a silent shard may hold a worker for `timeout` while the others are sampled.
+        self._pool = ThreadPoolExecutor(max_workers=2 * len(addrs), thread_name_prefix="replay-shard")
+
+    # ------------------------------------------------------------------ the stub's call
+
+    def Sample(self, request: replay_pb2.SampleRequest, timeout: float | None = None) -> replay_pb2.SampleResponse:
+        timeout = timeout or self.timeout_s
+        with self._lock:
+            self._probe(timeout)
+            batches: list[replay_pb2.Batch] = []
+            missing, failed = int(request.batch_size), set()
+            for _ in range(len(self.shards)):  # a round per shard at most: each failure removes one
+                ready = [s for s in self.shards if s.up and s.transitions > 0 and s.addr not in failed]
+                if missing <= 0 or not ready:
+                    break
+                sizes = np.array([s.transitions for s in ready], dtype=float)
+                counts = self._rng.multinomial(missing, sizes / sizes.sum())
+                asked = [(s, int(c)) for s, c in zip(ready, counts, strict=True) if c > 0]
+                futures = [self._pool.submit(self._sample_one, s, request, c, timeout) for s, c in asked]
+                for (shard, _), future in zip(asked, futures, strict=True):
+                    batch = future.result()
+                    if batch is None:
+                        failed.add(shard.addr)  # its share goes to the others next round
+                    else:
+                        batches.append(batch)
+                        missing -= _batch_len(batch)
+            if not batches:
+                raise self._nothing_error()
+            return replay_pb2.SampleResponse(
+                batch=merge_batches(batches), transitions=sum(s.transitions for s in self.shards if s.up)
+            )
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=False)
+        for shard in self.shards:
+            shard.channel.close()
+
+    # ------------------------------------------------------------------ shard health
+
+    def _probe(self, timeout: float) -> None:
+        """Stats of every shard not known up with data whose retry time has come. The first probe of a shard
+        is waited for (the first batches must see every shard); a re-probe only while no shard can be
+        sampled: a shard gone silent (a black-holed link) must not stall the others."""
+        now = self._clock()
+        due = [s for s in self.shards if not (s.up and s.transitions > 0) and now >= s.retry_at and not s.probing]
+        first = [s for s in due if not s.known]
+        for shard in due:
+            shard.probing = True
+        futures = {self._pool.submit(self._stats, s, timeout): s for s in due}
+        wait([f for f, s in futures.items() if s in first], timeout=timeout)
+        pending = {f for f in futures if not f.done()}
+        end = self._clock() + timeout
+        while pending and not any(s.up and s.transitions > 0 for s in self.shards) and self._clock() < end:
+            _, pending = wait(pending, timeout=max(0.0, end - self._clock()), return_when=FIRST_COMPLETED)
+
+    def _stats(self, shard: Shard, timeout: float) -> None:
+        try:
+            stats = shard.stub.Stats(replay_pb2.StatsRequest(), timeout=timeout)
+        except grpc.RpcError as err:
+            self._mark_down(shard, err)
+            return
+        finally:
+            shard.probing = False
+        self._mark_up(shard, int(stats.transitions))
+        if not shard.transitions:  # empty: look again later, without hammering it
+            shard.retry_at = self._clock() + self.min_backoff_s
+
+    def _sample_one(
+        self, shard: Shard, request: replay_pb2.SampleRequest, n: int, timeout: float
+    ) -> replay_pb2.Batch | None:
+        req = replay_pb2.SampleRequest(batch_size=n, robot_ids=request.robot_ids)
+        try:
+            resp = shard.stub.Sample(req, timeout=timeout)
+        except grpc.RpcError as err:
+            if err.code() == grpc.StatusCode.FAILED_PRECONDITION:  # nothing sampleable there (for these robots)
+                self._mark_up(shard, 0)
+                shard.retry_at = self._clock() + self.min_backoff_s
+            else:
+                self._mark_down(shard, err)
+            return None
+        self._mark_up(shard, int(resp.transitions))
+        SHARD_SAMPLED.labels(shard.addr).inc(n)
+        return resp.batch
+
+    def _mark_up(self, shard: Shard, transitions: int) -> None:
+        if not shard.up:
+            log.info("replay shard up", extra=kv(addr=shard.addr, transitions=transitions))
+        shard.up, shard.known, shard.transitions, shard.backoff_s = True, True, transitions, 0.0
+        SHARD_UP.labels(shard.addr).set(1)
+        SHARD_TRANSITIONS.labels(shard.addr).set(transitions)
+
+    def _mark_down(self, shard: Shard, err: grpc.RpcError) -> None:
+        code = err.code() if hasattr(err, "code") else grpc.StatusCode.UNKNOWN
+        if shard.up or not shard.known:
+            log.warning("replay shard down; sampling the others", extra=kv(addr=shard.addr, code=str(code)))
+        shard.backoff_s = min(self.max_backoff_s, max(self.min_backoff_s, 2 * shard.backoff_s))
+        shard.up, shard.known = False, True
+        shard.retry_at = self._clock() + shard.backoff_s
+        SHARD_UP.labels(shard.addr).set(0)
+
+    def _nothing_error(self) -> SamplerError:
+        if any(s.up for s in self.shards):
+            return SamplerError(grpc.StatusCode.FAILED_PRECONDITION, "every live replay shard is empty")
+        down = ", ".join(s.addr for s in self.shards)
+        return SamplerError(grpc.StatusCode.UNAVAILABLE, f"no replay shard answers ({down})")
+
+
+def replay_source(
+    lc: LearnerConfig, auth: AuthConfig, channel: grpc.Channel
+) -> replay_pb2_grpc.ReplayStub | ShardedSampler:
+    """What the learner samples from: the one replay on `channel`, or every shard of lc.replay_addrs."""
+    if not lc.replay_addrs:
+        return replay_pb2_grpc.ReplayStub(channel)
+    return ShardedSampler(lc.replay_addrs, auth, lc.rpc_timeout_s, seed=lc.seed)
+
+
+# --------------------------------------------------------------------------- batches
+
+
+def _batch_len(batch: replay_pb2.Batch) -> int:
+    return int(batch.reward.shape[0]) if batch.reward.shape else 0
+
+
+def merge_batches(batches: list[replay_pb2.Batch]) -> replay_pb2.Batch:
+    """Concatenate batches along the leading dimension, field by field (same keys and dtypes required)."""
+    if len(batches) == 1:
+        return batches[0]
+    out = replay_pb2.Batch()
+    for field in replay_pb2.Batch.DESCRIPTOR.fields:
+        name = field.name
+        present = [b for b in batches if b.HasField(name)]
+        if not present:
+            continue
+        if len(present) != len(batches):
+            raise SamplerError(grpc.StatusCode.FAILED_PRECONDITION, f"replay shards disagree: {name} missing in some")
+        if field.message_type.name == tensor_pb2.TensorMap.DESCRIPTOR.name:
+            keys = set(getattr(present[0], name).tensors)
+            if any(set(getattr(b, name).tensors) != keys for b in present):
+                raise SamplerError(grpc.StatusCode.FAILED_PRECONDITION, f"replay shards disagree on {name} keys")
+            getattr(out, name).CopyFrom(
+                wire.to_tensor_map({k: _concat([getattr(b, name).tensors[k] for b in present]) for k in sorted(keys)})
+            )
+        else:
+            getattr(out, name).CopyFrom(wire.to_tensor(_concat([getattr(b, name) for b in present])))
+    return out
+
+
+def _concat(tensors: list[tensor_pb2.Tensor]) -> np.ndarray:
+    try:
+        arrays = [wire.from_tensor(t) for t in tensors]
+    except wire.WireError as exc:
+        raise SamplerError(grpc.StatusCode.INTERNAL, f"a replay shard sent an undecodable tensor: {exc}") from None
+    if len({(a.dtype, a.shape[1:]) for a in arrays}) != 1:
+        raise SamplerError(grpc.StatusCode.FAILED_PRECONDITION, "replay shards disagree on a tensor's dtype or shape")
+    return np.concatenate(arrays)
