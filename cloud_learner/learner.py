@@ -22,7 +22,7 @@ import numpy as np
 import prometheus_client
 import torch
 
-from cloud_learner.checkpoint import load_latest, save_checkpoint
+from cloud_learner.checkpoint import load_latest, read_version_mark, save_checkpoint, write_version_mark
 from cloud_learner.sac import SAC
 from user import rpc
 from user.config import StackConfig
@@ -238,11 +238,14 @@ class Learner:
         torch.manual_seed(self.lc.seed)
         self._shape = shape
         self._sac = SAC(shape.obs_dim, shape.action_low, shape.action_high, self.lc, device=self.lc.device)
-        version = 1
+        restored = 0
         ckpt = load_latest(self.lc.checkpoint_dir, map_location=self.lc.device)
         if ckpt is not None:
-            version = restore_checkpoint(self._sac, ckpt, shape, self.lc.checkpoint_dir)
+            restored = restore_checkpoint(self._sac, ckpt, shape, self.lc.checkpoint_dir)
             self._last_ckpt_updates = int(ckpt["updates"])
+        # Never reuse a published number (the checkpoint may predate the last publishes, e.g. after
+        # kill -9): subscribers holding a higher one would reject the new weights.
+        version = max(restored, read_version_mark(self.lc.checkpoint_dir)) + 1
         self.state.updates = int(self._sac.updates)
         self.state.alpha = float(self._sac.alpha)
         self._publish(version)  # immediately: actors get a policy before any training
@@ -330,6 +333,7 @@ class Learner:
             self._checkpoint()
 
     def _publish(self, version: int) -> None:
+        write_version_mark(self.lc.checkpoint_dir, version)  # before anyone can see it
         actor_config = {"obs_keys": [OBS_KEY], **self._sac.actor_config()}
         self.store.publish(version, policy_spec_for(actor_config), self._sac.actor_tensors(), int(self._sac.updates))
         self.state.weight_version = version

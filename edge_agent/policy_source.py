@@ -145,7 +145,7 @@ class LocalPolicy(PolicySource):
         propagates to the subscriber, which logs it and keeps the previous version."""
         from user.policy import build_policy
 
-        policy = build_policy(weights.policy, weights.tensors, weights.version)
+        policy = build_policy(weights.policy, weights.policy_tensors(), weights.version)
         self._policy = policy
         log.info("local policy updated", extra=kv(version=int(policy.version)))
 

@@ -171,7 +171,7 @@ class InferenceService(rpc.GrpcService):
     def load_weights(self, weights: WeightSet) -> Policy:
         """Rebuild the policy from a weight set and serve it; raises ValueError (keeping the old one) if bad."""
         start = time.perf_counter()
-        policy = build_policy(weights.policy, weights.tensors, weights.version, self.cfg.inference.device)
+        policy = build_policy(weights.policy, weights.policy_tensors(), weights.version, self.cfg.inference.device)
         with self._load_lock:
             self._policy = policy
             self.batcher.set_policy(policy.act, policy.version)
