@@ -6,8 +6,8 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import threading
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -298,6 +298,7 @@ def test_stalled_subscriber_does_not_delay_another_or_the_publisher(server: Serv
         for v in range(1, 6):
             server.store.publish(v, SPEC, trained(big, v))  # never waits for subscribers
             assert sub.wait_version(v, 60)
+
         def by_id() -> dict[str, learner_pb2.SubscriberStatus]:
             return {s.client_id: s for s in server.servicer.subscriber_status()}
 
