@@ -326,7 +326,7 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
             f"{st.loop_period_p99_ms:.1f}",
         )
     learner = Table(expand=True)
-    for col in ("learner updates", "updates/s", "weights", "buffer", "alpha", "success, all"):
+    for col in ("learner updates", "updates/s", "weights", "sync", "buffer", "alpha", "success, all"):
         learner.add_column(col, justify="right")
     overall = mon.success_rate(window)
     if snap.learner:
@@ -335,11 +335,21 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
             str(lr.updates),
             f"{lr.updates_per_s:.1f}",
             str(lr.weight_version),
+            _sync_cell(lr),
             str(snap.replay.transitions if snap.replay else lr.buffer_transitions),
             f"{lr.alpha:.3f}",
             "-" if overall is None else f"{100 * overall:.0f} %",
         )
     return Group(robots, learner)
+
+
+def _sync_cell(lr: learner_pb2.LearnerStatus) -> str:
+    """Slowest subscriber's publish -> applied latency and its staleness in versions, e.g. "120ms +1"."""
+    subs = list(lr.subscriber_status)
+    if not subs:
+        return "-"
+    worst = max(subs, key=lambda s: (s.staleness, s.sync_latency_s))
+    return f"{worst.sync_latency_s * 1e3:.0f}ms +{worst.staleness}"
 
 
 def write_report(run_dir: Path, episodes: list[Episode], summary: dict[str, Any], window: int) -> None:
