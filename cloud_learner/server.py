@@ -26,8 +26,8 @@ SERVICE_NAME = learner_pb2.DESCRIPTOR.services_by_name["Learner"].full_name
 
 
 class LearnerServicer(WeightServicer):
-    def __init__(self, learner: Learner, store: WeightStore, default_chunk_bytes: int) -> None:
-        super().__init__(store, default_chunk_bytes)
+    def __init__(self, learner: Learner, store: WeightStore, default_chunk_bytes: int, freshness_s: float) -> None:
+        super().__init__(store, default_chunk_bytes, freshness_s=freshness_s)
         self.learner = learner
 
     def GetStatus(
@@ -57,9 +57,10 @@ class LearnerService(rpc.GrpcService):
             raise ConfigError(f"learner.device: {exc}") from None
         self.cfg = cfg
         self.start_metrics = start_metrics
-        self.store = WeightStore()
+        self.store = WeightStore(history=cfg.learner.weights_history)
         self.learner = Learner(cfg, self.store)
-        self.servicer = LearnerServicer(self.learner, self.store, cfg.learner.max_chunk_bytes)
+        lc = cfg.learner
+        self.servicer = LearnerServicer(self.learner, self.store, lc.max_chunk_bytes, lc.weights_freshness_s)
         self.running: rpc.RunningServer | None = None
 
     def start(self) -> LearnerService:

@@ -123,7 +123,13 @@ class LocalPolicy(PolicySource):
     """A local policy copy kept fresh by a WeightSubscriber; new weights swap in atomically."""
 
     def __init__(
-        self, learner_addr: str, auth: AuthConfig, client_id: str, deterministic: bool = False, start: bool = True
+        self,
+        learner_addr: str,
+        auth: AuthConfig,
+        client_id: str,
+        deterministic: bool = False,
+        start: bool = True,
+        allow_lossy: bool = False,
     ) -> None:
         import user.policy  # noqa: F401 - torch loads now, not in the weight thread while robots run
         from user.weights import WeightSubscriber
@@ -131,7 +137,7 @@ class LocalPolicy(PolicySource):
         self._policy: Policy | None = None  # replaced whole, never mutated: reading it needs no lock
         self._deterministic = deterministic
         self._lock = threading.Lock()  # serialises forward passes of robots sharing this copy
-        self._subscriber = WeightSubscriber(learner_addr, auth, client_id, self._on_weights)
+        self._subscriber = WeightSubscriber(learner_addr, auth, client_id, self._on_weights, allow_lossy=allow_lossy)
         if start:
             self._subscriber.start()
 
@@ -178,5 +184,5 @@ class LocalPolicy(PolicySource):
 
 def make_policy_source(cfg: StackConfig, client_id: str) -> PolicySource:
     if cfg.edge.policy_source == "local":
-        return LocalPolicy(cfg.edge.learner_addr, cfg.auth, client_id)
+        return LocalPolicy(cfg.edge.learner_addr, cfg.auth, client_id, allow_lossy=cfg.edge.weights_lossy)
     return RemotePolicy(cfg.edge.inference_addr, cfg.auth)

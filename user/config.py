@@ -89,6 +89,9 @@ class InferenceConfig(_ServerSection):
     max_batch: int = Field(default=64, ge=1, description="most requests per policy forward")
     max_wait_ms: float = Field(default=2.0, ge=0, description="longest a request waits for others to batch with")
     device: str = DEVICE
+    weights_lossy: bool = Field(
+        default=False, description="accept fp16 weights when the link is too slow for lossless ones to stay fresh"
+    )
 
 
 class LearnerConfig(_ServerSection):
@@ -117,6 +120,10 @@ class LearnerConfig(_ServerSection):
     prefetch_batches: int = Field(default=4, ge=1, description="batches sampled ahead while the learner trains")
     max_chunk_bytes: int = Field(default=1 << 20, ge=1024, description="weight stream chunk size cap")
     rpc_timeout_s: float = Field(default=10.0, gt=0, description="deadline on calls to replay and control")
+    weights_freshness_s: float = Field(
+        default=1.0, gt=0, description="weight streams pick per link the encoding that delivers a version within this"
+    )
+    weights_history: int = Field(default=4, ge=1, description="published versions kept as delta bases")
 
 
 class RobotConfig(Strict):
@@ -146,6 +153,9 @@ class EdgeConfig(Strict):
         default=100_000, ge=1, description="steps kept for re-send while replay is away; the oldest drop beyond"
     )
     rpc_timeout_s: float = Field(default=5.0, gt=0, description="deadline on unary calls")
+    weights_lossy: bool = Field(
+        default=False, description="local policy: accept fp16 weights when the link is too slow for lossless"
+    )
 
     @model_validator(mode="after")
     def _unique_ids(self) -> EdgeConfig:

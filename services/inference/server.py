@@ -201,6 +201,7 @@ class InferenceService(rpc.GrpcService):
                 self.cfg.auth,
                 client_id=f"inference-{socket.gethostname()}-{self.running.port}",
                 on_weights=self.load_weights,
+                allow_lossy=self.cfg.inference.weights_lossy,
             ).start()
         return self
 
