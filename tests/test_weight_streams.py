@@ -422,3 +422,43 @@ def test_versions_stay_unique_across_a_learner_kill_9(tmp_path: Path) -> None:
         edge.close()
         control.stop()
         time.sleep(0)
+
+
+# --------------------------------------------------------------------------- safe point
+
+
+def test_local_policy_swaps_between_actions_never_mid_forward() -> None:
+    from edge_agent.policy_source import LocalPolicy
+
+    config = {
+        "obs_keys": ["state"],
+        "obs_dim": 6,
+        "action_dim": 3,
+        "hidden": [16],
+        "action_low": [-1.0] * 3,
+        "action_high": [1.0] * 3,
+    }
+    local = LocalPolicy("127.0.0.1:1", AUTH, "edge", deterministic=True, start=False)
+    local._on_weights(helpers.random_weights(config, version=1, seed=1))
+    v1 = local._policy
+    assert v1 is not None
+    inside, release = threading.Event(), threading.Event()
+    real_act = v1.act
+
+    def slow_act(obs, deterministic):  # type: ignore[no-untyped-def]
+        inside.set()
+        release.wait(30)
+        return real_act(obs, deterministic)
+
+    v1.act = slow_act  # type: ignore[method-assign]
+    obs = {"state": np.zeros(6, dtype=np.float32)}
+    out: list = []
+    t = threading.Thread(target=lambda: out.append(local.act("r", obs, deadline_s=60.0)))
+    t.start()
+    assert inside.wait(30)
+    local._on_weights(helpers.random_weights(config, version=2, seed=2))  # arrives mid-forward
+    release.set()
+    t.join(30)
+    assert out[0] is not None and out[0][1] == 1  # the forward in flight finished on the weights it started with
+    action, version = local.act("r", obs, deadline_s=60.0)
+    assert version == 2 and not np.allclose(action, out[0][0])
