@@ -151,7 +151,10 @@ def test_adaptive_choice_follows_the_link() -> None:
     link.goodput_bps = 10e9  # faster than zstd: raw
     assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_FP32, 0)
     link.goodput_bps = 1e3  # far too slow for lossless within 1 s: lossy delta
-    assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_FP16_ZSTD, 0)  # base is fp32
+    assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_BF16_ZSTD, 0)  # base is fp32
+    link.base_wire_dtype = tpb.DTYPE_BFLOAT16  # once the client holds a bf16 payload: bf16 deltas
+    assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_BF16_DELTA_ZSTD, 1)
+    link.base_wire_dtype = tpb.DTYPE_FLOAT32
     link.allow_lossy = False
     assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD, 1)
 

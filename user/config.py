@@ -90,7 +90,7 @@ class InferenceConfig(_ServerSection):
     max_wait_ms: float = Field(default=2.0, ge=0, description="longest a request waits for others to batch with")
     device: str = DEVICE
     weights_lossy: bool = Field(
-        default=False, description="accept fp16 weights when the link is too slow for lossless ones to stay fresh"
+        default=False, description="accept bf16 weights when the link is too slow for lossless ones to stay fresh"
     )
 
 
@@ -154,7 +154,7 @@ class EdgeConfig(Strict):
     )
     rpc_timeout_s: float = Field(default=5.0, gt=0, description="deadline on unary calls")
     weights_lossy: bool = Field(
-        default=False, description="local policy: accept fp16 weights when the link is too slow for lossless"
+        default=False, description="local policy: accept bf16 weights when the link is too slow for lossless"
     )
 
     @model_validator(mode="after")
