@@ -102,6 +102,16 @@ def _child(quick: bool) -> None:
             f"adaptive ({'/'.join(sorted(set(a['encs'])))}, {a['bytes'] / 2**20:.2f} MiB) vs fp32 resend",
             "fp32 full resend",
         ),
+        Row(
+            group,
+            "bytes on the wire per version (median)",
+            a["bytes"],
+            f["bytes"],
+            "B",
+            False,
+            "time-to-fresh also pays encode/decode on a shared CPU",
+            "fp32 full resend",
+        ),
         Row(group, "max action deviation (256 fixed obs)", a["dev"], f["dev"], "", False, "target < 1e-2", "fp32"),
     ]
     print(json.dumps([r.__dict__ for r in rows]), flush=True)
