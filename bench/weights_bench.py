@@ -52,6 +52,15 @@ def actor_config(obs_dim: int, action_dim: int, hidden: list[int]) -> dict[str, 
     }
 
 
+def models() -> list[tuple[str, dict[str, Any]]]:
+    """The sim-arm SAC actor exactly as the learner publishes it, and a ~10M-parameter MLP for scale."""
+    from cloud_learner.sac import SAC
+
+    ones = np.ones(3, dtype=np.float32)
+    sac = SAC(15, -ones, ones, LearnerConfig()).actor_config()
+    return [("SAC actor", sac), ("big MLP", actor_config(1024, 7, [2048, 2048, 2048]))]
+
+
 def sized_config(params: float) -> dict[str, Any]:
     """An MLP actor with about `params` parameters (3 hidden layers of equal width)."""
     width = int((params / 2) ** 0.5)

@@ -112,7 +112,14 @@ def _child(quick: bool) -> None:
             "time-to-fresh also pays encode/decode on a shared CPU",
             "fp32 full resend",
         ),
-        Row(group, "max action deviation (256 fixed obs)", a["dev"], f["dev"], "", False, "target < 1e-2", "fp32"),
+        Row(
+            group,
+            "max action deviation (256 fixed obs)",
+            f"{a['dev']:.1e}",
+            f"{f['dev']:.1e}",
+            note="received policy vs the sender's fp32 policy; target < 1e-2",
+            peer_name="fp32 full resend",
+        ),
     ]
     print(json.dumps([r.__dict__ for r in rows]), flush=True)
 

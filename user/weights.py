@@ -511,6 +511,8 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         with self._lock:
             self._links[id(link)] = link
         WEIGHTS_SUBSCRIBERS.inc()
+        # Read at scrape time, so a stalled subscriber's staleness grows while nothing is acked.
+        SUB_STALENESS.labels(link.client_id).set_function(lambda: link.status().staleness)
         log.info("weight subscriber joined", extra=kv(client_id=link.client_id, have_version=have, acked=link.acked))
         try:
             while context.is_active() and not self.store.closed:
@@ -598,7 +600,6 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
             WEIGHTS_SYNC.observe(link.sync_latency_s)
             SUB_SYNC.labels(link.client_id).set(link.sync_latency_s)
         SUB_GOODPUT.labels(link.client_id).set(link.goodput_bps)
-        SUB_STALENESS.labels(link.client_id).set(max(0, link.published_version() - link.applied_version))
         return True
 
 
