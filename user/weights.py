@@ -361,7 +361,9 @@ class Link:
         )
 
 
-def choose_encoding(store: WeightStore, link: Link, full: PackedWeights) -> tuple[int, int]:
+def choose_encoding(
+    store: WeightStore, link: Link, full: PackedWeights, prefixes: tuple[str, ...] | None = None
+) -> tuple[int, int]:
     """(encoding, base_version) for `full` on this link.
 
     Pinned encodings are honoured (a delta falls back to its full set where the base is unknown).
@@ -387,6 +389,7 @@ def choose_encoding(store: WeightStore, link: Link, full: PackedWeights) -> tupl
             return FULL_OF[encoding], 0
         return encoding, base
 
+    selection = prefixes if prefixes is not None else (link.prefixes or ("",))
     if link.pinned:
         return resolve(link.pinned)
     lossless = [resolve(WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD), (WE.WEIGHT_ENCODING_FP32, 0)]
@@ -394,7 +397,7 @@ def choose_encoding(store: WeightStore, link: Link, full: PackedWeights) -> tupl
         return lossless[0]
 
     def cost(choice: tuple[int, int]) -> float:
-        return store.estimate_s(full, choice[0], link.prefixes, choice[1], link.goodput_bps)
+        return store.estimate_s(full, choice[0], selection, choice[1], link.goodput_bps)
 
     best = min(lossless, key=cost)
     if link.allow_lossy and cost(best) > link.freshness_s:
@@ -545,9 +548,8 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
             log.info("weight subscriber left", extra=kv(client_id=link.client_id, applied=link.applied_version))
 
     def _encode(self, link: Link, full: PackedWeights) -> PackedWeights:
-        prefixes = link.prefixes or (full.header.policy.tensor_prefix,)
-        link.prefixes = prefixes
-        encoding, base = choose_encoding(self.store, link, full)
+        prefixes = link.prefixes or (full.header.policy.tensor_prefix,)  # none asked: what the policy needs
+        encoding, base = choose_encoding(self.store, link, full, prefixes)
         try:
             return self.store.encoded(full, encoding, prefixes, base)
         except KeyError:  # the base left the history meanwhile: full set
