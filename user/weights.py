@@ -732,6 +732,10 @@ class WeightSubscriber:
                         continue
                     applied = self._apply(weights)
                     got_any |= applied
+                    if self.encoding and not CODECS[self.encoding].delta:
+                        # Never a delta on this stream: holding the base would only keep the last payload
+                        # alive, so each version would land in freshly faulted pages.
+                        self._assembler.forget_base()
                     outbox.put(
                         learner_pb2.WeightAck(
                             version=weights.version,
