@@ -1,13 +1,17 @@
-"""Weight streaming, learner -> actor, over real gRPC servers on 127.0.0.1.
+"""Weight streaming, learner -> N subscribers, over real gRPC servers on 127.0.0.1.
 
-ours: WeightStore.publish (dtype+shape manifest, xxh3-128 checksum, raw chunks) -> WeightServicer.SubscribeWeights
-      -> WeightSubscriber/WeightAssembler rebuild numpy arrays from dtype + shape + bytes.
-peer: lerobot's own LearnerService.StreamParameters (their servicer class, server options and channel
-      options) fed the way their learner does (state_to_bytes = torch.save), received with their
-      receive_bytes_in_chunks and decoded with bytes_to_state_dict (torch.load of received bytes).
-
-Latency per version = publish call on the learner side -> decoded state dict on the receiving side,
-one version at a time (the next is published once the previous arrived).
+Measured per (model size, subscribers): seconds from the publish call on the learner side to every
+subscriber holding the new version as numpy/torch tensors, for
+  ours:    WeightStore.publish -> WeightServicer.StreamWeights (acked) -> WeightSubscriber, pinned fp32 full
+           sets, and pinned XOR deltas + zstd against the previous version (versions move as training does:
+           Adam steps on the weights);
+  lerobot: their LearnerService.StreamParameters + transport.utils (state_to_bytes once, receive_bytes_in_chunks,
+           bytes_to_state_dict = torch.load of received bytes); one LearnerService per actor (their service
+           feeds one actor per parameters queue), all on one server built like their learner's;
+  raw:     a bare gRPC server stream of the same fp32 bytes in 1 MiB chunks into a preallocated buffer
+           (no manifest, no checksum, no auth): the floor for a full set.
+Plus the learner's updates/s with 0, 1 and 8 subscribers, and (bench.weights_link, in a private
+network namespace with tc tbf at 20 Mbit/s) time-to-fresh with adaptive encoding vs fp32 resends.
 """
 
 from __future__ import annotations
@@ -29,10 +33,12 @@ from user import rpc
 from user.config import AuthConfig, LearnerConfig, ServerConfig
 from user.policy import actor_from_config, module_tensors, policy_spec_for
 from user.v1 import learner_pb2, learner_pb2_grpc
-from user.weights import WeightServicer, WeightSet, WeightStore, WeightSubscriber, iter_weight_messages
+from user.weight_codec import WE
+from user.weights import WeightServicer, WeightSet, WeightStore, WeightSubscriber
 
-RECEIVE_TIMEOUT_S = 60.0
-STATE_DIM, ACTION_DIM = 15, 3  # the sim arm
+RECEIVE_TIMEOUT_S = 300.0
+CHUNK = 1 << 20
+RAW = "raw gRPC stream"
 
 
 def actor_config(obs_dim: int, action_dim: int, hidden: list[int]) -> dict[str, Any]:
@@ -50,127 +56,267 @@ def models() -> list[tuple[str, dict[str, Any]]]:
     """The sim-arm SAC actor exactly as the learner publishes it, and a ~10M-parameter MLP for scale."""
     from cloud_learner.sac import SAC
 
-    ones = np.ones(ACTION_DIM, dtype=np.float32)
-    sac = SAC(STATE_DIM, -ones, ones, LearnerConfig()).actor_config()
-    big = actor_config(1024, 7, [2048, 2048, 2048])
-    return [("SAC actor", sac), ("big MLP", big)]
+    ones = np.ones(3, dtype=np.float32)
+    sac = SAC(15, -ones, ones, LearnerConfig()).actor_config()
+    return [("SAC actor", sac), ("big MLP", actor_config(1024, 7, [2048, 2048, 2048]))]
+
+
+def sized_config(params: float) -> dict[str, Any]:
+    """An MLP actor with about `params` parameters (3 hidden layers of equal width)."""
+    width = int((params / 2) ** 0.5)
+    return actor_config(64, 7, [width, width, width])
+
+
+class Trainer:
+    """Moves an actor's weights the way training does between two published versions: Adam steps."""
+
+    def __init__(
+        self, module: torch.nn.Module, steps: int = 5, lr: float = 3e-4, trainable: tuple[str, ...] = ("",)
+    ) -> None:
+        """trainable: name prefixes of the parameters that learn; the rest stay frozen (fine-tuning)."""
+        self.module, self.steps = module, steps
+        params = [p for n, p in module.named_parameters() if n.startswith(trainable)]
+        self.opt = torch.optim.Adam(params, lr=lr)
+        self.obs = torch.randn(64, 64, generator=torch.Generator().manual_seed(0))
+
+    def step(self) -> None:
+        for _ in range(self.steps):
+            _, _, mean_action = self.module(self.obs)
+            loss = (mean_action - 0.5).square().mean()
+            self.opt.zero_grad()
+            loss.backward()
+            self.opt.step()
 
 
 # --------------------------------------------------------------------------- ours
 
 
-class OursLink:
-    """A real Learner gRPC server (auth on) with our WeightServicer, and one WeightSubscriber."""
+class OursFanout:
+    """A real learner gRPC server (auth on) with our servicer, and n WeightSubscribers (own channels)."""
 
-    def __init__(self, spec: learner_pb2.PolicySpec, chunk_bytes: int) -> None:
-        self.spec = spec
-        self.chunk_bytes = chunk_bytes
-        self.auth = AuthConfig(token="bench-token")
-        self.store = WeightStore()
-        servicer = WeightServicer(self.store, default_chunk_bytes=chunk_bytes)
+    def __init__(self, spec: learner_pb2.PolicySpec, n: int, encoding: int, allow_lossy: bool = False) -> None:
+        self.spec, self.auth = spec, AuthConfig(token="bench-token")
+        self.store = WeightStore(history=2)
+        servicer = WeightServicer(self.store)
         name = learner_pb2.DESCRIPTOR.services_by_name["Learner"].full_name
         self.server = rpc.start_server(
             "bench-learner",
             lambda s: learner_pb2_grpc.add_LearnerServicer_to_server(servicer, s),
             [name],
-            ServerConfig(host="127.0.0.1", port=0, metrics_port=0, max_workers=4, grace_s=0.5),
+            ServerConfig(host="127.0.0.1", port=0, metrics_port=0, max_workers=4 + 2 * n, grace_s=0.5),
             self.auth,
             start_metrics=False,
         )
         self.received: queue.Queue[tuple[float, WeightSet]] = queue.Queue()
-        self.sub = WeightSubscriber(
-            self.server.address(), self.auth, "bench", lambda ws: self.received.put((time.perf_counter(), ws))
-        ).start()
+        self.subs = [
+            WeightSubscriber(
+                self.server.address(),
+                self.auth,
+                f"bench-{i}",
+                lambda ws: self.received.put((time.perf_counter(), ws)),
+                encoding=encoding,
+                allow_lossy=allow_lossy,
+            ).start()
+            for i in range(n)
+        ]
         self.version = 0
+        self.wire_bytes = 0
+        self.last_encoding = 0
 
-    def send(self, module: torch.nn.Module) -> tuple[float, dict[str, np.ndarray], int]:
-        """(seconds publish -> decoded on the subscriber, received tensors, bytes on the wire)."""
+    def send(self, module: torch.nn.Module) -> tuple[float, dict[str, Any]]:
         self.version += 1
         start = time.perf_counter()
-        tensors = module_tensors(module)  # what the learner hands WeightStore.publish
-        packed = self.store.publish(self.version, self.spec, tensors)
-        arrived, weights = self.received.get(timeout=RECEIVE_TIMEOUT_S)
-        if weights.version != self.version:
-            raise RuntimeError(f"expected weight v{self.version}, got v{weights.version}")
-        wire = sum(m.ByteSize() for m in iter_weight_messages(packed, self.chunk_bytes))
-        return arrived - start, weights.tensors, wire
+        self.store.publish(self.version, self.spec, module_tensors(module))
+        last, got = 0.0, None
+        self.wire_bytes = 0
+        for _ in self.subs:
+            arrived, got = self.received.get(timeout=RECEIVE_TIMEOUT_S)
+            if got.version != self.version:
+                raise RuntimeError(f"expected weight v{self.version}, got v{got.version}")
+            last = max(last, arrived)
+            self.wire_bytes += got.encoded_bytes
+            self.last_encoding = got.encoding
+        return last - start, got.tensors
 
     def close(self) -> None:
-        self.sub.stop()
+        for s in self.subs:
+            s.stop()
         self.store.close()
         self.server.stop()
 
 
-# --------------------------------------------------------------------------- peer
+# --------------------------------------------------------------------------- lerobot
 
 
-class PeerLink:
-    """lerobot's LearnerService on a gRPC server built like their learner's, and their actor-side receiver."""
+class PeerFanout:
+    """lerobot's LearnerService, one per actor (each has its own parameters queue), and their receivers."""
 
-    def __init__(self) -> None:
+    def __init__(self, n: int) -> None:
         from lerobot.rl.learner_service import MAX_WORKERS, LearnerService
         from lerobot.transport import services_pb2, services_pb2_grpc
         from lerobot.transport import utils as lt
 
         self.lt, self.pb = lt, services_pb2
         self.shutdown = threading.Event()
-        self.params_q: queue.Queue[bytes] = queue.Queue()
-        # seconds_between_pushes=0: push as soon as a version is queued (their default waits 4 s).
-        service = LearnerService(
-            shutdown_event=self.shutdown,
-            parameters_queue=self.params_q,
-            seconds_between_pushes=0.0,
-            transition_queue=queue.Queue(),
-            interaction_message_queue=queue.Queue(),
-            queue_get_timeout=0.05,
-        )
-        self.server = grpc.server(
-            futures.ThreadPoolExecutor(max_workers=MAX_WORKERS),
-            options=[
-                ("grpc.max_receive_message_length", lt.MAX_MESSAGE_SIZE),
-                ("grpc.max_send_message_length", lt.MAX_MESSAGE_SIZE),
-            ],
-        )
-        services_pb2_grpc.add_LearnerServiceServicer_to_server(service, self.server)
-        port = self.server.add_insecure_port("127.0.0.1:0")
-        self.server.start()
-        self.channel = grpc.insecure_channel(f"127.0.0.1:{port}", lt.grpc_channel_options())
-        self.call = services_pb2_grpc.LearnerServiceStub(self.channel).StreamParameters(services_pb2.Empty())
-        self.received: queue.Queue[bytes] = queue.Queue()
-        self.thread = threading.Thread(target=self._receive, daemon=True, name="peer-receive")
-        self.thread.start()
+        self.queues: list[queue.Queue[bytes]] = []
+        self.servers, self.channels, self.calls, self.threads = [], [], [], []
+        self.received: queue.Queue[tuple[float, dict[str, torch.Tensor]]] = queue.Queue()
+        for _ in range(n):
+            q: queue.Queue[bytes] = queue.Queue()
+            service = LearnerService(
+                shutdown_event=self.shutdown,
+                parameters_queue=q,
+                seconds_between_pushes=0.0,  # push as soon as a version is queued (their default waits 4 s)
+                transition_queue=queue.Queue(),
+                interaction_message_queue=queue.Queue(),
+                queue_get_timeout=0.05,
+            )
+            server = grpc.server(
+                futures.ThreadPoolExecutor(max_workers=MAX_WORKERS),
+                options=[
+                    ("grpc.max_receive_message_length", lt.MAX_MESSAGE_SIZE),
+                    ("grpc.max_send_message_length", lt.MAX_MESSAGE_SIZE),
+                ],
+            )
+            services_pb2_grpc.add_LearnerServiceServicer_to_server(service, server)
+            port = server.add_insecure_port("127.0.0.1:0")
+            server.start()
+            channel = grpc.insecure_channel(f"127.0.0.1:{port}", lt.grpc_channel_options())
+            call = services_pb2_grpc.LearnerServiceStub(channel).StreamParameters(services_pb2.Empty())
+            thread = threading.Thread(target=self._receive, args=(call,), daemon=True, name="peer-receive")
+            thread.start()
+            self.queues.append(q)
+            self.servers.append(server)
+            self.channels.append(channel)
+            self.calls.append(call)
+            self.threads.append(thread)
 
-    def _receive(self) -> None:
+    def _receive(self, call: Any) -> None:
+        blobs: queue.Queue[bytes] = queue.Queue()
+
+        def decode() -> None:
+            while (data := blobs.get()) is not None:
+                self.received.put((time.perf_counter(), self.lt.bytes_to_state_dict(data)))  # torch.load
+
+        threading.Thread(target=decode, daemon=True).start()
         try:
-            self.lt.receive_bytes_in_chunks(self.call, self.received, self.shutdown, log_prefix="[bench]")
+            self.lt.receive_bytes_in_chunks(call, blobs, self.shutdown, log_prefix="[bench]")
         except grpc.RpcError:
             pass  # cancelled at close()
+        blobs.put(None)  # type: ignore[arg-type]
 
-    def send(self, module: torch.nn.Module) -> tuple[float, dict[str, torch.Tensor], int]:
+    def send(self, module: torch.nn.Module) -> tuple[float, dict[str, Any]]:
         start = time.perf_counter()
-        blob = self.lt.state_to_bytes(module.state_dict())  # what their learner queues per push
-        self.params_q.put(blob)
-        data = self.received.get(timeout=RECEIVE_TIMEOUT_S)
-        state = self.lt.bytes_to_state_dict(data)  # torch.load of received bytes
-        elapsed = time.perf_counter() - start
-        wire = sum(m.ByteSize() for m in self.lt.send_bytes_in_chunks(blob, self.pb.Parameters))
-        return elapsed, state, wire
+        blob = self.lt.state_to_bytes(module.state_dict())  # once, as their learner does per push
+        for q in self.queues:
+            q.put(blob)
+        last, state = 0.0, None
+        for _ in self.queues:
+            arrived, state = self.received.get(timeout=RECEIVE_TIMEOUT_S)
+            last = max(last, arrived)
+        return last - start, state
 
     def close(self) -> None:
         self.shutdown.set()
-        self.call.cancel()
-        self.thread.join(5)
-        self.channel.close()
+        for call in self.calls:
+            call.cancel()
+        for t in self.threads:
+            t.join(5)
+        for c in self.channels:
+            c.close()
+        for s in self.servers:
+            s.stop(0.5).wait()
+
+
+# --------------------------------------------------------------------------- raw stream
+
+
+def _ident(x: bytes) -> bytes:
+    return x
+
+
+class RawFanout:
+    """A bare gRPC server stream of the fp32 bytes (bytes messages, no proto, no checks) to n receivers."""
+
+    def __init__(self, n: int) -> None:
+        self.payload: bytes = b""
+        self.version = 0
+        self.stopped = False
+        self.cond = threading.Condition()
+        self.server = grpc.server(futures.ThreadPoolExecutor(max_workers=n + 4))
+        handler = grpc.method_handlers_generic_handler(
+            "bench.Raw", {"Stream": grpc.unary_stream_rpc_method_handler(self._stream, _ident, _ident)}
+        )
+        self.server.add_generic_rpc_handlers((handler,))
+        port = self.server.add_insecure_port("127.0.0.1:0")
+        self.server.start()
+        self.received: queue.Queue[tuple[float, int]] = queue.Queue()
+        self.channels, self.calls = [], []
+        for _ in range(n):
+            ch = grpc.insecure_channel(f"127.0.0.1:{port}", [("grpc.max_receive_message_length", 64 << 20)])
+            call = ch.unary_stream("/bench.Raw/Stream", request_serializer=_ident, response_deserializer=_ident)(b"")
+            threading.Thread(target=self._receive, args=(call,), daemon=True).start()
+            self.channels.append(ch)
+            self.calls.append(call)
+
+    def _stream(self, request: bytes, context: grpc.ServicerContext):  # type: ignore[no-untyped-def]
+        have = 0
+        while context.is_active() and not self.stopped:
+            with self.cond:
+                self.cond.wait_for(lambda have=have: self.version > have or self.stopped, 0.5)
+                if self.version <= have:
+                    continue
+                have, payload = self.version, self.payload
+            header = len(payload).to_bytes(8, "little")
+            yield header
+            view = memoryview(payload)
+            for i in range(0, len(payload), CHUNK):
+                yield bytes(view[i : i + CHUNK])
+
+    def _receive(self, call: Any) -> None:
+        try:
+            buf, filled, size = None, 0, 0
+            for msg in call:
+                if buf is None:
+                    size = int.from_bytes(msg, "little")
+                    buf, filled = np.empty(size, dtype=np.uint8), 0
+                    if size == 0:
+                        self.received.put((time.perf_counter(), size))
+                        buf = None
+                    continue
+                buf[filled : filled + len(msg)] = np.frombuffer(msg, dtype=np.uint8)
+                filled += len(msg)
+                if filled == size:
+                    self.received.put((time.perf_counter(), size))
+                    buf = None
+        except grpc.RpcError:
+            pass
+
+    def send(self, module: torch.nn.Module) -> tuple[float, None]:
+        start = time.perf_counter()
+        tensors = module_tensors(module)
+        payload = b"".join(np.ascontiguousarray(t).tobytes() for t in tensors.values())
+        with self.cond:
+            self.payload, self.version = payload, self.version + 1
+            self.cond.notify_all()
+        last = 0.0
+        for _ in self.calls:
+            arrived, _size = self.received.get(timeout=RECEIVE_TIMEOUT_S)
+            last = max(last, arrived)
+        return last - start, None
+
+    def close(self) -> None:
+        self.stopped = True
+        with self.cond:
+            self.cond.notify_all()
+        for c in self.calls:
+            c.cancel()
+        for ch in self.channels:
+            ch.close()
         self.server.stop(0.5).wait()
 
 
 # --------------------------------------------------------------------------- driver
-
-
-def _new_version(module: torch.nn.Module) -> None:
-    with torch.no_grad():  # weights change between pushes, as they do while training
-        for p in module.parameters():
-            p.add_(1e-3)
 
 
 def _check_same(module: torch.nn.Module, received: dict[str, Any]) -> None:
@@ -179,62 +325,101 @@ def _check_same(module: torch.nn.Module, received: dict[str, Any]) -> None:
             raise AssertionError(f"received weights differ from the sent ones at {name}")
 
 
-def bench_model(label: str, config: dict[str, Any], versions: int) -> list[Row]:
+FROZEN_HALF = ("net.4.", "net.6.")  # last hidden layer + head learn; the first layers stay frozen
+
+
+def bench_fanout(
+    label: str, config: dict[str, Any], n: int, versions: int, log: Callable[..., None], frozen: bool = False
+) -> list[Row]:
     torch.manual_seed(0)
     module = actor_from_config(config)
+    trainer = Trainer(module, trainable=FROZEN_HALF if frozen else ("",))
     n_params = sum(p.numel() for p in module.parameters())
     raw_bytes = sum(t.numel() * t.element_size() for t in module.state_dict().values())
-    chunk = LearnerConfig().max_chunk_bytes
-    # Both links live side by side and take turns per version, so background load hits both alike.
-    links: dict[str, Any] = {}
-    times: dict[str, list[float]] = {"ours": [], "peer": []}
+    spec = policy_spec_for(config)
+    makers: dict[str, Callable[[], Any]] = {
+        "fp32": lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_FP32),
+        "delta": lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD),
+        "raw": lambda: RawFanout(n),
+        "lerobot": lambda: PeerFanout(n),
+    }
+    times: dict[str, list[float]] = {k: [] for k in makers}
     wire: dict[str, int] = {}
+    links: dict[str, Any] = {}
     try:
-        links["ours"] = OursLink(policy_spec_for(config), chunk)
-        links["peer"] = PeerLink()
-        for link in links.values():
-            link.send(module)  # warm-up version: connection set-up, first allocations
+        for side, make in makers.items():
+            links[side] = make()
+            links[side].send(module)  # warm-up version: connection set-up, first allocations, delta base
         for i in range(versions):
-            _new_version(module)
-            for side, link in links.items():
-                seconds, received, wire[side] = link.send(module)
+            trainer.step()
+            for side, link in links.items():  # take turns, so background load hits all alike
+                seconds, received = link.send(module)
                 times[side].append(seconds)
-                if i == versions - 1:
+                if side == "delta":
+                    wire["delta"] = link.wire_bytes // n
+                if i == versions - 1 and side in ("fp32", "delta"):
                     _check_same(module, received)
     finally:
         for link in links.values():
             link.close()
-    ours_t, peer_t, ours_wire, peer_wire = times["ours"], times["peer"], wire["ours"], wire["peer"]
-    ours_ms, peer_ms = median(ours_t) * 1e3, median(peer_t) * 1e3
-    group = f"weights {label} ({n_params / 1e6:.2f}M params, {raw_bytes / 2**20:.1f} MiB)"
+    ms = {k: median(v) * 1e3 for k, v in times.items()}
+    log(f"  {label} x{n}: " + ", ".join(f"{k} {v:.0f} ms" for k, v in ms.items()))
+    group = f"weights {label} ({n_params / 1e6:.1f}M params, {raw_bytes / 2**20:.0f} MiB) -> {n} subscriber(s)"
+    if frozen:
+        group += ", first layers frozen (fine-tuning)"
+    what = f"publish -> all {n} hold it (median of {versions})"
     return [
+        Row(group, f"{what}, fp32 full", ms["fp32"], ms["lerobot"], "ms", False, "ours pinned fp32 vs lerobot"),
+        Row(group, f"{what}, fp32 full vs raw", ms["fp32"], ms["raw"], "ms", False, "raw = floor", peer_name=RAW),
         Row(
             group,
-            f"latency per version (median of {versions})",
-            ours_ms,
-            peer_ms,
+            f"{what}, XOR delta+zstd vs raw",
+            ms["delta"],
+            ms["raw"],
             "ms",
             False,
-            "publish -> decoded on the receiver",
+            f"delta {wire.get('delta', 0) / 2**20:.1f} MiB of {raw_bytes / 2**20:.0f}",
+            peer_name=RAW,
         ),
-        Row(
-            group,
-            "throughput",
-            raw_bytes / median(ours_t) / 1e6,
-            raw_bytes / median(peer_t) / 1e6,
-            "MB/s",
-            True,
-            "tensor bytes / latency",
-        ),
-        Row(
-            group,
-            "bytes on the wire per version",
-            float(ours_wire),
-            float(peer_wire),
-            "B",
-            False,
-            f"chunks: ours {chunk >> 20} MiB, theirs 2 MiB",
-        ),
+    ]
+
+
+# --------------------------------------------------------------------------- learner updates/s
+
+
+def bench_learner_rate(subscriber_counts: list[int], seconds: float, log: Callable[..., None]) -> list[Row]:
+    """Real SAC updates on the sim-arm shapes, publishing every publish_every updates into a served store."""
+    from cloud_learner.sac import SAC
+    from tests.helpers import random_sac_batch
+
+    obs_dim, act_dim = 15, 3
+    lc = LearnerConfig()
+    ones = np.ones(act_dim, dtype=np.float32)
+    rates: dict[int, float] = {}
+    for n in subscriber_counts:
+        torch.manual_seed(0)
+        sac = SAC(obs_dim, -ones, ones, lc)
+        spec = policy_spec_for({"obs_keys": ["state"], **sac.actor_config()})
+        fan = OursFanout(spec, n, WE.WEIGHT_ENCODING_ADAPTIVE)
+        try:
+            batch = random_sac_batch(obs_dim, act_dim, seed=0, n=lc.batch_size)
+            version, updates = 0, 0
+            start = time.perf_counter()
+            while time.perf_counter() - start < seconds:
+                sac.update(batch)
+                updates += 1
+                if updates % lc.publish_every == 0:
+                    version += 1
+                    fan.store.publish(version, spec, sac.actor_tensors(), updates)
+            rates[n] = updates / (time.perf_counter() - start)
+        finally:
+            fan.close()
+        log(f"  learner with {n} subscribers: {rates[n]:.0f} updates/s")
+    group = f"learner updates/s while publishing (SAC sim arm, publish every {lc.publish_every})"
+    return [
+        Row(group, f"updates/s with {n} subscribers", rates[n], rates[0], "1/s", True, "vs 0 subscribers", "no subs")
+        for n in subscriber_counts
+        if n
     ]
 
 
@@ -246,15 +431,29 @@ def fact_rows() -> list[Row]:
         ),
         Row(group, "integrity check", "xxh3-128 checksum per version (sha256 optional)", "none"),
         Row(group, "auth on the stream", "bearer token", "none"),
+        Row(group, "version after learner kill -9", "never reused (high-water mark)", "n/a (no versions)"),
+        Row(group, "GPU path (pinned memory, side stream)", "not measured: no GPU this session", "n/a"),
     ]
 
 
 def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Row]:
+    from bench import weights_link
+
     rows: list[Row] = []
-    for label, config in models():
-        versions = 2 if quick else (30 if label == "SAC actor" else 8)
-        if quick and label != "SAC actor":
-            config = {**config, "obs_dim": 64, "hidden": [256, 256]}
-        log(f"weights: {label}, {versions} versions")
-        rows += bench_model(label, config, versions)
+    if quick:
+        plan = [("1M", 1e6 / 16, [1, 2], 1, False)]
+    else:
+        plan = [
+            ("1M", 1e6, [1, 8], 3, False),
+            ("25M", 25e6, [1, 8], 2, False),
+            ("25M", 25e6, [8], 2, True),
+            ("100M", 100e6, [1], 1, False),
+        ]
+    for label, params, fanouts, versions, frozen in plan:
+        config = sized_config(params)
+        for n in fanouts:
+            log(f"weights: {label} params, {n} subscriber(s), {versions} versions" + (", frozen" if frozen else ""))
+            rows += bench_fanout(label, config, n, versions, log, frozen)
+    rows += bench_learner_rate([0, 1, 2] if quick else [0, 1, 8], 2.0 if quick else 10.0, log)
+    rows += weights_link.run(quick, log)
     return rows + fact_rows()

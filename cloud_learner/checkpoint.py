@@ -22,6 +22,7 @@ from user.log import kv
 log = logging.getLogger(__name__)
 
 LATEST = "latest"
+VERSION_MARK = "weight_version"  # the highest weight version ever published from this directory
 KEEP = 3
 _NAME = re.compile(r"^ckpt-(\d{9,})\.pt$")
 
@@ -100,3 +101,30 @@ def load_latest(ckpt_dir: str | Path, map_location: str | torch.device = "cpu") 
     state = torch.load(path, map_location=map_location, weights_only=True)
     log.info("checkpoint loaded", extra=kv(path=str(path), updates=int(state.get("updates", 0))))
     return state
+
+
+def read_version_mark(ckpt_dir: str | Path) -> int:
+    """The highest weight version published from this checkpoint directory (0 if none yet)."""
+    path = Path(ckpt_dir) / VERSION_MARK
+    try:
+        text = path.read_text().strip()
+    except FileNotFoundError:
+        return 0
+    if not text.isdigit():
+        raise ValueError(f"{path} holds {text!r}, not a weight version; remove it only if no subscriber is running")
+    return int(text)
+
+
+def write_version_mark(ckpt_dir: str | Path, version: int, durable: bool = False) -> None:
+    """Record `version` before it is published, so a restarted learner (even after kill -9) never
+    reuses a number: a version names one weight set forever. Atomic (rename); fsync only if durable,
+    since a process crash keeps the page cache and a power loss also loses the subscribers' state."""
+    ckpt_dir = Path(ckpt_dir)
+    ckpt_dir.mkdir(parents=True, exist_ok=True)
+    path = ckpt_dir / VERSION_MARK
+    if durable:
+        _write_atomic(path, lambda f: f.write(f"{version}\n".encode()))
+        return
+    tmp = ckpt_dir / f".{VERSION_MARK}.{os.getpid()}.tmp"
+    tmp.write_text(f"{version}\n")
+    os.replace(tmp, path)

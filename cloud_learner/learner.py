@@ -36,7 +36,7 @@ import prometheus_client
 import torch
 
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
-from cloud_learner.checkpoint import load_latest, save_checkpoint
+from cloud_learner.checkpoint import load_latest, read_version_mark, save_checkpoint, write_version_mark
 from cloud_learner.replay_sampler import replay_source
 from user import rpc
 from user.config import ExperimentConfig, StackConfig
@@ -295,14 +295,16 @@ class ExperimentRun:
     # ------------------------------------------------------------------ lifecycle
 
     def start(self) -> None:
-        version = 1
+        restored = 0
         ckpt = load_latest(self.ckpt_dir, map_location=self.lc.device)
         if ckpt is not None:
-            version = restore_checkpoint(self.algo, ckpt, self.exp.algorithm.kind, self.layout, self.ckpt_dir)
+            restored = restore_checkpoint(self.algo, ckpt, self.exp.algorithm.kind, self.layout, self.ckpt_dir)
             self._last_ckpt_updates = int(ckpt["updates"])
-            log.info("resumed", extra=kv(experiment=self.exp.name, updates=self.algo.updates, weight_version=version))
+            log.info("resumed", extra=kv(experiment=self.exp.name, updates=self.algo.updates, weight_version=restored))
         self.state.updates = int(self.algo.updates)
-        self.publish(version)
+        # Never reuse a published number (the checkpoint may predate the last publishes, e.g. after
+        # kill -9): subscribers holding a higher one would reject the new weights.
+        self.publish(max(restored, read_version_mark(self.ckpt_dir)) + 1)
         self.state.state = "waiting_for_data"
         if self.lc.mode == "async":
             self._spawn(self._sample_loop, "sampler")
@@ -538,6 +540,7 @@ class ExperimentRun:
             with self._lock:
                 dims = {s.kind: action_dim(s) for s in self.specs.values()}
             spec = padded_spec(spec, widths, {kind: dims[kind] for kind in self.layout.embodiments})
+        write_version_mark(self.ckpt_dir, version)  # before anyone can see it
         self.learner.store.publish(version, spec, tensors, int(self.algo.updates), experiment=self.exp.name)
         st = self.state
         st.weight_version, st.policy_kind, st.last_publish_ns = version, spec.kind, time.time_ns()

@@ -27,8 +27,8 @@ SERVICE_NAME = learner_pb2.DESCRIPTOR.services_by_name["Learner"].full_name
 
 
 class LearnerServicer(WeightServicer):
-    def __init__(self, learner: Learner, store: WeightStore, default_chunk_bytes: int) -> None:
-        super().__init__(store, default_chunk_bytes)
+    def __init__(self, learner: Learner, store: WeightStore, default_chunk_bytes: int, freshness_s: float) -> None:
+        super().__init__(store, default_chunk_bytes, freshness_s=freshness_s)
         self.learner = learner
 
     def GetStatus(
@@ -78,12 +78,13 @@ class LearnerService(rpc.GrpcService):
             raise ConfigError(f"learner.device: {exc}") from None
         self.cfg = cfg
         self.start_metrics = start_metrics
-        self.store = WeightStore()
+        self.store = WeightStore(history=cfg.learner.weights_history)
         try:
             self.learner = Learner(cfg, self.store)
         except PluginError as exc:  # a bad experiment entry fails at start, naming the field
             raise ConfigError(str(exc)) from None
-        self.servicer = LearnerServicer(self.learner, self.store, cfg.learner.max_chunk_bytes)
+        lc = cfg.learner
+        self.servicer = LearnerServicer(self.learner, self.store, lc.max_chunk_bytes, lc.weights_freshness_s)
         self.running: rpc.RunningServer | None = None
 
     def start(self) -> LearnerService:

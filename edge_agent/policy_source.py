@@ -176,6 +176,7 @@ class LocalPolicy(PolicySource):
         start: bool = True,
         experiment: str = "",
         kinds: dict[str, str] | None = None,
+        allow_lossy: bool = False,
     ) -> None:
         import user.policy  # noqa: F401 - torch loads now, not in the weight thread while robots run
         from user.weights import WeightSubscriber
@@ -185,7 +186,9 @@ class LocalPolicy(PolicySource):
         self._deterministic = deterministic
         self._lock = threading.Lock()  # serialises forward passes of robots sharing this copy
         self._chunks = _Chunked(self._fetch)
-        self._subscriber = WeightSubscriber(learner_addr, auth, client_id, self._on_weights, experiment=experiment)
+        self._subscriber = WeightSubscriber(
+            learner_addr, auth, client_id, self._on_weights, experiment=experiment, allow_lossy=allow_lossy
+        )
         if start:
             self._subscriber.start()
 
@@ -199,7 +202,7 @@ class LocalPolicy(PolicySource):
         propagates to the subscriber, which logs it and keeps the previous version."""
         from user.policy import build_policy
 
-        policy = build_policy(weights.policy, weights.tensors, weights.version)
+        policy = build_policy(weights.policy, weights.policy_tensors(), weights.version)
         self._policy = policy
         log.info("local policy updated", extra=kv(version=int(policy.version)))
 
@@ -282,12 +285,17 @@ def make_policy_source(
     if cfg.edge.policy_source == "local":
         routes = robot_experiments(cfg, specs)
         names = sorted(set(routes.values()))
+        lossy = cfg.edge.weights_lossy
         kinds = {s.robot_id: s.kind for s in specs} if specs else {r.id: r.kind for r in cfg.edge.robots}
         if len(names) <= 1:
             name = names[0] if names else ""
-            return LocalPolicy(cfg.edge.learner_addr, cfg.auth, client_id, experiment=name, kinds=kinds)
+            return LocalPolicy(
+                cfg.edge.learner_addr, cfg.auth, client_id, experiment=name, kinds=kinds, allow_lossy=lossy
+            )
         sources = {
-            n: LocalPolicy(cfg.edge.learner_addr, cfg.auth, f"{client_id}-{n}", experiment=n, kinds=kinds)
+            n: LocalPolicy(
+                cfg.edge.learner_addr, cfg.auth, f"{client_id}-{n}", experiment=n, kinds=kinds, allow_lossy=lossy
+            )
             for n in names
         }
         return RoutedPolicy({rid: sources[name] for rid, name in routes.items()})

@@ -46,9 +46,11 @@ def test_bench_quick(tmp_path: Path) -> None:
     for shape in ("sim-arm", "images"):
         for metric in ("insert", "sample batch 256", "bytes per transition", "after SIGKILL + restart"):
             assert any(g.startswith("replay " + shape) and m == metric for g, m in metrics), (shape, metric)
-    for model in ("SAC actor", "big MLP"):
-        for metric in ("latency per version", "throughput", "bytes on the wire per version"):
-            assert (f"weights {model}", metric) in metrics, (model, metric)
+    weights = [(r["group"], r["metric"]) for r in rows if r["group"].startswith("weights ")]
+    for metric in ("fp32 full", "fp32 full vs raw", "XOR delta+zstd vs raw"):
+        assert any(m.endswith(f"), {metric}") for _, m in weights), metric
+    assert any(g.startswith("learner updates/s") for g, _ in metrics), "learner updates/s rows"
+    assert any("20 Mbit/s" in g or "20mbit" in g for g, _ in weights), "slow-link rows (measured or skipped)"
 
     numeric = [r for r in rows if r["higher_is_better"] is not None]
     assert numeric

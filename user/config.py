@@ -101,6 +101,9 @@ class InferenceConfig(_ServerSection):
     max_batch: int = Field(default=64, ge=1, description="most requests per policy forward")
     max_wait_ms: float = Field(default=2.0, ge=0, description="longest a request waits for others to batch with")
     device: str = DEVICE
+    weights_lossy: bool = Field(
+        default=False, description="accept bf16 weights when the link is too slow for lossless ones to stay fresh"
+    )
 
 
 class LearnerConfig(_ServerSection):
@@ -139,6 +142,10 @@ class LearnerConfig(_ServerSection):
     )
     sync_env_steps: int = Field(default=200, ge=1, description="sync mode: new transitions per experiment per round")
     sync_updates: int = Field(default=200, ge=1, description="sync mode: updates per experiment per round")
+    weights_freshness_s: float = Field(
+        default=1.0, gt=0, description="weight streams pick per link the encoding that delivers a version within this"
+    )
+    weights_history: int = Field(default=4, ge=1, description="published versions kept as delta bases")
 
 
 class RobotSelector(Strict):
@@ -209,6 +216,9 @@ class EdgeConfig(Strict):
     )
     spool_fsync: bool = Field(
         default=False, description="fsync every spooled step (survives power loss); off: synced each second"
+    )
+    weights_lossy: bool = Field(
+        default=False, description="local policy: accept bf16 weights when the link is too slow for lossless"
     )
 
     @model_validator(mode="after")

@@ -357,7 +357,18 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
             f"{st.spool_steps}{' FULL' if st.spool_full else ''}",
         )
     learner = Table(expand=True)
-    for col in ("experiment", "algo", "state", "updates", "updates/s", "weights", "buffer", "scalars", "success"):
+    for col in (
+        "experiment",
+        "algo",
+        "state",
+        "updates",
+        "updates/s",
+        "weights",
+        "sync",
+        "buffer",
+        "scalars",
+        "success",
+    ):
         learner.add_column(col, justify="left" if col in ("experiment", "algo", "state", "scalars") else "right")
     for exp in snap.learner.experiments if snap.learner else []:
         rate = mon.success_rate(window, exp.name)
@@ -368,11 +379,21 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
             str(exp.updates),
             f"{exp.updates_per_s:.1f}",
             str(exp.weight_version),
+            _sync_cell(snap.learner, exp.name),
             str(exp.buffer_transitions),
             _scalars_text(exp.scalars),
             "-" if rate is None else f"{100 * rate:.0f} %",
         )
     return Group(robots, learner)
+
+
+def _sync_cell(lr: learner_pb2.LearnerStatus, experiment: str) -> str:
+    """Slowest subscriber's publish -> applied latency and its staleness in versions, e.g. "120ms +1"."""
+    subs = [s for s in lr.subscriber_status if s.experiment in (experiment, "")]
+    if not subs:
+        return "-"
+    worst = max(subs, key=lambda s: (s.staleness, s.sync_latency_s))
+    return f"{worst.sync_latency_s * 1e3:.0f}ms +{worst.staleness}"
 
 
 def write_report(run_dir: Path, episodes: list[Episode], summary: dict[str, Any], window: int) -> None:

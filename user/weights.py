@@ -1,51 +1,86 @@
-"""Versioned weight sets on the wire: pack once, stream to many, reassemble and verify.
+"""Versioned weight streams, learner -> subscribers: encoded once per (version, encoding, base), adapted per link.
 
-A weight set travels as one WeightHeader (manifest: name, dtype, shape, offset, nbytes per tensor,
-a checksum of the raw payload) followed by WeightChunks of the (optionally zstd) payload. The payload is
-the tensors' raw little-endian bytes concatenated; nothing is pickled, so a receiver only trusts
-dtype + shape + bytes after checking sizes and the checksum.
-
-Server side: `WeightStore` (latest packed version, waiters) + `WeightServicer` (SubscribeWeights).
-Client side: `WeightSubscriber` (background thread, reconnects, only asks for newer versions).
+Server side: `WeightStore` keeps the last few published versions per experiment (raw, as published)
+and a cache of their encodings, each built once by whichever stream asks first and shared by every
+stream that wants the same (version, encoding, base, tensor selection). `WeightServicer` serves
+  - StreamWeights (bidi, acked): each version is sent, then acked (applied / rejected) before the next;
+    from the acks the server measures the link (effective goodput, round trip), knows the base the
+    client holds for deltas and the version it acts with (staleness, sync latency), and picks the
+    encoding per subscriber to meet a freshness target. Latest wins: versions published while one is
+    in flight are skipped. A slow subscriber holds only its own stream: gRPC flow control bounds what
+    is buffered for it, and nothing waits for it on the learner.
+  - SubscribeWeights (server streaming, unacked): full sets only, as before.
+Client side: `WeightSubscriber` (background thread, reconnects, acks, keeps its last payload as the
+base for deltas; a rejected version is acked as such and the server resends a full set).
+The codec (manifest, encodings, assembler) lives in user.weight_codec.
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
-import math
+import queue
 import threading
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections import OrderedDict
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import grpc
 import numpy as np
 import prometheus_client
-import xxhash
 
 from user import rpc
 from user.config import AuthConfig
 from user.log import kv
 from user.v1 import learner_pb2, learner_pb2_grpc
 from user.v1 import tensor_pb2 as tpb
-from user.wire import WireError, dtype_from_proto, dtype_to_proto
+from user.weight_codec import (
+    CODECS,
+    DEFAULT_CHUNK_BYTES,
+    DEFAULT_DIGEST,
+    ENCODING_RAW,
+    ENCODING_ZSTD,
+    FULL_OF,
+    MAX_CHUNK_BYTES,
+    MAX_WEIGHT_BYTES,
+    MIN_CHUNK_BYTES,
+    WE,
+    PackedWeights,
+    WeightAssembler,
+    WeightSet,
+    WirePayload,
+    encode,
+    encoding_name,
+    iter_weight_messages,
+    pack_weights,
+    selected,
+    wire_payload,
+)
+from user.wire import WireError
+
+__all__ = [
+    "DEFAULT_CHUNK_BYTES",
+    "DEFAULT_DIGEST",
+    "ENCODING_RAW",
+    "ENCODING_ZSTD",
+    "MAX_CHUNK_BYTES",
+    "MAX_WEIGHT_BYTES",
+    "MIN_CHUNK_BYTES",
+    "PackedWeights",
+    "WeightAssembler",
+    "WeightServicer",
+    "WeightSet",
+    "WeightStore",
+    "WeightSubscriber",
+    "iter_weight_messages",
+    "pack_weights",
+]
 
 log = logging.getLogger(__name__)
 
-ENCODING_RAW = tpb.ENCODING_RAW
-ENCODING_ZSTD = tpb.ENCODING_ZSTD
-DEFAULT_CHUNK_BYTES = 1 << 20
-MIN_CHUNK_BYTES = 1024
-MAX_CHUNK_BYTES = 16 << 20
-MAX_WEIGHT_BYTES = 1 << 30  # refuse manifests that would make us allocate more than this
-# xxh3-128 hashes ~30 GB/s, sha256 ~2 GB/s here: on a 40 MiB model sha256 cost 22 ms on each side.
-DEFAULT_DIGEST = learner_pb2.DIGEST_XXH3_128
-_HASHERS: dict[int, tuple[Callable[[], Any], int]] = {
-    learner_pb2.DIGEST_SHA256: (hashlib.sha256, 32),
-    learner_pb2.DIGEST_XXH3_128: (xxhash.xxh3_128, 16),
-}
+DEFAULT_FRESHNESS_S = 1.0
+DEFAULT_HISTORY = 4
 
 WEIGHTS_RECEIVED = prometheus_client.Counter("user_weights_received_total", "Weight versions received and applied")
 WEIGHTS_BYTES = prometheus_client.Counter("user_weights_bytes_total", "Weight payload bytes received (as encoded)")
@@ -55,260 +90,85 @@ WEIGHTS_APPLY = prometheus_client.Histogram(
     "Time to apply a received weight set (on_weights callback)",
     buckets=(0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 1, 5),
 )
+WEIGHTS_REJECTED = prometheus_client.Counter(
+    "user_weights_rejected_total", "Weight versions rejected by this client (corrupt, unknown base); re-fetched"
+)
 WEIGHTS_SENT = prometheus_client.Counter("user_weights_sent_total", "Weight versions streamed to subscribers")
+WEIGHTS_SENT_BYTES = prometheus_client.Counter(
+    "user_weights_sent_bytes_total", "Encoded weight bytes streamed, by encoding", ["encoding"]
+)
 WEIGHTS_SUBSCRIBERS = prometheus_client.Gauge("user_weights_subscribers", "Open SubscribeWeights streams")
-
-
-@dataclass
-class WeightSet:
-    version: int
-    policy: learner_pb2.PolicySpec
-    tensors: dict[str, np.ndarray]
-    learner_updates: int = 0
-
-
-@dataclass
-class PackedWeights:
-    """A weight set ready to stream: the header and the (encoded) payload, built once per version."""
-
-    header: learner_pb2.WeightHeader
-    payload: bytes | np.ndarray  # 1-D uint8 when raw; never mutated once packed
-    _chunk_cache: dict[int, list[learner_pb2.WeightMessage]] = field(default_factory=dict, repr=False)
-
-    @property
-    def version(self) -> int:
-        return self.header.version
-
-    @property
-    def nbytes(self) -> int:
-        """Raw (decoded) payload size."""
-        return self.header.total_bytes
-
-
-# --------------------------------------------------------------------------- pack / stream
-
-
-def pack_weights(
-    version: int,
-    policy: learner_pb2.PolicySpec,
-    tensors: Mapping[str, np.ndarray],
-    learner_updates: int = 0,
-    encoding: int = ENCODING_RAW,
-    digest: int = DEFAULT_DIGEST,
-) -> PackedWeights:
-    if version <= 0:
-        raise ValueError("weight versions start at 1")
-    if encoding not in (ENCODING_RAW, ENCODING_ZSTD):
-        raise ValueError(f"unsupported weight encoding {encoding}")
-    if digest not in _HASHERS:
-        raise ValueError(f"unsupported weight digest {digest}")
-    header = learner_pb2.WeightHeader(
-        version=version, policy=policy, encoding=encoding, learner_updates=learner_updates, digest_kind=digest
-    )
-    arrays: list[np.ndarray] = []
-    offset = 0
-    for name, value in tensors.items():
-        arr = np.asarray(value)
-        code = dtype_to_proto(arr.dtype)
-        arr = np.asarray(arr, dtype=dtype_from_proto(code))  # little-endian, as the wire says
-        header.tensors.add(name=name, dtype=code, shape=list(arr.shape), offset=offset, nbytes=arr.nbytes)
-        arrays.append(arr)
-        offset += arr.nbytes
-    # One copy of each tensor straight into a numpy buffer: numpy maps big buffers with huge pages,
-    # where a fresh 40 MB bytes/bytearray spends ~20 ms in page faults (tobytes + join paid it twice).
-    raw_payload = np.empty(offset, dtype=np.uint8)
-    for info, arr in zip(header.tensors, arrays, strict=True):
-        raw_payload[info.offset : info.offset + info.nbytes].view(arr.dtype)[...] = arr.reshape(-1)
-    header.total_bytes = offset
-    header.digest = _HASHERS[digest][0](raw_payload).digest()
-    if encoding == ENCODING_ZSTD:
-        import zstandard
-
-        payload = zstandard.ZstdCompressor(level=3).compress(raw_payload)
-    else:
-        payload = raw_payload
-    header.encoded_bytes = len(payload)
-    header.created_at_ns = time.time_ns()
-    return PackedWeights(header, payload)
-
-
-def iter_weight_messages(
-    packed: PackedWeights, max_chunk_bytes: int = DEFAULT_CHUNK_BYTES
-) -> Iterator[learner_pb2.WeightMessage]:
-    """Header, then the payload in chunks of at most max_chunk_bytes (messages cached per chunk size)."""
-    if max_chunk_bytes <= 0:
-        raise ValueError("max_chunk_bytes must be positive")
-    msgs = packed._chunk_cache.get(max_chunk_bytes)
-    if msgs is None:
-        msgs = [learner_pb2.WeightMessage(header=packed.header)]
-        view = memoryview(packed.payload).cast("B")
-        for start in range(0, len(view), max_chunk_bytes):
-            chunk = learner_pb2.WeightChunk(
-                version=packed.version, offset=start, data=bytes(view[start : start + max_chunk_bytes])
-            )
-            msgs.append(learner_pb2.WeightMessage(chunk=chunk))
-        # A few chunk sizes at most in practice; caching keeps many subscribers from re-slicing.
-        if len(packed._chunk_cache) < 4:
-            packed._chunk_cache[max_chunk_bytes] = msgs
-    yield from msgs
-
-
-# --------------------------------------------------------------------------- reassembly
-
-
-def _check_header(h: learner_pb2.WeightHeader) -> None:
-    if h.version == 0:
-        raise WireError("weight header: version 0 is not a weight version")
-    if h.encoding not in (ENCODING_RAW, ENCODING_ZSTD):
-        raise WireError(f"weight header: unsupported encoding {h.encoding}")
-    if h.total_bytes > MAX_WEIGHT_BYTES or h.encoded_bytes > MAX_WEIGHT_BYTES:
-        raise WireError(
-            f"weight header: payload of {max(h.total_bytes, h.encoded_bytes)} bytes exceeds {MAX_WEIGHT_BYTES}"
-        )
-    if h.encoding == ENCODING_RAW and h.encoded_bytes != h.total_bytes:
-        raise WireError(
-            f"weight header: raw payload with encoded_bytes {h.encoded_bytes} != total_bytes {h.total_bytes}"
-        )
-    if h.digest_kind not in _HASHERS:
-        raise WireError(f"weight header: unsupported digest kind {h.digest_kind}")
-    want = _HASHERS[h.digest_kind][1]
-    if len(h.digest) != want:
-        name = learner_pb2.Digest.Name(h.digest_kind)
-        raise WireError(f"weight header: a {name} digest is {want} bytes, got {len(h.digest)}")
-    names: set[str] = set()
-    for info in h.tensors:
-        if not info.name or info.name in names:
-            raise WireError(f"weight header: empty or duplicate tensor name {info.name!r}")
-        names.add(info.name)
-        dtype = dtype_from_proto(info.dtype)
-        if any(d < 0 for d in info.shape):
-            raise WireError(f"weight header: {info.name} has a negative dimension {list(info.shape)}")
-        need = math.prod(info.shape) * dtype.itemsize
-        if info.nbytes != need:
-            raise WireError(
-                f"weight header: {info.name} declares {info.nbytes} bytes, {dtype} x {list(info.shape)} needs {need}"
-            )
-        if info.offset + info.nbytes > h.total_bytes:
-            raise WireError(
-                f"weight header: {info.name} [{info.offset}, +{info.nbytes}) exceeds payload of {h.total_bytes}"
-            )
-
-
-_EMPTY = np.empty(0, dtype=np.uint8)
-
-
-class WeightAssembler:
-    """Feed WeightMessages in stream order; returns a verified WeightSet when one is complete.
-
-    Any inconsistency raises WireError; the assembler then resets, so the caller should drop the stream.
-    """
-
-    def __init__(self) -> None:
-        self._header: learner_pb2.WeightHeader | None = None
-        self._buf = _EMPTY
-        self._filled = 0
-        self._hash: Any = None  # running digest of raw payloads, updated as chunks arrive
-
-    @property
-    def in_progress(self) -> bool:
-        return self._header is not None
-
-    def reset(self) -> None:
-        self._header, self._buf, self._filled, self._hash = None, _EMPTY, 0, None
-
-    def feed(self, msg: learner_pb2.WeightMessage) -> WeightSet | None:
-        try:
-            kind = msg.WhichOneof("msg")
-            if kind == "header":
-                return self._on_header(msg.header)
-            if kind == "chunk":
-                return self._on_chunk(msg.chunk)
-            raise WireError("empty weight message")
-        except WireError:
-            self.reset()
-            raise
-
-    def _on_header(self, header: learner_pb2.WeightHeader) -> WeightSet | None:
-        if self._header is not None:
-            raise WireError(f"weight header v{header.version} before v{self._header.version} was complete")
-        _check_header(header)
-        self._header = header
-        # Preallocated (the header passed the size limit): one copy per chunk, no regrowth; numpy for
-        # huge pages (see pack_weights).
-        self._buf, self._filled = np.empty(header.encoded_bytes, dtype=np.uint8), 0
-        self._hash = _HASHERS[header.digest_kind][0]() if header.encoding == ENCODING_RAW else None
-        return self._finish() if header.encoded_bytes == 0 else None
-
-    def _on_chunk(self, chunk: learner_pb2.WeightChunk) -> WeightSet | None:
-        h = self._header
-        if h is None:
-            raise WireError("weight chunk without a header")
-        if chunk.version != h.version:
-            raise WireError(f"weight chunk of v{chunk.version} inside v{h.version}")
-        start, data = self._filled, chunk.data
-        if chunk.offset != start:
-            raise WireError(f"weight chunk at offset {chunk.offset}, expected {start}")
-        if not data:
-            raise WireError("empty weight chunk")
-        if start + len(data) > h.encoded_bytes:
-            raise WireError(f"weight chunks exceed the declared {h.encoded_bytes} encoded bytes")
-        self._buf[start : start + len(data)] = np.frombuffer(data, dtype=np.uint8)
-        self._filled += len(data)
-        if self._hash is not None:
-            self._hash.update(data)
-        return self._finish() if self._filled == h.encoded_bytes else None
-
-    def _finish(self) -> WeightSet:
-        h = self._header
-        assert h is not None
-        raw = self._decode(h, self._buf)  # the buffer is handed over, not copied: reset() starts a new one
-        digest = self._hash.digest() if self._hash is not None else _HASHERS[h.digest_kind][0](raw).digest()
-        if digest != h.digest:
-            raise WireError(f"weight v{h.version}: {learner_pb2.Digest.Name(h.digest_kind)} mismatch")
-        tensors = {}
-        for info in h.tensors:
-            dtype = dtype_from_proto(info.dtype)
-            arr = raw[info.offset : info.offset + info.nbytes].view(dtype).reshape(tuple(info.shape))
-            # Views into the payload when usable as is (writable, aligned, native order); else a copy.
-            if not (arr.flags.aligned and arr.flags.writeable and arr.dtype.isnative):
-                arr = arr.astype(dtype.newbyteorder("="), copy=True)
-            tensors[info.name] = arr
-        out = WeightSet(int(h.version), h.policy, tensors, int(h.learner_updates))
-        self.reset()
-        return out
-
-    @staticmethod
-    def _decode(h: learner_pb2.WeightHeader, data: np.ndarray) -> np.ndarray:
-        if h.encoding == ENCODING_RAW:
-            return data
-        import zstandard
-
-        try:
-            raw = zstandard.ZstdDecompressor().decompress(data, max_output_size=h.total_bytes)
-        except zstandard.ZstdError as exc:
-            raise WireError(f"weight v{h.version}: bad zstd payload: {exc}") from exc
-        if len(raw) != h.total_bytes:
-            raise WireError(f"weight v{h.version}: decoded {len(raw)} bytes, header says {h.total_bytes}")
-        out = np.empty(len(raw), dtype=np.uint8)  # writable, so tensors can be views
-        out[:] = np.frombuffer(raw, dtype=np.uint8)
-        return out
+SYNC_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60)
+WEIGHTS_SYNC = prometheus_client.Histogram(
+    "user_weights_sync_seconds", "Publish -> applied on a subscriber (acked; learner clock)", buckets=SYNC_BUCKETS
+)
+SUB_STALENESS = prometheus_client.Gauge(
+    "user_weights_subscriber_staleness", "Latest published version - version the subscriber acts with", ["client_id"]
+)
+SUB_SYNC = prometheus_client.Gauge(
+    "user_weights_subscriber_sync_seconds", "Publish -> applied of the subscriber's last version", ["client_id"]
+)
+SUB_GOODPUT = prometheus_client.Gauge(
+    "user_weights_subscriber_goodput_bytes_per_second",
+    "Measured effective goodput of the subscriber's link",
+    ["client_id"],
+)
 
 
 # --------------------------------------------------------------------------- server side
 
 
+class _Once:
+    """A value built by the first caller and awaited by the others (fan-out of one encode)."""
+
+    def __init__(self) -> None:
+        self.done = threading.Event()
+        self.value: Any = None
+        self.error: BaseException | None = None
+
+
+@dataclass
+class _EncodingStats:
+    """What an encoding has cost lately: encoded/full bytes and encode throughput (for the choice)."""
+
+    ratio: float
+    encode_bps: float = 400e6
+
+    def observe(self, ratio: float, full_bytes: int, seconds: float) -> None:
+        self.ratio = 0.5 * self.ratio + 0.5 * ratio
+        if seconds > 0 and full_bytes > 1 << 16:
+            self.encode_bps = 0.5 * self.encode_bps + 0.5 * full_bytes / seconds
+
+
+_PRIOR_RATIO = {  # measured on SAC actors mid-training (docs/notes/weights.md); replaced as encodes run
+    WE.WEIGHT_ENCODING_FP32: 1.0,
+    WE.WEIGHT_ENCODING_FP32_ZSTD: 0.93,
+    WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD: 0.6,
+    WE.WEIGHT_ENCODING_FP16_ZSTD: 0.47,
+    WE.WEIGHT_ENCODING_FP16_DELTA_ZSTD: 0.25,
+    WE.WEIGHT_ENCODING_BF16_ZSTD: 0.4,
+    WE.WEIGHT_ENCODING_BF16_DELTA_ZSTD: 0.15,
+}
+
+
 class WeightStore:
-    """The latest packed weight set per experiment and the streams waiting for a newer one (thread-safe).
+    """The last `history` published versions per experiment, their shared encodings, and the streams
+    waiting for a newer version (thread-safe). publish() packs the raw set on the caller's thread (one
+    copy + xxh3); every other encoding is built on a stream's thread, once, and cached.
 
     Each experiment has its own version sequence. Experiment "" means the first one published, and a
     publisher that names none serves every subscriber: single-experiment clients keep working.
     """
 
-    def __init__(self, encoding: int = ENCODING_RAW) -> None:
-        self.encoding = encoding
+    def __init__(self, encoding: int = ENCODING_RAW, history: int = DEFAULT_HISTORY) -> None:
+        self.encoding = encoding  # ZSTD: unacked SubscribeWeights streams get zstd full sets
+        self.history = max(1, history)
         self._cond = threading.Condition()
-        self._latest: dict[str, PackedWeights] = {}
-        self._default = ""
+        self._versions: dict[str, OrderedDict[int, PackedWeights]] = {}
+        self._default = ""  # the first experiment published: what "" resolves to
+        self._cache: dict[tuple[Any, ...], _Once] = {}
+        self._cache_lock = threading.Lock()
+        self._stats = {enc: _EncodingStats(r) for enc, r in _PRIOR_RATIO.items()}
         self._closed = False
 
     def publish(
@@ -317,56 +177,75 @@ class WeightStore:
         policy: learner_pb2.PolicySpec,
         tensors: Mapping[str, np.ndarray],
         learner_updates: int = 0,
+        *,
         experiment: str = "",
     ) -> PackedWeights:
-        packed = pack_weights(version, policy, tensors, learner_updates, self.encoding)  # outside the lock
-        self.publish_packed(packed, experiment)
+        packed = pack_weights(version, policy, tensors, learner_updates, experiment=experiment)  # outside the lock
+        self.publish_packed(packed)
         return packed
 
-    def publish_packed(self, packed: PackedWeights, experiment: str = "") -> None:
+    def publish_packed(self, packed: PackedWeights) -> None:
+        if packed.header.encoding != ENCODING_RAW:
+            raise ValueError("publish raw weight sets; encodings are made per subscriber")
+        experiment = packed.header.experiment
         with self._cond:
-            if not self._latest:
+            if not self._versions:
                 self._default = experiment
-            key = self._key(experiment)
-            latest = self._latest.get(key)
-            if latest is not None and packed.version <= latest.version:
-                raise ValueError(f"weight version {packed.version} is not newer than {latest.version}")
-            self._latest[key] = packed
+            versions = self._versions.setdefault(experiment, OrderedDict())
+            if versions and packed.version <= next(reversed(versions)):
+                raise ValueError(f"weight version {packed.version} is not newer than {next(reversed(versions))}")
+            versions[packed.version] = packed
+            while len(versions) > self.history:
+                versions.popitem(last=False)
+            kept = {(experiment, v) for v in versions}
             self._cond.notify_all()
-
-    def latest(self, experiment: str = "") -> PackedWeights | None:
-        with self._cond:
-            return self._latest.get(self._key(experiment))
+        with self._cache_lock:  # encodings of versions that left the history go with them
+            for key in [k for k in self._cache if k[0] == experiment and (k[0], k[1]) not in kept]:
+                del self._cache[key]
 
     def _key(self, experiment: str) -> str:
-        if experiment in self._latest or not self._latest:
+        """Resolve "" to the first experiment published, and any name to "" when the publisher names none."""
+        if experiment in self._versions or not self._versions:
             return experiment
-        if experiment == "" or set(self._latest) == {""}:
+        if experiment == "" or set(self._versions) == {""}:
             return self._default
         return experiment
 
-    def experiments(self) -> list[str]:
+    def latest(self, experiment: str = "") -> PackedWeights | None:
         with self._cond:
-            return sorted(self._latest)
+            versions = self._versions.get(self._key(experiment))
+            return versions[next(reversed(versions))] if versions else None
+
+    def get(self, version: int, experiment: str = "") -> PackedWeights | None:
+        """A version still in the history (a delta base), else None."""
+        with self._cond:
+            return self._versions.get(self._key(experiment), {}).get(version)
+
+    def version_of(self, experiment: str = "") -> int:
+        latest = self.latest(experiment)
+        return latest.version if latest else 0
 
     @property
     def version(self) -> int:
-        latest = self.latest()
-        return latest.version if latest else 0
+        return self.version_of("")
+
+    def experiments(self) -> list[str]:
+        with self._cond:
+            return sorted(self._versions)
 
     def wait_newer(self, have_version: int, timeout: float | None, experiment: str = "") -> PackedWeights | None:
         """The latest set if it is newer than have_version (waiting up to timeout); None on timeout/close."""
-        with self._cond:
-            self._cond.wait_for(lambda: self._closed or self._newer(have_version, experiment), timeout)
-            return (
-                self._latest.get(self._key(experiment))
-                if self._newer(have_version, experiment) and not self._closed
-                else None
-            )
 
-    def _newer(self, have_version: int, experiment: str = "") -> bool:
-        latest = self._latest.get(self._key(experiment))
-        return latest is not None and latest.version > have_version
+        def newer() -> PackedWeights | None:
+            versions = self._versions.get(self._key(experiment))
+            if self._closed or not versions:
+                return None
+            latest = versions[next(reversed(versions))]
+            return latest if latest.version > have_version else None
+
+        with self._cond:
+            self._cond.wait_for(lambda: self._closed or newer() is not None, timeout)
+            return newer()
 
     def wake(self) -> None:
         """Wake waiters so they re-check their stream (e.g. a client went away)."""
@@ -383,60 +262,370 @@ class WeightStore:
     def closed(self) -> bool:
         return self._closed
 
+    # ------------------------------------------------------------------ shared encodings
+
+    def _once(self, key: tuple[Any, ...], build: Callable[[], Any]) -> Any:
+        with self._cache_lock:
+            entry = self._cache.get(key)
+            owner = entry is None
+            if entry is None:
+                entry = self._cache[key] = _Once()
+        if owner:
+            try:
+                entry.value = build()
+            except BaseException as exc:
+                entry.error = exc
+                with self._cache_lock:
+                    self._cache.pop(key, None)
+                raise
+            finally:
+                entry.done.set()
+        entry.done.wait()
+        if entry.error is not None:
+            raise entry.error
+        return entry.value
+
+    def wire(self, full: PackedWeights, wire_dtype: int, prefixes: tuple[str, ...]) -> WirePayload:
+        key = (full.header.experiment, full.version, "wire", wire_dtype, prefixes)
+        return self._once(key, lambda: wire_payload(full, wire_dtype, prefixes))
+
+    def encoded(
+        self, full: PackedWeights, encoding: int, prefixes: tuple[str, ...], base_version: int = 0
+    ) -> PackedWeights:
+        """`full` in `encoding` (a delta against base_version if nonzero), built once and shared."""
+        experiment = full.header.experiment
+        key = (experiment, full.version, "enc", encoding, prefixes, base_version)
+
+        def build() -> PackedWeights:
+            start = time.perf_counter()
+            codec = CODECS[encoding]
+            base = None
+            if base_version:
+                base_full = self.get(base_version, experiment)
+                if base_full is None:
+                    raise KeyError(base_version)
+                base = self.wire(base_full, codec.wire_dtype, prefixes)
+            out = encode(full, encoding, self.wire(full, codec.wire_dtype, prefixes), base)
+            full_bytes = self.selected_bytes(full, prefixes)
+            self._stats[encoding].observe(
+                out.encoded_bytes / max(1, full_bytes), full_bytes, time.perf_counter() - start
+            )
+            return out
+
+        return self._once(key, build)
+
+    def is_cached(self, full: PackedWeights, encoding: int, prefixes: tuple[str, ...], base_version: int) -> bool:
+        key = (full.header.experiment, full.version, "enc", encoding, prefixes, base_version)
+        with self._cache_lock:
+            return key in self._cache
+
+    @staticmethod
+    def selected_bytes(full: PackedWeights, prefixes: tuple[str, ...]) -> int:
+        return sum(i.nbytes for i in selected(full.header.tensors, prefixes))
+
+    def estimate_s(
+        self, full: PackedWeights, encoding: int, prefixes: tuple[str, ...], base: int, goodput: float
+    ) -> float:
+        """Expected seconds to get `full` to a subscriber at `goodput` B/s in `encoding` (encode + transfer)."""
+        full_bytes = self.selected_bytes(full, prefixes)
+        stats = self._stats[encoding]
+        encode_s = (
+            0.0
+            if self.is_cached(full, encoding, prefixes, base) or encoding == WE.WEIGHT_ENCODING_FP32
+            else (full_bytes / stats.encode_bps)
+        )
+        return encode_s + full_bytes * stats.ratio / goodput
+
+
+@dataclass
+class Link:
+    """One subscriber's stream as the server sees it (from its request and acks)."""
+
+    client_id: str
+    experiment: str
+    prefixes: tuple[str, ...]
+    allow_lossy: bool
+    pinned: int
+    freshness_s: float
+    acked: bool
+    base_version: int = 0  # the payload the client holds for deltas
+    base_wire_dtype: int = tpb.DTYPE_FLOAT32
+    applied_version: int = 0
+    goodput_bps: float = 0.0  # effective: encoded bytes / (send start -> ack, less the client's apply time)
+    rtt_s: float = 0.0
+    sync_latency_s: float = 0.0
+    encoding: int = 0
+    bytes_sent: int = 0
+    versions_sent: int = 0
+    rejects_in_row: int = 0
+    published_version: Callable[[], int] = field(default=lambda: 0, repr=False)
+
+    def status(self) -> learner_pb2.SubscriberStatus:
+        return learner_pb2.SubscriberStatus(
+            client_id=self.client_id,
+            experiment=self.experiment,
+            applied_version=self.applied_version,
+            staleness=max(0, self.published_version() - self.applied_version),
+            sync_latency_s=self.sync_latency_s,
+            goodput_mbit_s=self.goodput_bps * 8 / 1e6,
+            rtt_ms=self.rtt_s * 1e3,
+            encoding=self.encoding,
+            bytes_sent=self.bytes_sent,
+            versions_sent=self.versions_sent,
+        )
+
+
+def choose_encoding(
+    store: WeightStore, link: Link, full: PackedWeights, prefixes: tuple[str, ...] | None = None
+) -> tuple[int, int]:
+    """(encoding, base_version) for `full` on this link.
+
+    Pinned encodings are honoured (a delta falls back to its full set where the base is unknown).
+    Adaptive: until the link is measured, lossless zstd (delta where possible); then the lossless
+    encoding with the least expected encode + transfer time, and a lossy one (bf16: fp32's range, so
+    nothing saturates; ~8 bits of mantissa, action error measured in the bench) only where the
+    subscriber allows it and the lossless one would miss the freshness target.
+    """
+
+    def base_for(encoding: int) -> int:
+        codec = CODECS[encoding]
+        ok = (
+            codec.delta
+            and link.base_version
+            and link.base_wire_dtype == codec.wire_dtype
+            and store.get(link.base_version, link.experiment) is not None
+        )
+        return link.base_version if ok else 0
+
+    def resolve(encoding: int) -> tuple[int, int]:
+        base = base_for(encoding)
+        if CODECS[encoding].delta and not base:
+            return FULL_OF[encoding], 0
+        return encoding, base
+
+    selection = prefixes if prefixes is not None else (link.prefixes or ("",))
+    if link.pinned:
+        return resolve(link.pinned)
+    lossless = [resolve(WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD), (WE.WEIGHT_ENCODING_FP32, 0)]
+    if link.goodput_bps <= 0:
+        return lossless[0]
+
+    def cost(choice: tuple[int, int]) -> float:
+        return store.estimate_s(full, choice[0], selection, choice[1], link.goodput_bps)
+
+    best = min(lossless, key=cost)
+    if link.allow_lossy and cost(best) > link.freshness_s:
+        lossy = resolve(WE.WEIGHT_ENCODING_BF16_DELTA_ZSTD)
+        if cost(lossy) < cost(best):
+            return lossy
+    return best
+
 
 class WeightServicer(learner_pb2_grpc.LearnerServicer):
-    """SubscribeWeights over a WeightStore; subclass it to add GetStatus."""
+    """StreamWeights + SubscribeWeights over a WeightStore; subclass it to add GetStatus."""
 
-    def __init__(self, store: WeightStore, default_chunk_bytes: int = DEFAULT_CHUNK_BYTES, poll_s: float = 1.0) -> None:
+    def __init__(
+        self,
+        store: WeightStore,
+        default_chunk_bytes: int = DEFAULT_CHUNK_BYTES,
+        poll_s: float = 1.0,
+        freshness_s: float = DEFAULT_FRESHNESS_S,
+    ) -> None:
         self.store = store
         self.default_chunk_bytes = default_chunk_bytes
         self.poll_s = poll_s
+        self.freshness_s = freshness_s
         self._lock = threading.Lock()
-        self._subscribers = 0
+        self._links: dict[int, Link] = {}
 
     @property
     def subscribers(self) -> int:
         with self._lock:
-            return self._subscribers
+            return len(self._links)
 
-    def _add_subscriber(self, delta: int) -> None:
+    def subscriber_status(self) -> list[learner_pb2.SubscriberStatus]:
         with self._lock:
-            self._subscribers += delta
-        WEIGHTS_SUBSCRIBERS.inc(delta)
+            links = list(self._links.values())
+        return [link.status() for link in links]
+
+    # ------------------------------------------------------------------ RPCs
 
     def SubscribeWeights(
         self, request: learner_pb2.SubscribeWeightsRequest, context: grpc.ServicerContext
     ) -> Iterator[learner_pb2.WeightMessage]:
+        link, chunk_bytes = self._open(request, context, acked=False)
+        yield from self._serve(link, request.have_version, chunk_bytes, context, None)
+
+    def StreamWeights(
+        self, request_iterator: Iterator[learner_pb2.WeightAck], context: grpc.ServicerContext
+    ) -> Iterator[learner_pb2.WeightMessage]:
+        try:
+            first = next(request_iterator)
+        except StopIteration:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "StreamWeights: send a subscribe message first")
+        if not first.HasField("subscribe"):
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "StreamWeights: the first message must carry subscribe")
+        link, chunk_bytes = self._open(first.subscribe, context, acked=True)
+        acks: queue.Queue[learner_pb2.WeightAck | None] = queue.Queue()
+
+        def read_acks() -> None:
+            try:
+                for ack in request_iterator:
+                    acks.put(ack)
+            except grpc.RpcError:
+                pass  # the stream ended; the writer side sees it too
+            finally:
+                acks.put(None)
+
+        threading.Thread(target=read_acks, name=f"weight-acks-{link.client_id}", daemon=True).start()
+        yield from self._serve(link, first.subscribe.have_version, chunk_bytes, context, acks)
+
+    # ------------------------------------------------------------------ one stream
+
+    def _open(
+        self, request: learner_pb2.SubscribeWeightsRequest, context: grpc.ServicerContext, acked: bool
+    ) -> tuple[Link, int]:
         chunk_bytes = request.max_chunk_bytes or self.default_chunk_bytes
         if not MIN_CHUNK_BYTES <= chunk_bytes <= MAX_CHUNK_BYTES:
             context.abort(
                 grpc.StatusCode.INVALID_ARGUMENT,
                 f"max_chunk_bytes must be 0 (default) or in [{MIN_CHUNK_BYTES}, {MAX_CHUNK_BYTES}], got {chunk_bytes}",
             )
-        have = request.have_version
+        if request.encoding and request.encoding not in CODECS:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"unknown weight encoding {request.encoding}")
+        pinned = request.encoding
+        if pinned and CODECS[pinned].lossy and not request.allow_lossy:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"{encoding_name(pinned)} is lossy: set allow_lossy")
+        if not acked and pinned and CODECS[pinned].delta:
+            pinned = FULL_OF[pinned]  # unacked streams cannot know the base
+        if not acked and not pinned:
+            pinned = WE.WEIGHT_ENCODING_FP32_ZSTD if self.store.encoding == ENCODING_ZSTD else WE.WEIGHT_ENCODING_FP32
+        experiment = request.experiment
+        link = Link(
+            client_id=request.client_id,
+            experiment=experiment,
+            prefixes=tuple(request.prefixes),
+            allow_lossy=request.allow_lossy,
+            pinned=pinned,
+            freshness_s=request.freshness_target_ms / 1e3 if request.freshness_target_ms else self.freshness_s,
+            acked=acked,
+            base_version=request.base_version if acked else 0,
+            published_version=lambda: self.store.version_of(experiment),
+        )
+        return link, chunk_bytes
+
+    def _serve(
+        self,
+        link: Link,
+        have: int,
+        chunk_bytes: int,
+        context: grpc.ServicerContext,
+        acks: queue.Queue[learner_pb2.WeightAck | None] | None,
+    ) -> Iterator[learner_pb2.WeightMessage]:
         context.add_callback(self.store.wake)  # a client going away wakes its waiting stream promptly
-        self._add_subscriber(1)
-        log.info("weight subscriber joined", extra=kv(client_id=request.client_id, have_version=have))
+        if acks is not None:
+            context.add_callback(lambda: acks.put(None))
+        with self._lock:
+            self._links[id(link)] = link
+        WEIGHTS_SUBSCRIBERS.inc()
+        # Read at scrape time, so a stalled subscriber's staleness grows while nothing is acked.
+        SUB_STALENESS.labels(link.client_id).set_function(lambda: link.status().staleness)
+        log.info("weight subscriber joined", extra=kv(client_id=link.client_id, have_version=have, acked=link.acked))
         try:
             while context.is_active() and not self.store.closed:
-                packed = self.store.wait_newer(have, self.poll_s, request.experiment)
-                if packed is None:
+                full = self.store.wait_newer(have, self.poll_s, link.experiment)
+                if full is None:
                     continue
+                packed = self._encode(link, full)
+                start = time.perf_counter()
                 yield from iter_weight_messages(packed, chunk_bytes)
+                self._count_sent(link, packed)
+                if acks is None:
+                    have = link.applied_version = packed.version
+                    continue
+                ack = self._wait_ack(acks, packed.version, context)
+                if ack is None:
+                    return
+                if not self._on_ack(link, packed, ack, time.perf_counter() - start):
+                    time.sleep(min(2.0, 0.1 * link.rejects_in_row))  # a client rejecting everything: do not spin
+                    continue
                 have = packed.version
-                WEIGHTS_SENT.inc()
         finally:
-            self._add_subscriber(-1)
-            log.info("weight subscriber left", extra=kv(client_id=request.client_id, have_version=have))
+            with self._lock:
+                self._links.pop(id(link), None)
+            WEIGHTS_SUBSCRIBERS.dec()
+            for gauge in (SUB_STALENESS, SUB_SYNC, SUB_GOODPUT):
+                try:
+                    gauge.remove(link.client_id)
+                except KeyError:
+                    pass
+            log.info("weight subscriber left", extra=kv(client_id=link.client_id, applied=link.applied_version))
+
+    def _encode(self, link: Link, full: PackedWeights) -> PackedWeights:
+        prefixes = link.prefixes or (full.header.policy.tensor_prefix,)  # none asked: what the policy needs
+        encoding, base = choose_encoding(self.store, link, full, prefixes)
+        try:
+            return self.store.encoded(full, encoding, prefixes, base)
+        except KeyError:  # the base left the history meanwhile: full set
+            full_encoding = FULL_OF.get(encoding, encoding)
+            return self.store.encoded(full, full_encoding, prefixes, 0)
+
+    @staticmethod
+    def _count_sent(link: Link, packed: PackedWeights) -> None:
+        link.encoding = packed.header.weight_encoding
+        link.bytes_sent += packed.encoded_bytes
+        link.versions_sent += 1
+        WEIGHTS_SENT.inc()
+        WEIGHTS_SENT_BYTES.labels(encoding_name(link.encoding)).inc(packed.encoded_bytes)
+
+    def _wait_ack(
+        self, acks: queue.Queue[learner_pb2.WeightAck | None], version: int, context: grpc.ServicerContext
+    ) -> learner_pb2.WeightAck | None:
+        """The ack of `version` (acks of older versions are dropped); None when the stream ends."""
+        while context.is_active() and not self.store.closed:
+            try:
+                ack = acks.get(timeout=self.poll_s)
+            except queue.Empty:
+                continue
+            if ack is None:
+                return None
+            if ack.version == version:
+                return ack
+        return None
+
+    def _on_ack(self, link: Link, packed: PackedWeights, ack: learner_pb2.WeightAck, elapsed_s: float) -> bool:
+        """Update the link from an ack; False if the version was rejected (resend)."""
+        if ack.rejected:
+            link.rejects_in_row += 1
+            link.base_version = 0  # the client dropped its base: a full set next
+            log.warning(
+                "subscriber rejected a weight version; resending",
+                extra=kv(client_id=link.client_id, version=packed.version, error=ack.error),
+            )
+            return False
+        link.rejects_in_row = 0
+        link.base_version = ack.base_version
+        link.base_wire_dtype = CODECS[packed.header.weight_encoding or WE.WEIGHT_ENCODING_FP32].wire_dtype
+        net_s = max(1e-6, elapsed_s - ack.apply_ns / 1e9)
+        sample = packed.encoded_bytes / net_s
+        link.goodput_bps = sample if link.goodput_bps <= 0 else 0.5 * link.goodput_bps + 0.5 * sample
+        link.rtt_s = max(0.0, net_s - ack.transfer_ns / 1e9)
+        if ack.applied:
+            link.applied_version = int(ack.version)
+            link.sync_latency_s = max(0.0, (time.time_ns() - packed.header.created_at_ns) / 1e9)
+            WEIGHTS_SYNC.observe(link.sync_latency_s)
+            SUB_SYNC.labels(link.client_id).set(link.sync_latency_s)
+        SUB_GOODPUT.labels(link.client_id).set(link.goodput_bps)
+        return True
 
 
 # --------------------------------------------------------------------------- client side
 
 
 class WeightSubscriber:
-    """Keeps a local copy of the learner's weights: a thread streams SubscribeWeights and calls
-    on_weights(WeightSet) for each new version; on any error it reconnects with backoff and asks
-    only for versions newer than the last applied one."""
+    """Keeps a local copy of the learner's weights: a thread streams StreamWeights, calls
+    on_weights(WeightSet) for each new version and acks it; on any error it reconnects with backoff
+    and asks only for versions newer than the last applied one (deltas against the payload it holds)."""
 
     def __init__(
         self,
@@ -446,18 +635,27 @@ class WeightSubscriber:
         on_weights: Callable[[WeightSet], None],
         max_chunk_bytes: int = 0,
         have_version: int = 0,
+        *,
         experiment: str = "",
+        prefixes: Sequence[str] = (),
+        allow_lossy: bool = False,
+        encoding: int = WE.WEIGHT_ENCODING_ADAPTIVE,
+        freshness_target_s: float = 0.0,
     ) -> None:
         self.addr, self.auth, self.client_id = addr, auth, client_id
-        self.experiment = experiment
         self.on_weights = on_weights
         self.max_chunk_bytes = max_chunk_bytes
+        self.experiment, self.prefixes, self.allow_lossy = experiment, list(prefixes), allow_lossy
+        self.encoding, self.freshness_target_s = encoding, freshness_target_s
         self._version = have_version
+        self._assembler = WeightAssembler()  # outlives streams: its payload is the base for deltas
         self._cond = threading.Condition()
         self._stop = threading.Event()
         self._call: grpc.Future | None = None
         self._thread: threading.Thread | None = None
         self.connects = 0  # streams opened (first connect + reconnects)
+        self.rejected = 0  # versions rejected (corrupt, unknown base) and re-fetched
+        self.last_sync_s = 0.0  # publish (learner clock) -> applied (ours) of the last version
 
     @property
     def version(self) -> int:
@@ -501,33 +699,80 @@ class WeightSubscriber:
             if not backoff.sleep(self._stop):
                 break
 
+    def _request(self) -> learner_pb2.SubscribeWeightsRequest:
+        return learner_pb2.SubscribeWeightsRequest(
+            client_id=self.client_id,
+            have_version=self.version,
+            max_chunk_bytes=self.max_chunk_bytes,
+            experiment=self.experiment,
+            prefixes=self.prefixes,
+            allow_lossy=self.allow_lossy,
+            base_version=self._assembler.base_version,
+            encoding=self.encoding,
+            freshness_target_ms=int(self.freshness_target_s * 1e3),
+        )
+
     def _stream_once(self) -> bool:
-        """One SubscribeWeights stream until it ends; True if it delivered at least one version."""
+        """One StreamWeights stream until it ends; True if it delivered at least one version."""
         got_any = False
+        outbox: queue.Queue[learner_pb2.WeightAck | None] = queue.Queue()
+        outbox.put(learner_pb2.WeightAck(subscribe=self._request()))
+
+        def requests() -> Iterator[learner_pb2.WeightAck]:
+            while (item := outbox.get()) is not None:
+                yield item
+
         with rpc.make_channel(self.addr, self.auth) as channel:
             stub = learner_pb2_grpc.LearnerStub(channel)
-            request = learner_pb2.SubscribeWeightsRequest(
-                client_id=self.client_id,
-                have_version=self.version,
-                max_chunk_bytes=self.max_chunk_bytes,
-                experiment=self.experiment,
-            )
-            self._call = call = stub.SubscribeWeights(request)
+            self._call = call = stub.StreamWeights(requests())
             self.connects += 1
             if self._stop.is_set():  # stop() may have run before the call existed
                 call.cancel()
-            assembler = WeightAssembler()
+            first_ns, received, version = 0, 0, 0
             try:
                 for msg in call:
-                    if msg.HasField("chunk"):
+                    if msg.HasField("header"):
+                        first_ns, received, version = time.perf_counter_ns(), 0, msg.header.version
+                    else:
+                        received += len(msg.chunk.data)
                         WEIGHTS_BYTES.inc(len(msg.chunk.data))
-                    weights = assembler.feed(msg)
-                    if weights is not None and self._apply(weights):
-                        got_any = True
+                    done_ns = time.perf_counter_ns()
+                    try:
+                        weights = self._assembler.feed(msg)
+                    except WireError as exc:
+                        self._reject(outbox, version or msg.chunk.version, exc)
+                        continue
+                    if weights is None:
+                        continue
+                    applied = self._apply(weights)
+                    got_any |= applied
+                    if self.encoding and not CODECS[self.encoding].delta:
+                        # Never a delta on this stream: holding the base would only keep the last payload
+                        # alive, so each version would land in freshly faulted pages.
+                        self._assembler.forget_base()
+                    outbox.put(
+                        learner_pb2.WeightAck(
+                            version=weights.version,
+                            applied=applied,
+                            base_version=self._assembler.base_version,
+                            transfer_ns=done_ns - first_ns,
+                            received_bytes=received,
+                            apply_ns=time.perf_counter_ns() - done_ns,
+                        )
+                    )
             finally:
+                outbox.put(None)
                 self._call = None
                 call.cancel()
         return got_any
+
+    def _reject(self, outbox: queue.Queue[learner_pb2.WeightAck | None], version: int, exc: WireError) -> None:
+        """Drop the version and its base; the server resends a full set."""
+        self.rejected += 1
+        WEIGHTS_REJECTED.inc()
+        self._assembler.forget_base()
+        log.warning("weight version rejected; asking for a full set", extra=kv(version=version, error=str(exc)))
+        outbox.put(learner_pb2.WeightAck(version=version, rejected=True, error=str(exc)[:500]))
 
     def _apply(self, weights: WeightSet) -> bool:
         if weights.version <= self.version:
@@ -544,5 +789,12 @@ class WeightSubscriber:
         with self._cond:
             self._version = weights.version
             self._cond.notify_all()
-        log.info("weights applied", extra=kv(version=weights.version, updates=weights.learner_updates))
+        if weights.published_at_ns:
+            self.last_sync_s = max(0.0, (time.time_ns() - weights.published_at_ns) / 1e9)
+        log.info(
+            "weights applied",
+            extra=kv(
+                version=weights.version, updates=weights.learner_updates, encoding=encoding_name(weights.encoding)
+            ),
+        )
         return True

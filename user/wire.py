@@ -31,6 +31,40 @@ _TO_NP: dict[int, np.dtype] = {
     tpb.DTYPE_BOOL: np.dtype("?"),
 }
 _FROM_NP: dict[np.dtype, int] = {v.newbyteorder("="): k for k, v in _TO_NP.items()}
+# numpy has no bfloat16: on the wire it is the top 16 bits of a float32, and it decodes to float32.
+_BF16_STORAGE = np.dtype("<u2")
+FLOAT_WIRE_DTYPES = (tpb.DTYPE_FLOAT32, tpb.DTYPE_FLOAT16, tpb.DTYPE_BFLOAT16)
+
+
+def wire_itemsize(code: int) -> int:
+    """Bytes per element of `code` on the wire (bf16 included)."""
+    return 2 if code == tpb.DTYPE_BFLOAT16 else dtype_from_proto(code).itemsize
+
+
+def to_wire_dtype(array: np.ndarray, code: int) -> np.ndarray:
+    """A float array cast for the wire: float32 -> float16 (IEEE) or bfloat16 (round to nearest even,
+    stored as uint16 bits). Lossy; finite values beyond float16's range saturate to +-inf there."""
+    arr = np.asarray(array, dtype=np.float32)
+    if code == tpb.DTYPE_FLOAT32:
+        return arr.astype("<f4", copy=False)
+    if code == tpb.DTYPE_FLOAT16:
+        return arr.astype("<f2")
+    if code == tpb.DTYPE_BFLOAT16:
+        bits = np.ascontiguousarray(arr).view(np.uint32)
+        rounded = bits + (np.uint32(0x7FFF) + ((bits >> np.uint32(16)) & np.uint32(1)))
+        out = (rounded >> np.uint32(16)).astype(_BF16_STORAGE)
+        nan = np.isnan(arr)
+        if nan.any():  # rounding must not turn a NaN's payload into inf
+            out[nan] = np.uint16(0x7FC0)
+        return out
+    raise WireError(f"unsupported wire dtype {code} for a float tensor")
+
+
+def from_wire_dtype(stored: np.ndarray, code: int) -> np.ndarray:
+    """The float32 values of an array stored as `code` on the wire (inverse of to_wire_dtype)."""
+    if code == tpb.DTYPE_BFLOAT16:
+        return (np.asarray(stored, dtype=_BF16_STORAGE).astype(np.uint32) << np.uint32(16)).view(np.float32)
+    return np.asarray(stored).astype(np.float32)
 
 
 def dtype_to_proto(dtype: np.dtype | type | str) -> int:
@@ -42,6 +76,9 @@ def dtype_to_proto(dtype: np.dtype | type | str) -> int:
 
 
 def dtype_from_proto(code: int) -> np.dtype:
+    """numpy dtype of the wire's bytes (bf16: its uint16 bit pattern)."""
+    if code == tpb.DTYPE_BFLOAT16:
+        return _BF16_STORAGE
     try:
         return _TO_NP[code]
     except KeyError as exc:
@@ -53,17 +90,24 @@ def dtype_name(code: int) -> str:
     return tpb.DType.Name(code).removeprefix("DTYPE_").lower()
 
 
-def to_tensor(array: np.ndarray, encoding: int = tpb.ENCODING_RAW) -> tpb.Tensor:
+def to_tensor(array: np.ndarray, encoding: int = tpb.ENCODING_RAW, wire_dtype: int = 0) -> tpb.Tensor:
+    """wire_dtype=DTYPE_FLOAT16/DTYPE_BFLOAT16 sends a float array at half size (lossy; decodes to float32)."""
     arr = np.asarray(array)
     code = dtype_to_proto(arr.dtype)
+    if wire_dtype and wire_dtype != code:
+        if encoding in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG) or code not in FLOAT_WIRE_DTYPES:
+            raise WireError(f"cannot send {arr.dtype} as {dtype_name(wire_dtype)}")
+        arr, code = to_wire_dtype(arr, wire_dtype), wire_dtype
     if encoding == tpb.ENCODING_RAW:
-        data = np.ascontiguousarray(arr, dtype=_TO_NP[code]).tobytes()
+        data = np.ascontiguousarray(arr, dtype=dtype_from_proto(code)).tobytes()
     elif encoding in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG):
         data = _encode_image(arr, encoding)
     elif encoding == tpb.ENCODING_ZSTD:
         import zstandard
 
-        data = zstandard.ZstdCompressor(level=3).compress(np.ascontiguousarray(arr, dtype=_TO_NP[code]).tobytes())
+        data = zstandard.ZstdCompressor(level=3).compress(
+            np.ascontiguousarray(arr, dtype=dtype_from_proto(code)).tobytes()
+        )
     else:
         raise WireError(f"unknown encoding {encoding}")
     return tpb.Tensor(dtype=code, shape=list(arr.shape), data=data, encoding=encoding)
@@ -94,7 +138,10 @@ def from_tensor(tensor: tpb.Tensor) -> np.ndarray:
         raise WireError(f"unsupported encoding {enc}")
     if len(raw) != expected:
         raise WireError(f"tensor data has {len(raw)} bytes, dtype {dtype} x shape {shape} needs {expected}")
-    return np.frombuffer(raw, dtype=dtype).reshape(shape).astype(dtype.newbyteorder("="), copy=True)
+    stored = np.frombuffer(raw, dtype=dtype).reshape(shape)
+    if tensor.dtype == tpb.DTYPE_BFLOAT16:
+        return from_wire_dtype(stored, tpb.DTYPE_BFLOAT16)
+    return stored.astype(dtype.newbyteorder("="), copy=True)
 
 
 def _encode_image(arr: np.ndarray, encoding: int) -> bytes:

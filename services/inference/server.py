@@ -109,7 +109,9 @@ class PolicySlot:
     def load_weights(self, weights: WeightSet) -> Policy:
         """Rebuild the policy from a weight set and serve it; raises ValueError (keeping the old one) if bad."""
         start = time.perf_counter()
-        policy = build_policy(weights.policy, weights.tensors, weights.version, self.service.cfg.inference.device)
+        policy = build_policy(
+            weights.policy, weights.policy_tensors(), weights.version, self.service.cfg.inference.device
+        )
         with self._load_lock:
             self.policy = policy
             # A policy with its own batched preprocess gets it run in the batcher thread, not per request.
@@ -332,6 +334,7 @@ class InferenceService(rpc.GrpcService):
                     client_id=f"inference-{socket.gethostname()}-{self.running.port}-{name}",
                     on_weights=slot.load_weights,
                     experiment=name,
+                    allow_lossy=self.cfg.inference.weights_lossy,
                 ).start()
         return self
 

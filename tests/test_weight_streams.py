@@ -1,0 +1,468 @@
+"""Acked weight streams: lossy and delta encodings, base fallbacks, per-link isolation, corrupt chunks,
+tensor selection, experiments, and versions that stay unique across a learner kill -9."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import grpc
+import numpy as np
+import pytest
+
+from tests import helpers
+from user import rpc, wire
+from user.config import AuthConfig, ServerConfig, StackConfig
+from user.v1 import learner_pb2, learner_pb2_grpc
+from user.v1 import tensor_pb2 as tpb
+from user.weight_codec import WE, WeightAssembler, encode, iter_weight_messages, pack_weights, wire_payload
+from user.weights import Link, WeightServicer, WeightSet, WeightStore, WeightSubscriber, choose_encoding
+
+AUTH = AuthConfig(token="test-token")
+SPEC = learner_pb2.PolicySpec(kind="test", config_json="{}")
+SERVICE = learner_pb2.DESCRIPTOR.services_by_name["Learner"].full_name
+
+
+def tensors(seed: int = 0, n: int = 4096) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return {
+        "actor.w": rng.standard_normal((n // 64, 64)).astype(np.float32) * 0.1,
+        "actor.b": rng.standard_normal(64).astype(np.float32),
+        "actor.steps": np.arange(5, dtype=np.int64),  # non-float tensors travel exactly in every encoding
+        "critic.w": rng.standard_normal((n // 64, 64)).astype(np.float32),
+    }
+
+
+def trained(prev: dict[str, np.ndarray], seed: int, lr: float = 1e-4) -> dict[str, np.ndarray]:
+    """The next version as training makes it: every float weight moves a little."""
+    rng = np.random.default_rng(seed)
+    out = {}
+    for k, v in prev.items():
+        out[k] = (v + lr * rng.standard_normal(v.shape).astype(np.float32)) if v.dtype == np.float32 else v.copy()
+    return out
+
+
+def decode(packed, assembler: WeightAssembler | None = None) -> WeightSet:
+    assembler = assembler or WeightAssembler()
+    out = None
+    for msg in iter_weight_messages(packed, 4096):
+        out = assembler.feed(msg)
+    assert out is not None
+    return out
+
+
+# --------------------------------------------------------------------------- codec
+
+
+@pytest.mark.parametrize(
+    ("code", "bound"), [(tpb.DTYPE_BFLOAT16, 2.0**-8), (tpb.DTYPE_FLOAT16, 2.0**-11)], ids=["bf16", "fp16"]
+)
+def test_half_precision_round_trip_within_stated_error(code: int, bound: float) -> None:
+    x = (np.random.default_rng(0).standard_normal(10_000) * 10).astype(np.float32)
+    x = x[np.abs(x) > 1e-3]  # normal range of both formats: relative error is half a unit in the last place
+    for y in (wire.from_wire_dtype(wire.to_wire_dtype(x, code), code), wire.from_tensor(wire.to_tensor(x, 0, code))):
+        y = y.astype(np.float32)  # bf16 decodes to float32; an fp16 Tensor stays float16
+        assert np.max(np.abs(y - x) / np.abs(x)) <= bound
+    special = np.array([0.0, -0.0, np.inf, -np.inf, np.nan], dtype=np.float32)
+    back = wire.from_wire_dtype(wire.to_wire_dtype(special, code), code)
+    assert np.array_equal(back[:4], special[:4]) and np.isnan(back[4])
+
+
+def test_bf16_rounds_to_nearest_even() -> None:
+    # 1 + 2^-8 lies halfway between bf16 neighbours 1 and 1 + 2^-7: ties go to the even one (1.0).
+    x = np.array([1 + 2**-8, 1 + 3 * 2**-8, 1 + 2**-8 + 2**-20], dtype=np.float32)
+    back = wire.from_wire_dtype(wire.to_wire_dtype(x, tpb.DTYPE_BFLOAT16), tpb.DTYPE_BFLOAT16)
+    assert back.tolist() == [1.0, 1 + 2 * 2**-7, 1 + 2**-7]
+
+
+@pytest.mark.parametrize(
+    "encoding",
+    [WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD, WE.WEIGHT_ENCODING_FP16_DELTA_ZSTD, WE.WEIGHT_ENCODING_BF16_DELTA_ZSTD],
+)
+def test_delta_round_trip_equals_the_full_set(encoding: int) -> None:
+    from user.weight_codec import CODECS, FULL_OF
+
+    v1, v2 = tensors(0), None
+    v2 = trained(v1, 1)
+    full1, full2 = pack_weights(1, SPEC, v1), pack_weights(2, SPEC, v2)
+    wd, prefixes = CODECS[encoding].wire_dtype, ("",)
+    receiver = WeightAssembler()
+    decode(encode(full1, FULL_OF[encoding], wire_payload(full1, wd, prefixes)), receiver)
+    delta = encode(full2, encoding, wire_payload(full2, wd, prefixes), wire_payload(full1, wd, prefixes))
+    assert delta.header.base_version == 1
+    got = decode(delta, receiver).tensors
+    want = decode(encode(full2, FULL_OF[encoding], wire_payload(full2, wd, prefixes))).tensors
+    for name in v2:
+        assert np.array_equal(got[name], want[name]), name  # the delta loses nothing beyond the wire dtype
+    if wd == tpb.DTYPE_FLOAT32:
+        assert all(np.array_equal(got[k], v2[k]) for k in v2)
+    # training moves weights a little: most high bits stay, so the XOR compresses
+    assert delta.encoded_bytes < 0.8 * wire_payload(full2, wd, prefixes).payload.nbytes
+
+
+def test_delta_against_missing_or_wrong_base_is_rejected() -> None:
+    v1, v2 = tensors(0), trained(tensors(0), 1)
+    full1, full2 = pack_weights(1, SPEC, v1), pack_weights(2, SPEC, v2)
+    fp32, prefixes = tpb.DTYPE_FLOAT32, ("",)
+    delta = encode(
+        full2,
+        WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD,
+        wire_payload(full2, fp32, prefixes),
+        wire_payload(full1, fp32, prefixes),
+    )
+    with pytest.raises(wire.WireError, match="this client holds none"):
+        decode(delta, WeightAssembler())
+    # A base with the right number but other bits (e.g. from another learner): the digest catches it.
+    impostor = WeightAssembler()
+    decode(pack_weights(1, SPEC, tensors(7)), impostor)
+    with pytest.raises(wire.WireError, match="mismatch"):
+        decode(delta, impostor)
+    # ...and the assembler carries on: the full set decodes.
+    assert decode(pack_weights(2, SPEC, v2), impostor).version == 2
+
+
+def test_server_falls_back_to_a_full_set_when_the_base_left_the_history() -> None:
+    store = WeightStore(history=2)
+    t = tensors(0)
+    for v in (1, 2, 3):
+        t = trained(t, v)
+        store.publish(v, SPEC, t)
+    link = Link("c", "", ("",), False, WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD, 1.0, True, base_version=1)
+    assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_FP32_ZSTD, 0)
+    link.base_version = 2
+    assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD, 2)
+    link.base_wire_dtype = tpb.DTYPE_FLOAT16  # the client holds an fp16 payload: no fp32 delta against it
+    assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_FP32_ZSTD, 0)
+
+
+def test_adaptive_choice_follows_the_link() -> None:
+    store = WeightStore()
+    t = tensors(0, n=1 << 16)
+    store.publish(1, SPEC, t)
+    store.publish(2, SPEC, trained(t, 2))
+    link = Link("c", "", ("",), True, 0, 1.0, True, base_version=1)
+    assert choose_encoding(store, link, store.latest())[0] == WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD  # unmeasured
+    link.goodput_bps = 10e9  # faster than zstd: raw
+    assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_FP32, 0)
+    link.goodput_bps = 1e3  # far too slow for lossless within 1 s: lossy delta
+    assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_BF16_ZSTD, 0)  # base is fp32
+    link.base_wire_dtype = tpb.DTYPE_BFLOAT16  # once the client holds a bf16 payload: bf16 deltas
+    assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_BF16_DELTA_ZSTD, 1)
+    link.base_wire_dtype = tpb.DTYPE_FLOAT32
+    link.allow_lossy = False
+    assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD, 1)
+
+
+def test_one_encode_per_version_encoding_and_base() -> None:
+    store = WeightStore()
+    store.publish(1, SPEC, tensors(0))
+    full = store.latest()
+    a = store.encoded(full, WE.WEIGHT_ENCODING_FP16_ZSTD, ("actor.",))
+    assert store.encoded(full, WE.WEIGHT_ENCODING_FP16_ZSTD, ("actor.",)) is a
+    assert store.encoded(full, WE.WEIGHT_ENCODING_FP16_ZSTD, ("",)) is not a
+    assert [i.name for i in a.header.tensors] == ["actor.w", "actor.b", "actor.steps"]
+
+
+# --------------------------------------------------------------------------- streams
+
+
+class Server:
+    def __init__(self, store: WeightStore, servicer: WeightServicer | None = None, port: int = 0) -> None:
+        self.store = store
+        self.servicer = servicer or WeightServicer(store, poll_s=0.1)
+        self.running = rpc.start_server(
+            "test-learner",
+            lambda s: learner_pb2_grpc.add_LearnerServicer_to_server(self.servicer, s),
+            [SERVICE],
+            ServerConfig(port=port, metrics_port=0, max_workers=16, grace_s=0.2),
+            AUTH,
+            start_metrics=False,
+        )
+        self.addr = self.running.address()
+
+    def close(self) -> None:
+        self.store.close()
+        self.running.stop()
+
+
+@pytest.fixture
+def server() -> Iterator[Server]:
+    srv = Server(WeightStore())
+    yield srv
+    srv.close()
+
+
+def subscribe(srv: Server, client_id: str, **kw) -> tuple[WeightSubscriber, list[WeightSet]]:
+    got: list[WeightSet] = []
+    return WeightSubscriber(srv.addr, AUTH, client_id, got.append, max_chunk_bytes=4096, **kw).start(), got
+
+
+def test_deltas_flow_and_acks_report_the_applied_version(server: Server) -> None:
+    sub, got = subscribe(server, "edge-1", encoding=WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD)
+    try:
+        t = tensors(0)
+        for v in (1, 2, 3):
+            server.store.publish(v, SPEC, t)
+            assert sub.wait_version(v, 30)
+            t = trained(t, v)
+        helpers.wait_for(lambda: server.servicer.subscriber_status()[0].applied_version == 3, "ack of v3")
+        st = server.servicer.subscriber_status()[0]
+        assert (st.client_id, st.staleness, st.versions_sent) == ("edge-1", 0, 3)
+        assert st.goodput_mbit_s > 0 and st.sync_latency_s > 0
+        assert [w.encoding for w in got] == [
+            WE.WEIGHT_ENCODING_FP32_ZSTD,  # no base yet
+            WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD,
+            WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD,
+        ]
+        # default selection: what the PolicySpec needs (all tensors here; no tensor_prefix)
+        assert set(got[-1].tensors) == set(t)
+    finally:
+        sub.stop()
+
+
+def test_client_without_the_base_rejects_the_delta_and_gets_a_full_set(server: Server) -> None:
+    sub, got = subscribe(server, "edge-1", encoding=WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD)
+    try:
+        v1 = tensors(0)
+        server.store.publish(1, SPEC, v1)
+        assert sub.wait_version(1, 30)
+        helpers.wait_for(lambda: server.servicer.subscriber_status()[0].applied_version == 1, "ack of v1")
+        sub._assembler.forget_base()  # e.g. a client that dropped its payload: the server still thinks v1
+        v2 = trained(v1, 2)
+        server.store.publish(2, SPEC, v2)
+        assert sub.wait_version(2, 30)
+        assert sub.rejected == 1 and sub.connects == 1  # re-fetched on the same stream
+        assert got[-1].encoding == WE.WEIGHT_ENCODING_FP32_ZSTD
+        assert all(np.array_equal(got[-1].tensors[k], v2[k]) for k in v2)
+    finally:
+        sub.stop()
+
+
+class CorruptOnce(WeightServicer):
+    """Flips a byte in the first payload chunk of the first version sent (a bad link or buggy proxy)."""
+
+    def __init__(self, store: WeightStore) -> None:
+        super().__init__(store, poll_s=0.1)
+        self.corrupted = 0
+
+    def _encode(self, link, full):  # type: ignore[no-untyped-def]
+        packed = super()._encode(link, full)
+        if self.corrupted:
+            return packed
+        self.corrupted += 1
+        msgs = list(iter_weight_messages(packed, 4096))
+        bad = learner_pb2.WeightMessage()
+        bad.CopyFrom(msgs[1])
+        data = bytearray(bad.chunk.data)
+        data[10] ^= 0xFF
+        bad.chunk.data = bytes(data)
+        out = type(packed)(packed.header, packed.payload)
+        out._chunk_cache[4096] = [msgs[0], bad, *msgs[2:]]
+        return out
+
+
+def test_corrupt_chunk_is_rejected_and_refetched() -> None:
+    store = WeightStore()
+    srv = Server(store, CorruptOnce(store))
+    sub, got = subscribe(srv, "edge-1")
+    try:
+        v1 = tensors(0)
+        store.publish(1, SPEC, v1)
+        assert sub.wait_version(1, 30)
+        assert srv.servicer.corrupted == 1 and sub.rejected == 1 and sub.connects == 1
+        assert len(got) == 1 and all(np.array_equal(got[0].tensors[k], v1[k]) for k in v1)
+    finally:
+        sub.stop()
+        srv.close()
+
+
+def test_stalled_subscriber_does_not_delay_another_or_the_publisher(server: Server) -> None:
+    # The stalled one subscribes and never reads or acks: gRPC flow control holds its stream, and only its.
+    channel = rpc.make_channel(server.addr, AUTH)
+    stub = learner_pb2_grpc.LearnerStub(channel)
+    first = learner_pb2.WeightAck(subscribe=learner_pb2.SubscribeWeightsRequest(client_id="stalled"))
+    hold = threading.Event()
+
+    def requests() -> Iterator[learner_pb2.WeightAck]:
+        yield first
+        hold.wait(120)  # never acks
+
+    stalled = stub.StreamWeights(requests())
+    sub, _ = subscribe(server, "healthy")
+    try:
+        helpers.wait_for(lambda: server.servicer.subscribers == 2, "both streams open")
+        big = {"w": np.random.default_rng(0).standard_normal(4 << 20).astype(np.float32)}  # 16 MiB
+        for v in range(1, 6):
+            server.store.publish(v, SPEC, trained(big, v))  # never waits for subscribers
+            assert sub.wait_version(v, 60)
+
+        def by_id() -> dict[str, learner_pb2.SubscriberStatus]:
+            return {s.client_id: s for s in server.servicer.subscriber_status()}
+
+        helpers.wait_for(lambda: by_id()["healthy"].applied_version == 5, "healthy ack of v5")
+        assert by_id()["stalled"].applied_version == 0 and by_id()["stalled"].versions_sent <= 1
+        assert by_id()["stalled"].staleness == 5
+    finally:
+        hold.set()
+        sub.stop()
+        stalled.cancel()
+        channel.close()
+
+
+def test_prefix_selection_and_policy_tensors(server: Server) -> None:
+    spec = learner_pb2.PolicySpec(kind="test", config_json="{}", tensor_prefix="actor.")
+    edge, edge_got = subscribe(server, "edge")  # default: what the PolicySpec needs
+    mirror, mirror_got = subscribe(server, "mirror", prefixes=[""])
+    try:
+        t = tensors(0)
+        server.store.publish(1, spec, t)
+        assert edge.wait_version(1, 30) and mirror.wait_version(1, 30)
+        assert set(edge_got[0].tensors) == {"actor.w", "actor.b", "actor.steps"}
+        assert set(edge_got[0].policy_tensors()) == {"w", "b", "steps"}
+        assert set(mirror_got[0].tensors) == set(t)
+    finally:
+        edge.stop()
+        mirror.stop()
+
+
+def test_experiments_are_separate_streams(server: Server) -> None:
+    a, a_got = subscribe(server, "a", experiment="pick")
+    b, b_got = subscribe(server, "b", experiment="place")
+    try:
+        server.store.publish(1, SPEC, tensors(1), experiment="pick")
+        server.store.publish(7, SPEC, tensors(2), experiment="place")
+        assert a.wait_version(1, 30) and b.wait_version(7, 30)
+        assert (a_got[0].experiment, b_got[0].experiment) == ("pick", "place")
+        assert np.array_equal(b_got[0].tensors["actor.w"], tensors(2)["actor.w"])
+        # "" resolves to the first experiment published (pick): single-experiment clients keep working.
+        assert server.store.version_of("pick") == 1 and server.store.version == 1
+    finally:
+        a.stop()
+        b.stop()
+
+
+def test_lossy_needs_consent(server: Server) -> None:
+    with rpc.make_channel(server.addr, AUTH) as channel:
+        stub = learner_pb2_grpc.LearnerStub(channel)
+        req = learner_pb2.SubscribeWeightsRequest(client_id="x", encoding=WE.WEIGHT_ENCODING_BF16_ZSTD)
+        call = stub.StreamWeights(iter([learner_pb2.WeightAck(subscribe=req)]), timeout=10)
+        with pytest.raises(grpc.RpcError) as err:
+            next(call)
+        assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+        call = stub.StreamWeights(iter([learner_pb2.WeightAck(version=1)]), timeout=10)
+        with pytest.raises(grpc.RpcError) as err:
+            next(call)
+        assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+
+
+# --------------------------------------------------------------------------- learner kill -9
+
+
+def _spawn_learner(tmp_path: Path, control_addr: str, port: int) -> subprocess.Popen:
+    ready = tmp_path / "learner.ready"
+    ready.unlink(missing_ok=True)
+    sets = {
+        "auth.token": AUTH.token,
+        "learner.control_addr": control_addr,
+        "learner.replay_addr": "127.0.0.1:1",  # no replay: the learner publishes at setup and never trains
+        "learner.checkpoint_dir": str(tmp_path / "ckpt"),
+        "learner.server.port": str(port),
+        "learner.server.metrics_port": "0",
+        "learner.rpc_timeout_s": "1.0",
+    }
+    cmd = [sys.executable, "-m", "user.cli", "learner", "--ready-file", str(ready)]
+    for k, v in sets.items():
+        cmd += ["--set", f"{k}={v}"]
+    log = open(tmp_path / "learner.log", "ab")  # noqa: SIM115 - the child owns it
+    return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=os.environ.copy(), start_new_session=True)
+
+
+@pytest.mark.slow
+def test_versions_stay_unique_across_a_learner_kill_9(tmp_path: Path) -> None:
+    from services.control.server import ControlService
+    from services.inference.server import InferenceService
+    from tests.test_control import Edge, register_msg, spec
+    from user.v1 import control_pb2_grpc
+
+    ccfg = StackConfig(auth=AUTH)
+    ccfg.control.server.port = 0
+    ccfg.control.server.metrics_port = 0
+    control = ControlService(ccfg, start_metrics=False).start()
+    edge = Edge(control_pb2_grpc.ControlStub(rpc.make_channel(control.address, AUTH)), register_msg("a", spec()))
+    port = helpers.free_port()
+    learner_addr = f"127.0.0.1:{port}"
+    icfg = StackConfig(auth=AUTH)
+    icfg.inference.server.port = 0
+    icfg.inference.server.metrics_port = 0
+    icfg.inference.learner_addr = learner_addr
+    inference = InferenceService(icfg, start_metrics=False).start()
+    from edge_agent.policy_source import LocalPolicy
+
+    local = LocalPolicy(learner_addr, AUTH, "edge-local")
+    proc = _spawn_learner(tmp_path, control.address, port)
+    try:
+        helpers.wait_for(lambda: local.version >= 1 and inference.policy is not None, "first weights", 120, 0.2)
+        first = local.version
+        proc.send_signal(signal.SIGKILL)  # no final checkpoint, no goodbye
+        proc.wait(30)
+        proc = _spawn_learner(tmp_path, control.address, port)
+        # The restarted learner publishes a number never used before, so both subscribers move to it.
+        helpers.wait_for(lambda: local.version > first, "local edge on the new weights", 120, 0.2)
+        helpers.wait_for(
+            lambda: inference.policy is not None and inference.policy.version > first, "inference on new weights", 120
+        )
+        assert (tmp_path / "ckpt" / "default" / "weight_version").read_text().strip() == str(local.version)
+    finally:
+        proc.kill()
+        proc.wait(30)
+        local.close()
+        inference.stop()
+        edge.close()
+        control.stop()
+        time.sleep(0)
+
+
+# --------------------------------------------------------------------------- safe point
+
+
+def test_local_policy_swaps_between_actions_never_mid_forward() -> None:
+    from edge_agent.policy_source import LocalPolicy
+
+    config = {
+        "obs_keys": ["state"],
+        "obs_dim": 6,
+        "action_dim": 3,
+        "hidden": [16],
+        "action_low": [-1.0] * 3,
+        "action_high": [1.0] * 3,
+    }
+    local = LocalPolicy("127.0.0.1:1", AUTH, "edge", deterministic=True, start=False)
+    local._on_weights(helpers.random_weights(config, version=1, seed=1))
+    v1 = local._policy
+    assert v1 is not None
+    inside, release = threading.Event(), threading.Event()
+    real_act = v1.act
+
+    def slow_act(obs, deterministic):  # type: ignore[no-untyped-def]
+        inside.set()
+        release.wait(30)
+        return real_act(obs, deterministic)
+
+    v1.act = slow_act  # type: ignore[method-assign]
+    obs = {"state": np.zeros(6, dtype=np.float32)}
+    out: list = []
+    t = threading.Thread(target=lambda: out.append(local.act("r", obs, deadline_s=60.0)))
+    t.start()
+    assert inside.wait(30)
+    local._on_weights(helpers.random_weights(config, version=2, seed=2))  # arrives mid-forward
+    release.set()
+    t.join(30)
+    assert out[0] is not None and out[0][1] == 1  # the forward in flight finished on the weights it started with
+    action, version = local.act("r", obs, deadline_s=60.0)
+    assert version == 2 and not np.allclose(action, out[0][0])
