@@ -1,253 +1,206 @@
-"""The persistent replay buffer: LMDB on disk, an index of sampleable transitions in memory.
+"""The replay buffer: LMDB is the durable truth (disk.py), RAM holds what sampling needs.
 
-One LMDB environment under `path` (data.mdb + lock.mdb), named databases:
-  steps:  b"<robot_id>/<episode_id>/" + big-endian uint64 step_index -> serialized user.v1.Step
-  ends:   same key -> b""  for steps that end an episode (they carry final_observation)
-  specs:  robot_id -> serialized RobotSpec (so a restarted replay can validate while control is down)
-  meta:   b"format" -> b"1"; b"duplicates" -> big-endian uint64
-Keys sort by robot, episode and step, so an episode's steps are adjacent and a re-sent step hits
-the same key and is stored once. The next observation of step t is the observation of step t+1,
-or t's own final_observation when t ends the episode: no observation is stored twice.
+- disk.StepDB: every step, acknowledged only after its transaction committed; idempotent keys.
+- tables.Index: every sampleable transition's id, robot, table(s), scalars and priority.
+- hot.HotGroup: the most recent transitions as contiguous columns (frames stored once as uint8);
+  a sampled transition that has left the hot tier is read from LMDB (a miss).
 
-Step t is sampleable once its next observation exists. The index of sampleable keys lives in
-memory, is rebuilt at open from a keys-only scan and grows as commits land, in any arrival order.
+Step t is sampleable once its next observation exists (step t+1's observation, or its own
+final_observation when it ends the episode), in any arrival order. Capacity is by bytes: when the
+stored steps exceed capacity_mb, whole episodes leave, oldest first (FIFO), from LMDB and RAM.
 """
 
 from __future__ import annotations
 
 import logging
-import struct
 import threading
-from collections import OrderedDict
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import lmdb
 import numpy as np
 
+from services.replay.disk import (
+    ENDS,
+    INTERVENTION,
+    ONLINE,
+    SUCCESS,
+    TERMINATED,
+    TRUNCATED,
+    ReplayError,
+    ReplayFullError,
+    StepDB,
+    StoreClosedError,
+    episode_prefix,
+    next_key,
+    robot_of,
+    split_key,
+)
+from services.replay.hot import HotGroup, Layout
+from services.replay.tables import INTERVENTIONS, Draw, EmptyBufferError, Index
 from user import wire
 from user.log import kv
 from user.v1 import robot_pb2, step_pb2
 from user.v1 import tensor_pb2 as tpb
 
+__all__ = [
+    "EmptyBufferError",
+    "LayoutError",
+    "ReplayError",
+    "ReplayFullError",
+    "ReplayStore",
+    "StoreClosedError",
+    "episode_prefix",
+    "split_key",
+]
+
 log = logging.getLogger(__name__)
-
-FORMAT = b"1"
-_INDEX = struct.Struct(">Q")
-_U64 = struct.Struct(">Q")
-DEFAULT_CACHE_MB = 256
-_OVERHEAD_BYTES = 600  # Python objects around one cached step's arrays
-
-
-class ReplayError(RuntimeError):
-    """Base class for store errors the service maps to a gRPC status."""
-
-
-class EmptyBufferError(ReplayError):
-    """Nothing sampleable (yet, or for the robots asked for)."""
+DEFAULT_HOT_MB = 256
+MAX_OPEN_TAILS = 100_000  # steps waiting for their successor, kept to place transitions in the hot tier
 
 
 class LayoutError(ReplayError):
     """Sampled transitions do not share one observation layout (robots with different specs)."""
 
 
-class ReplayFullError(ReplayError):
-    """The LMDB map is full: raise replay.map_size_mb."""
-
-
-class StoreClosedError(ReplayError):
-    """The store was closed (the service is shutting down)."""
-
-
-def episode_prefix(robot_id: str, episode_id: str) -> bytes:
-    return f"{robot_id}/{episode_id}/".encode()
-
-
-def step_key(robot_id: str, episode_id: str, step_index: int) -> bytes:
-    return episode_prefix(robot_id, episode_id) + _INDEX.pack(step_index)
-
-
-def split_key(key: bytes) -> tuple[bytes, int]:
-    """(episode prefix, step index)."""
-    return key[:-8], _INDEX.unpack(key[-8:])[0]
-
-
-def _robot_of(prefix: bytes) -> str:
-    return prefix[: prefix.index(b"/")].decode()
-
-
-def _raw_bytes(tensor: tpb.Tensor) -> bytes:
-    """Stored tensors were validated on insert: RAW data is used as is, other encodings are decoded once."""
+def tensor_array(tensor: tpb.Tensor) -> np.ndarray:
+    """Stored tensors were validated on insert: RAW data is viewed as is, other encodings decoded."""
     if tensor.encoding == tpb.ENCODING_RAW:
-        return tensor.data
-    return wire.from_tensor(tensor).tobytes()
+        return np.frombuffer(tensor.data, dtype=wire.dtype_from_proto(tensor.dtype)).reshape(tuple(tensor.shape))
+    return wire.from_tensor(tensor)
 
 
-Layout = tuple[tuple[tuple[str, np.dtype, tuple[int, ...]], ...], tuple[np.dtype, tuple[int, ...]]]
+def arrays_of(tmap: tpb.TensorMap) -> dict[str, np.ndarray]:
+    return {name: tensor_array(t) for name, t in tmap.tensors.items()}
+
+
+def layout_of(step: step_pb2.Step) -> Layout:
+    features = tuple(
+        (name, wire.dtype_from_proto(t.dtype), tuple(t.shape)) for name, t in sorted(step.observation.tensors.items())
+    )
+    return features, (wire.dtype_from_proto(step.action.dtype), tuple(step.action.shape))
+
+
+@dataclass
+class Episode:
+    robot: str
+    table: str
+    steps: int = 0
+    nbytes: int = 0
+    success: bool = False
+    interventions: int = 0
+    tids: list[int] = field(default_factory=list)
 
 
 @dataclass(slots=True)
-class _Decoded:
-    """One step as raw little-endian bytes per tensor, kept in the LRU cache.
+class _Tail:
+    """A stored step waiting for its successor's observation."""
 
-    A batch column is then one bytes join + one frombuffer, instead of B small arrays stacked.
-    `layout` is interned by the store, so rows of the same layout compare by identity.
-    """
-
-    observation: dict[str, bytes]
-    final_observation: dict[str, bytes] | None
-    layout: Layout
-    action: bytes
+    group: int
+    seq: int  # its observation's frame
+    action: np.ndarray
     reward: float
     terminated: bool
     truncated: bool
     intervention: bool
     policy_version: int
-    nbytes: int
-
-    @classmethod
-    def parse(cls, raw: bytes, intern: dict[Layout, Layout]) -> _Decoded:
-        step = step_pb2.Step.FromString(raw)
-        obs: dict[str, bytes] = {}
-        features = []
-        for name, tensor in sorted(step.observation.tensors.items()):
-            obs[name] = _raw_bytes(tensor)
-            features.append((name, wire.dtype_from_proto(tensor.dtype), tuple(tensor.shape)))
-        final = None
-        if step.HasField("final_observation"):
-            final = {name: _raw_bytes(t) for name, t in step.final_observation.tensors.items()}
-        act = step.action
-        layout = (tuple(features), (wire.dtype_from_proto(act.dtype), tuple(act.shape)))
-        layout = intern.setdefault(layout, layout)
-        action = _raw_bytes(act)
-        nbytes = _OVERHEAD_BYTES + sum(map(len, obs.values())) + len(action)
-        if final is not None:
-            nbytes += sum(map(len, final.values()))
-        return cls(
-            obs,
-            final,
-            layout,
-            action,
-            step.reward,
-            step.terminated,
-            step.truncated,
-            step.intervention,
-            step.policy_version,
-            nbytes,
-        )
-
-
-class _LRU:
-    """Decoded steps by key, bounded by bytes."""
-
-    def __init__(self, max_bytes: int) -> None:
-        self.max_bytes = max_bytes
-        self.bytes = 0
-        self._items: OrderedDict[bytes, _Decoded] = OrderedDict()
-        self.hits = self.misses = 0
-
-    def get(self, key: bytes) -> _Decoded | None:
-        item = self._items.get(key)
-        if item is None:
-            self.misses += 1
-            return None
-        self._items.move_to_end(key)
-        self.hits += 1
-        return item
-
-    def put(self, key: bytes, item: _Decoded) -> None:
-        if item.nbytes > self.max_bytes:
-            return
-        self._items[key] = item
-        self.bytes += item.nbytes
-        while self.bytes > self.max_bytes:
-            _, old = self._items.popitem(last=False)
-            self.bytes -= old.nbytes
-
-    def __len__(self) -> int:
-        return len(self._items)
+    final_seq: int = -1
 
 
 class ReplayStore:
     """Thread-safe: one writer at a time (put_steps), samples and stats from any thread."""
 
-    def __init__(self, path: str | Path, map_size_mb: int = 4096, cache_mb: int = DEFAULT_CACHE_MB) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        map_size_mb: int = 4096,
+        cache_mb: int = DEFAULT_HOT_MB,
+        *,
+        max_map_mb: int | None = None,
+        capacity_mb: int = 0,
+        durability: str = "fsync",
+        readonly: bool = False,
+    ) -> None:
         self.path = Path(path)
-        self.path.mkdir(parents=True, exist_ok=True)
-        self.env = lmdb.open(
-            str(self.path),
-            map_size=int(map_size_mb) << 20,
-            max_dbs=4,
-            subdir=True,
-            readahead=False,  # samples are random reads; readahead only pollutes the page cache
-            meminit=False,
-        )
-        self.map_size_mb = map_size_mb
-        stale = self.env.reader_check()  # reader slots left by a process that was killed
-        if stale:
-            log.info("cleared stale LMDB readers", extra=kv(path=str(self.path), readers=stale))
-        self._steps = self.env.open_db(b"steps")
-        self._ends = self.env.open_db(b"ends")
-        self._specs = self.env.open_db(b"specs")
-        self._meta = self.env.open_db(b"meta")
+        self.hot_bytes = int(cache_mb) << 20
+        self.capacity_bytes = int(capacity_mb) << 20  # 0 = no limit but the map
         self._write_lock = threading.Lock()  # one writer; also guards close()
-        self._index_lock = threading.Lock()  # the in-memory index below
-        self._sample_lock = threading.Lock()  # the decode cache
-        self._cache = _LRU(int(cache_mb) << 20)
-        self._layouts: dict[Layout, Layout] = {}
-        self._closed = False
-        self._pools: dict[str, list[bytes]] = {}  # robot_id -> sampleable step keys (append-only)
-        self._steps_per_robot: dict[str, int] = {}
-        self._episodes: set[bytes] = set()
+        self._lock = threading.RLock()  # index, hot tier, LMDB read transactions vs map growth
+        self.db = StepDB(
+            path,
+            map_size_mb,
+            max_map_mb=max_map_mb if max_map_mb is not None else max(map_size_mb, 4 * capacity_mb),
+            durability=durability,
+            readonly=readonly,
+            guard=self._lock,
+        )
+        self.index = Index()
+        self._groups: list[HotGroup] = []
+        self._layout_ids: dict[Layout, int] = {}
+        self._robot_group: dict[str, int] = {}
+        self._tails: dict[bytes, _Tail] = {}
+        self._episodes: dict[bytes, Episode] = {}
         self._n_steps = 0
-        self._duplicates = 0
+        self._bytes = 0
+        self._evicted_episodes = 0
+        self.hits = self.misses = 0
+        self._closed = False
         try:
-            self._open_meta()
-            self._rebuild_index()
+            self._rebuild()
         except BaseException:
-            self.env.close()
+            self.db.close()
             raise
         log.info(
             "replay store open",
             extra=kv(
-                path=str(self.path), steps=self._n_steps, transitions=self.transitions, episodes=len(self._episodes)
+                path=str(self.path), steps=self._n_steps, transitions=len(self.index), episodes=len(self._episodes)
             ),
         )
 
     # ------------------------------------------------------------------ open
 
-    def _open_meta(self) -> None:
-        with self.env.begin(write=True, db=self._meta) as txn:
-            fmt = txn.get(b"format")
-            if fmt is None:
-                if txn.stat(self._steps)["entries"]:
-                    raise ReplayError(f"{self.path} holds steps of an older replay format; move it away to start anew")
-                txn.put(b"format", FORMAT)
-            elif fmt != FORMAT:
-                raise ReplayError(f"{self.path}: replay format {fmt!r}, this code reads {FORMAT!r}")
-            dups = txn.get(b"duplicates")
-            self._duplicates = _U64.unpack(dups)[0] if dups else 0
-
-    def _rebuild_index(self) -> None:
-        """Keys-only scan (values are never read), so a restarted service samples everything it had."""
-        with self.env.begin() as txn:
-            ends = set(txn.cursor(db=self._ends).iternext(keys=True, values=False))
-            prev_key: bytes | None = None
-            prev_prefix, prev_index, robot = b"", -1, ""
-            for key in txn.cursor(db=self._steps).iternext(keys=True, values=False):
-                prefix, index = split_key(key)
-                if prefix != prev_prefix:
-                    robot = _robot_of(prefix)
-                    self._episodes.add(prefix)
-                elif prev_key is not None and index == prev_index + 1 and prev_key not in ends:
-                    self._pools.setdefault(robot, []).append(prev_key)
-                if key in ends:
-                    self._pools.setdefault(robot, []).append(key)
-                self._steps_per_robot[robot] = self._steps_per_robot.get(robot, 0) + 1
-                self._n_steps += 1
-                prev_key, prev_prefix, prev_index = key, prefix, index
+    def _rebuild(self) -> None:
+        """Index every sampleable transition from the scalars table, in arrival order."""
+        tables = self.db.episode_tables()
+        found: list[tuple[int, bytes, tuple[float, int, int, int, int]]] = []
+        firsts: dict[bytes, int] = {}
+        prev: tuple[bytes, int, tuple[float, int, int, int, int]] | None = None
+        for key, sc in self.db.scan():
+            prefix, t = split_key(key)
+            ep = self._episodes.get(prefix)
+            if ep is None:
+                ep = self._episodes[prefix] = Episode(robot_of(prefix), tables.get(prefix, ONLINE))
+                firsts[prefix] = sc[3]
+            firsts[prefix] = min(firsts[prefix], sc[3])
+            ep.steps += 1
+            ep.nbytes += sc[4] + len(key)
+            ep.success |= bool(sc[1] & SUCCESS)
+            ep.interventions += bool(sc[1] & INTERVENTION)
+            self._n_steps += 1
+            self._bytes += sc[4] + len(key)
+            if prev is not None and prev[0][:-8] == prefix and prev[1] == t - 1 and not prev[2][1] & ENDS:
+                found.append((max(prev[2][3], sc[3]), prev[0], prev[2]))
+            if sc[1] & ENDS:
+                found.append((sc[3], key, sc))
+            prev = (key, t, sc)
+            self.db.arrival = max(self.db.arrival, sc[3] + 1)
+        self._episodes = dict(sorted(self._episodes.items(), key=lambda kv_: firsts[kv_[0]]))
+        for _, key, sc in sorted(found):
+            prefix = key[:-8]
+            ep = self._episodes[prefix]
+            tid = self.index.add(
+                key,
+                ep.robot,
+                ep.table,
+                reward=sc[0],
+                terminated=bool(sc[1] & TERMINATED),
+                truncated=bool(sc[1] & TRUNCATED),
+                intervention=bool(sc[1] & INTERVENTION),
+                policy_version=sc[2],
+                group=-1,
+            )
+            ep.tids.append(tid)
 
     # ------------------------------------------------------------------ writes
 
@@ -255,186 +208,319 @@ class ReplayStore:
         if self._closed:
             raise StoreClosedError(f"replay store {self.path} is closed")
 
-    def put_steps(self, steps: list[step_pb2.Step], specs: Iterable[robot_pb2.RobotSpec] = ()) -> tuple[int, int]:
+    def _group(self, layout: Layout) -> int:
+        gid = self._layout_ids.get(layout)
+        if gid is None:
+            gid = self._layout_ids[layout] = len(self._groups)
+            self._groups.append(HotGroup(layout, self.hot_bytes))
+        return gid
+
+    def put_steps(
+        self, steps: list[step_pb2.Step], specs: Iterable[robot_pb2.RobotSpec] = (), table: str = ONLINE
+    ) -> tuple[int, int]:
         """Store validated steps (and specs) in ONE transaction; (stored, duplicates) once it has committed."""
-        stored: list[tuple[str, bytes]] = []  # (robot, episode prefix)
-        sampleable: list[tuple[str, bytes]] = []
-        dups = 0
         with self._write_lock:
             self._check_open()
-            try:
-                with self.env.begin(write=True) as txn:
-                    for step in steps:
-                        if self._put_one(txn, step, sampleable):
-                            stored.append((step.robot_id, episode_prefix(step.robot_id, step.episode_id)))
-                        else:
-                            dups += 1
-                    for spec in specs:
-                        txn.put(spec.robot_id.encode(), spec.SerializeToString(), db=self._specs)
-                    if dups:
-                        txn.put(b"duplicates", _U64.pack(self._duplicates + dups), db=self._meta)
-            except lmdb.MapFullError as exc:
-                raise ReplayFullError(
-                    f"replay store {self.path} is full (map_size_mb={self.map_size_mb}); raise replay.map_size_mb"
-                ) from exc
+            done = self.db.put_steps(steps, table, specs)
             # Committed: only now may samples see these steps.
-            with self._index_lock:
-                for robot, key in sampleable:
-                    self._pools.setdefault(robot, []).append(key)
-                for robot, prefix in stored:
-                    self._steps_per_robot[robot] = self._steps_per_robot.get(robot, 0) + 1
-                    self._episodes.add(prefix)
-                self._n_steps += len(stored)
-                self._duplicates += dups
-        return len(stored), dups
+            with self._lock:
+                self._index_committed(done.stored, done.sampleable, table)
+            self._evict_over_capacity()
+        return len(done.stored), done.duplicates
 
-    def _put_one(self, txn: lmdb.Transaction, step: step_pb2.Step, sampleable: list[tuple[str, bytes]]) -> bool:
-        """Put one step unless its key exists; note which transitions its arrival completes."""
-        rid, eid, t = step.robot_id, step.episode_id, step.step_index
-        key = step_key(rid, eid, t)
-        if not txn.put(key, step.SerializeToString(), db=self._steps, overwrite=False):
-            return False
-        if step.HasField("final_observation"):  # validated: only the last step carries one
-            txn.put(key, b"", db=self._ends)
-            sampleable.append((rid, key))
-        elif txn.get(step_key(rid, eid, t + 1), db=self._steps) is not None:
-            sampleable.append((rid, key))  # its successor arrived first (re-sent out of order)
-        if t > 0:
-            prev = step_key(rid, eid, t - 1)
-            # prev waited for this observation, unless it ended an episode (then it was sampleable already)
-            if txn.get(prev, db=self._steps) is not None and txn.get(prev, db=self._ends) is None:
-                sampleable.append((rid, prev))
-        return True
+    def _index_committed(
+        self, stored: list[tuple[bytes, step_pb2.Step, int]], sampleable: list[bytes], table: str
+    ) -> None:
+        for key, step, nbytes in stored:
+            prefix = key[:-8]
+            ep = self._episodes.get(prefix)
+            if ep is None:
+                ep = self._episodes[prefix] = Episode(step.robot_id, table)
+            ep.steps += 1
+            ep.nbytes += nbytes + len(key)
+            ep.success |= step.success
+            ep.interventions += step.intervention
+            self._n_steps += 1
+            self._bytes += nbytes + len(key)
+            if self.hot_bytes <= 0:
+                continue
+            gid = self._group(layout_of(step))
+            self._robot_group.setdefault(step.robot_id, gid)
+            group = self._groups[gid]
+            tail = _Tail(
+                gid,
+                group.write_frame(arrays_of(step.observation)),
+                tensor_array(step.action),
+                step.reward,
+                step.terminated,
+                step.truncated,
+                step.intervention,
+                step.policy_version,
+            )
+            if step.HasField("final_observation"):
+                tail.final_seq = group.write_frame(arrays_of(step.final_observation))
+            if len(self._tails) >= MAX_OPEN_TAILS:  # successors that never came: forget the oldest
+                self._tails.pop(next(iter(self._tails)))
+            self._tails[key] = tail
+        for key in sampleable:
+            tail = self._tails.get(key)
+            nxt = None if tail is None or tail.final_seq >= 0 else self._tails.get(next_key(key))
+            ep = self._episodes[key[:-8]]
+            if tail is not None and (tail.final_seq >= 0 or (nxt is not None and nxt.group == tail.group)):
+                tid = len(self.index.keys)
+                next_seq = tail.final_seq if tail.final_seq >= 0 else nxt.seq  # type: ignore[union-attr]
+                row = self._groups[tail.group].add(tid, tail.seq, next_seq, tail.action)
+                self.index.add(
+                    key,
+                    ep.robot,
+                    ep.table,
+                    reward=tail.reward,
+                    terminated=tail.terminated,
+                    truncated=tail.truncated,
+                    intervention=tail.intervention,
+                    policy_version=tail.policy_version,
+                    group=tail.group,
+                    hot_row=row,
+                )
+            else:  # completed out of order or after a restart: its data stays in LMDB
+                step = self._read([key])[0]
+                tid = self.index.add(
+                    key,
+                    ep.robot,
+                    ep.table,
+                    reward=step.reward,
+                    terminated=step.terminated,
+                    truncated=step.truncated,
+                    intervention=step.intervention,
+                    policy_version=step.policy_version,
+                    group=-1,
+                )
+            ep.tids.append(tid)
+        for key in sampleable:  # their transitions are indexed; a successor finds its frame in the ring
+            self._tails.pop(key, None)
+
+    def _evict_over_capacity(self) -> None:
+        """Whole episodes, oldest first, until the stored bytes fit capacity_mb again (with 5% slack)."""
+        if not self.capacity_bytes or self._bytes <= self.capacity_bytes:
+            return
+        target = int(self.capacity_bytes * 0.95)
+        with self._lock:
+            victims: list[bytes] = []
+            freed = 0
+            for prefix, ep in self._episodes.items():
+                if self._bytes - freed <= target or len(victims) == len(self._episodes) - 1:
+                    break
+                victims.append(prefix)
+                freed += ep.nbytes
+        if not victims:
+            return
+        self.db.delete_episodes(victims)
+        with self._lock:
+            tids: list[int] = []
+            for prefix in victims:
+                ep = self._episodes.pop(prefix)
+                tids += ep.tids
+                self._n_steps -= ep.steps
+                self._bytes -= ep.nbytes
+            self.index.evict(tids)
+            self._evicted_episodes += len(victims)
+        log.info("evicted episodes", extra=kv(episodes=len(victims), bytes=freed))
 
     def put_spec(self, spec: robot_pb2.RobotSpec) -> None:
         with self._write_lock:
             self._check_open()
-            with self.env.begin(write=True, db=self._specs) as txn:
-                txn.put(spec.robot_id.encode(), spec.SerializeToString())
+            self.db.put_spec(spec)
 
     def get_spec(self, robot_id: str) -> robot_pb2.RobotSpec | None:
         self._check_open()
-        with self.env.begin(db=self._specs) as txn:
-            raw = txn.get(robot_id.encode())
-        return None if raw is None else robot_pb2.RobotSpec.FromString(raw)
+        with self._lock:
+            return self.db.get_spec(robot_id)
 
     # ------------------------------------------------------------------ reads
 
+    def _read(self, keys: list[bytes]) -> list[step_pb2.Step]:
+        with self._lock:
+            raws = self.db.get_many(keys)
+        out = []
+        for key, raw in zip(keys, raws, strict=True):
+            if raw is None:
+                raise ReplayError(f"index points at a missing step {key!r}")
+            out.append(step_pb2.Step.FromString(raw))
+        return out
+
     @property
     def transitions(self) -> int:
-        with self._index_lock:
-            return sum(len(p) for p in self._pools.values())
+        with self._lock:
+            return len(self.index)
 
-    def transitions_for(self, robot_ids: list[str] | None = None) -> int:
-        with self._index_lock:
-            if not robot_ids:
-                return sum(len(p) for p in self._pools.values())
-            return sum(len(self._pools.get(r, ())) for r in set(robot_ids))
+    def transitions_for(self, robot_ids: list[str] | None = None, tables: Iterable[str] = ()) -> int:
+        with self._lock:
+            names = list(tables) or [""]
+            return sum(self.index.count(t, robot_ids) for t in names)
 
-    def _draw(self, batch_size: int, rng: np.random.Generator, robot_ids: list[str] | None) -> list[bytes]:
-        """Uniform over the sampleable transitions of the robots asked for, with replacement."""
-        with self._index_lock:
-            names = sorted(set(robot_ids)) if robot_ids else sorted(self._pools)
-            pools = [self._pools[r] for r in names if self._pools.get(r)]
-            sizes = np.array([len(p) for p in pools], dtype=np.int64)
-        total = int(sizes.sum()) if len(sizes) else 0
-        if total == 0:
-            which = f" for robots {sorted(set(robot_ids))}" if robot_ids else ""
-            raise EmptyBufferError(f"no sampleable transitions{which} yet")
-        picks = rng.integers(0, total, size=batch_size)
-        if len(pools) == 1:
-            pool = pools[0]
-            return [pool[i] for i in picks.tolist()]
-        # Pools only grow, so indices below the sizes read under the lock stay valid.
-        ends = np.cumsum(sizes)
-        owner = np.searchsorted(ends, picks, side="right")
-        local = picks - (ends[owner] - sizes[owner])
-        return [pools[o][i] for o, i in zip(owner.tolist(), local.tolist(), strict=True)]
+    def tables(self) -> list[str]:
+        with self._lock:
+            return sorted(self.index.tables)
 
-    def _decoded(self, txn: lmdb.Transaction, key: bytes) -> _Decoded:
-        hit = self._cache.get(key)
-        if hit is not None:
-            return hit
-        raw = txn.get(key, db=self._steps)
-        if raw is None:
-            raise ReplayError(f"index points at a missing step {key!r}")
-        item = _Decoded.parse(raw, self._layouts)
-        self._cache.put(key, item)
-        return item
-
-    def sample(self, batch_size: int, rng: np.random.Generator, robot_ids: list[str] | None = None) -> dict[str, Any]:
+    def sample(
+        self,
+        batch_size: int,
+        rng: np.random.Generator,
+        robot_ids: list[str] | None = None,
+        draw: Draw | None = None,
+    ) -> dict[str, Any]:
         """A ready-to-train batch of stacked numpy arrays (see module doc for next_observation)."""
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-        keys = self._draw(batch_size, rng, robot_ids)
-        rows: list[tuple[_Decoded, dict[str, bytes], Layout]] = []
-        with self._sample_lock:
+        req = draw or Draw(batch_size=batch_size, robot_ids=list(robot_ids or []))
+        req.batch_size = batch_size
+        with self._lock:
             self._check_open()
-            with self.env.begin(db=self._steps) as txn:
-                for key in keys:
-                    cur = self._decoded(txn, key)
-                    if cur.final_observation is not None:
-                        rows.append((cur, cur.final_observation, cur.layout))
-                    else:
-                        prefix, t = split_key(key)
-                        nxt = self._decoded(txn, prefix + _INDEX.pack(t + 1))
-                        rows.append((cur, nxt.observation, nxt.layout))
-        return self._stack(rows, keys)
+            drawn = self.index.draw(req, rng)
+            idx = self.index
+            tids, last = drawn.tids, drawn.last
+            out: dict[str, Any] = {
+                "reward": drawn.reward,
+                "terminated": drawn.terminated,
+                "truncated": drawn.truncated,
+                "intervention": idx.intervention.a[tids],
+                "policy_version": idx.policy_version.a[tids],
+                "indices": tids,
+                "weights": drawn.weights,
+                "n_steps": drawn.n_steps,
+            }
+            gids = np.unique(np.concatenate([idx.group.a[tids], idx.group.a[last]]))
+            hot = self._groups[int(gids[0])] if len(gids) == 1 and gids[0] >= 0 else None
+            if hot is not None:
+                rows, next_rows = idx.hot_row.a[tids], idx.hot_row.a[last]
+                ok = hot.valid(rows, tids) & hot.valid(next_rows, last)
+                if ok.all():
+                    self.hits += len(tids)
+                    out["observation"] = hot.observations(rows, "obs")
+                    out["next_observation"] = hot.observations(next_rows, "next")
+                    out["action"] = hot.action[rows].astype(np.float32, copy=False)
+                    return out
+            keys = [idx.keys[t] for t in tids.tolist()]
+            next_keys = [idx.keys[t] for t in last.tolist()]
+        return self._sample_cold(out, keys, next_keys)
 
-    @staticmethod
-    def _stack(rows: list[tuple[_Decoded, dict[str, bytes], Layout]], keys: list[bytes]) -> dict[str, Any]:
-        layout = rows[0][0].layout
-        for i, (cur, _, nxt_layout) in enumerate(rows):
-            if cur.layout is not layout or nxt_layout is not layout:
+    def _sample_cold(self, out: dict[str, Any], keys: list[bytes], last_keys: list[bytes]) -> dict[str, Any]:
+        """Read the batch from LMDB (some or all of its transitions left the hot tier)."""
+        self.misses += len(keys)
+        uniq = sorted(set(keys) | set(last_keys) | {next_key(k) for k in last_keys})
+        with self._lock:
+            self._check_open()
+            raws = dict(zip(uniq, self.db.get_many(uniq), strict=True))
+        steps: dict[bytes, step_pb2.Step] = {}
+
+        def step(key: bytes) -> step_pb2.Step:
+            s = steps.get(key)
+            if s is None:
+                raw = raws.get(key)
+                if raw is None:
+                    raise ReplayError(f"index points at a missing step {key!r}")
+                s = steps[key] = step_pb2.Step.FromString(raw)
+            return s
+
+        cur = [step(k) for k in keys]
+        nxt_maps = []
+        layout = layout_of(cur[0])
+        for k in last_keys:
+            s = step(k)
+            nxt_maps.append(s.final_observation if s.HasField("final_observation") else step(next_key(k)).observation)
+        for i, s in enumerate(cur):
+            if layout_of(s) != layout:
                 raise LayoutError(
                     f"sampled transitions have different observation layouts ({keys[0][:-8]!r} vs "
                     f"{keys[i][:-8]!r}); sample robots with different specs separately (robot_ids)"
                 )
-        features, (act_dtype, act_shape) = layout
-        n = len(rows)
-
-        def column(parts: list[bytes], dtype: np.dtype, shape: tuple[int, ...]) -> np.ndarray:
-            # one copy into a writable buffer, viewed as (B, *shape)
-            return np.frombuffer(bytearray().join(parts), dtype=dtype).reshape((n, *shape))
-
-        return {
-            "observation": {f: column([c.observation[f] for c, _, _ in rows], dt, sh) for f, dt, sh in features},
-            "next_observation": {f: column([x[f] for _, x, _ in rows], dt, sh) for f, dt, sh in features},
-            "action": column([c.action for c, _, _ in rows], act_dtype, act_shape).astype(np.float32, copy=False),
-            "reward": np.fromiter((c.reward for c, _, _ in rows), dtype=np.float32, count=n),
-            "terminated": np.fromiter((c.terminated for c, _, _ in rows), dtype=bool, count=n),
-            "truncated": np.fromiter((c.truncated for c, _, _ in rows), dtype=bool, count=n),
-            "intervention": np.fromiter((c.intervention for c, _, _ in rows), dtype=bool, count=n),
-            "policy_version": np.fromiter((c.policy_version for c, _, _ in rows), dtype=np.int64, count=n),
+        features = layout[0]
+        out["observation"] = {
+            f: np.stack([tensor_array(s.observation.tensors[f]) for s in cur]) for f, _, _ in features
         }
+        try:
+            out["next_observation"] = {
+                f: np.stack([tensor_array(m.tensors[f]) for m in nxt_maps]) for f, _, _ in features
+            }
+        except (KeyError, ValueError) as exc:
+            raise LayoutError(f"sampled next observations do not match the layout: {exc}") from None
+        out["action"] = np.stack([tensor_array(s.action) for s in cur]).astype(np.float32, copy=False)
+        return out
+
+    def update_priorities(self, tids: np.ndarray, priorities: np.ndarray) -> int:
+        with self._lock:
+            return self.index.update_priorities(np.asarray(tids, np.int64), np.asarray(priorities, np.float32))
+
+    # ------------------------------------------------------------------ stats
 
     def bytes_on_disk(self) -> int:
-        """Bytes of LMDB pages in use in data.mdb (the map itself is sparse)."""
         self._check_open()
-        return (self.env.info()["last_pgno"] + 1) * self.env.stat()["psize"]
+        with self._lock:
+            return self.db.bytes_on_disk()
 
     def stats(self) -> dict[str, Any]:
         on_disk = self.bytes_on_disk()
-        with self._index_lock:
+        with self._lock:
+            per_robot: dict[str, int] = {}
+            for ep in self._episodes.values():
+                per_robot[ep.robot] = per_robot.get(ep.robot, 0) + ep.steps
             return {
                 "steps": self._n_steps,
-                "transitions": sum(len(p) for p in self._pools.values()),
+                "transitions": len(self.index),
                 "episodes": len(self._episodes),
                 "bytes_on_disk": on_disk,
-                "steps_per_robot": dict(self._steps_per_robot),
-                "duplicates": self._duplicates,
+                "steps_per_robot": per_robot,
+                "duplicates": self.db.duplicates,
             }
 
+    def table_stats(self) -> dict[str, dict[str, Any]]:
+        """Per table (and per robot within it): transitions, steps, episodes, bytes, success rate."""
+        with self._lock:
+            out: dict[str, dict[str, Any]] = {}
+
+            def row(table: str, robot: str | None) -> dict[str, Any]:
+                t = out.setdefault(table, {"transitions": 0, "steps": 0, "episodes": 0, "bytes": 0, "successes": 0})
+                t.setdefault("robots", {})
+                if robot is None:
+                    return t
+                return t["robots"].setdefault(
+                    robot, {"transitions": 0, "steps": 0, "episodes": 0, "bytes": 0, "successes": 0}
+                )
+
+            for ep in self._episodes.values():
+                for target in (row(ep.table, None), row(ep.table, ep.robot)):
+                    target["steps"] += ep.steps
+                    target["episodes"] += 1
+                    target["bytes"] += ep.nbytes
+                    target["successes"] += ep.success
+            for name in self.index.tables:
+                for code, grow in self.index.tables[name].items():
+                    robot = self.index.robots[code]
+                    row(name, None)["transitions"] += grow.n
+                    row(name, robot)["transitions"] += grow.n
+            for t in out.values():
+                for r in [t, *t["robots"].values()]:
+                    r["success_rate"] = r["successes"] / r["episodes"] if r["episodes"] else 0.0
+            if INTERVENTIONS in out:  # its episodes and bytes belong to the tables they were inserted into
+                out[INTERVENTIONS]["episodes"] = sum(e.interventions > 0 for e in self._episodes.values())
+            return out
+
     def cache_info(self) -> dict[str, int]:
-        with self._sample_lock:
-            c = self._cache
-            return {"entries": len(c), "bytes": c.bytes, "hits": c.hits, "misses": c.misses}
+        with self._lock:
+            return {
+                "entries": sum(g.hot_transitions() for g in self._groups),
+                "bytes": sum(g.resident_bytes() for g in self._groups),
+                "capacity": sum(g.capacity for g in self._groups),
+                "hits": self.hits,
+                "misses": self.misses,
+                "evicted_episodes": self._evicted_episodes,
+                "stored_bytes": self._bytes,
+            }
 
     def close(self) -> None:
         """Idempotent; waits for a commit or sample in progress."""
-        with self._write_lock, self._sample_lock:
+        with self._write_lock, self._lock:
             if self._closed:
                 return
             self._closed = True
-            self.env.sync(True)
-            self.env.close()
+            self.db.close()

@@ -1,0 +1,75 @@
+"""The hot tier: recent transitions in RAM as contiguous columns, laid out for sampling.
+
+One HotGroup per observation layout (robots with the same spec share one). Observations live once
+in a ring of frames (one row per observation, uint8 images stay uint8); a transition row names its
+observation frame and its next-observation frame by sequence number, so next_obs is never stored
+twice. Both rings overwrite their oldest rows; a transition is "hot" while its row still belongs to
+it and both its frames are still in the frame ring. Everything else is read from LMDB on demand.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+Feature = tuple[str, np.dtype, tuple[int, ...]]
+Layout = tuple[tuple[Feature, ...], tuple[np.dtype, tuple[int, ...]]]
+_ROW_OVERHEAD = 3 * 8  # obs seq, next seq, owner tid
+
+
+def frame_nbytes(layout: Layout) -> int:
+    return sum(np.dtype(dt).itemsize * math.prod(sh) for _, dt, sh in layout[0])
+
+
+class HotGroup:
+    """Frames and transitions of one layout, each a ring of `capacity` rows (pages are touched lazily)."""
+
+    def __init__(self, layout: Layout, max_bytes: int) -> None:
+        features, (act_dtype, act_shape) = layout
+        self.layout = layout
+        self.frame_bytes = frame_nbytes(layout)
+        self.row_bytes = np.dtype(act_dtype).itemsize * math.prod(act_shape) + _ROW_OVERHEAD
+        self.capacity = max(16, int(max_bytes) // max(1, self.frame_bytes + self.row_bytes))
+        cap = self.capacity
+        self.frames = {name: np.empty((cap, *shape), dtype) for name, dtype, shape in features}
+        self.frames_written = 0
+        self.t_obs = np.zeros(cap, np.int64)
+        self.t_next = np.zeros(cap, np.int64)
+        self.t_tid = np.full(cap, -1, np.int64)
+        self.action = np.empty((cap, *act_shape), act_dtype)
+        self.rows_written = 0
+
+    def write_frame(self, arrays: dict[str, np.ndarray]) -> int:
+        """Copy one observation in; returns its sequence number."""
+        seq = self.frames_written
+        row = seq % self.capacity
+        for name, column in self.frames.items():
+            column[row] = arrays[name]
+        self.frames_written = seq + 1
+        return seq
+
+    def add(self, tid: int, obs_seq: int, next_seq: int, action: np.ndarray) -> int:
+        """One transition; returns its row."""
+        row = self.rows_written % self.capacity
+        self.t_obs[row], self.t_next[row], self.t_tid[row] = obs_seq, next_seq, tid
+        self.action[row] = action
+        self.rows_written += 1
+        return row
+
+    def valid(self, rows: np.ndarray, tids: np.ndarray) -> np.ndarray:
+        """Which (row, tid) pairs are still hot."""
+        safe = np.where(rows >= 0, rows, 0)
+        oldest = self.frames_written - self.capacity
+        return (rows >= 0) & (self.t_tid[safe] == tids) & (self.t_obs[safe] >= oldest) & (self.t_next[safe] >= oldest)
+
+    def observations(self, rows: np.ndarray, which: str) -> dict[str, np.ndarray]:
+        seqs = (self.t_obs if which == "obs" else self.t_next)[rows] % self.capacity
+        return {name: column[seqs] for name, column in self.frames.items()}
+
+    def resident_bytes(self) -> int:
+        frames = min(self.frames_written, self.capacity) * self.frame_bytes
+        return frames + min(self.rows_written, self.capacity) * self.row_bytes
+
+    def hot_transitions(self) -> int:
+        return min(self.rows_written, self.capacity)
