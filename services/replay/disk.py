@@ -93,7 +93,7 @@ class Committed:
     __slots__ = ("duplicates", "nbytes", "sampleable", "stored")
 
     def __init__(self) -> None:
-        self.stored: list[tuple[bytes, step_pb2.Step, int]] = []  # (key, step, value bytes)
+        self.stored: list[tuple[bytes, step_pb2.Step, int, str]] = []  # (key, step, value bytes, table)
         self.sampleable: list[bytes] = []
         self.duplicates = 0
         self.nbytes = 0
@@ -222,13 +222,17 @@ class StepDB:
     # ------------------------------------------------------------------ writes
 
     def put_steps(
-        self, steps: list[step_pb2.Step], table: str = ONLINE, specs: Iterable[robot_pb2.RobotSpec] = ()
+        self, steps: list[step_pb2.Step], table: str | list[str] = ONLINE, specs: Iterable[robot_pb2.RobotSpec] = ()
     ) -> Committed:
-        """Store steps (and specs) in ONE transaction; returns once it has committed. Grows the map when full."""
+        """Store steps (and specs) in ONE transaction; returns once it has committed. Grows the map when full.
+
+        `table` names the table of every step, or of each step (a list as long as `steps`).
+        """
         specs = list(specs)
+        tables = [table] * len(steps) if isinstance(table, str) else table
         while True:
             try:
-                return self._put_txn(steps, table, specs)
+                return self._put_txn(steps, tables, specs)
             except lmdb.MapFullError:
                 if not self._grow():
                     raise ReplayFullError(
@@ -247,11 +251,11 @@ class StepDB:
         self.map_bytes = new
         return True
 
-    def _put_txn(self, steps: list[step_pb2.Step], table: str, specs: list[robot_pb2.RobotSpec]) -> Committed:
+    def _put_txn(self, steps: list[step_pb2.Step], tables: list[str], specs: list[robot_pb2.RobotSpec]) -> Committed:
         out = Committed()
         seen: set[bytes] = set()
         with self.env.begin(write=True) as txn:
-            for step in steps:
+            for step, table in zip(steps, tables, strict=True):
                 rid, eid, t = step.robot_id, step.episode_id, step.step_index
                 key = step_key(rid, eid, t)
                 raw = step.SerializeToString()
@@ -259,7 +263,7 @@ class StepDB:
                     out.duplicates += 1
                     continue
                 seen.add(key)
-                out.stored.append((key, step, len(raw)))
+                out.stored.append((key, step, len(raw), table))
                 out.nbytes += len(raw) + len(key)
                 if table != ONLINE:
                     txn.put(episode_prefix(rid, eid), table.encode(), db=self.episodes, overwrite=False)

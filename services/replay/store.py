@@ -145,6 +145,8 @@ class ReplayStore:
         self._bytes = 0
         self._evicted_episodes = 0
         self.hits = self.misses = 0
+        self.generation = 0  # bumps when a commit or an eviction changes what can be sampled
+        self.inserted = 0  # steps stored by this process (the rate limiter's insert count)
         self._closed = False
         try:
             self._rebuild()
@@ -216,7 +218,10 @@ class ReplayStore:
         return gid
 
     def put_steps(
-        self, steps: list[step_pb2.Step], specs: Iterable[robot_pb2.RobotSpec] = (), table: str = ONLINE
+        self,
+        steps: list[step_pb2.Step],
+        specs: Iterable[robot_pb2.RobotSpec] = (),
+        table: str | list[str] = ONLINE,
     ) -> tuple[int, int]:
         """Store validated steps (and specs) in ONE transaction; (stored, duplicates) once it has committed."""
         with self._write_lock:
@@ -224,14 +229,14 @@ class ReplayStore:
             done = self.db.put_steps(steps, table, specs)
             # Committed: only now may samples see these steps.
             with self._lock:
-                self._index_committed(done.stored, done.sampleable, table)
+                self._index_committed(done.stored, done.sampleable)
+                self.inserted += len(done.stored)
+                self.generation += bool(done.stored)
             self._evict_over_capacity()
         return len(done.stored), done.duplicates
 
-    def _index_committed(
-        self, stored: list[tuple[bytes, step_pb2.Step, int]], sampleable: list[bytes], table: str
-    ) -> None:
-        for key, step, nbytes in stored:
+    def _index_committed(self, stored: list[tuple[bytes, step_pb2.Step, int, str]], sampleable: list[bytes]) -> None:
+        for key, step, nbytes, table in stored:
             prefix = key[:-8]
             ep = self._episodes.get(prefix)
             if ep is None:
@@ -324,6 +329,7 @@ class ReplayStore:
                 self._bytes -= ep.nbytes
             self.index.evict(tids)
             self._evicted_episodes += len(victims)
+            self.generation += 1
         log.info("evicted episodes", extra=kv(episodes=len(victims), bytes=freed))
 
     def put_spec(self, spec: robot_pb2.RobotSpec) -> None:
