@@ -1,0 +1,167 @@
+"""Tables, samplers, n-step, hot/cold tiers, eviction and map growth of ReplayStore on a real LMDB."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.replay.store import EmptyBufferError, ReplayStore
+from services.replay.tables import Draw
+from tests.test_replay_store import OBS_DIM, episode, make_step
+
+
+@pytest.fixture
+def store(tmp_path: Path):
+    s = ReplayStore(tmp_path / "replay", 64)
+    yield s
+    s.close()
+
+
+def draw(n: int, **kw) -> Draw:
+    return Draw(batch_size=n, **kw)
+
+
+def test_tables_and_exact_mixing_ratios(store: ReplayStore) -> None:
+    store.put_steps(episode("arm-0", "on", 40, policy_version=1))
+    store.put_steps(episode("arm-0", "demo", 10, policy_version=2), table="demos")
+    assert store.tables() == ["demos", "online"]
+    assert store.transitions == 50
+    assert store.transitions_for(tables=["demos"]) == 10
+    for n in (256, 7):
+        batch = store.sample(n, np.random.default_rng(n), draw=draw(n, tables={"online": 1, "demos": 1}))
+        versions = batch["policy_version"]
+        counts = sorted([int((versions == 1).sum()), int((versions == 2).sum())])
+        assert counts == [n // 2, n - n // 2]  # 50/50 exactly, not binomial
+    quarter = store.sample(400, np.random.default_rng(0), draw=draw(400, tables={"online": 3, "demos": 1}))
+    assert (quarter["policy_version"] == 2).sum() == 100
+    with pytest.raises(EmptyBufferError, match="'nothing'"):
+        store.sample(8, np.random.default_rng(0), draw=draw(8, tables={"online": 1, "nothing": 1}))
+
+
+def test_intervention_steps_are_also_in_the_interventions_table(store: ReplayStore) -> None:
+    steps = episode("arm-0", "e", 10)
+    for s in steps[3:6]:
+        s.intervention = True
+    store.put_steps(steps)
+    assert store.transitions_for(tables=["online"]) == 10
+    assert store.transitions_for(tables=["interventions"]) == 3
+    batch = store.sample(64, np.random.default_rng(0), draw=draw(64, tables={"interventions": 1}))
+    assert batch["intervention"].all() and set(batch["observation"]["state"][:, 0]) == {3.0, 4.0, 5.0}
+    stats = store.table_stats()
+    assert stats["interventions"]["transitions"] == 3 and stats["interventions"]["episodes"] == 1
+
+
+def test_tables_survive_reopen_in_arrival_order(tmp_path: Path) -> None:
+    path = tmp_path / "replay"
+    store = ReplayStore(path, 64)
+    store.put_steps(episode("arm-0", "z-old", 5))
+    store.put_steps(episode("arm-0", "a-new", 5, policy_version=9), table="demos")
+    store.close()
+    again = ReplayStore(path, 64)
+    try:
+        assert again.transitions_for(tables=["demos"]) == 5 and again.transitions_for(tables=["online"]) == 5
+        # recency follows arrival, not key order: the newest 5 are episode a-new
+        batch = again.sample(64, np.random.default_rng(0), draw=draw(64, sampler="recency", window=5))
+        assert (batch["policy_version"] == 9).all()
+        assert again.cache_info()["misses"] == 64  # after a restart everything is read from LMDB
+    finally:
+        again.close()
+
+
+def test_recency_window_draws_only_the_newest(store: ReplayStore) -> None:
+    for e in range(5):
+        store.put_steps(episode("arm-0", f"e{e}", 10, policy_version=e))
+    batch = store.sample(500, np.random.default_rng(0), draw=draw(500, sampler="recency", window=10))
+    assert set(batch["policy_version"]) == {4}
+
+
+def test_prioritized_sampling_follows_priorities(store: ReplayStore) -> None:
+    store.put_steps(episode("arm-0", "e", 20))
+    first = store.sample(64, np.random.default_rng(0), draw=draw(64, sampler="prioritized"))
+    assert (first["weights"] == 1).all()  # new transitions get the max priority: uniform at first
+    tids = np.arange(20)
+    priorities = np.where(tids == 7, 100.0, 0.0)
+    assert store.update_priorities(tids, priorities) == 20
+    batch = store.sample(256, np.random.default_rng(1), draw=draw(256, sampler="prioritized", alpha=1.0))
+    assert set(batch["indices"]) == {7} and set(batch["observation"]["state"][:, 0]) == {7.0}
+    assert store.update_priorities(np.array([999]), np.array([1.0])) == 0  # unknown ids are skipped
+
+
+def test_importance_weights_are_normalised(store: ReplayStore) -> None:
+    store.put_steps(episode("arm-0", "e", 10))
+    store.update_priorities(np.arange(10), np.array([1.0] * 9 + [9.0]))
+    batch = store.sample(2000, np.random.default_rng(2), draw=draw(2000, sampler="prioritized", alpha=1.0, beta=1.0))
+    w, ids = batch["weights"], batch["indices"]
+    assert w.max() == pytest.approx(1.0)
+    assert w[ids == 9].max() == pytest.approx(1 / 9, rel=1e-5)  # (N P)^-beta / max
+
+
+def test_n_step_returns(store: ReplayStore) -> None:
+    store.put_steps(episode("arm-0", "e", 6, terminated=True))  # rewards -t, observations t, final 6
+    batch = store.sample(512, np.random.default_rng(0), draw=draw(512, n_step=3, gamma=0.5))
+    t = batch["observation"]["state"][:, 0].astype(int)
+    n = np.minimum(3, 6 - t)
+    np.testing.assert_array_equal(batch["n_steps"], n)
+    expected = [sum(-(t0 + k) * 0.5**k for k in range(k_n)) for t0, k_n in zip(t, n, strict=True)]
+    np.testing.assert_allclose(batch["reward"], expected, rtol=1e-6)
+    np.testing.assert_array_equal(batch["next_observation"]["state"][:, 0], t + n)
+    np.testing.assert_array_equal(batch["terminated"], t + n == 6)
+
+
+def test_cold_reads_equal_hot_reads(tmp_path: Path) -> None:
+    """A hot tier far smaller than the buffer: misses read LMDB and give the same transitions."""
+    small = ReplayStore(tmp_path / "small", 64, cache_mb=0)
+    small.hot_bytes = 64 * (OBS_DIM * 4 + 40)  # 64 rows of frames and transitions
+    big = ReplayStore(tmp_path / "big", 64)
+    try:
+        for e in range(10):
+            steps = episode("arm-0", f"e{e}", 30, policy_version=e)
+            small.put_steps(steps)
+            big.put_steps(steps)
+        assert small.cache_info()["entries"] < small.transitions == big.transitions == 300
+        a = small.sample(256, np.random.default_rng(5))
+        b = big.sample(256, np.random.default_rng(5))
+        for key in ("reward", "terminated", "truncated", "policy_version", "action", "indices"):
+            np.testing.assert_array_equal(a[key], b[key])
+        np.testing.assert_array_equal(a["observation"]["state"], b["observation"]["state"])
+        np.testing.assert_array_equal(a["next_observation"]["state"], b["next_observation"]["state"])
+        assert small.cache_info()["misses"] > 0 and big.cache_info()["misses"] == 0
+        recent = small.sample(64, np.random.default_rng(1), draw=draw(64, sampler="recency", window=30))
+        np.testing.assert_array_equal(recent["next_observation"]["state"], recent["observation"]["state"] + 1)
+        assert small.cache_info()["hits"] >= 64  # the freshness window is served from RAM
+    finally:
+        small.close()
+        big.close()
+
+
+def test_capacity_evicts_whole_episodes_oldest_first(tmp_path: Path) -> None:
+    store = ReplayStore(tmp_path / "replay", 64, capacity_mb=1)
+    try:
+        for e in range(12):  # ~8 KB per step x 20 steps = ~160 KB per episode, 12 episodes > 1 MiB
+            store.put_steps(episode("arm-0", f"e{e:02d}", 20, dim=2000, policy_version=e))
+        info = store.cache_info()
+        assert info["evicted_episodes"] > 0 and info["stored_bytes"] <= 1 << 20
+        st = store.stats()
+        assert st["episodes"] == 12 - info["evicted_episodes"] and st["transitions"] == 20 * st["episodes"]
+        versions = set(store.sample(2000, np.random.default_rng(0))["policy_version"])
+        assert versions == set(range(info["evicted_episodes"], 12))  # the oldest left, whole
+    finally:
+        store.close()
+    again = ReplayStore(tmp_path / "replay", 64, capacity_mb=1)
+    try:
+        assert again.stats()["episodes"] == st["episodes"]  # evicted from LMDB too
+    finally:
+        again.close()
+
+
+def test_the_map_grows_instead_of_failing(tmp_path: Path) -> None:
+    store = ReplayStore(tmp_path / "grow", 1, max_map_mb=16)
+    try:
+        big = [make_step("arm-0", "e", t, dim=20_000, last=t == 29) for t in range(30)]  # 2.4 MB > 1 MiB
+        assert store.put_steps(big) == (30, 0)
+        assert store.db.map_bytes > 1 << 20
+        assert store.sample(4, np.random.default_rng(0))["observation"]["state"].shape == (4, 20_000)
+    finally:
+        store.close()
