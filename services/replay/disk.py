@@ -90,9 +90,10 @@ def flags_of(step: step_pb2.Step) -> int:
 class Committed:
     """What one put_steps transaction changed: new steps (in arrival order) and newly sampleable keys."""
 
-    __slots__ = ("duplicates", "nbytes", "sampleable", "stored")
+    __slots__ = ("duplicates", "nbytes", "sampleable", "stored", "stored_mask")
 
     def __init__(self) -> None:
+        self.stored_mask: list[bool] = []  # per step given: stored (True) or a duplicate
         self.stored: list[tuple[bytes, step_pb2.Step, int, str]] = []  # (key, step, value bytes, table)
         self.sampleable: list[bytes] = []
         self.duplicates = 0
@@ -222,7 +223,11 @@ class StepDB:
     # ------------------------------------------------------------------ writes
 
     def put_steps(
-        self, steps: list[step_pb2.Step], table: str | list[str] = ONLINE, specs: Iterable[robot_pb2.RobotSpec] = ()
+        self,
+        steps: list[step_pb2.Step],
+        table: str | list[str] = ONLINE,
+        specs: Iterable[robot_pb2.RobotSpec] = (),
+        raws: list[bytes] | None = None,
     ) -> Committed:
         """Store steps (and specs) in ONE transaction; returns once it has committed. Grows the map when full.
 
@@ -230,9 +235,10 @@ class StepDB:
         """
         specs = list(specs)
         tables = [table] * len(steps) if isinstance(table, str) else table
+        raws = raws if raws is not None else [s.SerializeToString() for s in steps]
         while True:
             try:
-                return self._put_txn(steps, tables, specs)
+                return self._put_txn(steps, tables, specs, raws)
             except lmdb.MapFullError:
                 if not self._grow():
                     raise ReplayFullError(
@@ -251,17 +257,20 @@ class StepDB:
         self.map_bytes = new
         return True
 
-    def _put_txn(self, steps: list[step_pb2.Step], tables: list[str], specs: list[robot_pb2.RobotSpec]) -> Committed:
+    def _put_txn(
+        self, steps: list[step_pb2.Step], tables: list[str], specs: list[robot_pb2.RobotSpec], raws: list[bytes]
+    ) -> Committed:
         out = Committed()
         seen: set[bytes] = set()
         with self.env.begin(write=True) as txn:
-            for step, table in zip(steps, tables, strict=True):
+            for step, table, raw in zip(steps, tables, raws, strict=True):
                 rid, eid, t = step.robot_id, step.episode_id, step.step_index
                 key = step_key(rid, eid, t)
-                raw = step.SerializeToString()
                 if key in seen or not txn.put(key, raw, db=self.steps, overwrite=False):
                     out.duplicates += 1
+                    out.stored_mask.append(False)
                     continue
+                out.stored_mask.append(True)
                 seen.add(key)
                 out.stored.append((key, step, len(raw), table))
                 out.nbytes += len(raw) + len(key)

@@ -30,9 +30,11 @@ class HotGroup:
         self.layout = layout
         self.frame_bytes = frame_nbytes(layout)
         self.row_bytes = np.dtype(act_dtype).itemsize * math.prod(act_shape) + _ROW_OVERHEAD
-        self.capacity = max(16, int(max_bytes) // max(1, self.frame_bytes + self.row_bytes))
+        self.capacity = max(16, int(max_bytes // max(1.0, self.frame_bytes * 9 / 8 + self.row_bytes)))
         cap = self.capacity
-        self.frames = {name: np.empty((cap, *shape), dtype) for name, dtype, shape in features}
+        # frames: one per transition plus each episode's final observation, so a little more room
+        self.frame_capacity = cap + cap // 8 + 16
+        self.frames = {name: np.empty((self.frame_capacity, *shape), dtype) for name, dtype, shape in features}
         self.frames_written = 0
         self.t_obs = np.zeros(cap, np.int64)
         self.t_next = np.zeros(cap, np.int64)
@@ -43,7 +45,7 @@ class HotGroup:
     def write_frame(self, arrays: dict[str, np.ndarray]) -> int:
         """Copy one observation in; returns its sequence number."""
         seq = self.frames_written
-        row = seq % self.capacity
+        row = seq % self.frame_capacity
         for name, column in self.frames.items():
             column[row] = arrays[name]
         self.frames_written = seq + 1
@@ -57,18 +59,31 @@ class HotGroup:
         self.rows_written += 1
         return row
 
+    def add_many(
+        self, tids: list[int], obs_seqs: list[int], next_seqs: list[int], actions: list[np.ndarray]
+    ) -> np.ndarray:
+        """Transitions in one go; returns their rows."""
+        k = len(tids)
+        rows = (self.rows_written + np.arange(k)) % self.capacity
+        self.t_obs[rows] = obs_seqs
+        self.t_next[rows] = next_seqs
+        self.t_tid[rows] = tids
+        self.action[rows] = np.stack(actions) if k > 1 else actions[0][None]
+        self.rows_written += k
+        return rows
+
     def valid(self, rows: np.ndarray, tids: np.ndarray) -> np.ndarray:
         """Which (row, tid) pairs are still hot."""
         safe = np.where(rows >= 0, rows, 0)
-        oldest = self.frames_written - self.capacity
+        oldest = self.frames_written - self.frame_capacity
         return (rows >= 0) & (self.t_tid[safe] == tids) & (self.t_obs[safe] >= oldest) & (self.t_next[safe] >= oldest)
 
     def observations(self, rows: np.ndarray, which: str) -> dict[str, np.ndarray]:
-        seqs = (self.t_obs if which == "obs" else self.t_next)[rows] % self.capacity
+        seqs = (self.t_obs if which == "obs" else self.t_next)[rows] % self.frame_capacity
         return {name: column[seqs] for name, column in self.frames.items()}
 
     def resident_bytes(self) -> int:
-        frames = min(self.frames_written, self.capacity) * self.frame_bytes
+        frames = min(self.frames_written, self.frame_capacity) * self.frame_bytes
         return frames + min(self.rows_written, self.capacity) * self.row_bytes
 
     def hot_transitions(self) -> int:

@@ -14,12 +14,15 @@ from __future__ import annotations
 
 import logging
 import threading
+from collections import deque
 from collections.abc import Iterable
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import prometheus_client
 
 from services.replay.disk import (
     ENDS,
@@ -38,7 +41,7 @@ from services.replay.disk import (
     split_key,
 )
 from services.replay.hot import HotGroup, Layout
-from services.replay.tables import INTERVENTIONS, Draw, EmptyBufferError, Index
+from services.replay.tables import INTERVENTIONS, Draw, EmptyBufferError, Index, Record
 from user import wire
 from user.log import kv
 from user.v1 import robot_pb2, step_pb2
@@ -57,7 +60,13 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 DEFAULT_HOT_MB = 256
-MAX_OPEN_TAILS = 100_000  # steps waiting for their successor, kept to place transitions in the hot tier
+MAX_OPEN_TAILS = 100_000
+MAX_GROUP_STEPS = 4096  # most steps the writer merges into one transaction
+COMMITS = prometheus_client.Histogram(
+    "user_replay_group_commit_steps",
+    "Steps per LMDB transaction after merging queued requests (group commit)",
+    buckets=(1, 4, 16, 64, 256, 1024, 4096),
+)  # steps waiting for their successor, kept to place transitions in the hot tier
 
 
 class LayoutError(ReplayError):
@@ -94,6 +103,17 @@ class Episode:
 
 
 @dataclass(slots=True)
+class _Pending:
+    """A put_steps request waiting for the writer."""
+
+    steps: list[step_pb2.Step]
+    tables: list[str]
+    specs: list[robot_pb2.RobotSpec]
+    raws: list[bytes]
+    future: Future[tuple[int, int]]
+
+
+@dataclass(slots=True)
 class _Tail:
     """A stored step waiting for its successor's observation."""
 
@@ -126,6 +146,10 @@ class ReplayStore:
         self.hot_bytes = int(cache_mb) << 20
         self.capacity_bytes = int(capacity_mb) << 20  # 0 = no limit but the map
         self._write_lock = threading.Lock()  # one writer; also guards close()
+        self._queue: deque[_Pending] = deque()
+        self._queue_cond = threading.Condition()
+        self._writer: threading.Thread | None = None
+        self._closing = False
         self._lock = threading.RLock()  # index, hot tier, LMDB read transactions vs map growth
         self.db = StepDB(
             path,
@@ -188,21 +212,24 @@ class ReplayStore:
             prev = (key, t, sc)
             self.db.arrival = max(self.db.arrival, sc[3] + 1)
         self._episodes = dict(sorted(self._episodes.items(), key=lambda kv_: firsts[kv_[0]]))
+        records = []
         for _, key, sc in sorted(found):
-            prefix = key[:-8]
-            ep = self._episodes[prefix]
-            tid = self.index.add(
-                key,
-                ep.robot,
-                ep.table,
-                reward=sc[0],
-                terminated=bool(sc[1] & TERMINATED),
-                truncated=bool(sc[1] & TRUNCATED),
-                intervention=bool(sc[1] & INTERVENTION),
-                policy_version=sc[2],
-                group=-1,
+            ep = self._episodes[key[:-8]]
+            flags = sc[1]
+            records.append(
+                Record(
+                    key,
+                    self.index.code(ep.robot),
+                    ep.table,
+                    sc[0],
+                    bool(flags & TERMINATED),
+                    bool(flags & TRUNCATED),
+                    bool(flags & INTERVENTION),
+                    sc[2],
+                )
             )
-            ep.tids.append(tid)
+        for r, tid in zip(records, self.index.add_many(records), strict=True):
+            self._episodes[r.key[:-8]].tids.append(tid)
 
     # ------------------------------------------------------------------ writes
 
@@ -223,17 +250,78 @@ class ReplayStore:
         specs: Iterable[robot_pb2.RobotSpec] = (),
         table: str | list[str] = ONLINE,
     ) -> tuple[int, int]:
-        """Store validated steps (and specs) in ONE transaction; (stored, duplicates) once it has committed."""
+        """Store validated steps (and specs); (stored, duplicates) once committed and sampleable."""
+        return self.submit(steps, specs, table).result()
+
+    def submit(
+        self,
+        steps: list[step_pb2.Step],
+        specs: Iterable[robot_pb2.RobotSpec] = (),
+        table: str | list[str] = ONLINE,
+    ) -> Future[tuple[int, int]]:
+        """Queue steps for the writer; the future resolves once they are committed and indexed.
+
+        Group commit: the writer merges everything queued (from every stream) into one transaction,
+        so one fsync covers many requests, and callers serialize the next steps while it syncs.
+        """
+        tables = [table] * len(steps) if isinstance(table, str) else list(table)
+        item = _Pending(steps, tables, list(specs), [s.SerializeToString() for s in steps], Future())
+        with self._queue_cond:
+            if self._closing:
+                raise StoreClosedError(f"replay store {self.path} is closed")
+            self._queue.append(item)
+            if self._writer is None:
+                self._writer = threading.Thread(target=self._write_loop, name="replay-writer", daemon=True)
+                self._writer.start()
+            self._queue_cond.notify()
+        return item.future
+
+    def _write_loop(self) -> None:
+        while True:
+            with self._queue_cond:
+                while not self._queue and not self._closing:
+                    self._queue_cond.wait()
+                if not self._queue:
+                    return
+                group, n = [], 0
+                while self._queue and (not group or n + len(self._queue[0].steps) <= MAX_GROUP_STEPS):
+                    item = self._queue.popleft()
+                    group.append(item)
+                    n += len(item.steps)
+            try:
+                self._commit_group(group)
+            except ReplayError:  # attribute the failure: commit each request alone
+                for item in group:
+                    try:
+                        self._commit_group([item])
+                    except Exception as exc:
+                        item.future.set_exception(exc)
+            except Exception as exc:
+                for item in group:
+                    if not item.future.done():
+                        item.future.set_exception(exc)
+
+    def _commit_group(self, group: list[_Pending]) -> None:
+        steps = [s for item in group for s in item.steps]
         with self._write_lock:
-            self._check_open()
-            done = self.db.put_steps(steps, table, specs)
+            done = self.db.put_steps(
+                steps,
+                [t for item in group for t in item.tables],
+                [spec for item in group for spec in item.specs],
+                [r for item in group for r in item.raws],
+            )
             # Committed: only now may samples see these steps.
             with self._lock:
                 self._index_committed(done.stored, done.sampleable)
                 self.inserted += len(done.stored)
                 self.generation += bool(done.stored)
             self._evict_over_capacity()
-        return len(done.stored), done.duplicates
+        COMMITS.observe(len(steps))
+        at = 0
+        for item in group:
+            stored = sum(done.stored_mask[at : at + len(item.steps)])
+            item.future.set_result((stored, len(item.steps) - stored))
+            at += len(item.steps)
 
     def _index_committed(self, stored: list[tuple[bytes, step_pb2.Step, int, str]], sampleable: list[bytes]) -> None:
         for key, step, nbytes, table in stored:
@@ -247,62 +335,89 @@ class ReplayStore:
             ep.interventions += step.intervention
             self._n_steps += 1
             self._bytes += nbytes + len(key)
-            if self.hot_bytes <= 0:
-                continue
-            gid = self._group(layout_of(step))
-            self._robot_group.setdefault(step.robot_id, gid)
-            group = self._groups[gid]
-            tail = _Tail(
-                gid,
-                group.write_frame(arrays_of(step.observation)),
-                tensor_array(step.action),
-                step.reward,
-                step.terminated,
-                step.truncated,
-                step.intervention,
-                step.policy_version,
-            )
-            if step.HasField("final_observation"):
-                tail.final_seq = group.write_frame(arrays_of(step.final_observation))
-            if len(self._tails) >= MAX_OPEN_TAILS:  # successors that never came: forget the oldest
-                self._tails.pop(next(iter(self._tails)))
-            self._tails[key] = tail
+            if self.hot_bytes > 0:
+                self._tail(key, step)
+        hot: dict[int, list[tuple[int, int, int, np.ndarray]]] = {}  # group -> (record, obs seq, next seq, action)
+        records: list[Record] = []
         for key in sampleable:
             tail = self._tails.get(key)
             nxt = None if tail is None or tail.final_seq >= 0 else self._tails.get(next_key(key))
             ep = self._episodes[key[:-8]]
+            code = self.index.code(ep.robot)
             if tail is not None and (tail.final_seq >= 0 or (nxt is not None and nxt.group == tail.group)):
-                tid = len(self.index.keys)
                 next_seq = tail.final_seq if tail.final_seq >= 0 else nxt.seq  # type: ignore[union-attr]
-                row = self._groups[tail.group].add(tid, tail.seq, next_seq, tail.action)
-                self.index.add(
-                    key,
-                    ep.robot,
-                    ep.table,
-                    reward=tail.reward,
-                    terminated=tail.terminated,
-                    truncated=tail.truncated,
-                    intervention=tail.intervention,
-                    policy_version=tail.policy_version,
-                    group=tail.group,
-                    hot_row=row,
+                hot.setdefault(tail.group, []).append((len(records), tail.seq, next_seq, tail.action))
+                records.append(
+                    Record(
+                        key,
+                        code,
+                        ep.table,
+                        tail.reward,
+                        tail.terminated,
+                        tail.truncated,
+                        tail.intervention,
+                        tail.policy_version,
+                        tail.group,
+                    )
                 )
             else:  # completed out of order or after a restart: its data stays in LMDB
                 step = self._read([key])[0]
-                tid = self.index.add(
-                    key,
-                    ep.robot,
-                    ep.table,
-                    reward=step.reward,
-                    terminated=step.terminated,
-                    truncated=step.truncated,
-                    intervention=step.intervention,
-                    policy_version=step.policy_version,
-                    group=-1,
+                records.append(
+                    Record(
+                        key,
+                        code,
+                        ep.table,
+                        step.reward,
+                        step.terminated,
+                        step.truncated,
+                        step.intervention,
+                        step.policy_version,
+                    )
                 )
-            ep.tids.append(tid)
+        first = len(self.index.keys)
+        for gid, items in hot.items():
+            rows = self._groups[gid].add_many(
+                [first + i for i, _, _, _ in items],
+                [o for _, o, _, _ in items],
+                [x for _, _, x, _ in items],
+                [a for _, _, _, a in items],
+            )
+            for (i, _, _, _), row in zip(items, rows.tolist(), strict=True):
+                records[i].hot_row = row
+        tids = self.index.add_many(records)
+        for r, tid in zip(records, tids, strict=True):
+            self._episodes[r.key[:-8]].tids.append(tid)
         for key in sampleable:  # their transitions are indexed; a successor finds its frame in the ring
             self._tails.pop(key, None)
+
+    def _tail(self, key: bytes, step: step_pb2.Step) -> None:
+        """Copy a stored step's observation(s) into the hot tier; remember it until its transition completes."""
+        gid = self._robot_group.get(step.robot_id)
+        obs = arrays_of(step.observation)
+        try:
+            if gid is None:
+                raise ValueError("no group yet")
+            group = self._groups[gid]
+            seq = group.write_frame(obs)
+        except (ValueError, KeyError):  # first step of the robot, or it re-registered with a new layout
+            gid = self._robot_group[step.robot_id] = self._group(layout_of(step))
+            group = self._groups[gid]
+            seq = group.write_frame(obs)
+        tail = _Tail(
+            gid,
+            seq,
+            tensor_array(step.action),
+            step.reward,
+            step.terminated,
+            step.truncated,
+            step.intervention,
+            step.policy_version,
+        )
+        if step.HasField("final_observation"):
+            tail.final_seq = group.write_frame(arrays_of(step.final_observation))
+        if len(self._tails) >= MAX_OPEN_TAILS:  # successors that never came: forget the oldest
+            self._tails.pop(next(iter(self._tails)))
+        self._tails[key] = tail
 
     def _evict_over_capacity(self) -> None:
         """Whole episodes, oldest first, until the stored bytes fit capacity_mb again (with 5% slack)."""
@@ -396,27 +511,45 @@ class ReplayStore:
                 "n_steps": drawn.n_steps,
             }
             gids = np.unique(np.concatenate([idx.group.a[tids], idx.group.a[last]]))
-            hot = self._groups[int(gids[0])] if len(gids) == 1 and gids[0] >= 0 else None
+            known = gids[gids >= 0]
+            if len(known) > 1:
+                raise LayoutError(
+                    "sampled transitions have different observation layouts; "
+                    "sample robots with different specs separately (robot_ids)"
+                )
+            hot = self._groups[int(known[0])] if len(known) else None
+            rows, next_rows = idx.hot_row.a[tids], idx.hot_row.a[last]
             if hot is not None:
-                rows, next_rows = idx.hot_row.a[tids], idx.hot_row.a[last]
-                ok = hot.valid(rows, tids) & hot.valid(next_rows, last)
-                if ok.all():
-                    self.hits += len(tids)
-                    out["observation"] = hot.observations(rows, "obs")
-                    out["next_observation"] = hot.observations(next_rows, "next")
-                    out["action"] = hot.action[rows].astype(np.float32, copy=False)
-                    return out
-            keys = [idx.keys[t] for t in tids.tolist()]
-            next_keys = [idx.keys[t] for t in last.tolist()]
-        return self._sample_cold(out, keys, next_keys)
+                ok_obs, ok_next = hot.valid(rows, tids), hot.valid(next_rows, last)
+            else:
+                ok_obs = ok_next = np.zeros(len(tids), bool)
+            n_hot = int(ok_obs.sum())
+            self.hits += n_hot
+            self.misses += len(tids) - n_hot
+            if hot is not None and n_hot == len(tids) and ok_next.all():
+                out["observation"] = hot.observations(rows, "obs")
+                out["next_observation"] = hot.observations(next_rows, "next")
+                out["action"] = hot.action[rows].astype(np.float32, copy=False)
+                return out
+            self._fill_mixed(out, hot, tids, last, ok_obs, ok_next)
+            return out
 
-    def _sample_cold(self, out: dict[str, Any], keys: list[bytes], last_keys: list[bytes]) -> dict[str, Any]:
-        """Read the batch from LMDB (some or all of its transitions left the hot tier)."""
-        self.misses += len(keys)
+    def _fill_mixed(
+        self,
+        out: dict[str, Any],
+        hot: HotGroup | None,
+        tids: np.ndarray,
+        last: np.ndarray,
+        ok_obs: np.ndarray,
+        ok_next: np.ndarray,
+    ) -> None:
+        """Hot rows gathered from RAM, the rest read from LMDB into the same columns (caller holds the lock)."""
+        idx = self.index
+        cold_obs, cold_next = np.flatnonzero(~ok_obs), np.flatnonzero(~ok_next)
+        keys = [idx.keys[t] for t in tids[cold_obs].tolist()]
+        last_keys = [idx.keys[t] for t in last[cold_next].tolist()]
         uniq = sorted(set(keys) | set(last_keys) | {next_key(k) for k in last_keys})
-        with self._lock:
-            self._check_open()
-            raws = dict(zip(uniq, self.db.get_many(uniq), strict=True))
+        raws = dict(zip(uniq, self.db.get_many(uniq), strict=True))
         steps: dict[bytes, step_pb2.Step] = {}
 
         def step(key: bytes) -> step_pb2.Step:
@@ -429,29 +562,43 @@ class ReplayStore:
             return s
 
         cur = [step(k) for k in keys]
-        nxt_maps = []
-        layout = layout_of(cur[0])
+        nxt = []
         for k in last_keys:
             s = step(k)
-            nxt_maps.append(s.final_observation if s.HasField("final_observation") else step(next_key(k)).observation)
+            nxt.append(s.final_observation if s.HasField("final_observation") else step(next_key(k)).observation)
+        layout = hot.layout if hot is not None else layout_of(cur[0] if cur else step(last_keys[0]))
         for i, s in enumerate(cur):
             if layout_of(s) != layout:
                 raise LayoutError(
                     f"sampled transitions have different observation layouts ({keys[0][:-8]!r} vs "
                     f"{keys[i][:-8]!r}); sample robots with different specs separately (robot_ids)"
                 )
-        features = layout[0]
-        out["observation"] = {
-            f: np.stack([tensor_array(s.observation.tensors[f]) for s in cur]) for f, _, _ in features
-        }
+        features, (act_dtype, act_shape) = layout
+        n = len(tids)
+        obs = {f: np.empty((n, *sh), dt) for f, dt, sh in features}
+        next_obs = {f: np.empty((n, *sh), dt) for f, dt, sh in features}
+        action = np.empty((n, *act_shape), act_dtype)
+        if hot is not None and ok_obs.any():
+            rows = idx.hot_row.a[tids[ok_obs]]
+            for f, col in hot.observations(rows, "obs").items():
+                obs[f][ok_obs] = col
+            action[ok_obs] = hot.action[rows]
+        if hot is not None and ok_next.any():
+            for f, col in hot.observations(idx.hot_row.a[last[ok_next]], "next").items():
+                next_obs[f][ok_next] = col
         try:
-            out["next_observation"] = {
-                f: np.stack([tensor_array(m.tensors[f]) for m in nxt_maps]) for f, _, _ in features
-            }
+            for i, s in zip(cold_obs.tolist(), cur, strict=True):
+                for f, _, _ in features:
+                    obs[f][i] = tensor_array(s.observation.tensors[f])
+                action[i] = tensor_array(s.action)
+            for i, m in zip(cold_next.tolist(), nxt, strict=True):
+                for f, _, _ in features:
+                    next_obs[f][i] = tensor_array(m.tensors[f])
         except (KeyError, ValueError) as exc:
-            raise LayoutError(f"sampled next observations do not match the layout: {exc}") from None
-        out["action"] = np.stack([tensor_array(s.action) for s in cur]).astype(np.float32, copy=False)
-        return out
+            raise LayoutError(f"sampled observations do not match one layout: {exc}") from None
+        out["observation"] = obs
+        out["next_observation"] = next_obs
+        out["action"] = action.astype(np.float32, copy=False)
 
     def update_priorities(self, tids: np.ndarray, priorities: np.ndarray) -> int:
         with self._lock:
@@ -524,7 +671,13 @@ class ReplayStore:
             }
 
     def close(self) -> None:
-        """Idempotent; waits for a commit or sample in progress."""
+        """Idempotent; commits what is queued, then waits for a commit or sample in progress."""
+        with self._queue_cond:
+            self._closing = True
+            self._queue_cond.notify_all()
+            writer = self._writer
+        if writer is not None and writer is not threading.current_thread():
+            writer.join()
         with self._write_lock, self._lock:
             if self._closed:
                 return

@@ -12,6 +12,7 @@ importance weights; priorities updated by the learner through UpdatePriorities).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -39,6 +40,14 @@ class Grow:
         self.a[self.n] = value
         self.n += 1
 
+    def extend(self, values: np.ndarray) -> None:
+        need = self.n + len(values)
+        if need > len(self.a):
+            size = max(need, 2 * len(self.a))
+            self.a = np.concatenate([self.a, np.full(size - len(self.a), self.fill, self.a.dtype)])
+        self.a[self.n : need] = values
+        self.n = need
+
     def view(self) -> np.ndarray:
         return self.a[: self.n]
 
@@ -46,6 +55,22 @@ class Grow:
         kept = self.a[: self.n][mask]
         self.a[: len(kept)] = kept
         self.n = len(kept)
+
+
+@dataclass(slots=True)
+class Record:
+    """One sampleable transition to index."""
+
+    key: bytes
+    robot: int  # Index.code(robot_id)
+    table: str
+    reward: float
+    terminated: bool
+    truncated: bool
+    intervention: bool
+    policy_version: int
+    group: int = -1  # hot layout group, -1 unknown
+    hot_row: int = -1
 
 
 @dataclass
@@ -107,51 +132,49 @@ class Index:
             self.robots.append(robot_id)
         return code
 
-    def add(
-        self,
-        key: bytes,
-        robot_id: str,
-        table: str,
-        *,
-        reward: float,
-        terminated: bool,
-        truncated: bool,
-        intervention: bool,
-        policy_version: int,
-        group: int,
-        hot_row: int = -1,
-    ) -> int:
-        tid = len(self.keys)
-        code = self.code(robot_id)
-        self.keys.append(key)
-        self.tid_of[key] = tid
-        self.robot.append(code)
-        self.group.append(group)
-        self.hot_row.append(hot_row)
-        self.reward.append(reward)
-        self.terminated.append(terminated)
-        self.truncated.append(truncated)
-        self.intervention.append(intervention)
-        self.policy_version.append(policy_version)
-        self.next_tid.append(-1)
-        self.alive.append(True)
-        self.priority.append(self.max_priority)
-        # link the episode's neighbours for n-step returns (in any arrival order)
-        prefix, t = key[:-8], int.from_bytes(key[-8:], "big")
-        prev = self.tid_of.get(prefix + (t - 1).to_bytes(8, "big")) if t > 0 else None
-        if prev is not None:
-            self.next_tid.a[prev] = tid
-        nxt = self.tid_of.get(prefix + (t + 1).to_bytes(8, "big"))
-        if nxt is not None:
-            self.next_tid.a[tid] = nxt
-        self._table(table, code).append(tid)
-        if intervention and table != INTERVENTIONS:
-            self._table(INTERVENTIONS, code).append(tid)
-        self.all.setdefault(code, Grow(np.int64)).append(tid)
-        return tid
+    def add(self, key: bytes, robot_id: str, table: str, **fields: Any) -> int:
+        """One transition (see add_many); returns its tid."""
+        return self.add_many([Record(key, self.code(robot_id), table, **fields)])[0]
 
-    def _table(self, name: str, code: int) -> Grow:
-        return self.tables.setdefault(name, {}).setdefault(code, Grow(np.int64))
+    def add_many(self, records: list[Record]) -> list[int]:
+        """Index transitions in one go (column appends are vectorized); returns their tids."""
+        first = len(self.keys)
+        tids = list(range(first, first + len(records)))
+        for tid, r in zip(tids, records, strict=True):
+            self.keys.append(r.key)
+            self.tid_of[r.key] = tid
+        self.robot.extend(np.fromiter((r.robot for r in records), np.int32, len(records)))
+        self.group.extend(np.fromiter((r.group for r in records), np.int32, len(records)))
+        self.hot_row.extend(np.fromiter((r.hot_row for r in records), np.int64, len(records)))
+        self.reward.extend(np.fromiter((r.reward for r in records), np.float32, len(records)))
+        self.terminated.extend(np.fromiter((r.terminated for r in records), np.bool_, len(records)))
+        self.truncated.extend(np.fromiter((r.truncated for r in records), np.bool_, len(records)))
+        self.intervention.extend(np.fromiter((r.intervention for r in records), np.bool_, len(records)))
+        self.policy_version.extend(np.fromiter((r.policy_version for r in records), np.int64, len(records)))
+        self.next_tid.extend(np.full(len(records), -1, np.int64))
+        self.alive.extend(np.ones(len(records), np.bool_))
+        self.priority.extend(np.full(len(records), self.max_priority, np.float32))
+        by_table: dict[tuple[str, int], list[int]] = {}
+        for tid, r in zip(tids, records, strict=True):
+            # link the episode's neighbours for n-step returns (in any arrival order)
+            prefix, t = r.key[:-8], int.from_bytes(r.key[-8:], "big")
+            prev = self.tid_of.get(prefix + (t - 1).to_bytes(8, "big")) if t > 0 else None
+            if prev is not None:
+                self.next_tid.a[prev] = tid
+            nxt = self.tid_of.get(prefix + (t + 1).to_bytes(8, "big"))
+            if nxt is not None:
+                self.next_tid.a[tid] = nxt
+            by_table.setdefault((r.table, r.robot), []).append(tid)
+            if r.intervention and r.table != INTERVENTIONS:
+                by_table.setdefault((INTERVENTIONS, r.robot), []).append(tid)
+            by_table.setdefault((ALL, r.robot), []).append(tid)
+        for (table, code), ids in by_table.items():
+            grows = self.all if table == ALL else self.tables.setdefault(table, {})
+            grow = grows.get(code)
+            if grow is None:
+                grow = grows[code] = Grow(np.int64)
+            grow.extend(np.asarray(ids, np.int64))
+        return tids
 
     def evict(self, tids: list[int]) -> None:
         if not tids:
