@@ -129,7 +129,7 @@ class StepDB:
             max_dbs=8,
             subdir=True,
             readonly=readonly,
-            lock=not readonly,
+            lock=True,  # also read-only: another process may be writing
             readahead=False,  # samples are random reads; readahead only pollutes the page cache
             meminit=False,
             sync=durability == "fsync",
