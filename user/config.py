@@ -78,7 +78,7 @@ class ReplayConfig(_ServerSection):
     map_size_mb: int = Field(default=4096, ge=16, description="LMDB map size: the most the buffer may hold")
     commit_max_steps: int = Field(default=256, ge=1, description="steps per LMDB transaction at most")
     commit_max_delay_ms: float = Field(default=20.0, ge=0, description="longest a received step waits for its commit")
-    cache_mb: int = Field(default=256, ge=0, description="RAM hot tier: the newest transitions as columns, per observation layout; 0 = off")
+    cache_mb: int = Field(default=256, ge=0, description="RAM hot tier: newest transitions as columns; 0 = off")
     control_addr: str = Field(default="127.0.0.1:50051", description="control service: robot specs to validate against")
     rpc_timeout_s: float = Field(default=5.0, gt=0, description="deadline on calls to control")
     max_map_mb: int = Field(default=0, ge=0, description="the LMDB map grows up to this; 0 = 4 x map_size_mb")
