@@ -93,6 +93,9 @@ class ReplayConfig(_ServerSection):
     samples_per_insert_slack: float = Field(
         default=10000.0, ge=0, description="rate limiter: sampled transitions of slack"
     )
+    image_encoding: dict[str, Literal["raw", "jpeg", "png"]] = Field(
+        default={}, description='camera frames in LMDB, e.g. {"*": "png", "camera.wrist": "jpeg"}; default raw'
+    )
 
 
 class InferenceConfig(_ServerSection):

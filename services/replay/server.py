@@ -626,6 +626,7 @@ class ReplayService(rpc.GrpcService):
             max_map_mb=rc.max_map_mb or 4 * rc.map_size_mb,
             capacity_mb=rc.capacity_mb,
             durability=rc.durability,
+            image_encoding=rc.image_encoding,
         )
         self._control: ControlSpecSource | None = None
         if spec_source is None:

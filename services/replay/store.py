@@ -61,6 +61,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 DEFAULT_HOT_MB = 256
 MAX_OPEN_TAILS = 100_000
+ENCODINGS = {"raw": 0, "jpeg": tpb.ENCODING_JPEG, "png": tpb.ENCODING_PNG}
 MAX_GROUP_STEPS = 4096  # most steps the writer merges into one transaction
 COMMITS = prometheus_client.Histogram(
     "user_replay_group_commit_steps",
@@ -141,8 +142,11 @@ class ReplayStore:
         capacity_mb: int = 0,
         durability: str = "fsync",
         readonly: bool = False,
+        image_encoding: dict[str, str] | None = None,
     ) -> None:
         self.path = Path(path)
+        # observation feature -> how its uint8 images are stored in LMDB ("raw", "jpeg", "png"); "*" = every camera
+        self.image_encoding = {k: ENCODINGS[v] for k, v in (image_encoding or {}).items() if ENCODINGS[v]}
         self.hot_bytes = int(cache_mb) << 20
         self.capacity_bytes = int(capacity_mb) << 20  # 0 = no limit but the map
         self._write_lock = threading.Lock()  # one writer; also guards close()
@@ -265,7 +269,8 @@ class ReplayStore:
         so one fsync covers many requests, and callers serialize the next steps while it syncs.
         """
         tables = [table] * len(steps) if isinstance(table, str) else list(table)
-        item = _Pending(steps, tables, list(specs), [s.SerializeToString() for s in steps], Future())
+        raws = [self._stored_form(s).SerializeToString() for s in steps]
+        item = _Pending(steps, tables, list(specs), raws, Future())
         with self._queue_cond:
             if self._closing:
                 raise StoreClosedError(f"replay store {self.path} is closed")
@@ -275,6 +280,26 @@ class ReplayStore:
                 self._writer.start()
             self._queue_cond.notify()
         return item.future
+
+    def _stored_form(self, step: step_pb2.Step) -> step_pb2.Step:
+        """The step as LMDB keeps it: camera frames JPEG/PNG-encoded where configured (the hot tier keeps raw)."""
+        if not self.image_encoding:
+            return step
+        out: step_pb2.Step | None = None
+        for field in ("observation", "final_observation"):
+            if field == "final_observation" and not step.HasField(field):
+                continue
+            for name, tensor in getattr(step, field).tensors.items():
+                enc = self.image_encoding.get(name, self.image_encoding.get("*") if name.startswith("camera.") else 0)
+                if not enc or tensor.encoding != tpb.ENCODING_RAW or tensor.dtype != tpb.DTYPE_UINT8:
+                    continue
+                if len(tensor.shape) not in (2, 3) or (len(tensor.shape) == 3 and tensor.shape[2] not in (1, 3)):
+                    continue
+                if out is None:
+                    out = step_pb2.Step()
+                    out.CopyFrom(step)
+                getattr(out, field).tensors[name].CopyFrom(wire.to_tensor(tensor_array(tensor), enc))
+        return out if out is not None else step
 
     def _write_loop(self) -> None:
         while True:
