@@ -286,10 +286,10 @@ class ReplayStore:
         if not self.image_encoding:
             return step
         out: step_pb2.Step | None = None
-        for field in ("observation", "final_observation"):
-            if field == "final_observation" and not step.HasField(field):
+        for part in ("observation", "final_observation"):
+            if part == "final_observation" and not step.HasField(part):
                 continue
-            for name, tensor in getattr(step, field).tensors.items():
+            for name, tensor in getattr(step, part).tensors.items():
                 enc = self.image_encoding.get(name, self.image_encoding.get("*") if name.startswith("camera.") else 0)
                 if not enc or tensor.encoding != tpb.ENCODING_RAW or tensor.dtype != tpb.DTYPE_UINT8:
                     continue
@@ -298,7 +298,7 @@ class ReplayStore:
                 if out is None:
                     out = step_pb2.Step()
                     out.CopyFrom(step)
-                getattr(out, field).tensors[name].CopyFrom(wire.to_tensor(tensor_array(tensor), enc))
+                getattr(out, part).tensors[name].CopyFrom(wire.to_tensor(tensor_array(tensor), enc))
         return out if out is not None else step
 
     def _write_loop(self) -> None:
