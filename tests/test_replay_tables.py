@@ -205,3 +205,32 @@ def test_camera_frames_round_trip_through_lmdb(tmp_path: Path, encoding: str, ma
     finally:
         raw.close()
         enc.close()
+
+
+def test_a_previous_buffer_is_sampled_read_only_as_a_table(tmp_path: Path) -> None:
+    old = ReplayStore(tmp_path / "old", 64)
+    old.put_steps(episode("arm-0", "e0", 10, policy_version=5))  # same robot and episode ids as below
+    old.put_steps(episode("arm-0", "d0", 4, policy_version=6), table="demos")
+    before = old.stats()
+    old.close()
+    store = ReplayStore(tmp_path / "new", 64)
+    try:
+        store.put_steps(episode("arm-0", "e0", 6, policy_version=1))
+        assert store.attach(tmp_path / "old", "prior") == 14
+        with pytest.raises(ValueError, match="exists"):
+            store.attach(tmp_path / "old", "online")
+        batch = store.sample(
+            256, np.random.default_rng(0), draw=draw(256, tables={"online": 1, "prior": 1}, n_step=2, gamma=1.0)
+        )
+        versions = batch["policy_version"]
+        assert (versions == 1).sum() == 128 and set(versions[versions != 1]) == {5, 6}
+        first = batch["observation"]["state"][:, 0]
+        np.testing.assert_array_equal(batch["next_observation"]["state"][:, 0], first + batch["n_steps"])
+        assert store.table_stats()["prior"]["episodes"] == 2 and store.stats()["steps"] == 6  # not ours to count
+    finally:
+        store.close()
+    again = ReplayStore(tmp_path / "old", 64)
+    try:
+        assert again.stats() == before  # untouched
+    finally:
+        again.close()

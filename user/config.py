@@ -96,6 +96,9 @@ class ReplayConfig(_ServerSection):
     image_encoding: dict[str, Literal["raw", "jpeg", "png"]] = Field(
         default={}, description='camera frames in LMDB, e.g. {"*": "png", "camera.wrist": "jpeg"}; default raw'
     )
+    attach: dict[str, Path] = Field(
+        default={}, description="read-only tables from other buffers, e.g. {prior: runs/old/replay}"
+    )
 
 
 class InferenceConfig(_ServerSection):

@@ -628,6 +628,12 @@ class ReplayService(rpc.GrpcService):
             durability=rc.durability,
             image_encoding=rc.image_encoding,
         )
+        try:
+            for table, path in rc.attach.items():
+                self.store.attach(path, table)
+        except BaseException:
+            self.store.close()
+            raise
         self._control: ControlSpecSource | None = None
         if spec_source is None:
             self._control = ControlSpecSource(rc.control_addr, cfg.auth, rc.rpc_timeout_s)

@@ -169,6 +169,8 @@ class ReplayStore:
         self._robot_group: dict[str, int] = {}
         self._tails: dict[bytes, _Tail] = {}
         self._episodes: dict[bytes, Episode] = {}
+        self._attached: list[StepDB] = []
+        self._attached_episodes: dict[str, dict[bytes, Episode]] = {}
         self._n_steps = 0
         self._bytes = 0
         self._evicted_episodes = 0
@@ -192,37 +194,43 @@ class ReplayStore:
 
     def _rebuild(self) -> None:
         """Index every sampleable transition from the scalars table, in arrival order."""
-        tables = self.db.episode_tables()
+        self._episodes = self._scan(self.db, b"", None, count=True)
+
+    def _scan(self, db: StepDB, mark: bytes, table: str | None, count: bool = False) -> dict[bytes, Episode]:
+        """Episodes and sampleable transitions of `db` into the index; keys get `mark` in front (attached dbs)."""
+        tables = db.episode_tables()
+        episodes: dict[bytes, Episode] = {}
         found: list[tuple[int, bytes, tuple[float, int, int, int, int]]] = []
         firsts: dict[bytes, int] = {}
         prev: tuple[bytes, int, tuple[float, int, int, int, int]] | None = None
-        for key, sc in self.db.scan():
+        for key, sc in db.scan():
             prefix, t = split_key(key)
-            ep = self._episodes.get(prefix)
+            ep = episodes.get(prefix)
             if ep is None:
-                ep = self._episodes[prefix] = Episode(robot_of(prefix), tables.get(prefix, ONLINE))
+                ep = episodes[prefix] = Episode(robot_of(prefix), table or tables.get(prefix, ONLINE))
                 firsts[prefix] = sc[3]
             firsts[prefix] = min(firsts[prefix], sc[3])
             ep.steps += 1
             ep.nbytes += sc[4] + len(key)
             ep.success |= bool(sc[1] & SUCCESS)
             ep.interventions += bool(sc[1] & INTERVENTION)
-            self._n_steps += 1
-            self._bytes += sc[4] + len(key)
+            if count:
+                self._n_steps += 1
+                self._bytes += sc[4] + len(key)
             if prev is not None and prev[0][:-8] == prefix and prev[1] == t - 1 and not prev[2][1] & ENDS:
                 found.append((max(prev[2][3], sc[3]), prev[0], prev[2]))
             if sc[1] & ENDS:
                 found.append((sc[3], key, sc))
             prev = (key, t, sc)
-            self.db.arrival = max(self.db.arrival, sc[3] + 1)
-        self._episodes = dict(sorted(self._episodes.items(), key=lambda kv_: firsts[kv_[0]]))
+            db.arrival = max(db.arrival, sc[3] + 1)
+        episodes = dict(sorted(episodes.items(), key=lambda kv_: firsts[kv_[0]]))
         records = []
         for _, key, sc in sorted(found):
-            ep = self._episodes[key[:-8]]
+            ep = episodes[key[:-8]]
             flags = sc[1]
             records.append(
                 Record(
-                    key,
+                    mark + key,
                     self.index.code(ep.robot),
                     ep.table,
                     sc[0],
@@ -233,7 +241,42 @@ class ReplayStore:
                 )
             )
         for r, tid in zip(records, self.index.add_many(records), strict=True):
-            self._episodes[r.key[:-8]].tids.append(tid)
+            episodes[r.key[len(mark) : -8]].tids.append(tid)
+        return episodes
+
+    def attach(self, path: str | Path, table: str) -> int:
+        """Open another buffer read-only and sample its transitions as `table`; returns how many.
+
+        Its steps are read from its own LMDB on demand (never copied, never evicted, never written).
+        """
+        if table in self.index.tables:
+            raise ValueError(f"table {table!r} exists already; attach under a new name")
+        if len(self._attached) >= 250:
+            raise ValueError("at most 250 attached buffers")
+        db = StepDB(path, readonly=True)
+        with self._lock:
+            source = len(self._attached) + 1
+            self._attached.append(db)
+            self._attached_episodes[table] = self._scan(db, bytes([0, source]), table)
+            self.generation += 1
+            n = self.index.count(table)
+        log.info("attached a buffer read-only", extra=kv(path=str(path), table=table, transitions=n))
+        return n
+
+    def _get_many(self, keys: list[bytes]) -> list[bytes | None]:
+        """Values of index keys: own ones from this LMDB, marked ones (b"\\0" + source) from an attached one."""
+        if not self._attached:
+            return self.db.get_many(keys)
+        out: list[bytes | None] = [None] * len(keys)
+        by_source: dict[int, list[int]] = {}
+        for i, k in enumerate(keys):
+            by_source.setdefault(k[1] if k[:1] == b"\0" else 0, []).append(i)
+        for source, where in by_source.items():
+            db = self.db if source == 0 else self._attached[source - 1]
+            strip = 0 if source == 0 else 2
+            for i, raw in zip(where, db.get_many([keys[i][strip:] for i in where]), strict=True):
+                out[i] = raw
+        return out
 
     # ------------------------------------------------------------------ writes
 
@@ -574,7 +617,7 @@ class ReplayStore:
         keys = [idx.keys[t] for t in tids[cold_obs].tolist()]
         last_keys = [idx.keys[t] for t in last[cold_next].tolist()]
         uniq = sorted(set(keys) | set(last_keys) | {next_key(k) for k in last_keys})
-        raws = dict(zip(uniq, self.db.get_many(uniq), strict=True))
+        raws = dict(zip(uniq, self._get_many(uniq), strict=True))
         steps: dict[bytes, step_pb2.Step] = {}
 
         def step(key: bytes) -> step_pb2.Step:
@@ -665,7 +708,8 @@ class ReplayStore:
                     robot, {"transitions": 0, "steps": 0, "episodes": 0, "bytes": 0, "successes": 0}
                 )
 
-            for ep in self._episodes.values():
+            attached = [e for eps in self._attached_episodes.values() for e in eps.values()]
+            for ep in [*self._episodes.values(), *attached]:
                 for target in (row(ep.table, None), row(ep.table, ep.robot)):
                     target["steps"] += ep.steps
                     target["episodes"] += 1
@@ -708,3 +752,5 @@ class ReplayStore:
                 return
             self._closed = True
             self.db.close()
+            for db in self._attached:
+                db.close()
