@@ -234,3 +234,16 @@ def test_a_previous_buffer_is_sampled_read_only_as_a_table(tmp_path: Path) -> No
         assert again.stats() == before  # untouched
     finally:
         again.close()
+
+
+def test_frame_stacking(store: ReplayStore) -> None:
+    store.put_steps(episode("arm-0", "e", 6, terminated=True))  # observations t, final 6
+    batch = store.sample(256, np.random.default_rng(0), draw=draw(256, frame_stack=3, n_step=2, gamma=1.0))
+    obs, nxt = batch["observation"]["state"], batch["next_observation"]["state"]
+    assert obs.shape == (256, 3, OBS_DIM) and nxt.shape == (256, 3, OBS_DIM)
+    t = obs[:, -1, 0].astype(int)
+    np.testing.assert_array_equal(obs[:, :, 0], np.maximum(0, t[:, None] + np.array([-2, -1, 0])))
+    end = t + batch["n_steps"]
+    np.testing.assert_array_equal(nxt[:, -1, 0], end)
+    # the next stack is the stack the policy would see at t + n: the episode's first observation repeats
+    np.testing.assert_array_equal(nxt[:, :, 0], np.maximum(0, end[:, None] + np.array([-2, -1, 0])))

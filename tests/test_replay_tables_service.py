@@ -40,6 +40,8 @@ def test_rlpd_mixing_over_grpc(service: ReplayService) -> None:
     )
     assert set(wire.from_tensor(hil.batch.indices)) and wire.from_tensor(hil.batch.intervention).all()
     assert set(wire.from_tensor(hil.batch.n_steps)) == {3}
+    stacked = stub(service).Sample(replay_pb2.SampleRequest(batch_size=8, frame_stack=4), timeout=5)
+    assert wire.from_tensor(stacked.batch.observation.tensors["state"]).shape == (8, 4, 6)
     st = stats(service)
     assert st.tables["online"].transitions == 36 and st.tables["demos"].transitions == 8
     assert st.tables["demos"].episodes == 1 and st.tables["interventions"].transitions == 1
@@ -72,8 +74,9 @@ def test_priorities_over_grpc(service: ReplayService) -> None:
         replay_pb2.SampleRequest(batch_size=8, n_step=3),  # no gamma
         replay_pb2.SampleRequest(batch_size=8, n_step=3, gamma=1.5),
         replay_pb2.SampleRequest(batch_size=8, priority_alpha=float("inf")),
+        replay_pb2.SampleRequest(batch_size=8, frame_stack=65),
     ],
-    ids=["table-name", "zero-ratio", "nan-ratio", "sampler", "no-gamma", "gamma", "alpha"],
+    ids=["table-name", "zero-ratio", "nan-ratio", "sampler", "no-gamma", "gamma", "alpha", "frame-stack"],
 )
 def test_bad_sample_requests_are_invalid_argument(service: ReplayService, request_) -> None:
     insert(service, episode("arm-0", "e", 5))

@@ -46,6 +46,7 @@ log = logging.getLogger(__name__)
 SERVICE_NAME = replay_pb2.DESCRIPTOR.services_by_name["Replay"].full_name
 MAX_SAMPLE = 65536
 MAX_N_STEP = 1000
+MAX_FRAME_STACK = 64
 MAX_TABLES = 64
 TABLE_NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 SAMPLERS = {
@@ -557,6 +558,8 @@ def sample_request_problem(req: replay_pb2.SampleRequest) -> str | None:
             return f"ratio of table {name!r} must be finite and > 0, got {ratio}"
     if req.sampler not in SAMPLERS:
         return f"unknown sampler {req.sampler}"
+    if req.frame_stack > MAX_FRAME_STACK:
+        return f"frame_stack must be at most {MAX_FRAME_STACK}, got {req.frame_stack}"
     if req.n_step > MAX_N_STEP:
         return f"n_step must be at most {MAX_N_STEP}, got {req.n_step}"
     if req.n_step > 1 and not (0 < req.gamma <= 1):
@@ -578,6 +581,7 @@ def to_draw(req: replay_pb2.SampleRequest) -> Draw:
         beta=req.priority_beta or 0.4,
         n_step=max(1, req.n_step),
         gamma=req.gamma or 0.99,
+        frame_stack=max(1, req.frame_stack),
     )
 
 

@@ -578,29 +578,54 @@ class ReplayStore:
                 "weights": drawn.weights,
                 "n_steps": drawn.n_steps,
             }
-            gids = np.unique(np.concatenate([idx.group.a[tids], idx.group.a[last]]))
-            known = gids[gids >= 0]
-            if len(known) > 1:
-                raise LayoutError(
-                    "sampled transitions have different observation layouts; "
-                    "sample robots with different specs separately (robot_ids)"
-                )
-            hot = self._groups[int(known[0])] if len(known) else None
-            rows, next_rows = idx.hot_row.a[tids], idx.hot_row.a[last]
-            if hot is not None:
-                ok_obs, ok_next = hot.valid(rows, tids), hot.valid(next_rows, last)
-            else:
-                ok_obs = ok_next = np.zeros(len(tids), bool)
-            n_hot = int(ok_obs.sum())
-            self.hits += n_hot
-            self.misses += len(tids) - n_hot
-            if hot is not None and n_hot == len(tids) and ok_next.all():
-                out["observation"] = hot.observations(rows, "obs")
-                out["next_observation"] = hot.observations(next_rows, "next")
-                out["action"] = hot.action[rows].astype(np.float32, copy=False)
+            k = max(1, req.frame_stack)
+            if k == 1:
+                self._gather(out, tids, last)
                 return out
-            self._fill_mixed(out, hot, tids, last, ok_obs, ok_next)
+            # frame stacking: the k newest observations up to t, and up to t+n for next_observation
+            # (oldest first), repeating an episode's first observation where fewer than k came before
+            newest: dict[str, Any] = {}
+            self._gather(newest, tids, last)
+            obs_parts, next_parts = [], []
+            for back in range(k - 1, 0, -1):
+                part: dict[str, Any] = {}
+                self._gather(part, idx.back(tids, back), last)  # (its next_observation is not used)
+                obs_parts.append(part["observation"])
+                before_end: dict[str, Any] = {}
+                self._gather(before_end, idx.back(last, back - 1), last)
+                next_parts.append(before_end["observation"])
+            obs_parts.append(newest["observation"])
+            next_parts.append(newest["next_observation"])
+            out["action"] = newest["action"]
+            out["observation"] = {f: np.stack([p[f] for p in obs_parts], axis=1) for f in obs_parts[-1]}
+            out["next_observation"] = {f: np.stack([p[f] for p in next_parts], axis=1) for f in next_parts[-1]}
             return out
+
+    def _gather(self, out: dict[str, Any], tids: np.ndarray, last: np.ndarray) -> None:
+        """observation (of tids), next_observation (after last) and action columns (caller holds the lock)."""
+        idx = self.index
+        gids = np.unique(np.concatenate([idx.group.a[tids], idx.group.a[last]]))
+        known = gids[gids >= 0]
+        if len(known) > 1:
+            raise LayoutError(
+                "sampled transitions have different observation layouts; "
+                "sample robots with different specs separately (robot_ids)"
+            )
+        hot = self._groups[int(known[0])] if len(known) else None
+        rows, next_rows = idx.hot_row.a[tids], idx.hot_row.a[last]
+        if hot is not None:
+            ok_obs, ok_next = hot.valid(rows, tids), hot.valid(next_rows, last)
+        else:
+            ok_obs = ok_next = np.zeros(len(tids), bool)
+        n_hot = int(ok_obs.sum())
+        self.hits += n_hot
+        self.misses += len(tids) - n_hot
+        if hot is not None and n_hot == len(tids) and ok_next.all():
+            out["observation"] = hot.observations(rows, "obs")
+            out["next_observation"] = hot.observations(next_rows, "next")
+            out["action"] = hot.action[rows].astype(np.float32, copy=False)
+            return
+        self._fill_mixed(out, hot, tids, last, ok_obs, ok_next)
 
     def _fill_mixed(
         self,

@@ -86,6 +86,7 @@ class Draw:
     beta: float = 0.4
     n_step: int = 1
     gamma: float = 0.99
+    frame_stack: int = 1  # observations get an axis of the k newest frames (oldest first)
 
 
 @dataclass
@@ -114,6 +115,7 @@ class Index:
         self.intervention = Grow(np.bool_)
         self.policy_version = Grow(np.int64)
         self.next_tid = Grow(np.int64, -1)
+        self.prev_tid = Grow(np.int64, -1)
         self.alive = Grow(np.bool_)
         self.priority = Grow(np.float32, 1.0)
         self.max_priority = 1.0
@@ -152,6 +154,7 @@ class Index:
         self.intervention.extend(np.fromiter((r.intervention for r in records), np.bool_, len(records)))
         self.policy_version.extend(np.fromiter((r.policy_version for r in records), np.int64, len(records)))
         self.next_tid.extend(np.full(len(records), -1, np.int64))
+        self.prev_tid.extend(np.full(len(records), -1, np.int64))
         self.alive.extend(np.ones(len(records), np.bool_))
         self.priority.extend(np.full(len(records), self.max_priority, np.float32))
         by_table: dict[tuple[str, int], list[int]] = {}
@@ -161,9 +164,11 @@ class Index:
             prev = self.tid_of.get(prefix + (t - 1).to_bytes(8, "big")) if t > 0 else None
             if prev is not None:
                 self.next_tid.a[prev] = tid
+                self.prev_tid.a[tid] = prev
             nxt = self.tid_of.get(prefix + (t + 1).to_bytes(8, "big"))
             if nxt is not None:
                 self.next_tid.a[tid] = nxt
+                self.prev_tid.a[nxt] = tid
             by_table.setdefault((r.table, r.robot), []).append(tid)
             if r.intervention and r.table != INTERVENTIONS:
                 by_table.setdefault((INTERVENTIONS, r.robot), []).append(tid)
@@ -266,6 +271,16 @@ class Index:
             stop = ~ok | term | trunc
             discount *= np.float32(gamma)
         return Drawn(tids, last, reward, term, trunc, n_steps, weights)
+
+    def back(self, tids: np.ndarray, steps: int) -> np.ndarray:
+        """The transitions `steps` earlier in the same episode, stopping at the earliest one indexed."""
+        cur = tids.copy()
+        for _ in range(steps):
+            prev = self.prev_tid.a[cur]
+            ok = prev >= 0
+            ok[ok] = self.alive.a[prev[ok]]
+            cur = np.where(ok, prev, cur)
+        return cur
 
     def update_priorities(self, tids: np.ndarray, priorities: np.ndarray) -> int:
         """Set priorities of live transitions; returns how many were updated (evicted ones are skipped)."""
