@@ -172,6 +172,7 @@ class ReplayStore:
         self._attached: list[StepDB] = []
         self._attached_episodes: dict[str, dict[bytes, Episode]] = {}
         self._n_steps = 0
+        self._steps_per_robot: dict[str, int] = {}
         self._bytes = 0
         self._evicted_episodes = 0
         self.hits = self.misses = 0
@@ -180,6 +181,8 @@ class ReplayStore:
         self._closed = False
         try:
             self._rebuild()
+            if not readonly:
+                self._warm()
         except BaseException:
             self.db.close()
             raise
@@ -216,6 +219,7 @@ class ReplayStore:
             ep.interventions += bool(sc[1] & INTERVENTION)
             if count:
                 self._n_steps += 1
+                self._steps_per_robot[ep.robot] = self._steps_per_robot.get(ep.robot, 0) + 1
                 self._bytes += sc[4] + len(key)
             if prev is not None and prev[0][:-8] == prefix and prev[1] == t - 1 and not prev[2][1] & ENDS:
                 found.append((max(prev[2][3], sc[3]), prev[0], prev[2]))
@@ -243,6 +247,52 @@ class ReplayStore:
         for r, tid in zip(records, self.index.add_many(records), strict=True):
             episodes[r.key[len(mark) : -8]].tids.append(tid)
         return episodes
+
+    def _warm(self) -> None:
+        """After a restart, read the newest transitions back into the hot tier (what online RL samples most)."""
+        n = len(self.index.keys)
+        if self.hot_bytes <= 0 or n == 0:
+            return
+        newest = self._read([self.index.keys[n - 1]])[0]
+        gid = self._robot_group[newest.robot_id] = self._group(layout_of(newest))
+        group = self._groups[gid]
+        first = max(0, n - int(group.capacity * 0.85))
+        warmed = 0
+        for start in range(first, n, 1024):
+            tids = [t for t in range(start, min(n, start + 1024)) if self.index.alive.a[t]]
+            keys = [self.index.keys[t] for t in tids]
+            steps = dict(zip(keys, self._read(keys), strict=True))
+            missing = [next_key(k) for k, s in steps.items() if not s.HasField("final_observation")]
+            missing = [k for k in missing if k not in steps]
+            steps.update(zip(missing, self._read(missing), strict=True))
+            seq_of: dict[bytes, int] = {}
+            for key in keys:  # observations once; a transition's next is its successor's observation
+                step = steps[key]
+                if layout_of(step) == group.layout:
+                    seq_of[key] = group.write_frame(arrays_of(step.observation))
+            rows_tids, obs_seqs, next_seqs, actions = [], [], [], []
+            for tid, key in zip(tids, keys, strict=True):
+                if key not in seq_of:
+                    continue
+                step = steps[key]
+                nxt_seq = seq_of.get(next_key(key))
+                if nxt_seq is None:
+                    final = step.HasField("final_observation")
+                    nxt = step.final_observation if final else steps[next_key(key)].observation
+                    try:
+                        nxt_seq = group.write_frame(arrays_of(nxt))
+                    except (ValueError, KeyError):  # a successor of another layout
+                        continue
+                rows_tids.append(tid)
+                obs_seqs.append(seq_of[key])
+                next_seqs.append(nxt_seq)
+                actions.append(tensor_array(step.action))
+            if rows_tids:
+                rows = group.add_many(rows_tids, obs_seqs, next_seqs, actions)
+                self.index.hot_row.a[rows_tids] = rows
+                self.index.group.a[rows_tids] = gid
+                warmed += len(rows_tids)
+        log.info("hot tier warmed from LMDB", extra=kv(path=str(self.path), transitions=warmed))
 
     def attach(self, path: str | Path, table: str) -> int:
         """Open another buffer read-only and sample its transitions as `table`; returns how many.
@@ -402,6 +452,7 @@ class ReplayStore:
             ep.success |= step.success
             ep.interventions += step.intervention
             self._n_steps += 1
+            self._steps_per_robot[ep.robot] = self._steps_per_robot.get(ep.robot, 0) + 1
             self._bytes += nbytes + len(key)
             if self.hot_bytes > 0:
                 self._tail(key, step)
@@ -509,6 +560,11 @@ class ReplayStore:
                 ep = self._episodes.pop(prefix)
                 tids += ep.tids
                 self._n_steps -= ep.steps
+                left = self._steps_per_robot[ep.robot] - ep.steps
+                if left:
+                    self._steps_per_robot[ep.robot] = left
+                else:
+                    del self._steps_per_robot[ep.robot]
                 self._bytes -= ep.nbytes
             self.index.evict(tids)
             self._evicted_episodes += len(victims)
@@ -707,9 +763,7 @@ class ReplayStore:
     def stats(self) -> dict[str, Any]:
         on_disk = self.bytes_on_disk()
         with self._lock:
-            per_robot: dict[str, int] = {}
-            for ep in self._episodes.values():
-                per_robot[ep.robot] = per_robot.get(ep.robot, 0) + ep.steps
+            per_robot = dict(self._steps_per_robot)
             return {
                 "steps": self._n_steps,
                 "transitions": len(self.index),
