@@ -39,6 +39,8 @@ class HotGroup:
         self.t_obs = np.zeros(cap, np.int64)
         self.t_next = np.zeros(cap, np.int64)
         self.t_tid = np.full(cap, -1, np.int64)
+        self.t_obs_row = np.zeros(cap, np.int64)  # seq % frame_capacity, kept so a gather needs no modulo
+        self.t_next_row = np.zeros(cap, np.int64)
         self.action = np.empty((cap, *act_shape), act_dtype)
         self.rows_written = 0
 
@@ -51,14 +53,6 @@ class HotGroup:
         self.frames_written = seq + 1
         return seq
 
-    def add(self, tid: int, obs_seq: int, next_seq: int, action: np.ndarray) -> int:
-        """One transition; returns its row."""
-        row = self.rows_written % self.capacity
-        self.t_obs[row], self.t_next[row], self.t_tid[row] = obs_seq, next_seq, tid
-        self.action[row] = action
-        self.rows_written += 1
-        return row
-
     def add_many(
         self, tids: list[int], obs_seqs: list[int], next_seqs: list[int], actions: list[np.ndarray]
     ) -> np.ndarray:
@@ -67,6 +61,8 @@ class HotGroup:
         rows = (self.rows_written + np.arange(k)) % self.capacity
         self.t_obs[rows] = obs_seqs
         self.t_next[rows] = next_seqs
+        self.t_obs_row[rows] = np.asarray(obs_seqs, np.int64) % self.frame_capacity
+        self.t_next_row[rows] = np.asarray(next_seqs, np.int64) % self.frame_capacity
         self.t_tid[rows] = tids
         self.action[rows] = np.stack(actions) if k > 1 else actions[0][None]
         self.rows_written += k
@@ -74,13 +70,16 @@ class HotGroup:
 
     def valid(self, rows: np.ndarray, tids: np.ndarray) -> np.ndarray:
         """Which (row, tid) pairs are still hot."""
-        safe = np.where(rows >= 0, rows, 0)
+        safe = np.maximum(rows, 0)
         oldest = self.frames_written - self.frame_capacity
-        return (rows >= 0) & (self.t_tid[safe] == tids) & (self.t_obs[safe] >= oldest) & (self.t_next[safe] >= oldest)
+        ok = self.t_tid[safe] == tids  # a row of -1 never matches: its tid holds -1 only when unused
+        ok &= rows >= 0
+        ok &= np.minimum(self.t_obs[safe], self.t_next[safe]) >= oldest
+        return ok
 
     def observations(self, rows: np.ndarray, which: str) -> dict[str, np.ndarray]:
-        seqs = (self.t_obs if which == "obs" else self.t_next)[rows] % self.frame_capacity
-        return {name: column[seqs] for name, column in self.frames.items()}
+        at = (self.t_obs_row if which == "obs" else self.t_next_row)[rows]
+        return {name: column[at] for name, column in self.frames.items()}
 
     def resident_bytes(self) -> int:
         frames = min(self.frames_written, self.frame_capacity) * self.frame_bytes

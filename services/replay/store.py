@@ -660,26 +660,36 @@ class ReplayStore:
     def _gather(self, out: dict[str, Any], tids: np.ndarray, last: np.ndarray) -> None:
         """observation (of tids), next_observation (after last) and action columns (caller holds the lock)."""
         idx = self.index
-        gids = np.unique(np.concatenate([idx.group.a[tids], idx.group.a[last]]))
-        known = gids[gids >= 0]
+        same = last is tids  # one-step transitions: one set of checks
+        g_obs = idx.group.a[tids]
+        g_next = g_obs if same else idx.group.a[last]
+        g0 = int(g_obs[0])
+        if (g_obs == g0).all() and (same or (g_next == g0).all()):
+            known = [g0] if g0 >= 0 else []
+        else:
+            gids = np.unique(np.concatenate([g_obs, g_next]))
+            known = gids[gids >= 0].tolist()
         if len(known) > 1:
             raise LayoutError(
                 "sampled transitions have different observation layouts; "
                 "sample robots with different specs separately (robot_ids)"
             )
-        hot = self._groups[int(known[0])] if len(known) else None
-        rows, next_rows = idx.hot_row.a[tids], idx.hot_row.a[last]
+        hot = self._groups[known[0]] if known else None
+        rows = idx.hot_row.a[tids]
+        next_rows = rows if same else idx.hot_row.a[last]
         if hot is not None:
-            ok_obs, ok_next = hot.valid(rows, tids), hot.valid(next_rows, last)
+            ok_obs = hot.valid(rows, tids)
+            ok_next = ok_obs if same else hot.valid(next_rows, last)
         else:
             ok_obs = ok_next = np.zeros(len(tids), bool)
-        n_hot = int(ok_obs.sum())
+        n_hot = int(np.count_nonzero(ok_obs))
         self.hits += n_hot
         self.misses += len(tids) - n_hot
-        if hot is not None and n_hot == len(tids) and ok_next.all():
+        if hot is not None and n_hot == len(tids) and (same or ok_next.all()):
             out["observation"] = hot.observations(rows, "obs")
             out["next_observation"] = hot.observations(next_rows, "next")
-            out["action"] = hot.action[rows].astype(np.float32, copy=False)
+            action = hot.action[rows]
+            out["action"] = action if action.dtype == np.float32 else action.astype(np.float32)
             return
         self._fill_mixed(out, hot, tids, last, ok_obs, ok_next)
 

@@ -12,7 +12,6 @@ importance weights; priorities updated by the learner through UpdatePriorities).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
@@ -134,10 +133,6 @@ class Index:
             self.robots.append(robot_id)
         return code
 
-    def add(self, key: bytes, robot_id: str, table: str, **fields: Any) -> int:
-        """One transition (see add_many); returns its tid."""
-        return self.add_many([Record(key, self.code(robot_id), table, **fields)])[0]
-
     def add_many(self, records: list[Record]) -> list[int]:
         """Index transitions in one go (column appends are vectorized); returns their tids."""
         first = len(self.keys)
@@ -215,7 +210,9 @@ class Index:
     # ------------------------------------------------------------------ draws
 
     def draw(self, req: Draw, rng: np.random.Generator) -> Drawn:
-        shares = _split(req.batch_size, req.tables or {ALL: 1.0})
+        shares = (
+            _split(req.batch_size, req.tables) if len(req.tables) > 1 else {next(iter(req.tables), ALL): req.batch_size}
+        )
         tids, weights = [], []
         for table, k in shares.items():
             if k == 0:
@@ -249,6 +246,11 @@ class Index:
         return cands[picks], (w / w.max()).astype(np.float32)
 
     def _n_step(self, tids: np.ndarray, weights: np.ndarray, n: int, gamma: float) -> Drawn:
+        if n <= 1:
+            ones = np.ones(len(tids), np.int32)
+            return Drawn(
+                tids, tids, self.reward.a[tids], self.terminated.a[tids], self.truncated.a[tids], ones, weights
+            )
         reward = self.reward.a[tids].astype(np.float32)
         term = self.terminated.a[tids].copy()
         trunc = self.truncated.a[tids].copy()
