@@ -132,6 +132,7 @@ class StepDB:
             lock=True,  # also read-only: another process may be writing
             readahead=False,  # samples are random reads; readahead only pollutes the page cache
             meminit=False,
+            writemap=not readonly,  # puts go straight into the (sparse) file map: ~2x faster for camera frames
             sync=durability == "fsync",
             metasync=durability == "fsync",
         )

@@ -13,6 +13,9 @@ import math
 
 import numpy as np
 
+from user import wire
+from user.v1 import tensor_pb2 as tpb
+
 Feature = tuple[str, np.dtype, tuple[int, ...]]
 Layout = tuple[tuple[Feature, ...], tuple[np.dtype, tuple[int, ...]]]
 _ROW_OVERHEAD = 3 * 8  # obs seq, next seq, owner tid
@@ -35,6 +38,9 @@ class HotGroup:
         # frames: one per transition plus each episode's final observation, so a little more room
         self.frame_capacity = cap + cap // 8 + 16
         self.frames = {name: np.empty((self.frame_capacity, *shape), dtype) for name, dtype, shape in features}
+        # the same memory as rows of bytes, so a RAW wire tensor is copied in without decoding
+        self._bytes = {name: col.reshape(self.frame_capacity, -1).view(np.uint8) for name, col in self.frames.items()}
+        self._codes = {name: wire.dtype_to_proto(dtype) for name, dtype, _ in features}
         self.frames_written = 0
         self.t_obs = np.zeros(cap, np.int64)
         self.t_next = np.zeros(cap, np.int64)
@@ -50,6 +56,24 @@ class HotGroup:
         row = seq % self.frame_capacity
         for name, column in self.frames.items():
             column[row] = arrays[name]
+        self.frames_written = seq + 1
+        return seq
+
+    def write_tensors(self, tmap: tpb.TensorMap) -> int:
+        """Copy one wire observation in (RAW bytes as they are); ValueError/KeyError if it has another layout."""
+        tensors = tmap.tensors
+        if len(tensors) != len(self._bytes):
+            raise ValueError("observation has other features than this group")
+        seq = self.frames_written
+        row = seq % self.frame_capacity
+        for name, rows in self._bytes.items():
+            t = tensors[name]
+            if t.dtype != self._codes[name]:
+                raise ValueError(f"{name}: dtype differs from this group")
+            if t.encoding == tpb.ENCODING_RAW and len(t.data) == rows.shape[1]:
+                rows[row] = np.frombuffer(t.data, np.uint8)
+            else:
+                self.frames[name][row] = wire.from_tensor(t)  # JPEG/PNG from the edge; ValueError if the shape differs
         self.frames_written = seq + 1
         return seq
 

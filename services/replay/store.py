@@ -63,6 +63,7 @@ DEFAULT_HOT_MB = 256
 MAX_OPEN_TAILS = 100_000
 ENCODINGS = {"raw": 0, "jpeg": tpb.ENCODING_JPEG, "png": tpb.ENCODING_PNG}
 MAX_GROUP_STEPS = 4096  # most steps the writer merges into one transaction
+MAX_GROUP_BYTES = 16 << 20  # and most bytes: LMDB keeps a transaction's dirty pages in RAM until commit
 COMMITS = prometheus_client.Histogram(
     "user_replay_group_commit_steps",
     "Steps per LMDB transaction after merging queued requests (group commit)",
@@ -112,6 +113,7 @@ class _Pending:
     specs: list[robot_pb2.RobotSpec]
     raws: list[bytes]
     future: Future[tuple[int, int]]
+    nbytes: int = 0
 
 
 @dataclass(slots=True)
@@ -363,7 +365,7 @@ class ReplayStore:
         """
         tables = [table] * len(steps) if isinstance(table, str) else list(table)
         raws = [self._stored_form(s).SerializeToString() for s in steps]
-        item = _Pending(steps, tables, list(specs), raws, Future())
+        item = _Pending(steps, tables, list(specs), raws, Future(), sum(map(len, raws)))
         with self._queue_cond:
             if self._closing:
                 raise StoreClosedError(f"replay store {self.path} is closed")
@@ -401,11 +403,18 @@ class ReplayStore:
                     self._queue_cond.wait()
                 if not self._queue:
                     return
-                group, n = [], 0
-                while self._queue and (not group or n + len(self._queue[0].steps) <= MAX_GROUP_STEPS):
+                group, n, size = [], 0, 0
+                while self._queue and (
+                    not group
+                    or (
+                        n + len(self._queue[0].steps) <= MAX_GROUP_STEPS
+                        and size + self._queue[0].nbytes <= MAX_GROUP_BYTES
+                    )
+                ):
                     item = self._queue.popleft()
                     group.append(item)
                     n += len(item.steps)
+                    size += item.nbytes
             try:
                 self._commit_group(group)
             except ReplayError:  # attribute the failure: commit each request alone
@@ -512,16 +521,15 @@ class ReplayStore:
     def _tail(self, key: bytes, step: step_pb2.Step) -> None:
         """Copy a stored step's observation(s) into the hot tier; remember it until its transition completes."""
         gid = self._robot_group.get(step.robot_id)
-        obs = arrays_of(step.observation)
         try:
             if gid is None:
                 raise ValueError("no group yet")
             group = self._groups[gid]
-            seq = group.write_frame(obs)
+            seq = group.write_tensors(step.observation)
         except (ValueError, KeyError):  # first step of the robot, or it re-registered with a new layout
             gid = self._robot_group[step.robot_id] = self._group(layout_of(step))
             group = self._groups[gid]
-            seq = group.write_frame(obs)
+            seq = group.write_tensors(step.observation)
         tail = _Tail(
             gid,
             seq,
@@ -533,7 +541,7 @@ class ReplayStore:
             step.policy_version,
         )
         if step.HasField("final_observation"):
-            tail.final_seq = group.write_frame(arrays_of(step.final_observation))
+            tail.final_seq = group.write_tensors(step.final_observation)
         if len(self._tails) >= MAX_OPEN_TAILS:  # successors that never came: forget the oldest
             self._tails.pop(next(iter(self._tails)))
         self._tails[key] = tail
