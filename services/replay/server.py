@@ -19,7 +19,10 @@ import queue
 import re
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future
+from dataclasses import dataclass
 from typing import Any
 
 import grpc
@@ -56,6 +59,8 @@ SAMPLERS = {
 }
 MAX_BATCH_BYTES = rpc.MAX_MESSAGE_BYTES - (1 << 20)  # room for the envelope
 POLL_S = 0.1  # how often an idle Insert stream notices shutdown
+ACK_POLL_S = 0.002  # how often a stream with batches in flight looks for their commits
+MAX_IN_FLIGHT = 4  # batches of one stream waiting for the writer at once
 SPEC_REFRESH_S = 2.0  # a step failing a cached spec re-asks control at most this often per robot
 
 _SECONDS = (0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 1.0)
@@ -72,7 +77,9 @@ TRANSITIONS = prometheus_client.Gauge("user_replay_transitions", "Sampleable tra
 BYTES_ON_DISK = prometheus_client.Gauge("user_replay_bytes_on_disk", "LMDB pages in use, bytes")
 INSERT_STREAMS = prometheus_client.Gauge("user_replay_insert_streams", "Open Insert streams")
 COMMIT_SECONDS = prometheus_client.Histogram(
-    "user_replay_commit_seconds", "One LMDB write transaction (put + commit + fsync)", buckets=_SECONDS
+    "user_replay_commit_seconds",
+    "A stream's batch from submit to committed (queue + put + commit + fsync)",
+    buckets=_SECONDS,
 )
 COMMIT_STEPS = prometheus_client.Histogram(
     "user_replay_commit_steps", "Steps per write transaction", buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
@@ -228,6 +235,16 @@ class _Inbox:
         self._closed.set()
 
 
+@dataclass
+class _InFlight:
+    """A batch of one stream submitted to the writer, not yet acknowledged."""
+
+    future: Future[tuple[int, int]]
+    seqs: list[int]
+    specs: list[robot_pb2.RobotSpec]
+    started: float
+
+
 class ReplayServicer(replay_pb2_grpc.ReplayServicer):
     def __init__(
         self,
@@ -298,36 +315,73 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             self._stream_delta(-1)
 
     def _insert(self, inbox: _Inbox, context: grpc.ServicerContext) -> Iterator[replay_pb2.InsertAck]:
+        """Validate while earlier batches commit: up to MAX_IN_FLIGHT batches wait for the writer at once.
+
+        Acks still go out in order and only after the commit that holds their steps.
+        """
         pending: list[replay_pb2.InsertRequest] = []
+        inflight: deque[_InFlight] = deque()
         deadline = 0.0
         while True:
+            while inflight and (inflight[0].future.done() or len(inflight) >= MAX_IN_FLIGHT):
+                yield self._acked(inflight.popleft(), context)
             if self._closing.is_set():
-                if pending:
-                    yield self._commit(pending, context)
+                yield from self._drain(pending, inflight, context)
                 context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down; re-send unacknowledged steps")
             wait = min(POLL_S, deadline - time.monotonic()) if pending else POLL_S
-            item = inbox.get(wait)
+            item = inbox.get(min(wait, ACK_POLL_S) if inflight else wait)
             if item is _END:
-                if pending:
-                    yield self._commit(pending, context)
+                yield from self._drain(pending, inflight, context)
                 return
             if item is _BROKEN:  # nobody to ack; commit anyway, a re-send is deduplicated
-                if pending:
-                    self._commit(pending, context)
+                for _ in self._drain(pending, inflight, context):
+                    pass
                 return
             if item is not None:
                 RECEIVED.inc()
                 failure = self._admit(item)
-                if failure is not None:
-                    if pending:  # everything before the failing step is committed and acknowledged first
-                        yield self._commit(pending, context)
+                if failure is not None:  # everything before the failing step is committed and acknowledged first
+                    yield from self._drain(pending, inflight, context)
                     context.abort(*failure)
                 pending.append(item)
                 if len(pending) == 1:
                     deadline = time.monotonic() + self.commit_max_delay_s
             if pending and (len(pending) >= self.commit_max_steps or time.monotonic() >= deadline):
-                yield self._commit(pending, context)
+                inflight.append(self._submit(pending, context))
                 pending = []
+
+    def _drain(
+        self, pending: list[replay_pb2.InsertRequest], inflight: deque[_InFlight], context: grpc.ServicerContext
+    ) -> Iterator[replay_pb2.InsertAck]:
+        if pending:
+            inflight.append(self._submit(pending, context))
+        while inflight:
+            yield self._acked(inflight.popleft(), context)
+
+    def _submit(self, pending: list[replay_pb2.InsertRequest], context: grpc.ServicerContext) -> _InFlight:
+        specs = self.specs.take_dirty()
+        try:
+            future = self.store.submit([r.step for r in pending], specs, [r.table or ONLINE for r in pending])
+        except StoreClosedError:
+            context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down; re-send unacknowledged steps")
+        return _InFlight(future, [r.seq for r in pending], specs, time.perf_counter())
+
+    def _acked(self, job: _InFlight, context: grpc.ServicerContext) -> replay_pb2.InsertAck:
+        """Wait for one submitted batch to commit; its ack, or the status that ends the stream."""
+        try:
+            stored, dups = job.future.result()
+        except ReplayFullError as exc:
+            self.specs.restore_dirty(job.specs)
+            log.error("replay full", extra=kv(error=str(exc)))
+            context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, str(exc))
+        except StoreClosedError:
+            context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down; re-send unacknowledged steps")
+        COMMIT_SECONDS.observe(time.perf_counter() - job.started)
+        COMMIT_STEPS.observe(len(job.seqs))
+        STORED.inc(stored)
+        DUPLICATES.inc(dups)
+        self._update_gauges()
+        return replay_pb2.InsertAck(seqs=job.seqs, stored=stored, duplicates=dups)
 
     def _admit(self, req: replay_pb2.InsertRequest) -> tuple[grpc.StatusCode, str] | None:
         """None for a valid step; otherwise the status that ends the stream (after the steps before it)."""
@@ -388,24 +442,6 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
                 except StepError as exc:
                     error = exc
         return error.reason, str(error)
-
-    def _commit(self, pending: list[replay_pb2.InsertRequest], context: grpc.ServicerContext) -> replay_pb2.InsertAck:
-        specs = self.specs.take_dirty()
-        start = time.perf_counter()
-        try:
-            stored, dups = self.store.put_steps([r.step for r in pending], specs, [r.table or ONLINE for r in pending])
-        except ReplayFullError as exc:
-            self.specs.restore_dirty(specs)
-            log.error("replay full", extra=kv(error=str(exc)))
-            context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, str(exc))
-        except StoreClosedError:
-            context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down; re-send unacknowledged steps")
-        COMMIT_SECONDS.observe(time.perf_counter() - start)
-        COMMIT_STEPS.observe(len(pending))
-        STORED.inc(stored)
-        DUPLICATES.inc(dups)
-        self._update_gauges()
-        return replay_pb2.InsertAck(seqs=[r.seq for r in pending], stored=stored, duplicates=dups)
 
     def _update_gauges(self) -> None:
         try:
