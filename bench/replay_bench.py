@@ -9,6 +9,7 @@ sample plain batches.
 
 from __future__ import annotations
 
+import math
 import signal
 import subprocess
 import sys
@@ -131,7 +132,7 @@ def map_size_for(shape: Shape, n: int) -> int:
 
 def ours_resident_bytes(store: Any) -> int:
     """RAM the buffer holds for sampling: hot-tier columns plus the index (about 200 B per transition)."""
-    return int(store.cache_info()["bytes"]) + 200 * store_transitions(store)
+    return int(store.cache_info()["bytes"]) + 200 * store.transitions_for(["arm-0"])
 
 
 # --------------------------------------------------------------------------- peer
@@ -198,8 +199,9 @@ def crash_child(path: str, n: int, images: bool) -> None:
     signal.pause()
 
 
-def crash_survival(workdir: Path, shape: Shape, n: int) -> tuple[int, int, int, int]:
-    """SIGKILL the writer mid-ingest: (acked before the kill, steps kept, acked lost, duplicates after re-send)."""
+def crash_survival(workdir: Path, shape: Shape, n: int) -> tuple[int, int, int, int, int]:
+    """SIGKILL the writer mid-ingest: (acked before the kill, steps kept, acked lost, duplicates after re-send,
+    bytes on disk for the N steps)."""
     path = workdir / f"crash-{'img' if shape.images else 'arm'}"
     code = f"from bench.replay_bench import crash_child; crash_child({str(path)!r}, {n}, {shape.images})"
     proc = subprocess.Popen(
@@ -224,7 +226,7 @@ def crash_survival(workdir: Path, shape: Shape, n: int) -> tuple[int, int, int, 
         duplicates = int(store.stats()["steps"]) - len(steps)  # a step stored twice would show here
         if stored + kept_steps != len(steps):
             raise RuntimeError(f"kept {kept_steps} + stored {stored} != {len(steps)}")
-        return acked, kept_steps, lost, duplicates
+        return acked, kept_steps, lost, duplicates, int(store.stats()["bytes_on_disk"])
     finally:
         store.close()
 
@@ -240,10 +242,18 @@ def bench_shape(shape: Shape, n: int, sample_repeats: int, workdir: Path, log: C
     group = f"replay {shape.name}, N={n}"
     path = workdir / ("img" if shape.images else "arm")
     path.mkdir(parents=True, exist_ok=True)
-    store = open_store(path, map_size_for(shape, n), cache_mb=max(64, 2 * map_size_for(shape, n) // 3))
+    # Both sides are timed in their steady state, full and overwriting. Theirs: a ring preallocated with
+    # torch.empty, filled once untimed (the first fill pays page faults), then overwritten. Ours, alike:
+    # hot tier and byte capacity sized for N, filled once untimed by another robot, whose episodes the
+    # timed pass evicts (oldest first) while LMDB reuses their pages.
+    per_step = sum(len(st.SerializeToString()) + 40 for st in steps[:EPISODE_LEN]) / EPISODE_LEN
+    store = open_store(
+        path, map_size_for(shape, 2 * n), cache_mb=0, capacity_mb=max(1, math.ceil(1.1 * n * per_step / 2**20))
+    )
+    frame = sum(a.nbytes for a in episodes[0].observations[0].values())
+    store.hot_bytes = int(1.05 * n * (frame * 9 / 8 + ACTION_DIM * 4 + 48))
+    insert_ours(store, to_steps(episodes, robot_id="warm-0"))
     buf = make_peer(n)
-    # Untimed first pass: their buffer is preallocated with torch.empty, so the first fill pays page
-    # faults; the timed pass overwrites the ring (a long-running learner's steady state, their best case).
     for tr in peer_in:
         buf.add(**tr)
     try:
@@ -252,25 +262,25 @@ def bench_shape(shape: Shape, n: int, sample_repeats: int, workdir: Path, log: C
             end = i + IN_FLIGHT * BATCH
             ours_s += timed(lambda i=i, end=end: insert_ours(store, steps[i:end]))[0]
             peer_s += timed(lambda i=i, end=end: [buf.add(**tr) for tr in peer_in[i:end]])[0]
-        have = store_transitions(store)
+        have = store.transitions_for(["arm-0"])
         if have != n or len(buf) != n:
             raise RuntimeError(f"ours holds {have}, theirs {len(buf)} transitions; inserted {n}")
         log(f"replay {shape.name}: inserted {n}: ours {ours_s:.2f} s, theirs {peer_s:.2f} s")
         rng = np.random.default_rng(0)
         ours_ms, peer_ms = [], []
         for r in range(sample_repeats + 1):  # round 0 is a warm-up
-            o = repeat_ms(lambda: store.sample(BATCH, rng), 1, warmup=0)
+            o = repeat_ms(lambda: store.sample(BATCH, rng, robot_ids=["arm-0"]), 1, warmup=0)
             p = repeat_ms(lambda: buf.sample(BATCH), 1, warmup=0)
             if r:
                 ours_ms += o
                 peer_ms += p
         peer_bytes = peer_nbytes(buf) / n
-        ours_disk = store.stats()["bytes_on_disk"] / n
         ours_ram = ours_resident_bytes(store) / n
         hit = store.cache_info()
     finally:
         store.close()
-    acked, kept, lost, dups = crash_survival(workdir, shape, n)
+    acked, kept, lost, dups, on_disk = crash_survival(workdir, shape, n)
+    ours_disk = on_disk / n
     return [
         Row(
             group,
