@@ -326,9 +326,9 @@ def bench_shape(shape: Shape, n: int, sample_repeats: int, workdir: Path, log: C
         Row(
             group,
             "after SIGKILL + restart",
-            f"{kept}/{n} kept, acked lost {lost}, duplicates {dups}",
+            f"{n + dups}/{n} after re-send; acked lost {lost}, duplicates {dups}",
             f"0/{n} (RAM only)",
-            note=f"writer SIGKILLed mid-ingest after {acked} acked; then all {n} re-sent",
+            note=f"writer SIGKILLed mid-ingest after {acked} acked ({kept} on disk at restart); then all {n} re-sent",
         ),
     ]
 
