@@ -227,6 +227,8 @@ def test_a_previous_buffer_is_sampled_read_only_as_a_table(tmp_path: Path) -> No
         first = batch["observation"]["state"][:, 0]
         np.testing.assert_array_equal(batch["next_observation"]["state"][:, 0], first + batch["n_steps"])
         assert store.table_stats()["prior"]["episodes"] == 2 and store.stats()["steps"] == 6  # not ours to count
+        legacy = store.sample(64, np.random.default_rng(1))  # no tables named: this buffer's own only
+        assert set(legacy["policy_version"]) == {1}
     finally:
         store.close()
     again = ReplayStore(tmp_path / "old", 64)

@@ -17,7 +17,7 @@ import numpy as np
 
 ONLINE = "online"
 INTERVENTIONS = "interventions"
-ALL = ""  # the union of all tables, each transition once (the legacy request)
+ALL = ""  # the union of this buffer's tables, each transition once (the legacy request); not attached ones
 SAMPLERS = ("uniform", "recency", "prioritized")
 
 
@@ -167,7 +167,8 @@ class Index:
             by_table.setdefault((r.table, r.robot), []).append(tid)
             if r.intervention and r.table != INTERVENTIONS:
                 by_table.setdefault((INTERVENTIONS, r.robot), []).append(tid)
-            by_table.setdefault((ALL, r.robot), []).append(tid)
+            if r.key[:1] != b"\0":  # attached buffers are sampled by their table name only
+                by_table.setdefault((ALL, r.robot), []).append(tid)
         for (table, code), ids in by_table.items():
             grows = self.all if table == ALL else self.tables.setdefault(table, {})
             grow = grows.get(code)
@@ -199,10 +200,15 @@ class Index:
             return None
         return {self.robot_code[r] for r in robot_ids if r in self.robot_code}
 
-    def candidates(self, table: str, robot_ids: list[str] | None) -> np.ndarray:
+    def candidates(self, table: str, robot_ids: list[str] | None, newest: int = 0) -> np.ndarray:
+        """Tids of a table (for the robots asked); with `newest`, at most that many of each robot's newest."""
         grows = self.all if table == ALL else self.tables.get(table, {})
         codes = self._codes(robot_ids)
-        parts = [g.view() for c, g in sorted(grows.items()) if g.n and (codes is None or c in codes)]
+        parts = [
+            g.view()[-newest:] if newest else g.view()
+            for c, g in sorted(grows.items())
+            if g.n and (codes is None or c in codes)
+        ]
         if not parts:
             return np.empty(0, np.int64)
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
@@ -217,7 +223,8 @@ class Index:
         for table, k in shares.items():
             if k == 0:
                 continue
-            cands = self.candidates(table, req.robot_ids)
+            newest = req.window if req.sampler == "recency" else 0  # tids grow with arrival: a robot's newest are last
+            cands = self.candidates(table, req.robot_ids, newest)
             if len(cands) == 0:
                 what = f"table {table!r}" if table else "the buffer"
                 robots = f" for robots {sorted(set(req.robot_ids))}" if req.robot_ids else ""
