@@ -184,6 +184,7 @@ class Index:
         self.alive.a[dead] = False
         for t in tids:
             self.tid_of.pop(self.keys[t], None)
+            self.keys[t] = b""  # the columns keep a row per tid ever indexed; the key bytes can go
         for grows in [*self.tables.values(), self.all]:
             for g in grows.values():
                 g.keep(self.alive.a[g.view()])
