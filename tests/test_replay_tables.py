@@ -270,3 +270,18 @@ def test_a_restart_warms_the_hot_tier_with_the_newest(tmp_path: Path) -> None:
         assert again.cache_info()["misses"] > 0
     finally:
         again.close()
+
+
+def test_an_evicted_open_episode_that_goes_on_is_not_sampled_from_nothing(tmp_path: Path) -> None:
+    store = ReplayStore(tmp_path / "replay", 64, capacity_mb=1)
+    try:
+        store.put_steps([make_step("arm-0", "open", t, dim=2000) for t in range(10)])  # no end yet
+        for e in range(8):  # push it out
+            store.put_steps(episode("arm-0", f"e{e}", 20, dim=2000))
+        assert "open" not in {k.split(b"/")[1].decode() for k in store._episodes}
+        store.put_steps([make_step("arm-0", "open", 10, dim=2000, last=True)])  # the robot goes on
+        for seed in range(5):
+            batch = store.sample(256, np.random.default_rng(seed))
+            np.testing.assert_array_equal(batch["next_observation"]["state"], batch["observation"]["state"] + 1)
+    finally:
+        store.close()

@@ -25,7 +25,7 @@ import logging
 import struct
 import threading
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Container, Iterable, Iterator
 from pathlib import Path
 
 import lmdb
@@ -229,17 +229,19 @@ class StepDB:
         table: str | list[str] = ONLINE,
         specs: Iterable[robot_pb2.RobotSpec] = (),
         raws: list[bytes] | None = None,
+        known_waiting: Container[bytes] = (),
     ) -> Committed:
         """Store steps (and specs) in ONE transaction; returns once it has committed. Grows the map when full.
 
         `table` names the table of every step, or of each step (a list as long as `steps`).
+        `known_waiting`: keys the caller knows are stored, end no episode and still wait for a successor.
         """
         specs = list(specs)
         tables = [table] * len(steps) if isinstance(table, str) else table
         raws = raws if raws is not None else [s.SerializeToString() for s in steps]
         while True:
             try:
-                return self._put_txn(steps, tables, specs, raws)
+                return self._put_txn(steps, tables, specs, raws, known_waiting)
             except lmdb.MapFullError:
                 if not self._grow():
                     raise ReplayFullError(
@@ -259,10 +261,16 @@ class StepDB:
         return True
 
     def _put_txn(
-        self, steps: list[step_pb2.Step], tables: list[str], specs: list[robot_pb2.RobotSpec], raws: list[bytes]
+        self,
+        steps: list[step_pb2.Step],
+        tables: list[str],
+        specs: list[robot_pb2.RobotSpec],
+        raws: list[bytes],
+        known_waiting: Container[bytes],
     ) -> Committed:
         out = Committed()
         seen: set[bytes] = set()
+        waiting: set[bytes] = set()  # stored in this transaction, not ending an episode
         with self.env.begin(write=True) as txn:
             for step, table, raw in zip(steps, tables, raws, strict=True):
                 rid, eid, t = step.robot_id, step.episode_id, step.step_index
@@ -288,10 +296,14 @@ class StepDB:
                     out.sampleable.append(key)
                 elif txn.get(next_key(key), db=self.steps) is not None:
                     out.sampleable.append(key)  # its successor arrived first (re-sent out of order)
+                if not ends:
+                    waiting.add(key)
                 if t > 0:
-                    prev = episode_prefix(rid, eid) + _INDEX.pack(t - 1)
-                    # prev waited for this observation, unless it ended an episode (sampleable already)
-                    if txn.get(prev, db=self.steps) is not None and txn.get(prev, db=self.ends) is None:
+                    prev = key[:-8] + _INDEX.pack(t - 1)
+                    # prev waited for this observation, unless it ended an episode (sampleable already);
+                    # known from memory for in-order arrivals, else asked of LMDB
+                    known = prev in waiting or prev in known_waiting
+                    if known or (txn.get(prev, db=self.steps) is not None and txn.get(prev, db=self.ends) is None):
                         out.sampleable.append(prev)
             for spec in specs:
                 txn.put(spec.robot_id.encode(), spec.SerializeToString(), db=self.specs)

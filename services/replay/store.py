@@ -436,6 +436,7 @@ class ReplayStore:
                 [t for item in group for t in item.tables],
                 [spec for item in group for spec in item.specs],
                 [r for item in group for r in item.raws],
+                self._tails,  # stored steps still waiting for their successor (this thread alone changes it)
             )
             # Committed: only now may samples see these steps.
             with self._lock:
@@ -575,6 +576,9 @@ class ReplayStore:
                     del self._steps_per_robot[ep.robot]
                 self._bytes -= ep.nbytes
             self.index.evict(tids)
+            gone = set(victims)
+            for key in [k for k in self._tails if k[:-8] in gone]:  # their steps left LMDB: nothing waits
+                del self._tails[key]
             self._evicted_episodes += len(victims)
             self.generation += 1
         log.info("evicted episodes", extra=kv(episodes=len(victims), bytes=freed))
