@@ -77,6 +77,30 @@ class HotGroup:
         self.frames_written = seq + 1
         return seq
 
+    def write_many(self, tmaps: list[tpb.TensorMap]) -> np.ndarray | None:
+        """Copy several wire observations in at once; their sequence numbers, or None (nothing written)
+        when one is not plain RAW of this layout (then write_tensors each)."""
+        k = len(tmaps)
+        cols: dict[str, list[bytes]] = {name: [] for name in self._bytes}
+        for tmap in tmaps:
+            tensors = tmap.tensors
+            if len(tensors) != len(self._bytes):
+                return None
+            for name, rows in self._bytes.items():
+                t = tensors.get(name)
+                if t is None or t.dtype != self._codes[name] or t.encoding != tpb.ENCODING_RAW:
+                    return None
+                data = t.data
+                if len(data) != rows.shape[1]:
+                    return None
+                cols[name].append(data)
+        seqs = self.frames_written + np.arange(k)
+        at = seqs % self.frame_capacity
+        for name, parts in cols.items():
+            self._bytes[name][at] = np.frombuffer(b"".join(parts), np.uint8).reshape(k, -1)
+        self.frames_written += k
+        return seqs
+
     def add_many(
         self, tids: list[int], obs_seqs: list[int], next_seqs: list[int], actions: list[np.ndarray]
     ) -> np.ndarray:

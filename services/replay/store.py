@@ -464,8 +464,8 @@ class ReplayStore:
             self._n_steps += 1
             self._steps_per_robot[ep.robot] = self._steps_per_robot.get(ep.robot, 0) + 1
             self._bytes += nbytes + len(key)
-            if self.hot_bytes > 0:
-                self._tail(key, step)
+        if self.hot_bytes > 0:
+            self._tails_many([(key, step) for key, step, _, _ in stored])
         hot: dict[int, list[tuple[int, int, int, np.ndarray]]] = {}  # group -> (record, obs seq, next seq, action)
         records: list[Record] = []
         for key in sampleable:
@@ -519,6 +519,39 @@ class ReplayStore:
         for key in sampleable:  # their transitions are indexed; a successor finds its frame in the ring
             self._tails.pop(key, None)
 
+    def _tails_many(self, items: list[tuple[bytes, step_pb2.Step]]) -> None:
+        """_tail for many steps: per robot, observations copied into the hot tier in one go."""
+        by_robot: dict[str, list[tuple[bytes, step_pb2.Step]]] = {}
+        for key, step in items:
+            by_robot.setdefault(step.robot_id, []).append((key, step))
+        for robot, mine in by_robot.items():
+            gid = self._robot_group.get(robot)
+            seqs = None if gid is None else self._groups[gid].write_many([s.observation for _, s in mine])
+            if seqs is None:  # first steps of a robot, a new layout, or encoded frames: one by one
+                for key, step in mine:
+                    self._tail(key, step)
+                continue
+            group = self._groups[gid]  # type: ignore[index]
+            for (key, step), seq in zip(mine, seqs.tolist(), strict=True):
+                tail = _Tail(
+                    gid,  # type: ignore[arg-type]
+                    seq,
+                    tensor_array(step.action),
+                    step.reward,
+                    step.terminated,
+                    step.truncated,
+                    step.intervention,
+                    step.policy_version,
+                )
+                if step.HasField("final_observation"):
+                    tail.final_seq = group.write_tensors(step.final_observation)
+                self._remember(key, tail)
+
+    def _remember(self, key: bytes, tail: _Tail) -> None:
+        if len(self._tails) >= MAX_OPEN_TAILS:  # successors that never came: forget the oldest
+            self._tails.pop(next(iter(self._tails)))
+        self._tails[key] = tail
+
     def _tail(self, key: bytes, step: step_pb2.Step) -> None:
         """Copy a stored step's observation(s) into the hot tier; remember it until its transition completes."""
         gid = self._robot_group.get(step.robot_id)
@@ -543,9 +576,7 @@ class ReplayStore:
         )
         if step.HasField("final_observation"):
             tail.final_seq = group.write_tensors(step.final_observation)
-        if len(self._tails) >= MAX_OPEN_TAILS:  # successors that never came: forget the oldest
-            self._tails.pop(next(iter(self._tails)))
-        self._tails[key] = tail
+        self._remember(key, tail)
 
     def _evict_over_capacity(self) -> None:
         """Whole episodes, oldest first, until the stored bytes fit capacity_mb again (with 5% slack)."""
