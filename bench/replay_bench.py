@@ -369,7 +369,7 @@ def bench_larger_than_hot(n: int, repeats: int, workdir: Path, log: Callable[...
                     median(peer_ms),
                     "ms",
                     False,
-                    f"ours: hot-tier hit rate {rate:.0%} (hits gathered from RAM, misses read from LMDB); theirs: all in RAM",
+                    f"ours: hot-tier hit rate {rate:.0%} (hits from RAM, misses from LMDB); theirs: all in RAM",
                     extra={"hit_rate": rate},
                 )
             )
