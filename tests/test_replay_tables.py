@@ -285,3 +285,11 @@ def test_an_evicted_open_episode_that_goes_on_is_not_sampled_from_nothing(tmp_pa
             np.testing.assert_array_equal(batch["next_observation"]["state"], batch["observation"]["state"] + 1)
     finally:
         store.close()
+
+
+def test_a_robot_whose_layout_changes_gets_a_new_hot_group(store: ReplayStore) -> None:
+    store.put_steps(episode("arm-0", "a", 5))
+    store.put_steps(episode("arm-0", "b", 5, dim=9))  # re-registered with another observation size
+    first = store.sample(8, np.random.default_rng(0), draw=draw(8, tables={"online": 1}, sampler="recency", window=5))
+    assert first["observation"]["state"].shape == (8, 9)  # the newest 5 are episode b
+    assert store.cache_info()["misses"] == 0

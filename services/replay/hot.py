@@ -41,6 +41,7 @@ class HotGroup:
         # the same memory as rows of bytes, so a RAW wire tensor is copied in without decoding
         self._bytes = {name: col.reshape(self.frame_capacity, -1).view(np.uint8) for name, col in self.frames.items()}
         self._codes = {name: wire.dtype_to_proto(dtype) for name, dtype, _ in features}
+        self._shapes = {name: list(shape) for name, _, shape in features}
         self.frames_written = 0
         self.t_obs = np.zeros(cap, np.int64)
         self.t_next = np.zeros(cap, np.int64)
@@ -68,8 +69,8 @@ class HotGroup:
         row = seq % self.frame_capacity
         for name, rows in self._bytes.items():
             t = tensors[name]
-            if t.dtype != self._codes[name]:
-                raise ValueError(f"{name}: dtype differs from this group")
+            if t.dtype != self._codes[name] or t.shape != self._shapes[name]:
+                raise ValueError(f"{name}: dtype or shape differs from this group")
             if t.encoding == tpb.ENCODING_RAW and len(t.data) == rows.shape[1]:
                 rows[row] = np.frombuffer(t.data, np.uint8)
             else:
@@ -89,6 +90,8 @@ class HotGroup:
             for name, rows in self._bytes.items():
                 t = tensors.get(name)
                 if t is None or t.dtype != self._codes[name] or t.encoding != tpb.ENCODING_RAW:
+                    return None
+                if t.shape != self._shapes[name]:
                     return None
                 data = t.data
                 if len(data) != rows.shape[1]:
