@@ -9,7 +9,7 @@ sample plain batches.
 
 from __future__ import annotations
 
-import os
+import math
 import signal
 import subprocess
 import sys
@@ -25,6 +25,7 @@ from user.v1 import step_pb2
 from user.wire import to_tensor, to_tensor_map
 
 BATCH = 256
+IN_FLIGHT = 8  # Insert requests a client has sent before it waits for their acks (a stream does not wait per step)
 EPISODE_LEN = 50
 STATE_DIM = 15
 ACTION_DIM = 3
@@ -102,10 +103,10 @@ def to_steps(episodes: list[Episode], robot_id: str = "arm-0") -> list[step_pb2.
 # --------------------------------------------------------------------------- ours
 
 
-def open_store(path: Path, map_size_mb: int) -> Any:
+def open_store(path: Path, map_size_mb: int, **kw: Any) -> Any:
     from services.replay.store import ReplayStore
 
-    return ReplayStore(path, map_size_mb=map_size_mb)
+    return ReplayStore(path, map_size_mb=map_size_mb, **kw)
 
 
 def store_transitions(store: Any) -> int:
@@ -113,16 +114,25 @@ def store_transitions(store: Any) -> int:
     return int(store.stats()["transitions"])
 
 
-def insert_ours(store: Any, steps: list[step_pb2.Step]) -> None:
-    for i in range(0, len(steps), BATCH):
-        _stored, dups = store.put_steps(steps[i : i + BATCH])
+def insert_ours(store: Any, steps: list[step_pb2.Step], on_commit: Callable[[int], None] | None = None) -> None:
+    """Requests of BATCH steps queued as an Insert stream queues them; returns when the last is acknowledged."""
+    futures = [store.submit(steps[i : i + BATCH]) for i in range(0, len(steps), BATCH)]
+    for i, future in enumerate(futures):
+        _stored, dups = future.result()  # resolves after the commit (fsync) that holds these steps
         if dups:
             raise RuntimeError(f"{dups} unexpected duplicates")
+        if on_commit is not None:
+            on_commit(min((i + 1) * BATCH, len(steps)))
 
 
 def map_size_for(shape: Shape, n: int) -> int:
     per = (2 * IMAGE_HW * IMAGE_HW * 3 + 1024) if shape.images else 1024
     return max(64, int(3 * n * per / 2**20) + 64)
+
+
+def ours_resident_bytes(store: Any) -> int:
+    """RAM the buffer holds for sampling: hot-tier columns plus the index (about 200 B per transition)."""
+    return int(store.cache_info()["bytes"]) + 200 * store.transitions_for(["arm-0"])
 
 
 # --------------------------------------------------------------------------- peer
@@ -176,21 +186,47 @@ def peer_nbytes(buf: Any) -> int:
 
 
 def crash_child(path: str, n: int, images: bool) -> None:
-    """Insert n transitions, then die by SIGKILL without closing anything."""
+    """Insert n transitions, printing the steps acknowledged (committed) after each commit, forever."""
     shape = IMAGES if images else SIM_ARM
     store = open_store(Path(path), map_size_for(shape, n))
-    insert_ours(store, to_steps(make_episodes(shape, n, seed=1)))
-    os.kill(os.getpid(), signal.SIGKILL)
+    steps = to_steps(make_episodes(shape, n, seed=1))
+
+    def acked(k: int) -> None:
+        print(k, flush=True)
+
+    insert_ours(store, steps, acked)
+    print("done", flush=True)
+    signal.pause()
 
 
-def crash_survival(workdir: Path, shape: Shape, n: int) -> tuple[int, int]:
-    """(transitions after SIGKILL and reopen, child return code)."""
+def crash_survival(workdir: Path, shape: Shape, n: int) -> tuple[int, int, int, int, int]:
+    """SIGKILL the writer mid-ingest: (acked before the kill, steps kept, acked lost, duplicates after re-send,
+    bytes on disk for the N steps)."""
     path = workdir / f"crash-{'img' if shape.images else 'arm'}"
     code = f"from bench.replay_bench import crash_child; crash_child({str(path)!r}, {n}, {shape.images})"
-    proc = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1], timeout=120)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1], stdout=subprocess.PIPE, text=True
+    )
+    assert proc.stdout is not None
+    acked = 0
+    for line in proc.stdout:  # kill it once about half is acknowledged: mid-stream, a commit may be in flight
+        if line.strip() == "done":
+            break
+        acked = int(line)
+        if acked >= n // 2:
+            break
+    proc.kill()
+    proc.wait(timeout=30)
+    steps = to_steps(make_episodes(shape, n, seed=1))
     store = open_store(path, map_size_for(shape, n))
     try:
-        return store_transitions(store), proc.returncode
+        kept_steps = int(store.stats()["steps"])
+        lost = max(0, acked - kept_steps)  # acked steps are a prefix of the stream
+        stored, _dups = store.put_steps(steps)  # the edge re-sends everything it has not seen acked
+        duplicates = int(store.stats()["steps"]) - len(steps)  # a step stored twice would show here
+        if stored + kept_steps != len(steps):
+            raise RuntimeError(f"kept {kept_steps} + stored {stored} != {len(steps)}")
+        return acked, kept_steps, lost, duplicates, int(store.stats()["bytes_on_disk"])
     finally:
         store.close()
 
@@ -206,35 +242,45 @@ def bench_shape(shape: Shape, n: int, sample_repeats: int, workdir: Path, log: C
     group = f"replay {shape.name}, N={n}"
     path = workdir / ("img" if shape.images else "arm")
     path.mkdir(parents=True, exist_ok=True)
-    store = open_store(path, map_size_for(shape, n))
+    # Both sides are timed in their steady state, full and overwriting. Theirs: a ring preallocated with
+    # torch.empty, filled once untimed (the first fill pays page faults), then overwritten. Ours, alike:
+    # hot tier and byte capacity sized for N, filled once untimed by another robot, whose episodes the
+    # timed pass evicts (oldest first) while LMDB reuses their pages.
+    per_step = sum(len(st.SerializeToString()) + 40 for st in steps[:EPISODE_LEN]) / EPISODE_LEN
+    store = open_store(
+        path, map_size_for(shape, 2 * n), cache_mb=0, capacity_mb=max(1, math.ceil(1.1 * n * per_step / 2**20))
+    )
+    frame = sum(a.nbytes for a in episodes[0].observations[0].values())
+    store.hot_bytes = int(1.05 * n * (frame * 9 / 8 + ACTION_DIM * 4 + 48))
+    insert_ours(store, to_steps(episodes, robot_id="warm-0"))
     buf = make_peer(n)
-    # Untimed first pass: their buffer is preallocated with torch.empty, so the first fill pays page
-    # faults; the timed pass overwrites the ring (a long-running learner's steady state, their best case).
     for tr in peer_in:
         buf.add(**tr)
     try:
         ours_s = peer_s = 0.0
-        for i in range(0, n, BATCH):
-            ours_s += timed(lambda i=i: insert_ours(store, steps[i : i + BATCH]))[0]
-            peer_s += timed(lambda i=i: [buf.add(**tr) for tr in peer_in[i : i + BATCH]])[0]
-        have = store_transitions(store)
+        for i in range(0, n, IN_FLIGHT * BATCH):
+            end = i + IN_FLIGHT * BATCH
+            ours_s += timed(lambda i=i, end=end: insert_ours(store, steps[i:end]))[0]
+            peer_s += timed(lambda i=i, end=end: [buf.add(**tr) for tr in peer_in[i:end]])[0]
+        have = store.transitions_for(["arm-0"])
         if have != n or len(buf) != n:
             raise RuntimeError(f"ours holds {have}, theirs {len(buf)} transitions; inserted {n}")
         log(f"replay {shape.name}: inserted {n}: ours {ours_s:.2f} s, theirs {peer_s:.2f} s")
         rng = np.random.default_rng(0)
         ours_ms, peer_ms = [], []
         for r in range(sample_repeats + 1):  # round 0 is a warm-up
-            o = repeat_ms(lambda: store.sample(BATCH, rng), 1, warmup=0)
+            o = repeat_ms(lambda: store.sample(BATCH, rng, robot_ids=["arm-0"]), 1, warmup=0)
             p = repeat_ms(lambda: buf.sample(BATCH), 1, warmup=0)
             if r:
                 ours_ms += o
                 peer_ms += p
         peer_bytes = peer_nbytes(buf) / n
-        ours_bytes = store.stats()["bytes_on_disk"] / n
+        ours_ram = ours_resident_bytes(store) / n
+        hit = store.cache_info()
     finally:
         store.close()
-    kill_n = n
-    survived, rc = crash_survival(workdir, shape, kill_n)
+    acked, kept, lost, dups, on_disk = crash_survival(workdir, shape, n)
+    ours_disk = on_disk / n
     return [
         Row(
             group,
@@ -243,7 +289,8 @@ def bench_shape(shape: Shape, n: int, sample_repeats: int, workdir: Path, log: C
             n / peer_s,
             "tr/s",
             True,
-            f"ours: {BATCH}/LMDB commit (fsync); theirs: add() into a warm RAM ring",
+            f"ours: requests of {BATCH} steps, {IN_FLIGHT} in flight, group-committed, acked after fsync, + hot "
+            "tier; theirs: add() into a warm RAM ring",
         ),
         Row(
             group,
@@ -252,25 +299,83 @@ def bench_shape(shape: Shape, n: int, sample_repeats: int, workdir: Path, log: C
             median(peer_ms),
             "ms",
             False,
-            "ours: LMDB read + decode; theirs: tensor index",
+            f"ours: hot-tier column gather (hit rate {hit['hits'] / max(1, hit['hits'] + hit['misses']):.0%}); "
+            "theirs: tensor index",
+        ),
+        Row(
+            group,
+            "resident bytes per 1000 transitions",
+            ours_ram * 1000,
+            peer_bytes * 1000,
+            "B",
+            False,
+            "ours: hot-tier columns + index"
+            + (" (uint8 frames)" if shape.images else "")
+            + "; theirs: tensors"
+            + (" (images f32)" if shape.images else ""),
         ),
         Row(
             group,
             "bytes per transition",
-            ours_bytes,
+            ours_disk,
             peer_bytes,
             "B",
             False,
-            "ours: LMDB pages; theirs: tensors" + (", images f32" if shape.images else ""),
+            "ours: LMDB pages on disk (durable); theirs: RAM tensors (lost on exit)",
         ),
         Row(
             group,
             "after SIGKILL + restart",
-            f"{survived}/{kill_n} kept",
-            f"0/{kill_n} (RAM only)",
-            note=f"child SIGKILLed (rc {rc}) after its last commit",
+            f"{n + dups}/{n} after re-send; acked lost {lost}, duplicates {dups}",
+            f"0/{n} (RAM only)",
+            note=f"writer SIGKILLed mid-ingest after {acked} acked ({kept} on disk at restart); then all {n} re-sent",
         ),
     ]
+
+
+def bench_larger_than_hot(n: int, repeats: int, workdir: Path, log: Callable[..., None]) -> list[Row]:
+    """State-only buffer 10x the hot tier: uniform draws mostly read LMDB, a recency window stays in RAM."""
+    from services.replay.tables import Draw
+
+    episodes = make_episodes(SIM_ARM, n, seed=2)
+    steps = to_steps(episodes)
+    path = workdir / "cold"
+    store = open_store(path, map_size_for(SIM_ARM, n))
+    store.hot_bytes = (n // 10) * (STATE_DIM * 4 * 9 // 8 + ACTION_DIM * 4 + 24)  # hot tier: 1/10 of the buffer
+    buf = make_peer(n)
+    for tr in peer_transitions(episodes):
+        buf.add(**tr)
+    group = f"replay sim-arm, N={n}, hot tier = N/10"
+    rows = []
+    try:
+        insert_ours(store, steps)
+        rng = np.random.default_rng(0)
+        peer_ms = repeat_ms(lambda: buf.sample(BATCH), repeats)
+        for name, draw in (
+            ("uniform over all", None),
+            ("recency window N/10", Draw(batch_size=BATCH, sampler="recency", window=n // 10)),
+        ):
+            before = store.cache_info()
+            ms = repeat_ms(lambda draw=draw: store.sample(BATCH, rng, draw=draw), repeats)
+            after = store.cache_info()
+            hits, misses = after["hits"] - before["hits"], after["misses"] - before["misses"]
+            rate = hits / max(1, hits + misses)
+            log(f"{group}: {name}: {median(ms):.2f} ms, hit rate {rate:.0%}")
+            rows.append(
+                Row(
+                    group,
+                    f"sample batch {BATCH}, {name} (median of {repeats})",
+                    median(ms),
+                    median(peer_ms),
+                    "ms",
+                    False,
+                    f"ours: hot-tier hit rate {rate:.0%} (hits from RAM, misses from LMDB); theirs: all in RAM",
+                    extra={"hit_rate": rate},
+                )
+            )
+    finally:
+        store.close()
+    return rows
 
 
 def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Row]:
@@ -279,4 +384,5 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
     rows: list[Row] = []
     for shape, n, repeats in sizes:
         rows += bench_shape(shape, n, repeats, workdir, log)
+    rows += bench_larger_than_hot(2_000 if quick else 50_000, 3 if quick else 20, workdir, log)
     return rows

@@ -176,7 +176,7 @@ def test_a_full_map_stores_nothing_of_the_batch(tmp_path: Path) -> None:
     store = ReplayStore(tmp_path / "tiny", 1)
     try:
         big = [make_step("arm-0", "e", t, dim=20_000) for t in range(30)]  # ~80 KB each, 2.4 MB > 1 MiB map
-        with pytest.raises(ReplayFullError, match="map_size_mb"):
+        with pytest.raises(ReplayFullError, match="max_map_mb"):
             store.put_steps(big)
         st = store.stats()
         assert st["steps"] == 0 and st["transitions"] == 0

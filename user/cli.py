@@ -4,6 +4,7 @@ userctl control|replay|inference|learner|edge --config configs/demo.yaml [--set 
 userctl up --config configs/demo.yaml      # the whole stack locally, with a live console
 userctl health HOST:PORT                   # exit 0 when SERVING (docker health checks)
 userctl plugins                            # every registered kind: `interface kind description` per line
+userctl replay ls|export|import ...        # a replay buffer's tables; LeRobotDataset out and in
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ SERVICES = {
     "learner": "cloud_learner.server",
     "edge": "edge_agent.agent",
 }
+REPLAY_TOOLS = ("ls", "export", "import")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -63,6 +65,11 @@ def _plugins() -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if len(argv) >= 2 and argv[0] == "replay" and argv[1] in REPLAY_TOOLS:  # userctl replay ls|export|import
+        from services.replay.tools import main as replay_tools
+
+        return replay_tools(argv[1:])
     args = _parser().parse_args(argv)
     if args.command == "plugins":
         return _plugins()

@@ -89,9 +89,27 @@ class ReplayConfig(_ServerSection):
     map_size_mb: int = Field(default=4096, ge=16, description="LMDB map size: the most the buffer may hold")
     commit_max_steps: int = Field(default=256, ge=1, description="steps per LMDB transaction at most")
     commit_max_delay_ms: float = Field(default=20.0, ge=0, description="longest a received step waits for its commit")
-    cache_mb: int = Field(default=256, ge=0, description="RAM cache of decoded steps for sampling; 0 = off")
+    cache_mb: int = Field(default=256, ge=0, description="RAM hot tier: newest transitions as columns; 0 = off")
     control_addr: str = Field(default="127.0.0.1:50051", description="control service: robot specs to validate against")
     rpc_timeout_s: float = Field(default=5.0, gt=0, description="deadline on calls to control")
+    max_map_mb: int = Field(default=0, ge=0, description="the LMDB map grows up to this; 0 = 4 x map_size_mb")
+    capacity_mb: int = Field(default=0, ge=0, description="stored step bytes; beyond, oldest episodes leave; 0 = off")
+    durability: Literal["fsync", "os"] = Field(
+        default="fsync", description="fsync: ack survives a power cut; os: survives kill -9, fsync every second"
+    )
+    prefetch_batches: int = Field(default=2, ge=0, description="batches assembled ahead per sample request kind")
+    prefetch_max_age_ms: float = Field(default=50.0, ge=0, description="oldest prefetched batch served after inserts")
+    min_size_to_sample: int = Field(default=0, ge=0, description="rate limiter: no samples below this many transitions")
+    samples_per_insert: float = Field(default=0.0, ge=0, description="rate limiter: most sampled per inserted; 0 = off")
+    samples_per_insert_slack: float = Field(
+        default=10000.0, ge=0, description="rate limiter: sampled transitions of slack"
+    )
+    image_encoding: dict[str, Literal["raw", "jpeg", "png"]] = Field(
+        default={}, description='camera frames in LMDB, e.g. {"*": "png", "camera.wrist": "jpeg"}; default raw'
+    )
+    attach: dict[str, Path] = Field(
+        default={}, description="read-only tables from other buffers, e.g. {prior: runs/old/replay}"
+    )
 
 
 class InferenceConfig(_ServerSection):

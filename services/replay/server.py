@@ -14,16 +14,22 @@ used; with none, the stream ends with UNAVAILABLE so the edge re-sends later ins
 from __future__ import annotations
 
 import logging
+import math
 import queue
+import re
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future
+from dataclasses import dataclass
 from typing import Any
 
 import grpc
 import numpy as np
 import prometheus_client
 
+from services.replay.prefetch import Prefetcher
 from services.replay.store import (
     EmptyBufferError,
     LayoutError,
@@ -31,6 +37,7 @@ from services.replay.store import (
     ReplayStore,
     StoreClosedError,
 )
+from services.replay.tables import ONLINE, Draw
 from services.replay.validate import StepError, validate_step
 from user import rpc, wire
 from user.config import AuthConfig, StackConfig
@@ -41,8 +48,19 @@ log = logging.getLogger(__name__)
 
 SERVICE_NAME = replay_pb2.DESCRIPTOR.services_by_name["Replay"].full_name
 MAX_SAMPLE = 65536
+MAX_N_STEP = 1000
+MAX_FRAME_STACK = 64
+MAX_TABLES = 64
+TABLE_NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+SAMPLERS = {
+    replay_pb2.SAMPLER_UNIFORM: "uniform",
+    replay_pb2.SAMPLER_RECENCY: "recency",
+    replay_pb2.SAMPLER_PRIORITIZED: "prioritized",
+}
 MAX_BATCH_BYTES = rpc.MAX_MESSAGE_BYTES - (1 << 20)  # room for the envelope
 POLL_S = 0.1  # how often an idle Insert stream notices shutdown
+ACK_POLL_S = 0.002  # how often a stream with batches in flight looks for their commits
+MAX_IN_FLIGHT = 4  # batches of one stream waiting for the writer at once
 SPEC_REFRESH_S = 2.0  # a step failing a cached spec re-asks control at most this often per robot
 
 _SECONDS = (0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 1.0)
@@ -59,14 +77,22 @@ TRANSITIONS = prometheus_client.Gauge("user_replay_transitions", "Sampleable tra
 BYTES_ON_DISK = prometheus_client.Gauge("user_replay_bytes_on_disk", "LMDB pages in use, bytes")
 INSERT_STREAMS = prometheus_client.Gauge("user_replay_insert_streams", "Open Insert streams")
 COMMIT_SECONDS = prometheus_client.Histogram(
-    "user_replay_commit_seconds", "One LMDB write transaction (put + commit + fsync)", buckets=_SECONDS
+    "user_replay_commit_seconds",
+    "A stream's batch from submit to committed (queue + put + commit + fsync)",
+    buckets=_SECONDS,
 )
 COMMIT_STEPS = prometheus_client.Histogram(
     "user_replay_commit_steps", "Steps per write transaction", buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024)
 )
 SAMPLE_SECONDS = prometheus_client.Histogram(
-    "user_replay_sample_seconds", "Sample: draw, read, decode, stack and encode a batch", buckets=_SECONDS
+    "user_replay_sample_seconds", "Sample RPC: a prefetched batch handed out, or one assembled now", buckets=_SECONDS
 )
+HOT_TRANSITIONS = prometheus_client.Gauge("user_replay_hot_transitions", "Transitions held by the RAM tier")
+HOT_BYTES = prometheus_client.Gauge("user_replay_hot_bytes", "RAM tier bytes in use")
+HOT_HIT_RATE = prometheus_client.Gauge("user_replay_hot_hit_rate", "Sampled transitions served from RAM / all sampled")
+TABLE_TRANSITIONS = prometheus_client.Gauge("user_replay_table_transitions", "Transitions per table", ["table"])
+PREFETCH_SERVED = prometheus_client.Counter("user_replay_prefetch_served_total", "Samples served from a ready batch")
+RATE_LIMITED = prometheus_client.Counter("user_replay_rate_limited_total", "Samples refused by the rate limiter")
 
 
 class SpecUnavailable(Exception):
@@ -209,6 +235,16 @@ class _Inbox:
         self._closed.set()
 
 
+@dataclass
+class _InFlight:
+    """A batch of one stream submitted to the writer, not yet acknowledged."""
+
+    future: Future[tuple[int, int]]
+    seqs: list[int]
+    specs: list[robot_pb2.RobotSpec]
+    started: float
+
+
 class ReplayServicer(replay_pb2_grpc.ReplayServicer):
     def __init__(
         self,
@@ -217,8 +253,18 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         commit_max_steps: int,
         commit_max_delay_s: float,
         seed: int | None = None,
+        prefetch_batches: int = 0,
+        prefetch_max_age_s: float = 0.05,
+        min_size_to_sample: int = 0,
+        samples_per_insert: float = 0.0,
+        samples_per_insert_slack: float = 0.0,
     ) -> None:
         self.store = store
+        self.prefetch = Prefetcher(prefetch_batches, prefetch_max_age_s, lambda: store.generation)
+        self.min_size_to_sample = min_size_to_sample
+        self.samples_per_insert = samples_per_insert
+        self.samples_per_insert_slack = samples_per_insert_slack
+        self.sampled = 0  # transitions handed out (the rate limiter's sample count)
         self.specs = SpecBook(spec_source, store)
         self.commit_max_steps = commit_max_steps
         self.commit_max_delay_s = commit_max_delay_s
@@ -235,6 +281,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
     def begin_shutdown(self) -> None:
         """Open streams commit and acknowledge what they hold, then end with UNAVAILABLE."""
         self._closing.set()
+        self.prefetch.close()
 
     def wait_streams(self, timeout_s: float) -> bool:
         end = time.monotonic() + timeout_s
@@ -268,42 +315,81 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             self._stream_delta(-1)
 
     def _insert(self, inbox: _Inbox, context: grpc.ServicerContext) -> Iterator[replay_pb2.InsertAck]:
+        """Validate while earlier batches commit: up to MAX_IN_FLIGHT batches wait for the writer at once.
+
+        Acks still go out in order and only after the commit that holds their steps.
+        """
         pending: list[replay_pb2.InsertRequest] = []
+        inflight: deque[_InFlight] = deque()
         deadline = 0.0
         while True:
+            while inflight and (inflight[0].future.done() or len(inflight) >= MAX_IN_FLIGHT):
+                yield self._acked(inflight.popleft(), context)
             if self._closing.is_set():
-                if pending:
-                    yield self._commit(pending, context)
+                yield from self._drain(pending, inflight, context)
                 context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down; re-send unacknowledged steps")
             wait = min(POLL_S, deadline - time.monotonic()) if pending else POLL_S
-            item = inbox.get(wait)
+            item = inbox.get(min(wait, ACK_POLL_S) if inflight else wait)
             if item is _END:
-                if pending:
-                    yield self._commit(pending, context)
+                yield from self._drain(pending, inflight, context)
                 return
             if item is _BROKEN:  # nobody to ack; commit anyway, a re-send is deduplicated
-                if pending:
-                    self._commit(pending, context)
+                for _ in self._drain(pending, inflight, context):
+                    pass
                 return
             if item is not None:
                 RECEIVED.inc()
                 failure = self._admit(item)
-                if failure is not None:
-                    if pending:  # everything before the failing step is committed and acknowledged first
-                        yield self._commit(pending, context)
+                if failure is not None:  # everything before the failing step is committed and acknowledged first
+                    yield from self._drain(pending, inflight, context)
                     context.abort(*failure)
                 pending.append(item)
                 if len(pending) == 1:
                     deadline = time.monotonic() + self.commit_max_delay_s
             if pending and (len(pending) >= self.commit_max_steps or time.monotonic() >= deadline):
-                yield self._commit(pending, context)
+                inflight.append(self._submit(pending, context))
                 pending = []
+
+    def _drain(
+        self, pending: list[replay_pb2.InsertRequest], inflight: deque[_InFlight], context: grpc.ServicerContext
+    ) -> Iterator[replay_pb2.InsertAck]:
+        if pending:
+            inflight.append(self._submit(pending, context))
+        while inflight:
+            yield self._acked(inflight.popleft(), context)
+
+    def _submit(self, pending: list[replay_pb2.InsertRequest], context: grpc.ServicerContext) -> _InFlight:
+        specs = self.specs.take_dirty()
+        try:
+            future = self.store.submit([r.step for r in pending], specs, [r.table or ONLINE for r in pending])
+        except StoreClosedError:
+            context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down; re-send unacknowledged steps")
+        return _InFlight(future, [r.seq for r in pending], specs, time.perf_counter())
+
+    def _acked(self, job: _InFlight, context: grpc.ServicerContext) -> replay_pb2.InsertAck:
+        """Wait for one submitted batch to commit; its ack, or the status that ends the stream."""
+        try:
+            stored, dups = job.future.result()
+        except ReplayFullError as exc:
+            self.specs.restore_dirty(job.specs)
+            log.error("replay full", extra=kv(error=str(exc)))
+            context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, str(exc))
+        except StoreClosedError:
+            context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down; re-send unacknowledged steps")
+        COMMIT_SECONDS.observe(time.perf_counter() - job.started)
+        COMMIT_STEPS.observe(len(job.seqs))
+        STORED.inc(stored)
+        DUPLICATES.inc(dups)
+        self._update_gauges()
+        return replay_pb2.InsertAck(seqs=job.seqs, stored=stored, duplicates=dups)
 
     def _admit(self, req: replay_pb2.InsertRequest) -> tuple[grpc.StatusCode, str] | None:
         """None for a valid step; otherwise the status that ends the stream (after the steps before it)."""
         step = req.step
         try:
             problem = self._check(step)
+            if problem is None and req.table and not TABLE_NAME.match(req.table):
+                problem = "table", f"table {req.table[:80]!r} must be 1-64 characters of A-Z a-z 0-9 _ . -"
         except SpecUnavailable as exc:
             log.warning("cannot validate step", extra=kv(seq=req.seq, robot_id=step.robot_id, error=str(exc)))
             return grpc.StatusCode.UNAVAILABLE, f"seq {req.seq}: {exc}"
@@ -357,24 +443,6 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
                     error = exc
         return error.reason, str(error)
 
-    def _commit(self, pending: list[replay_pb2.InsertRequest], context: grpc.ServicerContext) -> replay_pb2.InsertAck:
-        specs = self.specs.take_dirty()
-        start = time.perf_counter()
-        try:
-            stored, dups = self.store.put_steps([r.step for r in pending], specs)
-        except ReplayFullError as exc:
-            self.specs.restore_dirty(specs)
-            log.error("replay full", extra=kv(error=str(exc)))
-            context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, str(exc))
-        except StoreClosedError:
-            context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down; re-send unacknowledged steps")
-        COMMIT_SECONDS.observe(time.perf_counter() - start)
-        COMMIT_STEPS.observe(len(pending))
-        STORED.inc(stored)
-        DUPLICATES.inc(dups)
-        self._update_gauges()
-        return replay_pb2.InsertAck(seqs=[r.seq for r in pending], stored=stored, duplicates=dups)
-
     def _update_gauges(self) -> None:
         try:
             st = self.store.stats()
@@ -383,37 +451,105 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         STEPS.set(st["steps"])
         TRANSITIONS.set(st["transitions"])
         BYTES_ON_DISK.set(st["bytes_on_disk"])
+        cache = self.store.cache_info()
+        HOT_TRANSITIONS.set(cache["entries"])
+        HOT_BYTES.set(cache["bytes"])
+        drawn = cache["hits"] + cache["misses"]
+        HOT_HIT_RATE.set(cache["hits"] / drawn if drawn else 0.0)
+        for table in self.store.tables():
+            TABLE_TRANSITIONS.labels(table).set(self.store.transitions_for(None, [table]))
 
     # ------------------------------------------------------------------ Sample / Stats
 
     def Sample(self, request: replay_pb2.SampleRequest, context: grpc.ServicerContext) -> replay_pb2.SampleResponse:
-        n = request.batch_size
-        if not 1 <= n <= MAX_SAMPLE:
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"batch_size must be in 1..{MAX_SAMPLE}, got {n}")
-        robot_ids = list(request.robot_ids) or None
+        problem = sample_request_problem(request)
+        if problem is not None:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, problem)
+        draw = to_draw(request)
+        robot_ids = draw.robot_ids or None
         start = time.perf_counter()
         try:
-            with self._rng_lock:
-                arrays = self.store.sample(n, self._rng, robot_ids)
+            self._rate_limit(request, robot_ids, context)
+            key = request.SerializeToString(deterministic=True)
+            served = self.prefetch.served
+            batch, size = self.prefetch.get(key, lambda: self._assemble(draw))
+            if self.prefetch.served > served:
+                PREFETCH_SERVED.inc()
+            transitions = self.store.transitions_for(robot_ids)
+            per_table = {t: self.store.transitions_for(robot_ids, [t]) for t in draw.tables}
         except (EmptyBufferError, LayoutError) as exc:
             context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(exc))
         except StoreClosedError:
             context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down")
-        size = _nbytes(arrays)
         if size > MAX_BATCH_BYTES:
-            per = max(1, size // n)
+            per = max(1, size // request.batch_size)
             context.abort(
                 grpc.StatusCode.INVALID_ARGUMENT,
-                f"a batch of {n} is {size} bytes, over the {MAX_BATCH_BYTES}-byte message limit; "
+                f"a batch of {request.batch_size} is {size} bytes, over the {MAX_BATCH_BYTES}-byte message limit; "
                 f"ask for at most {MAX_BATCH_BYTES // per}",
             )
-        resp = replay_pb2.SampleResponse(batch=to_batch(arrays), transitions=self.store.transitions_for(robot_ids))
+        with self._count_lock:
+            self.sampled += request.batch_size
+        resp = replay_pb2.SampleResponse(batch=batch, transitions=transitions, table_transitions=per_table)
         SAMPLE_SECONDS.observe(time.perf_counter() - start)
         return resp
+
+    def _assemble(self, draw: Draw) -> tuple[replay_pb2.Batch, int]:
+        with self._rng_lock:
+            rng = np.random.default_rng(self._rng.integers(1 << 63))
+        arrays = self.store.sample(draw.batch_size, rng, draw=draw)
+        size = _nbytes(arrays)
+        if size > MAX_BATCH_BYTES:
+            return replay_pb2.Batch(), size
+        return to_batch(arrays), size
+
+    def _rate_limit(
+        self, request: replay_pb2.SampleRequest, robot_ids: list[str] | None, context: grpc.ServicerContext
+    ) -> None:
+        """Reverb-like: a minimum size, and at most samples_per_insert sampled per inserted (plus slack).
+
+        Only samples wait: inserts are never held back, a robot must not stall on the learner.
+        """
+        if self.min_size_to_sample and self.store.transitions_for(robot_ids) < self.min_size_to_sample:
+            raise EmptyBufferError(f"fewer than min_size_to_sample={self.min_size_to_sample} transitions yet")
+        if self.samples_per_insert > 0:
+            allowed = self.samples_per_insert * self.store.inserted + self.samples_per_insert_slack
+            with self._count_lock:
+                over = self.sampled + request.batch_size > allowed
+            if over:
+                RATE_LIMITED.inc()
+                context.abort(
+                    grpc.StatusCode.RESOURCE_EXHAUSTED,
+                    f"rate limited: {self.sampled} sampled for {self.store.inserted} inserted "
+                    f"(samples_per_insert={self.samples_per_insert}); retry after more inserts",
+                )
+
+    def UpdatePriorities(
+        self, request: replay_pb2.UpdatePrioritiesRequest, context: grpc.ServicerContext
+    ) -> replay_pb2.UpdatePrioritiesResponse:
+        idx = np.asarray(request.indices, np.int64)
+        pri = np.asarray(request.priorities, np.float64)
+        if len(idx) != len(pri):
+            context.abort(
+                grpc.StatusCode.INVALID_ARGUMENT, f"{len(idx)} indices but {len(pri)} priorities (must be equal)"
+            )
+        if len(idx) > MAX_SAMPLE:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"at most {MAX_SAMPLE} priorities per call")
+        if len(pri) and (not np.isfinite(pri).all() or (pri < 0).any() or (pri > 3e38).any()):
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "priorities must be finite and >= 0")
+        if len(idx) and (idx < 0).any():
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "indices must be >= 0 (from Batch.indices)")
+        try:
+            updated = self.store.update_priorities(idx, pri.astype(np.float32))
+        except StoreClosedError:
+            context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down")
+        return replay_pb2.UpdatePrioritiesResponse(updated=updated)
 
     def Stats(self, request: replay_pb2.StatsRequest, context: grpc.ServicerContext) -> replay_pb2.StatsResponse:
         try:
             st = self.store.stats()
+            tables = self.store.table_stats()
+            cache = self.store.cache_info()
         except StoreClosedError:
             context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down")
         return replay_pb2.StatsResponse(
@@ -424,7 +560,65 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             steps_per_robot=st["steps_per_robot"],
             duplicates=st["duplicates"],
             rejected=self.rejected,
+            tables={name: _table_stats(t) for name, t in tables.items()},
+            hot_transitions=cache["entries"],
+            hot_bytes=cache["bytes"],
+            hot_hits=cache["hits"],
+            hot_misses=cache["misses"],
+            evicted_episodes=cache["evicted_episodes"],
+            stored_bytes=cache["stored_bytes"],
         )
+
+
+def _table_stats(t: dict[str, Any]) -> replay_pb2.TableStats:
+    return replay_pb2.TableStats(
+        transitions=t["transitions"],
+        steps=t["steps"],
+        episodes=t["episodes"],
+        bytes=t["bytes"],
+        success_rate=t["success_rate"],
+        robots={r: _table_stats({**v, "robots": {}}) for r, v in t.get("robots", {}).items()},
+    )
+
+
+def sample_request_problem(req: replay_pb2.SampleRequest) -> str | None:
+    """Why a SampleRequest is invalid, or None."""
+    if not 1 <= req.batch_size <= MAX_SAMPLE:
+        return f"batch_size must be in 1..{MAX_SAMPLE}, got {req.batch_size}"
+    if len(req.tables) > MAX_TABLES:
+        return f"at most {MAX_TABLES} tables per sample"
+    for name, ratio in req.tables.items():
+        if not TABLE_NAME.match(name):
+            return f"table {name[:80]!r} must be 1-64 characters of A-Z a-z 0-9 _ . -"
+        if not (math.isfinite(ratio) and ratio > 0):
+            return f"ratio of table {name!r} must be finite and > 0, got {ratio}"
+    if req.sampler not in SAMPLERS:
+        return f"unknown sampler {req.sampler}"
+    if req.frame_stack > MAX_FRAME_STACK:
+        return f"frame_stack must be at most {MAX_FRAME_STACK}, got {req.frame_stack}"
+    if req.n_step > MAX_N_STEP:
+        return f"n_step must be at most {MAX_N_STEP}, got {req.n_step}"
+    if req.n_step > 1 and not (0 < req.gamma <= 1):
+        return f"gamma must be in (0, 1] for n_step > 1, got {req.gamma}"
+    for field, value in (("priority_alpha", req.priority_alpha), ("priority_beta", req.priority_beta)):
+        if not (math.isfinite(value) and 0 <= value <= 10):
+            return f"{field} must be in [0, 10], got {value}"
+    return None
+
+
+def to_draw(req: replay_pb2.SampleRequest) -> Draw:
+    return Draw(
+        batch_size=req.batch_size,
+        tables=dict(req.tables),
+        robot_ids=sorted(set(req.robot_ids)),
+        sampler=SAMPLERS[req.sampler],
+        window=req.recency_window,
+        alpha=req.priority_alpha or 0.6,
+        beta=req.priority_beta or 0.4,
+        n_step=max(1, req.n_step),
+        gamma=req.gamma or 0.99,
+        frame_stack=max(1, req.frame_stack),
+    )
 
 
 def _nbytes(arrays: dict[str, Any]) -> int:
@@ -445,6 +639,9 @@ def to_batch(arrays: dict[str, Any]) -> replay_pb2.Batch:
         truncated=wire.to_tensor(arrays["truncated"]),
         intervention=wire.to_tensor(arrays["intervention"]),
         policy_version=wire.to_tensor(arrays["policy_version"]),
+        indices=wire.to_tensor(arrays["indices"]) if "indices" in arrays else None,
+        weights=wire.to_tensor(arrays["weights"]) if "weights" in arrays else None,
+        n_steps=wire.to_tensor(arrays["n_steps"]) if "n_steps" in arrays else None,
     )
 
 
@@ -462,12 +659,36 @@ class ReplayService(rpc.GrpcService):
     ) -> None:
         self.cfg = cfg
         rc = cfg.replay
-        self.store = ReplayStore(rc.path, rc.map_size_mb, cache_mb=rc.cache_mb)
+        self.store = ReplayStore(
+            rc.path,
+            rc.map_size_mb,
+            cache_mb=rc.cache_mb,
+            max_map_mb=rc.max_map_mb or 4 * rc.map_size_mb,
+            capacity_mb=rc.capacity_mb,
+            durability=rc.durability,
+            image_encoding=rc.image_encoding,
+        )
+        try:
+            for table, path in rc.attach.items():
+                self.store.attach(path, table)
+        except BaseException:
+            self.store.close()
+            raise
         self._control: ControlSpecSource | None = None
         if spec_source is None:
             self._control = ControlSpecSource(rc.control_addr, cfg.auth, rc.rpc_timeout_s)
             spec_source = self._control
-        self.servicer = ReplayServicer(self.store, spec_source, rc.commit_max_steps, rc.commit_max_delay_ms / 1000.0)
+        self.servicer = ReplayServicer(
+            self.store,
+            spec_source,
+            rc.commit_max_steps,
+            rc.commit_max_delay_ms / 1000.0,
+            prefetch_batches=rc.prefetch_batches,
+            prefetch_max_age_s=rc.prefetch_max_age_ms / 1000.0,
+            min_size_to_sample=rc.min_size_to_sample,
+            samples_per_insert=rc.samples_per_insert,
+            samples_per_insert_slack=rc.samples_per_insert_slack,
+        )
         self.start_metrics = start_metrics
         self.running: rpc.RunningServer | None = None
         self._stopped = False

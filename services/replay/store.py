@@ -1,253 +1,334 @@
-"""The persistent replay buffer: LMDB on disk, an index of sampleable transitions in memory.
+"""The replay buffer: LMDB is the durable truth (disk.py), RAM holds what sampling needs.
 
-One LMDB environment under `path` (data.mdb + lock.mdb), named databases:
-  steps:  b"<robot_id>/<episode_id>/" + big-endian uint64 step_index -> serialized user.v1.Step
-  ends:   same key -> b""  for steps that end an episode (they carry final_observation)
-  specs:  robot_id -> serialized RobotSpec (so a restarted replay can validate while control is down)
-  meta:   b"format" -> b"1"; b"duplicates" -> big-endian uint64
-Keys sort by robot, episode and step, so an episode's steps are adjacent and a re-sent step hits
-the same key and is stored once. The next observation of step t is the observation of step t+1,
-or t's own final_observation when t ends the episode: no observation is stored twice.
+- disk.StepDB: every step, acknowledged only after its transaction committed; idempotent keys.
+- tables.Index: every sampleable transition's id, robot, table(s), scalars and priority.
+- hot.HotGroup: the most recent transitions as contiguous columns (frames stored once as uint8);
+  a sampled transition that has left the hot tier is read from LMDB (a miss).
 
-Step t is sampleable once its next observation exists. The index of sampleable keys lives in
-memory, is rebuilt at open from a keys-only scan and grows as commits land, in any arrival order.
+Step t is sampleable once its next observation exists (step t+1's observation, or its own
+final_observation when it ends the episode), in any arrival order. Capacity is by bytes: when the
+stored steps exceed capacity_mb, whole episodes leave, oldest first (FIFO), from LMDB and RAM.
 """
 
 from __future__ import annotations
 
 import logging
-import struct
 import threading
-from collections import OrderedDict
+from collections import deque
 from collections.abc import Iterable
-from dataclasses import dataclass
+from concurrent.futures import Future
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import lmdb
 import numpy as np
+import prometheus_client
 
+from services.replay.disk import (
+    ENDS,
+    INTERVENTION,
+    ONLINE,
+    SUCCESS,
+    TERMINATED,
+    TRUNCATED,
+    ReplayError,
+    ReplayFullError,
+    StepDB,
+    StoreClosedError,
+    episode_prefix,
+    next_key,
+    robot_of,
+    split_key,
+)
+from services.replay.hot import HotGroup, Layout
+from services.replay.tables import INTERVENTIONS, Draw, EmptyBufferError, Index, Record
 from user import wire
 from user.log import kv
 from user.v1 import robot_pb2, step_pb2
 from user.v1 import tensor_pb2 as tpb
 
+__all__ = [
+    "EmptyBufferError",
+    "LayoutError",
+    "ReplayError",
+    "ReplayFullError",
+    "ReplayStore",
+    "StoreClosedError",
+    "episode_prefix",
+    "split_key",
+]
+
 log = logging.getLogger(__name__)
-
-FORMAT = b"1"
-_INDEX = struct.Struct(">Q")
-_U64 = struct.Struct(">Q")
-DEFAULT_CACHE_MB = 256
-_OVERHEAD_BYTES = 600  # Python objects around one cached step's arrays
-
-
-class ReplayError(RuntimeError):
-    """Base class for store errors the service maps to a gRPC status."""
-
-
-class EmptyBufferError(ReplayError):
-    """Nothing sampleable (yet, or for the robots asked for)."""
+DEFAULT_HOT_MB = 256
+MAX_OPEN_TAILS = 100_000
+ENCODINGS = {"raw": 0, "jpeg": tpb.ENCODING_JPEG, "png": tpb.ENCODING_PNG}
+MAX_GROUP_STEPS = 4096  # most steps the writer merges into one transaction
+MAX_GROUP_BYTES = 16 << 20  # and most bytes: LMDB keeps a transaction's dirty pages in RAM until commit
+COMMITS = prometheus_client.Histogram(
+    "user_replay_group_commit_steps",
+    "Steps per LMDB transaction after merging queued requests (group commit)",
+    buckets=(1, 4, 16, 64, 256, 1024, 4096),
+)  # steps waiting for their successor, kept to place transitions in the hot tier
 
 
 class LayoutError(ReplayError):
     """Sampled transitions do not share one observation layout (robots with different specs)."""
 
 
-class ReplayFullError(ReplayError):
-    """The LMDB map is full: raise replay.map_size_mb."""
-
-
-class StoreClosedError(ReplayError):
-    """The store was closed (the service is shutting down)."""
-
-
-def episode_prefix(robot_id: str, episode_id: str) -> bytes:
-    return f"{robot_id}/{episode_id}/".encode()
-
-
-def step_key(robot_id: str, episode_id: str, step_index: int) -> bytes:
-    return episode_prefix(robot_id, episode_id) + _INDEX.pack(step_index)
-
-
-def split_key(key: bytes) -> tuple[bytes, int]:
-    """(episode prefix, step index)."""
-    return key[:-8], _INDEX.unpack(key[-8:])[0]
-
-
-def _robot_of(prefix: bytes) -> str:
-    return prefix[: prefix.index(b"/")].decode()
-
-
-def _raw_bytes(tensor: tpb.Tensor) -> bytes:
-    """Stored tensors were validated on insert: RAW data is used as is, other encodings are decoded once."""
+def tensor_array(tensor: tpb.Tensor) -> np.ndarray:
+    """Stored tensors were validated on insert: RAW data is viewed as is, other encodings decoded."""
     if tensor.encoding == tpb.ENCODING_RAW:
-        return tensor.data
-    return wire.from_tensor(tensor).tobytes()
+        return np.frombuffer(tensor.data, dtype=wire.dtype_from_proto(tensor.dtype)).reshape(tuple(tensor.shape))
+    return wire.from_tensor(tensor)
 
 
-Layout = tuple[tuple[tuple[str, np.dtype, tuple[int, ...]], ...], tuple[np.dtype, tuple[int, ...]]]
+def arrays_of(tmap: tpb.TensorMap) -> dict[str, np.ndarray]:
+    return {name: tensor_array(t) for name, t in tmap.tensors.items()}
+
+
+def layout_of(step: step_pb2.Step) -> Layout:
+    features = tuple(
+        (name, wire.dtype_from_proto(t.dtype), tuple(t.shape)) for name, t in sorted(step.observation.tensors.items())
+    )
+    return features, (wire.dtype_from_proto(step.action.dtype), tuple(step.action.shape))
+
+
+@dataclass
+class Episode:
+    robot: str
+    table: str
+    steps: int = 0
+    nbytes: int = 0
+    success: bool = False
+    interventions: int = 0
+    tids: list[int] = field(default_factory=list)
 
 
 @dataclass(slots=True)
-class _Decoded:
-    """One step as raw little-endian bytes per tensor, kept in the LRU cache.
+class _Pending:
+    """A put_steps request waiting for the writer."""
 
-    A batch column is then one bytes join + one frombuffer, instead of B small arrays stacked.
-    `layout` is interned by the store, so rows of the same layout compare by identity.
-    """
+    steps: list[step_pb2.Step]
+    tables: list[str]
+    specs: list[robot_pb2.RobotSpec]
+    raws: list[bytes]
+    future: Future[tuple[int, int]]
+    nbytes: int = 0
 
-    observation: dict[str, bytes]
-    final_observation: dict[str, bytes] | None
-    layout: Layout
-    action: bytes
+
+@dataclass(slots=True)
+class _Tail:
+    """A stored step waiting for its successor's observation."""
+
+    group: int
+    seq: int  # its observation's frame
+    action: np.ndarray
     reward: float
     terminated: bool
     truncated: bool
     intervention: bool
     policy_version: int
-    nbytes: int
-
-    @classmethod
-    def parse(cls, raw: bytes, intern: dict[Layout, Layout]) -> _Decoded:
-        step = step_pb2.Step.FromString(raw)
-        obs: dict[str, bytes] = {}
-        features = []
-        for name, tensor in sorted(step.observation.tensors.items()):
-            obs[name] = _raw_bytes(tensor)
-            features.append((name, wire.dtype_from_proto(tensor.dtype), tuple(tensor.shape)))
-        final = None
-        if step.HasField("final_observation"):
-            final = {name: _raw_bytes(t) for name, t in step.final_observation.tensors.items()}
-        act = step.action
-        layout = (tuple(features), (wire.dtype_from_proto(act.dtype), tuple(act.shape)))
-        layout = intern.setdefault(layout, layout)
-        action = _raw_bytes(act)
-        nbytes = _OVERHEAD_BYTES + sum(map(len, obs.values())) + len(action)
-        if final is not None:
-            nbytes += sum(map(len, final.values()))
-        return cls(
-            obs,
-            final,
-            layout,
-            action,
-            step.reward,
-            step.terminated,
-            step.truncated,
-            step.intervention,
-            step.policy_version,
-            nbytes,
-        )
-
-
-class _LRU:
-    """Decoded steps by key, bounded by bytes."""
-
-    def __init__(self, max_bytes: int) -> None:
-        self.max_bytes = max_bytes
-        self.bytes = 0
-        self._items: OrderedDict[bytes, _Decoded] = OrderedDict()
-        self.hits = self.misses = 0
-
-    def get(self, key: bytes) -> _Decoded | None:
-        item = self._items.get(key)
-        if item is None:
-            self.misses += 1
-            return None
-        self._items.move_to_end(key)
-        self.hits += 1
-        return item
-
-    def put(self, key: bytes, item: _Decoded) -> None:
-        if item.nbytes > self.max_bytes:
-            return
-        self._items[key] = item
-        self.bytes += item.nbytes
-        while self.bytes > self.max_bytes:
-            _, old = self._items.popitem(last=False)
-            self.bytes -= old.nbytes
-
-    def __len__(self) -> int:
-        return len(self._items)
+    final_seq: int = -1
 
 
 class ReplayStore:
     """Thread-safe: one writer at a time (put_steps), samples and stats from any thread."""
 
-    def __init__(self, path: str | Path, map_size_mb: int = 4096, cache_mb: int = DEFAULT_CACHE_MB) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        map_size_mb: int = 4096,
+        cache_mb: int = DEFAULT_HOT_MB,
+        *,
+        max_map_mb: int | None = None,
+        capacity_mb: int = 0,
+        durability: str = "fsync",
+        readonly: bool = False,
+        image_encoding: dict[str, str] | None = None,
+    ) -> None:
         self.path = Path(path)
-        self.path.mkdir(parents=True, exist_ok=True)
-        self.env = lmdb.open(
-            str(self.path),
-            map_size=int(map_size_mb) << 20,
-            max_dbs=4,
-            subdir=True,
-            readahead=False,  # samples are random reads; readahead only pollutes the page cache
-            meminit=False,
-        )
-        self.map_size_mb = map_size_mb
-        stale = self.env.reader_check()  # reader slots left by a process that was killed
-        if stale:
-            log.info("cleared stale LMDB readers", extra=kv(path=str(self.path), readers=stale))
-        self._steps = self.env.open_db(b"steps")
-        self._ends = self.env.open_db(b"ends")
-        self._specs = self.env.open_db(b"specs")
-        self._meta = self.env.open_db(b"meta")
+        # observation feature -> how its uint8 images are stored in LMDB ("raw", "jpeg", "png"); "*" = every camera
+        self.image_encoding = {k: ENCODINGS[v] for k, v in (image_encoding or {}).items() if ENCODINGS[v]}
+        self.hot_bytes = int(cache_mb) << 20
+        self.capacity_bytes = int(capacity_mb) << 20  # 0 = no limit but the map
         self._write_lock = threading.Lock()  # one writer; also guards close()
-        self._index_lock = threading.Lock()  # the in-memory index below
-        self._sample_lock = threading.Lock()  # the decode cache
-        self._cache = _LRU(int(cache_mb) << 20)
-        self._layouts: dict[Layout, Layout] = {}
-        self._closed = False
-        self._pools: dict[str, list[bytes]] = {}  # robot_id -> sampleable step keys (append-only)
-        self._steps_per_robot: dict[str, int] = {}
-        self._episodes: set[bytes] = set()
+        self._queue: deque[_Pending] = deque()
+        self._queue_cond = threading.Condition()
+        self._writer: threading.Thread | None = None
+        self._closing = False
+        self._lock = threading.RLock()  # index, hot tier, LMDB read transactions vs map growth
+        self.db = StepDB(
+            path,
+            map_size_mb,
+            max_map_mb=max_map_mb if max_map_mb is not None else max(map_size_mb, 4 * capacity_mb),
+            durability=durability,
+            readonly=readonly,
+            guard=self._lock,
+        )
+        self.index = Index()
+        self._groups: list[HotGroup] = []
+        self._layout_ids: dict[Layout, int] = {}
+        self._robot_group: dict[str, int] = {}
+        self._tails: dict[bytes, _Tail] = {}
+        self._episodes: dict[bytes, Episode] = {}
+        self._attached: list[StepDB] = []
+        self._attached_episodes: dict[str, dict[bytes, Episode]] = {}
         self._n_steps = 0
-        self._duplicates = 0
+        self._steps_per_robot: dict[str, int] = {}
+        self._bytes = 0
+        self._evicted_episodes = 0
+        self.hits = self.misses = 0
+        self.generation = 0  # bumps when a commit or an eviction changes what can be sampled
+        self.inserted = 0  # steps stored by this process (the rate limiter's insert count)
+        self._closed = False
         try:
-            self._open_meta()
-            self._rebuild_index()
+            self._rebuild()
+            if not readonly:
+                self._warm()
         except BaseException:
-            self.env.close()
+            self.db.close()
             raise
         log.info(
             "replay store open",
             extra=kv(
-                path=str(self.path), steps=self._n_steps, transitions=self.transitions, episodes=len(self._episodes)
+                path=str(self.path), steps=self._n_steps, transitions=len(self.index), episodes=len(self._episodes)
             ),
         )
 
     # ------------------------------------------------------------------ open
 
-    def _open_meta(self) -> None:
-        with self.env.begin(write=True, db=self._meta) as txn:
-            fmt = txn.get(b"format")
-            if fmt is None:
-                if txn.stat(self._steps)["entries"]:
-                    raise ReplayError(f"{self.path} holds steps of an older replay format; move it away to start anew")
-                txn.put(b"format", FORMAT)
-            elif fmt != FORMAT:
-                raise ReplayError(f"{self.path}: replay format {fmt!r}, this code reads {FORMAT!r}")
-            dups = txn.get(b"duplicates")
-            self._duplicates = _U64.unpack(dups)[0] if dups else 0
+    def _rebuild(self) -> None:
+        """Index every sampleable transition from the scalars table, in arrival order."""
+        self._episodes = self._scan(self.db, b"", None, count=True)
 
-    def _rebuild_index(self) -> None:
-        """Keys-only scan (values are never read), so a restarted service samples everything it had."""
-        with self.env.begin() as txn:
-            ends = set(txn.cursor(db=self._ends).iternext(keys=True, values=False))
-            prev_key: bytes | None = None
-            prev_prefix, prev_index, robot = b"", -1, ""
-            for key in txn.cursor(db=self._steps).iternext(keys=True, values=False):
-                prefix, index = split_key(key)
-                if prefix != prev_prefix:
-                    robot = _robot_of(prefix)
-                    self._episodes.add(prefix)
-                elif prev_key is not None and index == prev_index + 1 and prev_key not in ends:
-                    self._pools.setdefault(robot, []).append(prev_key)
-                if key in ends:
-                    self._pools.setdefault(robot, []).append(key)
-                self._steps_per_robot[robot] = self._steps_per_robot.get(robot, 0) + 1
+    def _scan(self, db: StepDB, mark: bytes, table: str | None, count: bool = False) -> dict[bytes, Episode]:
+        """Episodes and sampleable transitions of `db` into the index; keys get `mark` in front (attached dbs)."""
+        tables = db.episode_tables()
+        episodes: dict[bytes, Episode] = {}
+        found: list[tuple[int, bytes, tuple[float, int, int, int, int]]] = []
+        firsts: dict[bytes, int] = {}
+        prev: tuple[bytes, int, tuple[float, int, int, int, int]] | None = None
+        for key, sc in db.scan():
+            prefix, t = split_key(key)
+            ep = episodes.get(prefix)
+            if ep is None:
+                ep = episodes[prefix] = Episode(robot_of(prefix), table or tables.get(prefix, ONLINE))
+                firsts[prefix] = sc[3]
+            firsts[prefix] = min(firsts[prefix], sc[3])
+            ep.steps += 1
+            ep.nbytes += sc[4] + len(key)
+            ep.success |= bool(sc[1] & SUCCESS)
+            ep.interventions += bool(sc[1] & INTERVENTION)
+            if count:
                 self._n_steps += 1
-                prev_key, prev_prefix, prev_index = key, prefix, index
+                self._steps_per_robot[ep.robot] = self._steps_per_robot.get(ep.robot, 0) + 1
+                self._bytes += sc[4] + len(key)
+            if prev is not None and prev[0][:-8] == prefix and prev[1] == t - 1 and not prev[2][1] & ENDS:
+                found.append((max(prev[2][3], sc[3]), prev[0], prev[2]))
+            if sc[1] & ENDS:
+                found.append((sc[3], key, sc))
+            prev = (key, t, sc)
+            db.arrival = max(db.arrival, sc[3] + 1)
+        episodes = dict(sorted(episodes.items(), key=lambda kv_: firsts[kv_[0]]))
+        records = []
+        for _, key, sc in sorted(found):
+            ep = episodes[key[:-8]]
+            flags = sc[1]
+            records.append(
+                Record(
+                    mark + key,
+                    self.index.code(ep.robot),
+                    ep.table,
+                    sc[0],
+                    bool(flags & TERMINATED),
+                    bool(flags & TRUNCATED),
+                    bool(flags & INTERVENTION),
+                    sc[2],
+                )
+            )
+        for r, tid in zip(records, self.index.add_many(records), strict=True):
+            episodes[r.key[len(mark) : -8]].tids.append(tid)
+        return episodes
+
+    def _warm(self) -> None:
+        """After a restart, read the newest transitions back into the hot tier (what online RL samples most)."""
+        n = len(self.index.keys)
+        if self.hot_bytes <= 0 or n == 0:
+            return
+        newest = self._read([self.index.keys[n - 1]])[0]
+        gid = self._robot_group[newest.robot_id] = self._group(layout_of(newest))
+        group = self._groups[gid]
+        first = max(0, n - int(group.capacity * 0.85))
+        warmed = 0
+        for start in range(first, n, 1024):
+            tids = [t for t in range(start, min(n, start + 1024)) if self.index.alive.a[t]]
+            keys = [self.index.keys[t] for t in tids]
+            steps = dict(zip(keys, self._read(keys), strict=True))
+            missing = [next_key(k) for k, s in steps.items() if not s.HasField("final_observation")]
+            missing = [k for k in missing if k not in steps]
+            steps.update(zip(missing, self._read(missing), strict=True))
+            seq_of: dict[bytes, int] = {}
+            for key in keys:  # observations once; a transition's next is its successor's observation
+                step = steps[key]
+                if layout_of(step) == group.layout:
+                    seq_of[key] = group.write_frame(arrays_of(step.observation))
+            rows_tids, obs_seqs, next_seqs, actions = [], [], [], []
+            for tid, key in zip(tids, keys, strict=True):
+                if key not in seq_of:
+                    continue
+                step = steps[key]
+                nxt_seq = seq_of.get(next_key(key))
+                if nxt_seq is None:
+                    final = step.HasField("final_observation")
+                    nxt = step.final_observation if final else steps[next_key(key)].observation
+                    try:
+                        nxt_seq = group.write_frame(arrays_of(nxt))
+                    except (ValueError, KeyError):  # a successor of another layout
+                        continue
+                rows_tids.append(tid)
+                obs_seqs.append(seq_of[key])
+                next_seqs.append(nxt_seq)
+                actions.append(tensor_array(step.action))
+            if rows_tids:
+                rows = group.add_many(rows_tids, obs_seqs, next_seqs, actions)
+                self.index.hot_row.a[rows_tids] = rows
+                self.index.group.a[rows_tids] = gid
+                warmed += len(rows_tids)
+        log.info("hot tier warmed from LMDB", extra=kv(path=str(self.path), transitions=warmed))
+
+    def attach(self, path: str | Path, table: str) -> int:
+        """Open another buffer read-only and sample its transitions as `table`; returns how many.
+
+        Its steps are read from its own LMDB on demand (never copied, never evicted, never written).
+        """
+        if table in self.index.tables:
+            raise ValueError(f"table {table!r} exists already; attach under a new name")
+        if len(self._attached) >= 250:
+            raise ValueError("at most 250 attached buffers")
+        db = StepDB(path, readonly=True)
+        with self._lock:
+            source = len(self._attached) + 1
+            self._attached.append(db)
+            self._attached_episodes[table] = self._scan(db, bytes([0, source]), table)
+            self.generation += 1
+            n = self.index.count(table)
+        log.info("attached a buffer read-only", extra=kv(path=str(path), table=table, transitions=n))
+        return n
+
+    def _get_many(self, keys: list[bytes]) -> list[bytes | None]:
+        """Values of index keys: own ones from this LMDB, marked ones (b"\\0" + source) from an attached one."""
+        if not self._attached:
+            return self.db.get_many(keys)
+        out: list[bytes | None] = [None] * len(keys)
+        by_source: dict[int, list[int]] = {}
+        for i, k in enumerate(keys):
+            by_source.setdefault(k[1] if k[:1] == b"\0" else 0, []).append(i)
+        for source, where in by_source.items():
+            db = self.db if source == 0 else self._attached[source - 1]
+            strip = 0 if source == 0 else 2
+            for i, raw in zip(where, db.get_many([keys[i][strip:] for i in where]), strict=True):
+                out[i] = raw
+        return out
 
     # ------------------------------------------------------------------ writes
 
@@ -255,186 +336,553 @@ class ReplayStore:
         if self._closed:
             raise StoreClosedError(f"replay store {self.path} is closed")
 
-    def put_steps(self, steps: list[step_pb2.Step], specs: Iterable[robot_pb2.RobotSpec] = ()) -> tuple[int, int]:
-        """Store validated steps (and specs) in ONE transaction; (stored, duplicates) once it has committed."""
-        stored: list[tuple[str, bytes]] = []  # (robot, episode prefix)
-        sampleable: list[tuple[str, bytes]] = []
-        dups = 0
-        with self._write_lock:
-            self._check_open()
-            try:
-                with self.env.begin(write=True) as txn:
-                    for step in steps:
-                        if self._put_one(txn, step, sampleable):
-                            stored.append((step.robot_id, episode_prefix(step.robot_id, step.episode_id)))
-                        else:
-                            dups += 1
-                    for spec in specs:
-                        txn.put(spec.robot_id.encode(), spec.SerializeToString(), db=self._specs)
-                    if dups:
-                        txn.put(b"duplicates", _U64.pack(self._duplicates + dups), db=self._meta)
-            except lmdb.MapFullError as exc:
-                raise ReplayFullError(
-                    f"replay store {self.path} is full (map_size_mb={self.map_size_mb}); raise replay.map_size_mb"
-                ) from exc
-            # Committed: only now may samples see these steps.
-            with self._index_lock:
-                for robot, key in sampleable:
-                    self._pools.setdefault(robot, []).append(key)
-                for robot, prefix in stored:
-                    self._steps_per_robot[robot] = self._steps_per_robot.get(robot, 0) + 1
-                    self._episodes.add(prefix)
-                self._n_steps += len(stored)
-                self._duplicates += dups
-        return len(stored), dups
+    def _group(self, layout: Layout) -> int:
+        gid = self._layout_ids.get(layout)
+        if gid is None:
+            gid = self._layout_ids[layout] = len(self._groups)
+            self._groups.append(HotGroup(layout, self.hot_bytes))
+        return gid
 
-    def _put_one(self, txn: lmdb.Transaction, step: step_pb2.Step, sampleable: list[tuple[str, bytes]]) -> bool:
-        """Put one step unless its key exists; note which transitions its arrival completes."""
-        rid, eid, t = step.robot_id, step.episode_id, step.step_index
-        key = step_key(rid, eid, t)
-        if not txn.put(key, step.SerializeToString(), db=self._steps, overwrite=False):
-            return False
-        if step.HasField("final_observation"):  # validated: only the last step carries one
-            txn.put(key, b"", db=self._ends)
-            sampleable.append((rid, key))
-        elif txn.get(step_key(rid, eid, t + 1), db=self._steps) is not None:
-            sampleable.append((rid, key))  # its successor arrived first (re-sent out of order)
-        if t > 0:
-            prev = step_key(rid, eid, t - 1)
-            # prev waited for this observation, unless it ended an episode (then it was sampleable already)
-            if txn.get(prev, db=self._steps) is not None and txn.get(prev, db=self._ends) is None:
-                sampleable.append((rid, prev))
-        return True
+    def put_steps(
+        self,
+        steps: list[step_pb2.Step],
+        specs: Iterable[robot_pb2.RobotSpec] = (),
+        table: str | list[str] = ONLINE,
+    ) -> tuple[int, int]:
+        """Store validated steps (and specs); (stored, duplicates) once committed and sampleable."""
+        return self.submit(steps, specs, table).result()
+
+    def submit(
+        self,
+        steps: list[step_pb2.Step],
+        specs: Iterable[robot_pb2.RobotSpec] = (),
+        table: str | list[str] = ONLINE,
+    ) -> Future[tuple[int, int]]:
+        """Queue steps for the writer; the future resolves once they are committed and indexed.
+
+        Group commit: the writer merges everything queued (from every stream) into one transaction,
+        so one fsync covers many requests, and callers serialize the next steps while it syncs.
+        """
+        tables = [table] * len(steps) if isinstance(table, str) else list(table)
+        raws = [self._stored_form(s).SerializeToString() for s in steps]
+        item = _Pending(steps, tables, list(specs), raws, Future(), sum(map(len, raws)))
+        with self._queue_cond:
+            if self._closing:
+                raise StoreClosedError(f"replay store {self.path} is closed")
+            self._queue.append(item)
+            if self._writer is None:
+                self._writer = threading.Thread(target=self._write_loop, name="replay-writer", daemon=True)
+                self._writer.start()
+            self._queue_cond.notify()
+        return item.future
+
+    def _stored_form(self, step: step_pb2.Step) -> step_pb2.Step:
+        """The step as LMDB keeps it: camera frames JPEG/PNG-encoded where configured (the hot tier keeps raw)."""
+        if not self.image_encoding:
+            return step
+        out: step_pb2.Step | None = None
+        for part in ("observation", "final_observation"):
+            if part == "final_observation" and not step.HasField(part):
+                continue
+            for name, tensor in getattr(step, part).tensors.items():
+                enc = self.image_encoding.get(name, self.image_encoding.get("*") if name.startswith("camera.") else 0)
+                if not enc or tensor.encoding != tpb.ENCODING_RAW or tensor.dtype != tpb.DTYPE_UINT8:
+                    continue
+                if len(tensor.shape) not in (2, 3) or (len(tensor.shape) == 3 and tensor.shape[2] not in (1, 3)):
+                    continue
+                if out is None:
+                    out = step_pb2.Step()
+                    out.CopyFrom(step)
+                getattr(out, part).tensors[name].CopyFrom(wire.to_tensor(tensor_array(tensor), enc))
+        return out if out is not None else step
+
+    def _write_loop(self) -> None:
+        while True:
+            with self._queue_cond:
+                while not self._queue and not self._closing:
+                    self._queue_cond.wait()
+                if not self._queue:
+                    return
+                group, n, size = [], 0, 0
+                while self._queue and (
+                    not group
+                    or (
+                        n + len(self._queue[0].steps) <= MAX_GROUP_STEPS
+                        and size + self._queue[0].nbytes <= MAX_GROUP_BYTES
+                    )
+                ):
+                    item = self._queue.popleft()
+                    group.append(item)
+                    n += len(item.steps)
+                    size += item.nbytes
+            try:
+                self._commit_group(group)
+            except ReplayError:  # attribute the failure: commit each request alone
+                for item in group:
+                    try:
+                        self._commit_group([item])
+                    except Exception as exc:
+                        item.future.set_exception(exc)
+            except Exception as exc:
+                for item in group:
+                    if not item.future.done():
+                        item.future.set_exception(exc)
+
+    def _commit_group(self, group: list[_Pending]) -> None:
+        steps = [s for item in group for s in item.steps]
+        with self._write_lock:
+            done = self.db.put_steps(
+                steps,
+                [t for item in group for t in item.tables],
+                [spec for item in group for spec in item.specs],
+                [r for item in group for r in item.raws],
+                self._tails,  # stored steps still waiting for their successor (this thread alone changes it)
+            )
+            # Committed: only now may samples see these steps.
+            with self._lock:
+                self._index_committed(done.stored, done.sampleable)
+                self.inserted += len(done.stored)
+                self.generation += bool(done.stored)
+            self._evict_over_capacity()
+        COMMITS.observe(len(steps))
+        at = 0
+        for item in group:
+            stored = sum(done.stored_mask[at : at + len(item.steps)])
+            item.future.set_result((stored, len(item.steps) - stored))
+            at += len(item.steps)
+
+    def _index_committed(self, stored: list[tuple[bytes, step_pb2.Step, int, str]], sampleable: list[bytes]) -> None:
+        for key, step, nbytes, table in stored:
+            prefix = key[:-8]
+            ep = self._episodes.get(prefix)
+            if ep is None:
+                ep = self._episodes[prefix] = Episode(step.robot_id, table)
+            ep.steps += 1
+            ep.nbytes += nbytes + len(key)
+            ep.success |= step.success
+            ep.interventions += step.intervention
+            self._n_steps += 1
+            self._steps_per_robot[ep.robot] = self._steps_per_robot.get(ep.robot, 0) + 1
+            self._bytes += nbytes + len(key)
+        if self.hot_bytes > 0:
+            self._tails_many([(key, step) for key, step, _, _ in stored])
+        hot: dict[int, list[tuple[int, int, int, np.ndarray]]] = {}  # group -> (record, obs seq, next seq, action)
+        records: list[Record] = []
+        for key in sampleable:
+            tail = self._tails.get(key)
+            nxt = None if tail is None or tail.final_seq >= 0 else self._tails.get(next_key(key))
+            ep = self._episodes[key[:-8]]
+            code = self.index.code(ep.robot)
+            if tail is not None and (tail.final_seq >= 0 or (nxt is not None and nxt.group == tail.group)):
+                next_seq = tail.final_seq if tail.final_seq >= 0 else nxt.seq  # type: ignore[union-attr]
+                hot.setdefault(tail.group, []).append((len(records), tail.seq, next_seq, tail.action))
+                records.append(
+                    Record(
+                        key,
+                        code,
+                        ep.table,
+                        tail.reward,
+                        tail.terminated,
+                        tail.truncated,
+                        tail.intervention,
+                        tail.policy_version,
+                        tail.group,
+                    )
+                )
+            else:  # completed out of order or after a restart: its data stays in LMDB
+                step = self._read([key])[0]
+                records.append(
+                    Record(
+                        key,
+                        code,
+                        ep.table,
+                        step.reward,
+                        step.terminated,
+                        step.truncated,
+                        step.intervention,
+                        step.policy_version,
+                    )
+                )
+        first = len(self.index.keys)
+        for gid, items in hot.items():
+            rows = self._groups[gid].add_many(
+                [first + i for i, _, _, _ in items],
+                [o for _, o, _, _ in items],
+                [x for _, _, x, _ in items],
+                [a for _, _, _, a in items],
+            )
+            for (i, _, _, _), row in zip(items, rows.tolist(), strict=True):
+                records[i].hot_row = row
+        tids = self.index.add_many(records)
+        for r, tid in zip(records, tids, strict=True):
+            self._episodes[r.key[:-8]].tids.append(tid)
+        for key in sampleable:  # their transitions are indexed; a successor finds its frame in the ring
+            self._tails.pop(key, None)
+
+    def _tails_many(self, items: list[tuple[bytes, step_pb2.Step]]) -> None:
+        """_tail for many steps: per robot, observations copied into the hot tier in one go."""
+        by_robot: dict[str, list[tuple[bytes, step_pb2.Step]]] = {}
+        for key, step in items:
+            by_robot.setdefault(step.robot_id, []).append((key, step))
+        for robot, mine in by_robot.items():
+            gid = self._robot_group.get(robot)
+            seqs = None if gid is None else self._groups[gid].write_many([s.observation for _, s in mine])
+            if seqs is None:  # first steps of a robot, a new layout, or encoded frames: one by one
+                for key, step in mine:
+                    self._tail(key, step)
+                continue
+            group = self._groups[gid]  # type: ignore[index]
+            for (key, step), seq in zip(mine, seqs.tolist(), strict=True):
+                tail = _Tail(
+                    gid,  # type: ignore[arg-type]
+                    seq,
+                    tensor_array(step.action),
+                    step.reward,
+                    step.terminated,
+                    step.truncated,
+                    step.intervention,
+                    step.policy_version,
+                )
+                if step.HasField("final_observation"):
+                    tail.final_seq = group.write_tensors(step.final_observation)
+                self._remember(key, tail)
+
+    def _remember(self, key: bytes, tail: _Tail) -> None:
+        if len(self._tails) >= MAX_OPEN_TAILS:  # successors that never came: forget the oldest
+            self._tails.pop(next(iter(self._tails)))
+        self._tails[key] = tail
+
+    def _tail(self, key: bytes, step: step_pb2.Step) -> None:
+        """Copy a stored step's observation(s) into the hot tier; remember it until its transition completes."""
+        gid = self._robot_group.get(step.robot_id)
+        try:
+            if gid is None:
+                raise ValueError("no group yet")
+            group = self._groups[gid]
+            seq = group.write_tensors(step.observation)
+        except (ValueError, KeyError):  # first step of the robot, or it re-registered with a new layout
+            gid = self._robot_group[step.robot_id] = self._group(layout_of(step))
+            group = self._groups[gid]
+            seq = group.write_tensors(step.observation)
+        tail = _Tail(
+            gid,
+            seq,
+            tensor_array(step.action),
+            step.reward,
+            step.terminated,
+            step.truncated,
+            step.intervention,
+            step.policy_version,
+        )
+        if step.HasField("final_observation"):
+            tail.final_seq = group.write_tensors(step.final_observation)
+        self._remember(key, tail)
+
+    def _evict_over_capacity(self) -> None:
+        """Whole episodes, oldest first, until the stored bytes fit capacity_mb again (with 5% slack)."""
+        if not self.capacity_bytes or self._bytes <= self.capacity_bytes:
+            return
+        target = int(self.capacity_bytes * 0.95)
+        with self._lock:
+            victims: list[bytes] = []
+            freed = 0
+            for prefix, ep in self._episodes.items():
+                if self._bytes - freed <= target or len(victims) == len(self._episodes) - 1:
+                    break
+                victims.append(prefix)
+                freed += ep.nbytes
+        if not victims:
+            return
+        self.db.delete_episodes(victims)
+        with self._lock:
+            tids: list[int] = []
+            for prefix in victims:
+                ep = self._episodes.pop(prefix)
+                tids += ep.tids
+                self._n_steps -= ep.steps
+                left = self._steps_per_robot[ep.robot] - ep.steps
+                if left:
+                    self._steps_per_robot[ep.robot] = left
+                else:
+                    del self._steps_per_robot[ep.robot]
+                self._bytes -= ep.nbytes
+            self.index.evict(tids)
+            gone = set(victims)
+            for key in [k for k in self._tails if k[:-8] in gone]:  # their steps left LMDB: nothing waits
+                del self._tails[key]
+            self._evicted_episodes += len(victims)
+            self.generation += 1
+        log.info("evicted episodes", extra=kv(episodes=len(victims), bytes=freed))
 
     def put_spec(self, spec: robot_pb2.RobotSpec) -> None:
         with self._write_lock:
             self._check_open()
-            with self.env.begin(write=True, db=self._specs) as txn:
-                txn.put(spec.robot_id.encode(), spec.SerializeToString())
+            self.db.put_spec(spec)
 
     def get_spec(self, robot_id: str) -> robot_pb2.RobotSpec | None:
         self._check_open()
-        with self.env.begin(db=self._specs) as txn:
-            raw = txn.get(robot_id.encode())
-        return None if raw is None else robot_pb2.RobotSpec.FromString(raw)
+        with self._lock:
+            return self.db.get_spec(robot_id)
 
     # ------------------------------------------------------------------ reads
 
+    def _read(self, keys: list[bytes]) -> list[step_pb2.Step]:
+        with self._lock:
+            raws = self.db.get_many(keys)
+        out = []
+        for key, raw in zip(keys, raws, strict=True):
+            if raw is None:
+                raise ReplayError(f"index points at a missing step {key!r}")
+            out.append(step_pb2.Step.FromString(raw))
+        return out
+
     @property
     def transitions(self) -> int:
-        with self._index_lock:
-            return sum(len(p) for p in self._pools.values())
+        with self._lock:
+            return len(self.index)
 
-    def transitions_for(self, robot_ids: list[str] | None = None) -> int:
-        with self._index_lock:
-            if not robot_ids:
-                return sum(len(p) for p in self._pools.values())
-            return sum(len(self._pools.get(r, ())) for r in set(robot_ids))
+    def transitions_for(self, robot_ids: list[str] | None = None, tables: Iterable[str] = ()) -> int:
+        with self._lock:
+            names = list(tables) or [""]
+            return sum(self.index.count(t, robot_ids) for t in names)
 
-    def _draw(self, batch_size: int, rng: np.random.Generator, robot_ids: list[str] | None) -> list[bytes]:
-        """Uniform over the sampleable transitions of the robots asked for, with replacement."""
-        with self._index_lock:
-            names = sorted(set(robot_ids)) if robot_ids else sorted(self._pools)
-            pools = [self._pools[r] for r in names if self._pools.get(r)]
-            sizes = np.array([len(p) for p in pools], dtype=np.int64)
-        total = int(sizes.sum()) if len(sizes) else 0
-        if total == 0:
-            which = f" for robots {sorted(set(robot_ids))}" if robot_ids else ""
-            raise EmptyBufferError(f"no sampleable transitions{which} yet")
-        picks = rng.integers(0, total, size=batch_size)
-        if len(pools) == 1:
-            pool = pools[0]
-            return [pool[i] for i in picks.tolist()]
-        # Pools only grow, so indices below the sizes read under the lock stay valid.
-        ends = np.cumsum(sizes)
-        owner = np.searchsorted(ends, picks, side="right")
-        local = picks - (ends[owner] - sizes[owner])
-        return [pools[o][i] for o, i in zip(owner.tolist(), local.tolist(), strict=True)]
+    def tables(self) -> list[str]:
+        with self._lock:
+            return sorted(self.index.tables)
 
-    def _decoded(self, txn: lmdb.Transaction, key: bytes) -> _Decoded:
-        hit = self._cache.get(key)
-        if hit is not None:
-            return hit
-        raw = txn.get(key, db=self._steps)
-        if raw is None:
-            raise ReplayError(f"index points at a missing step {key!r}")
-        item = _Decoded.parse(raw, self._layouts)
-        self._cache.put(key, item)
-        return item
-
-    def sample(self, batch_size: int, rng: np.random.Generator, robot_ids: list[str] | None = None) -> dict[str, Any]:
+    def sample(
+        self,
+        batch_size: int,
+        rng: np.random.Generator,
+        robot_ids: list[str] | None = None,
+        draw: Draw | None = None,
+    ) -> dict[str, Any]:
         """A ready-to-train batch of stacked numpy arrays (see module doc for next_observation)."""
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-        keys = self._draw(batch_size, rng, robot_ids)
-        rows: list[tuple[_Decoded, dict[str, bytes], Layout]] = []
-        with self._sample_lock:
+        req = draw or Draw(batch_size=batch_size, robot_ids=list(robot_ids or []))
+        req.batch_size = batch_size
+        with self._lock:
             self._check_open()
-            with self.env.begin(db=self._steps) as txn:
-                for key in keys:
-                    cur = self._decoded(txn, key)
-                    if cur.final_observation is not None:
-                        rows.append((cur, cur.final_observation, cur.layout))
-                    else:
-                        prefix, t = split_key(key)
-                        nxt = self._decoded(txn, prefix + _INDEX.pack(t + 1))
-                        rows.append((cur, nxt.observation, nxt.layout))
-        return self._stack(rows, keys)
+            drawn = self.index.draw(req, rng)
+            idx = self.index
+            tids, last = drawn.tids, drawn.last
+            out: dict[str, Any] = {
+                "reward": drawn.reward,
+                "terminated": drawn.terminated,
+                "truncated": drawn.truncated,
+                "intervention": idx.intervention.a[tids],
+                "policy_version": idx.policy_version.a[tids],
+                "indices": tids,
+                "weights": drawn.weights,
+                "n_steps": drawn.n_steps,
+            }
+            k = max(1, req.frame_stack)
+            if k == 1:
+                self._gather(out, tids, last)
+                return out
+            # frame stacking: the k newest observations up to t, and up to t+n for next_observation
+            # (oldest first), repeating an episode's first observation where fewer than k came before
+            newest: dict[str, Any] = {}
+            self._gather(newest, tids, last)
+            obs_parts, next_parts = [], []
+            for back in range(k - 1, 0, -1):
+                part: dict[str, Any] = {}
+                self._gather(part, idx.back(tids, back), last)  # (its next_observation is not used)
+                obs_parts.append(part["observation"])
+                before_end: dict[str, Any] = {}
+                self._gather(before_end, idx.back(last, back - 1), last)
+                next_parts.append(before_end["observation"])
+            obs_parts.append(newest["observation"])
+            next_parts.append(newest["next_observation"])
+            out["action"] = newest["action"]
+            out["observation"] = {f: np.stack([p[f] for p in obs_parts], axis=1) for f in obs_parts[-1]}
+            out["next_observation"] = {f: np.stack([p[f] for p in next_parts], axis=1) for f in next_parts[-1]}
+            return out
 
-    @staticmethod
-    def _stack(rows: list[tuple[_Decoded, dict[str, bytes], Layout]], keys: list[bytes]) -> dict[str, Any]:
-        layout = rows[0][0].layout
-        for i, (cur, _, nxt_layout) in enumerate(rows):
-            if cur.layout is not layout or nxt_layout is not layout:
+    def _gather(self, out: dict[str, Any], tids: np.ndarray, last: np.ndarray) -> None:
+        """observation (of tids), next_observation (after last) and action columns (caller holds the lock)."""
+        idx = self.index
+        same = last is tids  # one-step transitions: one set of checks
+        g_obs = idx.group.a[tids]
+        g_next = g_obs if same else idx.group.a[last]
+        g0 = int(g_obs[0])
+        if (g_obs == g0).all() and (same or (g_next == g0).all()):
+            known = [g0] if g0 >= 0 else []
+        else:
+            gids = np.unique(np.concatenate([g_obs, g_next]))
+            known = gids[gids >= 0].tolist()
+        if len(known) > 1:
+            raise LayoutError(
+                "sampled transitions have different observation layouts; "
+                "sample robots with different specs separately (robot_ids)"
+            )
+        hot = self._groups[known[0]] if known else None
+        rows = idx.hot_row.a[tids]
+        next_rows = rows if same else idx.hot_row.a[last]
+        if hot is not None:
+            ok_obs = hot.valid(rows, tids)
+            ok_next = ok_obs if same else hot.valid(next_rows, last)
+        else:
+            ok_obs = ok_next = np.zeros(len(tids), bool)
+        n_hot = int(np.count_nonzero(ok_obs))
+        self.hits += n_hot
+        self.misses += len(tids) - n_hot
+        if hot is not None and n_hot == len(tids) and (same or ok_next.all()):
+            out["observation"] = hot.observations(rows, "obs")
+            out["next_observation"] = hot.observations(next_rows, "next")
+            action = hot.action[rows]
+            out["action"] = action if action.dtype == np.float32 else action.astype(np.float32)
+            return
+        self._fill_mixed(out, hot, tids, last, ok_obs, ok_next)
+
+    def _fill_mixed(
+        self,
+        out: dict[str, Any],
+        hot: HotGroup | None,
+        tids: np.ndarray,
+        last: np.ndarray,
+        ok_obs: np.ndarray,
+        ok_next: np.ndarray,
+    ) -> None:
+        """Hot rows gathered from RAM, the rest read from LMDB into the same columns (caller holds the lock)."""
+        idx = self.index
+        cold_obs, cold_next = np.flatnonzero(~ok_obs), np.flatnonzero(~ok_next)
+        keys = [idx.keys[t] for t in tids[cold_obs].tolist()]
+        last_keys = [idx.keys[t] for t in last[cold_next].tolist()]
+        uniq = sorted(set(keys) | set(last_keys) | {next_key(k) for k in last_keys})
+        raws = dict(zip(uniq, self._get_many(uniq), strict=True))
+        steps: dict[bytes, step_pb2.Step] = {}
+
+        def step(key: bytes) -> step_pb2.Step:
+            s = steps.get(key)
+            if s is None:
+                raw = raws.get(key)
+                if raw is None:
+                    raise ReplayError(f"index points at a missing step {key!r}")
+                s = steps[key] = step_pb2.Step.FromString(raw)
+            return s
+
+        cur = [step(k) for k in keys]
+        nxt = []
+        for k in last_keys:
+            s = step(k)
+            nxt.append(s.final_observation if s.HasField("final_observation") else step(next_key(k)).observation)
+        layout = hot.layout if hot is not None else layout_of(cur[0] if cur else step(last_keys[0]))
+        for i, s in enumerate(cur):
+            if layout_of(s) != layout:
                 raise LayoutError(
                     f"sampled transitions have different observation layouts ({keys[0][:-8]!r} vs "
                     f"{keys[i][:-8]!r}); sample robots with different specs separately (robot_ids)"
                 )
         features, (act_dtype, act_shape) = layout
-        n = len(rows)
+        n = len(tids)
+        obs = {f: np.empty((n, *sh), dt) for f, dt, sh in features}
+        next_obs = {f: np.empty((n, *sh), dt) for f, dt, sh in features}
+        action = np.empty((n, *act_shape), act_dtype)
+        if hot is not None and ok_obs.any():
+            rows = idx.hot_row.a[tids[ok_obs]]
+            for f, col in hot.observations(rows, "obs").items():
+                obs[f][ok_obs] = col
+            action[ok_obs] = hot.action[rows]
+        if hot is not None and ok_next.any():
+            for f, col in hot.observations(idx.hot_row.a[last[ok_next]], "next").items():
+                next_obs[f][ok_next] = col
+        try:
+            for i, s in zip(cold_obs.tolist(), cur, strict=True):
+                for f, _, _ in features:
+                    obs[f][i] = tensor_array(s.observation.tensors[f])
+                action[i] = tensor_array(s.action)
+            for i, m in zip(cold_next.tolist(), nxt, strict=True):
+                for f, _, _ in features:
+                    next_obs[f][i] = tensor_array(m.tensors[f])
+        except (KeyError, ValueError) as exc:
+            raise LayoutError(f"sampled observations do not match one layout: {exc}") from None
+        out["observation"] = obs
+        out["next_observation"] = next_obs
+        out["action"] = action.astype(np.float32, copy=False)
 
-        def column(parts: list[bytes], dtype: np.dtype, shape: tuple[int, ...]) -> np.ndarray:
-            # one copy into a writable buffer, viewed as (B, *shape)
-            return np.frombuffer(bytearray().join(parts), dtype=dtype).reshape((n, *shape))
+    def update_priorities(self, tids: np.ndarray, priorities: np.ndarray) -> int:
+        with self._lock:
+            return self.index.update_priorities(np.asarray(tids, np.int64), np.asarray(priorities, np.float32))
 
-        return {
-            "observation": {f: column([c.observation[f] for c, _, _ in rows], dt, sh) for f, dt, sh in features},
-            "next_observation": {f: column([x[f] for _, x, _ in rows], dt, sh) for f, dt, sh in features},
-            "action": column([c.action for c, _, _ in rows], act_dtype, act_shape).astype(np.float32, copy=False),
-            "reward": np.fromiter((c.reward for c, _, _ in rows), dtype=np.float32, count=n),
-            "terminated": np.fromiter((c.terminated for c, _, _ in rows), dtype=bool, count=n),
-            "truncated": np.fromiter((c.truncated for c, _, _ in rows), dtype=bool, count=n),
-            "intervention": np.fromiter((c.intervention for c, _, _ in rows), dtype=bool, count=n),
-            "policy_version": np.fromiter((c.policy_version for c, _, _ in rows), dtype=np.int64, count=n),
-        }
+    # ------------------------------------------------------------------ stats
 
     def bytes_on_disk(self) -> int:
-        """Bytes of LMDB pages in use in data.mdb (the map itself is sparse)."""
         self._check_open()
-        return (self.env.info()["last_pgno"] + 1) * self.env.stat()["psize"]
+        with self._lock:
+            return self.db.bytes_on_disk()
 
     def stats(self) -> dict[str, Any]:
         on_disk = self.bytes_on_disk()
-        with self._index_lock:
+        with self._lock:
+            per_robot = dict(self._steps_per_robot)
             return {
                 "steps": self._n_steps,
-                "transitions": sum(len(p) for p in self._pools.values()),
+                "transitions": len(self.index),
                 "episodes": len(self._episodes),
                 "bytes_on_disk": on_disk,
-                "steps_per_robot": dict(self._steps_per_robot),
-                "duplicates": self._duplicates,
+                "steps_per_robot": per_robot,
+                "duplicates": self.db.duplicates,
             }
 
+    def table_stats(self) -> dict[str, dict[str, Any]]:
+        """Per table (and per robot within it): transitions, steps, episodes, bytes, success rate."""
+        with self._lock:
+            out: dict[str, dict[str, Any]] = {}
+
+            def row(table: str, robot: str | None) -> dict[str, Any]:
+                t = out.setdefault(table, {"transitions": 0, "steps": 0, "episodes": 0, "bytes": 0, "successes": 0})
+                t.setdefault("robots", {})
+                if robot is None:
+                    return t
+                return t["robots"].setdefault(
+                    robot, {"transitions": 0, "steps": 0, "episodes": 0, "bytes": 0, "successes": 0}
+                )
+
+            attached = [e for eps in self._attached_episodes.values() for e in eps.values()]
+            for ep in [*self._episodes.values(), *attached]:
+                for target in (row(ep.table, None), row(ep.table, ep.robot)):
+                    target["steps"] += ep.steps
+                    target["episodes"] += 1
+                    target["bytes"] += ep.nbytes
+                    target["successes"] += ep.success
+            for name in self.index.tables:
+                for code, grow in self.index.tables[name].items():
+                    robot = self.index.robots[code]
+                    row(name, None)["transitions"] += grow.n
+                    row(name, robot)["transitions"] += grow.n
+            for t in out.values():
+                for r in [t, *t["robots"].values()]:
+                    r["success_rate"] = r["successes"] / r["episodes"] if r["episodes"] else 0.0
+            if INTERVENTIONS in out:  # its episodes and bytes belong to the tables they were inserted into
+                out[INTERVENTIONS]["episodes"] = sum(e.interventions > 0 for e in self._episodes.values())
+            return out
+
     def cache_info(self) -> dict[str, int]:
-        with self._sample_lock:
-            c = self._cache
-            return {"entries": len(c), "bytes": c.bytes, "hits": c.hits, "misses": c.misses}
+        with self._lock:
+            return {
+                "entries": sum(g.hot_transitions() for g in self._groups),
+                "bytes": sum(g.resident_bytes() for g in self._groups),
+                "capacity": sum(g.capacity for g in self._groups),
+                "hits": self.hits,
+                "misses": self.misses,
+                "evicted_episodes": self._evicted_episodes,
+                "stored_bytes": self._bytes,
+            }
 
     def close(self) -> None:
-        """Idempotent; waits for a commit or sample in progress."""
-        with self._write_lock, self._sample_lock:
+        """Idempotent; commits what is queued, then waits for a commit or sample in progress."""
+        with self._queue_cond:
+            self._closing = True
+            self._queue_cond.notify_all()
+            writer = self._writer
+        if writer is not None and writer is not threading.current_thread():
+            writer.join()
+        with self._write_lock, self._lock:
             if self._closed:
                 return
             self._closed = True
-            self.env.sync(True)
-            self.env.close()
+            self.db.close()
+            for db in self._attached:
+                db.close()

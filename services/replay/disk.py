@@ -1,0 +1,360 @@
+"""The durable truth of the replay buffer: one LMDB environment under `path` (data.mdb + lock.mdb).
+
+Named databases:
+  steps:    b"<robot_id>/<episode_id>/" + big-endian uint64 step_index -> serialized user.v1.Step
+  ends:     same key -> b""  for steps that end an episode (they carry final_observation)
+  scalars:  same key -> packed (reward, flags, policy_version, arrival, value bytes): what the
+            in-memory index needs, so reopening reads 25 bytes per step instead of whole steps
+  episodes: b"<robot_id>/<episode_id>/" -> table name, for episodes of a table other than "online"
+  specs:    robot_id -> serialized RobotSpec (so a restarted replay can validate while control is down)
+  meta:     b"format" -> b"1"; b"duplicates" -> big-endian uint64
+Keys sort by robot, episode and step, so an episode's steps are adjacent and a re-sent step hits
+the same key and is stored once. The next observation of step t is the observation of step t+1,
+or t's own final_observation when t ends the episode: no observation is stored twice.
+
+Durability: put_steps returns only after its transaction committed. With durability="fsync" (the
+default) the commit is fsync'd, so an acknowledged step survives a power cut; with "os" it is in
+the page cache (survives kill -9 of replay, not a power cut) and is fsync'd every sync_interval_s.
+Either way many steps share one transaction (group commit), so fsync is paid per batch, not per step.
+The map grows by itself (doubling) up to max_map_mb instead of failing when full.
+"""
+
+from __future__ import annotations
+
+import logging
+import struct
+import threading
+import time
+from collections.abc import Container, Iterable, Iterator
+from pathlib import Path
+
+import lmdb
+
+from user.log import kv
+from user.v1 import robot_pb2, step_pb2
+
+log = logging.getLogger(__name__)
+
+FORMAT = b"1"
+_INDEX = struct.Struct(">Q")
+_U64 = struct.Struct(">Q")
+SCALARS = struct.Struct("<fBQQI")  # reward, flags, policy_version, arrival, value bytes
+TERMINATED, TRUNCATED, INTERVENTION, SUCCESS, ENDS = 1, 2, 4, 8, 16
+ONLINE = "online"
+DURABILITY = ("fsync", "os")
+
+
+class ReplayError(RuntimeError):
+    """Base class for store errors the service maps to a gRPC status."""
+
+
+class ReplayFullError(ReplayError):
+    """The LMDB map reached max_map_mb: raise replay.max_map_mb or lower replay.capacity_mb."""
+
+
+class StoreClosedError(ReplayError):
+    """The store was closed (the service is shutting down)."""
+
+
+def episode_prefix(robot_id: str, episode_id: str) -> bytes:
+    return f"{robot_id}/{episode_id}/".encode()
+
+
+def step_key(robot_id: str, episode_id: str, step_index: int) -> bytes:
+    return episode_prefix(robot_id, episode_id) + _INDEX.pack(step_index)
+
+
+def split_key(key: bytes) -> tuple[bytes, int]:
+    """(episode prefix, step index)."""
+    return key[:-8], _INDEX.unpack(key[-8:])[0]
+
+
+def next_key(key: bytes) -> bytes:
+    prefix, t = split_key(key)
+    return prefix + _INDEX.pack(t + 1)
+
+
+def robot_of(prefix: bytes) -> str:
+    return prefix[: prefix.index(b"/")].decode()
+
+
+def flags_of(step: step_pb2.Step) -> int:
+    return (
+        (TERMINATED if step.terminated else 0)
+        | (TRUNCATED if step.truncated else 0)
+        | (INTERVENTION if step.intervention else 0)
+        | (SUCCESS if step.success else 0)
+    )
+
+
+class Committed:
+    """What one put_steps transaction changed: new steps (in arrival order) and newly sampleable keys."""
+
+    __slots__ = ("duplicates", "nbytes", "sampleable", "stored", "stored_mask")
+
+    def __init__(self) -> None:
+        self.stored_mask: list[bool] = []  # per step given: stored (True) or a duplicate
+        self.stored: list[tuple[bytes, step_pb2.Step, int, str]] = []  # (key, step, value bytes, table)
+        self.sampleable: list[bytes] = []
+        self.duplicates = 0
+        self.nbytes = 0
+
+
+class StepDB:
+    """LMDB access. One writer at a time (callers hold their own lock); reads from any thread."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        map_size_mb: int = 4096,
+        *,
+        max_map_mb: int | None = None,
+        durability: str = "fsync",
+        sync_interval_s: float = 1.0,
+        readonly: bool = False,
+        guard: threading.RLock | None = None,
+    ) -> None:
+        if durability not in DURABILITY:
+            raise ValueError(f"durability must be one of {DURABILITY}, got {durability!r}")
+        self.path = Path(path)
+        self.readonly = readonly
+        if not readonly:
+            self.path.mkdir(parents=True, exist_ok=True)
+        self.durability = durability
+        self._guard = guard or threading.RLock()  # held by this process's readers; map growth excludes them
+        self.max_map_bytes = int(max_map_mb if max_map_mb is not None else map_size_mb) << 20
+        self.env = lmdb.open(
+            str(self.path),
+            map_size=int(map_size_mb) << 20,
+            max_dbs=8,
+            subdir=True,
+            readonly=readonly,
+            lock=True,  # also read-only: another process may be writing
+            readahead=False,  # samples are random reads; readahead only pollutes the page cache
+            meminit=False,
+            writemap=not readonly,  # puts go straight into the (sparse) file map: ~2x faster for camera frames
+            sync=durability == "fsync",
+            metasync=durability == "fsync",
+        )
+        self.map_bytes = self.env.info()["map_size"]
+        if not readonly:
+            stale = self.env.reader_check()  # reader slots left by a process that was killed
+            if stale:
+                log.info("cleared stale LMDB readers", extra=kv(path=str(self.path), readers=stale))
+        create = not readonly
+        self.steps = self.env.open_db(b"steps", create=create)
+        self.ends = self.env.open_db(b"ends", create=create)
+        self.scalars = self._open_optional(b"scalars", create)
+        self.episodes = self._open_optional(b"episodes", create)
+        self.specs = self._open_optional(b"specs", create)
+        self.meta = self._open_optional(b"meta", create)
+        self.duplicates = 0
+        self.arrival = 0  # the store sets it past the newest arrival it scanned
+        self._sync_interval_s = sync_interval_s
+        self._last_sync = time.monotonic()
+        self._stop = threading.Event()
+        self._syncer: threading.Thread | None = None
+        if durability == "os" and not readonly:
+            self._syncer = threading.Thread(target=self._sync_loop, name="replay-lmdb-sync", daemon=True)
+            self._syncer.start()
+        if not readonly:
+            self._open_meta()
+
+    def _open_optional(self, name: bytes, create: bool) -> object | None:
+        try:
+            return self.env.open_db(name, create=create)
+        except lmdb.NotFoundError:
+            return None
+
+    def _open_meta(self) -> None:
+        with self.env.begin(write=True, db=self.meta) as txn:
+            fmt = txn.get(b"format")
+            if fmt is None:
+                if txn.stat(self.steps)["entries"]:
+                    raise ReplayError(f"{self.path} holds steps of an older replay format; move it away to start anew")
+                txn.put(b"format", FORMAT)
+            elif fmt != FORMAT:
+                raise ReplayError(f"{self.path}: replay format {fmt!r}, this code reads {FORMAT!r}")
+            dups = txn.get(b"duplicates")
+            self.duplicates = _U64.unpack(dups)[0] if dups else 0
+
+    def _sync_loop(self) -> None:
+        while not self._stop.wait(self._sync_interval_s):
+            try:
+                self.env.sync(True)
+            except lmdb.Error:
+                return
+
+    # ------------------------------------------------------------------ scans (open)
+
+    def scan(self) -> Iterator[tuple[bytes, tuple[float, int, int, int, int]]]:
+        """(key, scalars) of every step in key order, from the small scalars table.
+
+        A step without scalars (written by an older build) is read whole, once.
+        """
+        with self.env.begin() as txn:
+            packed = dict(txn.cursor(db=self.scalars).iternext()) if self.scalars is not None else {}
+            ends = set(txn.cursor(db=self.ends).iternext(keys=True, values=False))
+            arrival = 1 << 62
+            for key in txn.cursor(db=self.steps).iternext(keys=True, values=False):
+                rec = packed.get(key)
+                if rec is not None:
+                    yield key, SCALARS.unpack(rec)
+                    continue
+                raw = txn.get(key, db=self.steps)
+                step = step_pb2.Step.FromString(raw)
+                arrival += 1
+                yield (
+                    key,
+                    (
+                        step.reward,
+                        flags_of(step) | (ENDS if key in ends else 0),
+                        step.policy_version,
+                        arrival,
+                        len(raw),
+                    ),
+                )
+
+    def episode_tables(self) -> dict[bytes, str]:
+        if self.episodes is None:
+            return {}
+        with self.env.begin(db=self.episodes) as txn:
+            return {bytes(k): bytes(v).decode() for k, v in txn.cursor()}
+
+    # ------------------------------------------------------------------ writes
+
+    def put_steps(
+        self,
+        steps: list[step_pb2.Step],
+        table: str | list[str] = ONLINE,
+        specs: Iterable[robot_pb2.RobotSpec] = (),
+        raws: list[bytes] | None = None,
+        known_waiting: Container[bytes] = (),
+    ) -> Committed:
+        """Store steps (and specs) in ONE transaction; returns once it has committed. Grows the map when full.
+
+        `table` names the table of every step, or of each step (a list as long as `steps`).
+        `known_waiting`: keys the caller knows are stored, end no episode and still wait for a successor.
+        """
+        specs = list(specs)
+        tables = [table] * len(steps) if isinstance(table, str) else table
+        raws = raws if raws is not None else [s.SerializeToString() for s in steps]
+        while True:
+            try:
+                return self._put_txn(steps, tables, specs, raws, known_waiting)
+            except lmdb.MapFullError:
+                if not self._grow():
+                    raise ReplayFullError(
+                        f"replay store {self.path} is full (map {self.map_bytes >> 20} MiB = max_map_mb); "
+                        "raise replay.max_map_mb or lower replay.capacity_mb"
+                    ) from None
+
+    def _grow(self) -> bool:
+        """Double the map (callers exclude readers of this process while it runs)."""
+        if self.map_bytes >= self.max_map_bytes:
+            return False
+        new = min(self.map_bytes * 2, self.max_map_bytes)
+        with self._guard:
+            self.env.set_mapsize(new)
+        log.info("replay map grown", extra=kv(path=str(self.path), mb=new >> 20))
+        self.map_bytes = new
+        return True
+
+    def _put_txn(
+        self,
+        steps: list[step_pb2.Step],
+        tables: list[str],
+        specs: list[robot_pb2.RobotSpec],
+        raws: list[bytes],
+        known_waiting: Container[bytes],
+    ) -> Committed:
+        out = Committed()
+        seen: set[bytes] = set()
+        waiting: set[bytes] = set()  # stored in this transaction, not ending an episode
+        with self.env.begin(write=True) as txn:
+            for step, table, raw in zip(steps, tables, raws, strict=True):
+                rid, eid, t = step.robot_id, step.episode_id, step.step_index
+                key = step_key(rid, eid, t)
+                if key in seen or not txn.put(key, raw, db=self.steps, overwrite=False):
+                    out.duplicates += 1
+                    out.stored_mask.append(False)
+                    continue
+                out.stored_mask.append(True)
+                seen.add(key)
+                out.stored.append((key, step, len(raw), table))
+                out.nbytes += len(raw) + len(key)
+                if table != ONLINE:
+                    txn.put(episode_prefix(rid, eid), table.encode(), db=self.episodes, overwrite=False)
+                ends = step.HasField("final_observation")  # validated: only the last step carries one
+                flags = flags_of(step) | (ENDS if ends else 0)
+                txn.put(
+                    key, SCALARS.pack(step.reward, flags, step.policy_version, self.arrival, len(raw)), db=self.scalars
+                )
+                self.arrival += 1
+                if ends:
+                    txn.put(key, b"", db=self.ends)
+                    out.sampleable.append(key)
+                elif txn.get(next_key(key), db=self.steps) is not None:
+                    out.sampleable.append(key)  # its successor arrived first (re-sent out of order)
+                if not ends:
+                    waiting.add(key)
+                if t > 0:
+                    prev = key[:-8] + _INDEX.pack(t - 1)
+                    # prev waited for this observation, unless it ended an episode (sampleable already);
+                    # known from memory for in-order arrivals, else asked of LMDB
+                    known = prev in waiting or prev in known_waiting
+                    if known or (txn.get(prev, db=self.steps) is not None and txn.get(prev, db=self.ends) is None):
+                        out.sampleable.append(prev)
+            for spec in specs:
+                txn.put(spec.robot_id.encode(), spec.SerializeToString(), db=self.specs)
+            if out.duplicates:
+                txn.put(b"duplicates", _U64.pack(self.duplicates + out.duplicates), db=self.meta)
+        self.duplicates += out.duplicates
+        return out
+
+    def delete_episodes(self, prefixes: list[bytes]) -> int:
+        """Delete whole episodes (eviction) in one transaction; returns the steps deleted."""
+        deleted = 0
+        with self.env.begin(write=True) as txn:
+            cur = txn.cursor(db=self.steps)
+            for prefix in prefixes:
+                keys = []
+                if cur.set_range(prefix):
+                    for key in cur.iternext(keys=True, values=False):
+                        if not key.startswith(prefix):
+                            break
+                        keys.append(bytes(key))
+                for key in keys:
+                    txn.delete(key, db=self.steps)
+                    txn.delete(key, db=self.ends)
+                    txn.delete(key, db=self.scalars)
+                txn.delete(prefix, db=self.episodes)
+                deleted += len(keys)
+        return deleted
+
+    def put_spec(self, spec: robot_pb2.RobotSpec) -> None:
+        with self.env.begin(write=True, db=self.specs) as txn:
+            txn.put(spec.robot_id.encode(), spec.SerializeToString())
+
+    # ------------------------------------------------------------------ reads
+
+    def get_spec(self, robot_id: str) -> robot_pb2.RobotSpec | None:
+        if self.specs is None:
+            return None
+        with self.env.begin(db=self.specs) as txn:
+            raw = txn.get(robot_id.encode())
+        return None if raw is None else robot_pb2.RobotSpec.FromString(raw)
+
+    def get_many(self, keys: list[bytes]) -> list[bytes | None]:
+        with self.env.begin(db=self.steps, buffers=False) as txn:
+            return [txn.get(k) for k in keys]
+
+    def bytes_on_disk(self) -> int:
+        """Bytes of LMDB pages in use in data.mdb (the map itself is sparse)."""
+        return (self.env.info()["last_pgno"] + 1) * self.env.stat()["psize"]
+
+    def close(self) -> None:
+        self._stop.set()
+        if not self.readonly:
+            self.env.sync(True)
+        self.env.close()

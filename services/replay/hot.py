@@ -1,0 +1,140 @@
+"""The hot tier: recent transitions in RAM as contiguous columns, laid out for sampling.
+
+One HotGroup per observation layout (robots with the same spec share one). Observations live once
+in a ring of frames (one row per observation, uint8 images stay uint8); a transition row names its
+observation frame and its next-observation frame by sequence number, so next_obs is never stored
+twice. Both rings overwrite their oldest rows; a transition is "hot" while its row still belongs to
+it and both its frames are still in the frame ring. Everything else is read from LMDB on demand.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from user import wire
+from user.v1 import tensor_pb2 as tpb
+
+Feature = tuple[str, np.dtype, tuple[int, ...]]
+Layout = tuple[tuple[Feature, ...], tuple[np.dtype, tuple[int, ...]]]
+_ROW_OVERHEAD = 3 * 8  # obs seq, next seq, owner tid
+
+
+def frame_nbytes(layout: Layout) -> int:
+    return sum(np.dtype(dt).itemsize * math.prod(sh) for _, dt, sh in layout[0])
+
+
+class HotGroup:
+    """Frames and transitions of one layout, each a ring of `capacity` rows (pages are touched lazily)."""
+
+    def __init__(self, layout: Layout, max_bytes: int) -> None:
+        features, (act_dtype, act_shape) = layout
+        self.layout = layout
+        self.frame_bytes = frame_nbytes(layout)
+        self.row_bytes = np.dtype(act_dtype).itemsize * math.prod(act_shape) + _ROW_OVERHEAD
+        self.capacity = max(16, int(max_bytes // max(1.0, self.frame_bytes * 9 / 8 + self.row_bytes)))
+        cap = self.capacity
+        # frames: one per transition plus each episode's final observation, so a little more room
+        self.frame_capacity = cap + cap // 8 + 16
+        self.frames = {name: np.empty((self.frame_capacity, *shape), dtype) for name, dtype, shape in features}
+        # the same memory as rows of bytes, so a RAW wire tensor is copied in without decoding
+        self._bytes = {name: col.reshape(self.frame_capacity, -1).view(np.uint8) for name, col in self.frames.items()}
+        self._codes = {name: wire.dtype_to_proto(dtype) for name, dtype, _ in features}
+        self._shapes = {name: list(shape) for name, _, shape in features}
+        self.frames_written = 0
+        self.t_obs = np.zeros(cap, np.int64)
+        self.t_next = np.zeros(cap, np.int64)
+        self.t_tid = np.full(cap, -1, np.int64)
+        self.t_obs_row = np.zeros(cap, np.int64)  # seq % frame_capacity, kept so a gather needs no modulo
+        self.t_next_row = np.zeros(cap, np.int64)
+        self.action = np.empty((cap, *act_shape), act_dtype)
+        self.rows_written = 0
+
+    def write_frame(self, arrays: dict[str, np.ndarray]) -> int:
+        """Copy one observation in; returns its sequence number."""
+        seq = self.frames_written
+        row = seq % self.frame_capacity
+        for name, column in self.frames.items():
+            column[row] = arrays[name]
+        self.frames_written = seq + 1
+        return seq
+
+    def write_tensors(self, tmap: tpb.TensorMap) -> int:
+        """Copy one wire observation in (RAW bytes as they are); ValueError/KeyError if it has another layout."""
+        tensors = tmap.tensors
+        if len(tensors) != len(self._bytes):
+            raise ValueError("observation has other features than this group")
+        seq = self.frames_written
+        row = seq % self.frame_capacity
+        for name, rows in self._bytes.items():
+            t = tensors[name]
+            if t.dtype != self._codes[name] or t.shape != self._shapes[name]:
+                raise ValueError(f"{name}: dtype or shape differs from this group")
+            if t.encoding == tpb.ENCODING_RAW and len(t.data) == rows.shape[1]:
+                rows[row] = np.frombuffer(t.data, np.uint8)
+            else:
+                self.frames[name][row] = wire.from_tensor(t)  # JPEG/PNG from the edge; ValueError if the shape differs
+        self.frames_written = seq + 1
+        return seq
+
+    def write_many(self, tmaps: list[tpb.TensorMap]) -> np.ndarray | None:
+        """Copy several wire observations in at once; their sequence numbers, or None (nothing written)
+        when one is not plain RAW of this layout (then write_tensors each)."""
+        k = len(tmaps)
+        cols: dict[str, list[bytes]] = {name: [] for name in self._bytes}
+        for tmap in tmaps:
+            tensors = tmap.tensors
+            if len(tensors) != len(self._bytes):
+                return None
+            for name, rows in self._bytes.items():
+                t = tensors.get(name)
+                if t is None or t.dtype != self._codes[name] or t.encoding != tpb.ENCODING_RAW:
+                    return None
+                if t.shape != self._shapes[name]:
+                    return None
+                data = t.data
+                if len(data) != rows.shape[1]:
+                    return None
+                cols[name].append(data)
+        seqs = self.frames_written + np.arange(k)
+        at = seqs % self.frame_capacity
+        for name, parts in cols.items():
+            self._bytes[name][at] = np.frombuffer(b"".join(parts), np.uint8).reshape(k, -1)
+        self.frames_written += k
+        return seqs
+
+    def add_many(
+        self, tids: list[int], obs_seqs: list[int], next_seqs: list[int], actions: list[np.ndarray]
+    ) -> np.ndarray:
+        """Transitions in one go; returns their rows."""
+        k = len(tids)
+        rows = (self.rows_written + np.arange(k)) % self.capacity
+        self.t_obs[rows] = obs_seqs
+        self.t_next[rows] = next_seqs
+        self.t_obs_row[rows] = np.asarray(obs_seqs, np.int64) % self.frame_capacity
+        self.t_next_row[rows] = np.asarray(next_seqs, np.int64) % self.frame_capacity
+        self.t_tid[rows] = tids
+        self.action[rows] = np.stack(actions) if k > 1 else actions[0][None]
+        self.rows_written += k
+        return rows
+
+    def valid(self, rows: np.ndarray, tids: np.ndarray) -> np.ndarray:
+        """Which (row, tid) pairs are still hot."""
+        safe = np.maximum(rows, 0)
+        oldest = self.frames_written - self.frame_capacity
+        ok = self.t_tid[safe] == tids  # a row of -1 never matches: its tid holds -1 only when unused
+        ok &= rows >= 0
+        ok &= np.minimum(self.t_obs[safe], self.t_next[safe]) >= oldest
+        return ok
+
+    def observations(self, rows: np.ndarray, which: str) -> dict[str, np.ndarray]:
+        at = (self.t_obs_row if which == "obs" else self.t_next_row)[rows]
+        return {name: column[at] for name, column in self.frames.items()}
+
+    def resident_bytes(self) -> int:
+        frames = min(self.frames_written, self.frame_capacity) * self.frame_bytes
+        return frames + min(self.rows_written, self.capacity) * self.row_bytes
+
+    def hot_transitions(self) -> int:
+        return min(self.rows_written, self.capacity)

@@ -1,0 +1,314 @@
+"""Tables and samplers over the in-memory index of sampleable transitions.
+
+Every sampleable transition gets a transition id (tid, in order of completion) and a row in flat
+numpy columns (robot, reward, flags, next tid in its episode, priority...). A table is, per robot,
+an append-only array of tids: "online" by default, any name a client inserts into ("demos"...),
+and "interventions", which also holds every online/demo transition a human chose. A sample request
+names tables with mixing ratios (RLPD's 50/50: {"online": 1, "demos": 1}); within a table the
+sampler is uniform, a recency window (the newest W transitions) or prioritized (p^alpha, with
+importance weights; priorities updated by the learner through UpdatePriorities).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+ONLINE = "online"
+INTERVENTIONS = "interventions"
+ALL = ""  # the union of this buffer's tables, each transition once (the legacy request); not attached ones
+SAMPLERS = ("uniform", "recency", "prioritized")
+
+
+class EmptyBufferError(RuntimeError):
+    """Nothing sampleable (yet, or for the tables/robots asked for)."""
+
+
+class Grow:
+    """A growable 1-D numpy column."""
+
+    def __init__(self, dtype: type | np.dtype, fill: float | int = 0) -> None:
+        self.a = np.full(1024, fill, dtype)
+        self.n = 0
+        self.fill = fill
+
+    def append(self, value: float | int) -> None:
+        if self.n == len(self.a):
+            self.a = np.concatenate([self.a, np.full(len(self.a), self.fill, self.a.dtype)])
+        self.a[self.n] = value
+        self.n += 1
+
+    def extend(self, values: np.ndarray) -> None:
+        need = self.n + len(values)
+        if need > len(self.a):
+            size = max(need, 2 * len(self.a))
+            self.a = np.concatenate([self.a, np.full(size - len(self.a), self.fill, self.a.dtype)])
+        self.a[self.n : need] = values
+        self.n = need
+
+    def view(self) -> np.ndarray:
+        return self.a[: self.n]
+
+    def keep(self, mask: np.ndarray) -> None:
+        kept = self.a[: self.n][mask]
+        self.a[: len(kept)] = kept
+        self.n = len(kept)
+
+
+@dataclass(slots=True)
+class Record:
+    """One sampleable transition to index."""
+
+    key: bytes
+    robot: int  # Index.code(robot_id)
+    table: str
+    reward: float
+    terminated: bool
+    truncated: bool
+    intervention: bool
+    policy_version: int
+    group: int = -1  # hot layout group, -1 unknown
+    hot_row: int = -1
+
+
+@dataclass
+class Draw:
+    """What a sample request asks the index for."""
+
+    batch_size: int
+    tables: dict[str, float] = field(default_factory=dict)  # name -> ratio; empty = all
+    robot_ids: list[str] = field(default_factory=list)  # empty = all
+    sampler: str = "uniform"
+    window: int = 0  # recency: newest transitions per table
+    alpha: float = 0.6  # prioritized
+    beta: float = 0.4
+    n_step: int = 1
+    gamma: float = 0.99
+    frame_stack: int = 1  # observations get an axis of the k newest frames (oldest first)
+
+
+@dataclass
+class Drawn:
+    tids: np.ndarray  # the transitions (observation, action)
+    last: np.ndarray  # the transition whose next observation ends the n-step window
+    reward: np.ndarray
+    terminated: np.ndarray
+    truncated: np.ndarray
+    n_steps: np.ndarray
+    weights: np.ndarray
+
+
+class Index:
+    """Not thread-safe: the store calls it under its index lock."""
+
+    def __init__(self) -> None:
+        self.keys: list[bytes] = []
+        self.tid_of: dict[bytes, int] = {}
+        self.robot = Grow(np.int32)
+        self.group = Grow(np.int32, -1)  # hot layout group, -1 unknown
+        self.hot_row = Grow(np.int64, -1)
+        self.reward = Grow(np.float32)
+        self.terminated = Grow(np.bool_)
+        self.truncated = Grow(np.bool_)
+        self.intervention = Grow(np.bool_)
+        self.policy_version = Grow(np.int64)
+        self.next_tid = Grow(np.int64, -1)
+        self.prev_tid = Grow(np.int64, -1)
+        self.alive = Grow(np.bool_)
+        self.priority = Grow(np.float32, 1.0)
+        self.max_priority = 1.0
+        self.robots: list[str] = []
+        self.robot_code: dict[str, int] = {}
+        self.tables: dict[str, dict[int, Grow]] = {}
+        self.all: dict[int, Grow] = {}
+
+    def __len__(self) -> int:
+        return sum(g.n for g in self.all.values())
+
+    def code(self, robot_id: str) -> int:
+        code = self.robot_code.get(robot_id)
+        if code is None:
+            code = self.robot_code[robot_id] = len(self.robots)
+            self.robots.append(robot_id)
+        return code
+
+    def add_many(self, records: list[Record]) -> list[int]:
+        """Index transitions in one go (column appends are vectorized); returns their tids."""
+        first = len(self.keys)
+        tids = list(range(first, first + len(records)))
+        for tid, r in zip(tids, records, strict=True):
+            self.keys.append(r.key)
+            self.tid_of[r.key] = tid
+        self.robot.extend(np.fromiter((r.robot for r in records), np.int32, len(records)))
+        self.group.extend(np.fromiter((r.group for r in records), np.int32, len(records)))
+        self.hot_row.extend(np.fromiter((r.hot_row for r in records), np.int64, len(records)))
+        self.reward.extend(np.fromiter((r.reward for r in records), np.float32, len(records)))
+        self.terminated.extend(np.fromiter((r.terminated for r in records), np.bool_, len(records)))
+        self.truncated.extend(np.fromiter((r.truncated for r in records), np.bool_, len(records)))
+        self.intervention.extend(np.fromiter((r.intervention for r in records), np.bool_, len(records)))
+        self.policy_version.extend(np.fromiter((r.policy_version for r in records), np.int64, len(records)))
+        self.next_tid.extend(np.full(len(records), -1, np.int64))
+        self.prev_tid.extend(np.full(len(records), -1, np.int64))
+        self.alive.extend(np.ones(len(records), np.bool_))
+        self.priority.extend(np.full(len(records), self.max_priority, np.float32))
+        by_table: dict[tuple[str, int], list[int]] = {}
+        for tid, r in zip(tids, records, strict=True):
+            # link the episode's neighbours for n-step returns (in any arrival order)
+            prefix, t = r.key[:-8], int.from_bytes(r.key[-8:], "big")
+            prev = self.tid_of.get(prefix + (t - 1).to_bytes(8, "big")) if t > 0 else None
+            if prev is not None:
+                self.next_tid.a[prev] = tid
+                self.prev_tid.a[tid] = prev
+            nxt = self.tid_of.get(prefix + (t + 1).to_bytes(8, "big"))
+            if nxt is not None:
+                self.next_tid.a[tid] = nxt
+                self.prev_tid.a[nxt] = tid
+            by_table.setdefault((r.table, r.robot), []).append(tid)
+            if r.intervention and r.table != INTERVENTIONS:
+                by_table.setdefault((INTERVENTIONS, r.robot), []).append(tid)
+            if r.key[:1] != b"\0":  # attached buffers are sampled by their table name only
+                by_table.setdefault((ALL, r.robot), []).append(tid)
+        for (table, code), ids in by_table.items():
+            grows = self.all if table == ALL else self.tables.setdefault(table, {})
+            grow = grows.get(code)
+            if grow is None:
+                grow = grows[code] = Grow(np.int64)
+            grow.extend(np.asarray(ids, np.int64))
+        return tids
+
+    def evict(self, tids: list[int]) -> None:
+        if not tids:
+            return
+        dead = np.asarray(tids, np.int64)
+        self.alive.a[dead] = False
+        for t in tids:
+            self.tid_of.pop(self.keys[t], None)
+            self.keys[t] = b""  # the columns keep a row per tid ever indexed; the key bytes can go
+        for grows in [*self.tables.values(), self.all]:
+            for g in grows.values():
+                g.keep(self.alive.a[g.view()])
+
+    # ------------------------------------------------------------------ counts
+
+    def count(self, table: str = ALL, robot_ids: list[str] | None = None) -> int:
+        grows = self.all if table == ALL else self.tables.get(table, {})
+        codes = self._codes(robot_ids)
+        return sum(g.n for c, g in grows.items() if codes is None or c in codes)
+
+    def _codes(self, robot_ids: list[str] | None) -> set[int] | None:
+        if not robot_ids:
+            return None
+        return {self.robot_code[r] for r in robot_ids if r in self.robot_code}
+
+    def candidates(self, table: str, robot_ids: list[str] | None, newest: int = 0) -> np.ndarray:
+        """Tids of a table (for the robots asked); with `newest`, at most that many of each robot's newest."""
+        grows = self.all if table == ALL else self.tables.get(table, {})
+        codes = self._codes(robot_ids)
+        parts = [
+            g.view()[-newest:] if newest else g.view()
+            for c, g in sorted(grows.items())
+            if g.n and (codes is None or c in codes)
+        ]
+        if not parts:
+            return np.empty(0, np.int64)
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    # ------------------------------------------------------------------ draws
+
+    def draw(self, req: Draw, rng: np.random.Generator) -> Drawn:
+        shares = (
+            _split(req.batch_size, req.tables) if len(req.tables) > 1 else {next(iter(req.tables), ALL): req.batch_size}
+        )
+        tids, weights = [], []
+        for table, k in shares.items():
+            if k == 0:
+                continue
+            newest = req.window if req.sampler == "recency" else 0  # tids grow with arrival: a robot's newest are last
+            cands = self.candidates(table, req.robot_ids, newest)
+            if len(cands) == 0:
+                what = f"table {table!r}" if table else "the buffer"
+                robots = f" for robots {sorted(set(req.robot_ids))}" if req.robot_ids else ""
+                raise EmptyBufferError(f"no sampleable transitions in {what}{robots} yet")
+            t, w = self._draw_one(cands, k, req, rng)
+            tids.append(t)
+            weights.append(w)
+        tid = np.concatenate(tids) if len(tids) > 1 else tids[0]
+        weight = np.concatenate(weights) if len(weights) > 1 else weights[0]
+        return self._n_step(tid, weight, req.n_step, req.gamma)
+
+    def _draw_one(
+        self, cands: np.ndarray, k: int, req: Draw, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray]:
+        if req.sampler == "recency" and 0 < req.window < len(cands):
+            cands = np.partition(cands, len(cands) - req.window)[-req.window :]
+        if req.sampler != "prioritized":
+            return cands[rng.integers(0, len(cands), size=k)], np.ones(k, np.float32)
+        p = self.priority.a[cands].astype(np.float64) ** req.alpha
+        cdf = np.cumsum(p)
+        total = cdf[-1]
+        if not total > 0:
+            return cands[rng.integers(0, len(cands), size=k)], np.ones(k, np.float32)
+        picks = np.minimum(np.searchsorted(cdf, rng.random(k) * total, side="right"), len(cands) - 1)
+        w = (len(cands) * p[picks] / total) ** (-req.beta)
+        return cands[picks], (w / w.max()).astype(np.float32)
+
+    def _n_step(self, tids: np.ndarray, weights: np.ndarray, n: int, gamma: float) -> Drawn:
+        if n <= 1:
+            ones = np.ones(len(tids), np.int32)
+            return Drawn(
+                tids, tids, self.reward.a[tids], self.terminated.a[tids], self.truncated.a[tids], ones, weights
+            )
+        reward = self.reward.a[tids].astype(np.float32)
+        term = self.terminated.a[tids].copy()
+        trunc = self.truncated.a[tids].copy()
+        last = tids.copy()
+        n_steps = np.ones(len(tids), np.int32)
+        stop = term | trunc
+        discount = np.float32(gamma)
+        for _ in range(1, n):
+            nxt = self.next_tid.a[last]
+            ok = ~stop & (nxt >= 0)
+            ok[ok] = self.alive.a[nxt[ok]]
+            if not ok.any():
+                break
+            on = nxt[ok]
+            reward[ok] += discount * self.reward.a[on]
+            last[ok] = on
+            n_steps[ok] += 1
+            term[ok] = self.terminated.a[on]
+            trunc[ok] = self.truncated.a[on]
+            stop = ~ok | term | trunc
+            discount *= np.float32(gamma)
+        return Drawn(tids, last, reward, term, trunc, n_steps, weights)
+
+    def back(self, tids: np.ndarray, steps: int) -> np.ndarray:
+        """The transitions `steps` earlier in the same episode, stopping at the earliest one indexed."""
+        cur = tids.copy()
+        for _ in range(steps):
+            prev = self.prev_tid.a[cur]
+            ok = prev >= 0
+            ok[ok] = self.alive.a[prev[ok]]
+            cur = np.where(ok, prev, cur)
+        return cur
+
+    def update_priorities(self, tids: np.ndarray, priorities: np.ndarray) -> int:
+        """Set priorities of live transitions; returns how many were updated (evicted ones are skipped)."""
+        ok = (tids >= 0) & (tids < len(self.keys))
+        ok[ok] = self.alive.a[tids[ok]]
+        self.priority.a[tids[ok]] = priorities[ok]
+        if ok.any():
+            self.max_priority = max(self.max_priority, float(priorities[ok].max()))
+        return int(ok.sum())
+
+
+def _split(batch_size: int, ratios: dict[str, float]) -> dict[str, int]:
+    """Exact shares of batch_size by ratio (largest remainder), so 50/50 of 256 is 128 + 128."""
+    names = list(ratios)
+    r = np.array([ratios[n] for n in names], np.float64)
+    exact = batch_size * r / r.sum()
+    counts = np.floor(exact).astype(np.int64)
+    left = batch_size - int(counts.sum())
+    if left:
+        counts[np.argsort(-(exact - counts), kind="stable")[:left]] += 1
+    return dict(zip(names, counts.tolist(), strict=True))
