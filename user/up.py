@@ -186,7 +186,7 @@ class Stack:
         base_id = re.sub(r"-\d+$", "", template.id)  # arm-0 -> arm-0, arm-1, ...; panda -> panda-0, ...
         edges = []
         for i in range(self.cfg.up.edge_agents):
-            robot = {"id": f"{base_id}-{i}", "kind": template.kind, "params": template.params}
+            robot = {**template.model_dump(mode="json", exclude_none=True), "id": f"{base_id}-{i}"}
             on_progress(f"edge-{i}")
             edges.append(
                 self._spawn(
@@ -306,7 +306,7 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
         expand=True,
     )
     # Short headers: the table must stay readable in an 80-column terminal.
-    for col in ("robot", "state", "eps", "success", "steps", "steps/s", "policy", "stale", "p99"):
+    for col in ("robot", "state", "eps", "success", "steps", "steps/s", "policy", "stale", "p99", "human"):
         robots.add_column(col, justify="right" if col != "robot" else "left")
     for info in snap.robots:
         st = info.status
@@ -324,6 +324,7 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
             str(st.policy_version),
             str(max(0, learner_version - st.policy_version)),
             f"{st.loop_period_p99_ms:.1f}",
+            str(st.intervention_steps),
         )
     learner = Table(expand=True)
     for col in ("learner updates", "updates/s", "weights", "buffer", "alpha", "success, all"):
@@ -484,6 +485,7 @@ def _summary(
                 "policy_version": st.policy_version,
                 "loop_period_p99_ms": round(st.loop_period_p99_ms, 2),
                 "held_steps": st.held_steps,
+                "intervention_steps": st.intervention_steps,
             }
     learner = final.learner if final else None
     return {
