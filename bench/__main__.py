@@ -25,6 +25,7 @@ BENCHES = {
     "replay": "bench.replay_bench",
     "weights": "bench.weights_bench",
     "inference": "bench.inference_bench",
+    "edge": "bench.edge_bench",
 }
 
 
@@ -38,6 +39,9 @@ LEGEND = {
     "both real gRPC servers on 127.0.0.1, versions alternate.",
     "inference": "inference: ours InferenceService (micro-batching) vs the same Act proto served one forward per "
     "request in the handler; each robot is a separate process, windows alternate.",
+    "edge": "edge: ours Robot.act + observe + env task (the edge loop's per-tick work minus the network), "
+    "cameras rendered without shadows/MSAA, vs the bare gym env.step (gym-hil's image_obs renderer for cameras); "
+    "the same random actions, rounds alternate.",
 }
 
 
