@@ -223,7 +223,8 @@ def test_lerobot_robot_adapter_maps_features_connects_and_holds(tmp_path: Path) 
     device = robot.device  # type: ignore[attr-defined]
     assert isinstance(device, ScriptedArm) and device.config.joints == ["a", "b", "gripper"]
     spec = robot.spec
-    assert spec.kind == "lerobot" and list(spec.action.names) == ["a.pos", "b.pos", "gripper.pos"]
+    assert spec.kind == "lerobot:user_test_scripted_arm"
+    assert list(spec.action.names) == ["a.pos", "b.pos", "gripper.pos"]
     assert list(spec.action.low) == [-50, -50, 0] and list(spec.action.high) == [50, 50, 50]
     assert [(f.name, list(f.shape), f.is_image) for f in spec.observation] == [
         ("state", [4], False),

@@ -95,7 +95,7 @@ class LerobotRobot(Robot):
             cameras.append(robot_pb2.CameraSpec(name=key, width=w, height=h, fps=self.params.control_rate_hz))
         return robot_pb2.RobotSpec(
             robot_id=self.robot_id,
-            kind=KIND,
+            kind=f"{KIND}:{self.params.type}",  # robots of one lerobot type share a learner (learner.robot_kind)
             action=robot_pb2.ActionSpace(
                 shape=[len(self.action_keys)],
                 low=low,
