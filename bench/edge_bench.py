@@ -101,7 +101,7 @@ def _compare(
 
 
 def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Row]:
-    rounds = 1 if quick else 5
+    rounds = 1 if quick else 3
     panda = {"reward_type": "dense", "random_block_position": True}
     cases = [
         (
@@ -109,7 +109,7 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
             ("gym_hil_panda", {"cameras": True}),
             ("gym_hil/PandaPickCubeBase-v0", {**panda, "image_obs": True}),
             GYM_HIL + " (image_obs)",
-            1 if quick else 30,
+            1 if quick else 10,
         ),
         (
             "edge Panda pick-cube, state",

@@ -236,6 +236,7 @@ class Episode:
     episode_return: float
     length: int
     policy_version: int
+    intervention_steps: int = 0  # steps a teleoperator drove
 
 
 @dataclass
@@ -279,7 +280,14 @@ class Monitor:
                 key = (ep.robot_id or info.spec.robot_id, ep.episode_id)
                 if key not in self.episodes:
                     self.episodes[key] = Episode(
-                        key[0], ep.episode_id, now, ep.success, ep.episode_return, ep.length, ep.policy_version
+                        key[0],
+                        ep.episode_id,
+                        now,
+                        ep.success,
+                        ep.episode_return,
+                        ep.length,
+                        ep.policy_version,
+                        ep.intervention_steps,
                     )
         return Snapshot(now, robots, learner, replay)
 
@@ -360,6 +368,7 @@ def write_report(run_dir: Path, episodes: list[Episode], summary: dict[str, Any]
                 "return": e.episode_return,
                 "length": e.length,
                 "policy_version": e.policy_version,
+                "intervention_steps": e.intervention_steps,
             }
             for e in episodes
         ],
