@@ -136,6 +136,7 @@ class RobotLoop:
         self.spec = robot.spec
         self.task = task if task is not None else TASKS.build("env", spec=self.spec)
         self.teleop = teleop
+        self._teleop_failing = False
         self.robot_id = self.spec.robot_id
         self.mode = mode
         self.deadline_s = action_deadline_s
@@ -264,8 +265,11 @@ class RobotLoop:
             human = self.teleop.poll(obs)
         except Exception:
             TELEOP_ERRORS.labels(**self._labels).inc()
-            log.exception("teleoperator poll failed; the policy drives", extra=kv(robot_id=self.robot_id))
+            if not self._teleop_failing:  # once per failure streak, not at the control rate
+                log.exception("teleoperator poll failed; the policy drives", extra=kv(robot_id=self.robot_id))
+            self._teleop_failing = True
             return None
+        self._teleop_failing = False
         if human is None:
             return None
         human = np.asarray(human, np.float32)
