@@ -363,3 +363,16 @@ def test_lerobot_teleop_absolute_gripper_keeps_its_target() -> None:
 
     grasps = [teleop.poll(Observation(features={}))[3] for _ in range(3)]  # type: ignore[index]
     assert grasps == [0.0, 0.0, 1.0]  # close, stay closed, open
+
+
+def test_cameras_render_from_the_loop_thread_after_the_main_thread() -> None:
+    """An EGL context is current in one thread; the edge loop observes in its own (EGL_BAD_ACCESS before)."""
+    import threading
+
+    robot = make_robot("sim_reach_arm", "cam", {"camera": True}, seed=0)
+    frames: list[np.ndarray] = [robot.reset().features["camera.front"]]
+    worker = threading.Thread(target=lambda: frames.append(robot.observe().features["camera.front"]))
+    worker.start()
+    worker.join(30)
+    robot.close()
+    assert len(frames) == 2 and np.array_equal(frames[0], frames[1]) and frames[0].std() > 5

@@ -21,6 +21,7 @@ import mujoco
 import numpy as np
 from pydantic import Field
 
+from edge_agent.rendering import CameraRenderer
 from edge_agent.robot import ROBOTS, Observation, Robot, clip_action
 from edge_agent.tasks.reach import reach_outcome
 from user.registry import PluginParams
@@ -111,9 +112,9 @@ class SimReachArm(Robot):
         self._jacp = np.zeros((3, self.model.nv))
         self._rng = np.random.default_rng(seed)
         self._target = sample_target(self._rng)
-        self._renderer: mujoco.Renderer | None = None
+        self._renderer: CameraRenderer | None = None
         if camera:
-            self._renderer = mujoco.Renderer(self.model, CAMERA_SIZE, CAMERA_SIZE)
+            self._renderer = CameraRenderer(self.model, CAMERA_SIZE, CAMERA_SIZE)
         self._spec = self._build_spec(camera)
         self._reward, self._terminated, self._success = 0.0, False, False
         self._holding = False
@@ -176,8 +177,7 @@ class SimReachArm(Robot):
     def observe(self) -> Observation:
         features = {"state": self._state()}
         if self._renderer is not None:
-            self._renderer.update_scene(self.data, camera="front")
-            features["camera.front"] = self._renderer.render().copy()
+            features["camera.front"] = self._renderer.render(self.data, "front")
         return Observation(
             features=features,
             reward=self._reward,

@@ -22,6 +22,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field
 
+from edge_agent.rendering import CameraRenderer
 from edge_agent.robot import ROBOTS, Observation, Robot, clip_action
 from user.registry import PluginParams
 from user.v1 import robot_pb2, tensor_pb2
@@ -65,9 +66,10 @@ class SO101(Robot):
         )
         self._env = gymnasium.make(ENV_ID, **kwargs)
         self._base = self._env.unwrapped
+        self._cameras: CameraRenderer | None = None
         if params.camera:
-            self._base.model.vis.quality.shadowsize = 0
-            self._base.model.vis.quality.offsamples = 0
+            spec = self._base._render_specs
+            self._cameras = CameraRenderer(self._base.model, spec.height, spec.width)
         self._grasp = GRASP_OPEN
         self._reward, self._terminated, self._success = 0.0, False, False
         self._env.reset(seed=seed)
@@ -113,8 +115,8 @@ class SO101(Robot):
 
     def observe(self) -> Observation:
         features = {"state": self._state()}
-        if self.params.camera:
-            features["camera.front"] = np.asarray(self._base.render(), dtype=np.uint8).copy()
+        if self._cameras is not None:
+            features["camera.front"] = self._cameras.render(self._base.data, self._base._camera_id)
         return Observation(
             features=features,
             reward=self._reward,
@@ -149,4 +151,7 @@ class SO101(Robot):
         self._reward = 0.0
 
     def close(self) -> None:
+        if self._cameras is not None:
+            self._cameras.close()
+            self._cameras = None
         self._env.close()
