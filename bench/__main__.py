@@ -29,6 +29,7 @@ BENCHES = {
     "inference_vla": "bench.inference_vla_bench",
     "hg_dagger": "bench.hg_dagger_bench",
     "spool": "bench.spool_bench",
+    "edge": "bench.edge_bench",
 }
 SLOW = {"learning"}  # whole stacks as processes: minutes, not part of the --quick smoke run unless named
 
@@ -54,6 +55,9 @@ LEGEND = {
     "spool": "spool: ours edge_agent.spool.LmdbSpool (steps on disk until replay acks) vs the same edge agent with "
     "edge.spool_dir null (RAM outbox); real edge processes, kill -9 during a replay outage, restart; lost = "
     "collected - stored.",
+    "edge": "edge: ours Robot.act + observe + env task (the edge loop's per-tick work minus the network), "
+    "cameras rendered without shadows/MSAA, vs the bare gym env.step (gym-hil's image_obs renderer for cameras); "
+    "the same random actions, rounds alternate.",
 }
 
 

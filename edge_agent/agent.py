@@ -2,8 +2,11 @@
 
 One RobotLoop thread per robot runs observe -> act -> observe at the robot's control rate and
 ships every step to replay; the policy source answers within a deadline or the robot holds still,
-so nothing here ever waits on the learner. A ControlClient registers the robots, heartbeats their
-status and delivers PAUSE / RESUME / RESET commands.
+so nothing here ever waits on the learner. Each robot's task judges every step (reward, termination,
+success); its teleoperator, if any, is polled every tick and, when it answers, drives instead of the
+policy: the step goes to replay with `intervention = true` and the human action as the action.
+A ControlClient registers the robots, heartbeats their status and delivers PAUSE / RESUME / RESET
+commands.
 
     userctl edge --config configs/demo.yaml [--ready-file F]
 """
@@ -26,8 +29,10 @@ from edge_agent.policy_source import PolicySource, make_policy_source
 from edge_agent.replay_client import ReplaySender
 from edge_agent.robot import Observation, Robot, action_bounds, clip_action, make_robot
 from edge_agent.spool import open_outbox
+from edge_agent.task import TASKS, Outcome, Task
+from edge_agent.teleop import TELEOPERATORS, Teleoperator
 from user import rpc, wire
-from user.config import StackConfig
+from user.config import RobotConfig, StackConfig
 from user.log import kv
 from user.v1 import control_pb2, step_pb2
 
@@ -52,6 +57,12 @@ ENV_STEPS = prometheus_client.Counter("user_edge_env_steps_total", "Control step
 EPISODES = prometheus_client.Counter("user_edge_episodes_total", "Finished episodes", ["robot_id", "success"])
 HELD_STEPS = prometheus_client.Counter(
     "user_edge_held_steps_total", "Steps where no action came in time and the robot held still", ["robot_id"]
+)
+INTERVENTION_STEPS = prometheus_client.Counter(
+    "user_edge_intervention_steps_total", "Steps where a teleoperator drove instead of the policy", ["robot_id"]
+)
+TELEOP_ERRORS = prometheus_client.Counter(
+    "user_edge_teleop_errors_total", "Teleoperator polls that raised or answered a wrong-sized action", ["robot_id"]
 )
 POLICY_VERSION = prometheus_client.Gauge(
     "user_edge_policy_version", "Policy version of the latest applied action", ["robot_id"]
@@ -109,7 +120,7 @@ class TickScheduler:
 
 
 class RobotLoop:
-    """observe -> policy (deadline) -> act or hold -> observe, one step per tick, steps to the sink."""
+    """observe -> teleop or policy (deadline) -> act or hold -> observe -> task; one step per tick, to the sink."""
 
     def __init__(
         self,
@@ -118,11 +129,16 @@ class RobotLoop:
         sink: StepSink,
         mode: str = "realtime",
         action_deadline_s: float = 0.04,
+        task: Task | None = None,
+        teleop: Teleoperator | None = None,
     ) -> None:
         if mode not in ("realtime", "fast"):
             raise ValueError(f"mode must be realtime or fast, got {mode!r}")
         self.robot, self.policy, self.sink = robot, policy, sink
         self.spec = robot.spec
+        self.task = task if task is not None else TASKS.build("env", spec=self.spec)
+        self.teleop = teleop
+        self._teleop_failing = False
         self.robot_id = self.spec.robot_id
         self.mode = mode
         self.deadline_s = action_deadline_s
@@ -137,7 +153,7 @@ class RobotLoop:
         self._thread: threading.Thread | None = None
         self.scheduler = TickScheduler(self.period_s, sleep=self._stop.wait)
         # stats
-        self.env_steps = self.held_steps = self.episodes = self.successes = 0
+        self.env_steps = self.held_steps = self.episodes = self.successes = self.intervention_steps = 0
         self.policy_version = 0
         self.last_held = False
         self.error: str | None = None
@@ -186,7 +202,7 @@ class RobotLoop:
     def _run(self) -> None:
         try:
             obs, self._obs_ns = self.robot.reset(), time.time_ns()
-            self._begin_episode()
+            self._begin_episode(obs)
             stale = False  # the world moved on while paused: observe afresh before acting
             last_tick: float | None = None
             while not self._stop.is_set():
@@ -238,16 +254,48 @@ class RobotLoop:
             self._overruns_seen = self.scheduler.overruns
         return now
 
-    def _begin_episode(self) -> None:
+    def _begin_episode(self, obs: Observation) -> None:
         start_ns = time.time_ns()
         self.episode_id = f"{self.robot_id}-{start_ns}-{self._life}"
         self.step_index = 0
         self._return = 0.0
         self._success = False
         self._episode_version = 0
+        self._episode_interventions = 0
+        self.task.reset(obs)
+        if self.teleop is not None:
+            self.teleop.reset(obs)
 
-    def _decide(self, obs: Observation) -> tuple[np.ndarray, int, bool]:
-        """(applied action, policy version, held). No answer in time -> hold still."""
+    def _poll_teleop(self, obs: Observation) -> np.ndarray | None:
+        """The teleoperator's action this tick, or None. A failing device lets the policy drive, loudly."""
+        if self.teleop is None:
+            return None
+        try:
+            human = self.teleop.poll(obs)
+        except Exception:
+            TELEOP_ERRORS.labels(**self._labels).inc()
+            if not self._teleop_failing:  # once per failure streak, not at the control rate
+                log.exception("teleoperator poll failed; the policy drives", extra=kv(robot_id=self.robot_id))
+            self._teleop_failing = True
+            return None
+        self._teleop_failing = False
+        if human is None:
+            return None
+        human = np.asarray(human, np.float32)
+        if human.size != self._hold_action.size:
+            TELEOP_ERRORS.labels(**self._labels).inc()
+            log.warning(
+                "teleoperator action has the wrong size; ignored",
+                extra=kv(robot_id=self.robot_id, got=int(human.size), want=self._hold_action.size),
+            )
+            return None
+        return human.reshape(self._hold_action.shape)
+
+    def _decide(self, obs: Observation) -> tuple[np.ndarray, int, bool, bool]:
+        """(applied action, policy version, held, intervention). A human action wins; no answer in time -> hold."""
+        human = self._poll_teleop(obs)
+        if human is not None:
+            return self.robot.act(human), 0, False, True
         answer = self.policy.act(self.robot_id, obs.features, self.deadline_s)
         if answer is not None and np.asarray(answer[0]).size != self._hold_action.size:
             log.warning(
@@ -257,30 +305,33 @@ class RobotLoop:
             answer = None
         if answer is None:
             self.robot.hold()
-            return self._hold_action, 0, True
+            return self._hold_action, 0, True, False
         action, version = answer
-        return self.robot.act(np.asarray(action, np.float32).reshape(self._hold_action.shape)), int(version), False
+        applied = self.robot.act(np.asarray(action, np.float32).reshape(self._hold_action.shape))
+        return applied, int(version), False, False
 
     def _step(self, obs: Observation) -> Observation:
         started = time.monotonic()
-        applied, version, held = self._decide(obs)
+        applied, version, held, human = self._decide(obs)
         acted_ns = time.time_ns()
         nxt = self.robot.observe()
         next_ns = time.time_ns()
+        outcome = self.task.evaluate(obs, applied, nxt)
         last_index = self.max_episode_steps > 0 and self.step_index + 1 >= self.max_episode_steps
         reset = self._reset_requested.is_set()
-        truncated = not nxt.terminated and (last_index or reset)
-        done = nxt.terminated or truncated
+        truncated = not outcome.terminated and (last_index or reset)
+        done = outcome.terminated or truncated
         step = step_pb2.Step(
             robot_id=self.robot_id,
             episode_id=self.episode_id,
             step_index=self.step_index,
             observation=wire.to_tensor_map(obs.features),
             action=wire.to_tensor(np.asarray(applied, np.float32)),
-            reward=float(nxt.reward),
-            terminated=bool(nxt.terminated),
+            reward=float(outcome.reward),
+            terminated=bool(outcome.terminated),
             truncated=bool(truncated),
-            success=bool(nxt.success),
+            success=bool(outcome.success),
+            intervention=human,
             policy_version=version,
             held=held,
             observed_at_ns=self._obs_ns,
@@ -289,7 +340,7 @@ class RobotLoop:
         if done:
             step.final_observation.CopyFrom(wire.to_tensor_map(nxt.features))
         self.sink.send(step)
-        self._count(nxt, version, held)
+        self._count(outcome, version, held, human)
         if held and self.mode == "fast":
             # Unthrottled holding would flood replay with still frames: a held tick lasts a deadline.
             self._stop.wait(max(0.0, self.deadline_s - (time.monotonic() - started)))
@@ -301,15 +352,18 @@ class RobotLoop:
         if reset:
             self._reset_requested.clear()
         obs, self._obs_ns = self.robot.reset(), time.time_ns()
-        self._begin_episode()
+        self._begin_episode(obs)
         return obs
 
-    def _count(self, nxt: Observation, version: int, held: bool) -> None:
-        self._return += float(nxt.reward)
-        self._success = self._success or bool(nxt.success)
+    def _count(self, outcome: Outcome, version: int, held: bool, human: bool) -> None:
+        self._return += float(outcome.reward)
+        self._success = self._success or bool(outcome.success)
+        self._episode_interventions += int(human)
         ENV_STEPS.labels(**self._labels).inc()
         if held:
             HELD_STEPS.labels(**self._labels).inc()
+        elif human:
+            INTERVENTION_STEPS.labels(**self._labels).inc()
         else:
             self._episode_version = max(self._episode_version, version)
             POLICY_VERSION.labels(**self._labels).set(version)
@@ -317,8 +371,9 @@ class RobotLoop:
         with self._lock:
             self.env_steps += 1
             self.held_steps += int(held)
+            self.intervention_steps += int(human)
             self.last_held = held
-            if not held:
+            if not (held or human):
                 self.policy_version = version
             if not self._rate_samples or now - self._rate_samples[-1][0] >= 0.1:
                 self._rate_samples.append((now, self.env_steps))
@@ -334,6 +389,7 @@ class RobotLoop:
             success=self._success,
             ended_at_ns=time.time_ns(),
             policy_version=self._episode_version,
+            intervention_steps=self._episode_interventions,
         )
         EPISODES.labels(robot_id=self.robot_id, success=str(self._success).lower()).inc()
         EPISODE_RETURN.labels(**self._labels).set(self._return)
@@ -367,6 +423,7 @@ class RobotLoop:
                 loop_period_p99_ms=float(np.percentile(periods, 99) * 1000) if periods else 0.0,
                 held_steps=self.held_steps,
                 new_episodes=episodes,
+                intervention_steps=self.intervention_steps,
             )
         status.steps_unacked = self.sink.unacked
         return status
@@ -409,10 +466,19 @@ class EdgeAgent:
         self.cfg = cfg
         edge = cfg.edge
         self.robots = robots if robots is not None else self._build_robots(cfg)
+        self.tasks, self.teleops = build_judges_and_teleops(cfg, self.robots)
         self.sender = sender or ReplaySender(edge.replay_addr, cfg.auth, start=False, outbox=open_outbox(edge))
         self.policy = policy or make_policy_source(cfg, edge.agent_id, [r.spec for r in self.robots])
         self.loops = {
-            r.spec.robot_id: RobotLoop(r, self.policy, self.sender, edge.mode, edge.action_deadline_ms / 1000.0)
+            r.spec.robot_id: RobotLoop(
+                r,
+                self.policy,
+                self.sender,
+                edge.mode,
+                edge.action_deadline_ms / 1000.0,
+                task=self.tasks[r.spec.robot_id],
+                teleop=self.teleops.get(r.spec.robot_id),
+            )
             for r in self.robots
         }
         self.control = ControlClient(
@@ -432,7 +498,8 @@ class EdgeAgent:
         robots: list[Robot] = []
         try:
             for index, rc in enumerate(cfg.edge.robots):
-                robots.append(make_robot(rc.kind, rc.id, rc.params, seed=cfg.edge.seed + index))
+                where = f"edge.robots[{index}].params"
+                robots.append(make_robot(rc.kind, rc.id, rc.params, seed=cfg.edge.seed + index, where=where))
         except Exception:
             for robot in robots:
                 robot.close()
@@ -440,6 +507,10 @@ class EdgeAgent:
         return robots
 
     def start(self) -> None:
+        for robot in self.robots:
+            robot.connect()
+        for teleop in self.teleops.values():
+            teleop.connect()
         self.control.start()
         # Control names this agent's replay shard on registration: wait briefly so the first steps go there.
         self.control.wait_registered(self.cfg.edge.rpc_timeout_s)
@@ -468,11 +539,15 @@ class EdgeAgent:
         self.control.close()
         self.sender.close()
         self.policy.close()
-        for robot in self.robots:
+        for name, closer in [
+            *((f"teleop {rid}", t.disconnect) for rid, t in self.teleops.items()),
+            *((f"task {rid}", t.close) for rid, t in self.tasks.items()),
+            *((f"robot {r.spec.robot_id}", r.disconnect) for r in self.robots),
+        ]:
             try:
-                robot.close()
+                closer()
             except Exception:
-                log.exception("robot close failed", extra=kv(robot_id=robot.spec.robot_id))
+                log.exception("close failed", extra=kv(what=name))
         log.info("edge agent stopped", extra=kv(agent_id=self.cfg.edge.agent_id, flushed=flushed))
 
     def status(self) -> list[control_pb2.RobotStatus]:
@@ -489,6 +564,29 @@ class EdgeAgent:
 
     def on_command(self, cmd: control_pb2.Command) -> tuple[bool, str]:
         return apply_command(self.loops, cmd)
+
+
+def build_judges_and_teleops(cfg: StackConfig, robots: list[Robot]) -> tuple[dict[str, Task], dict[str, Teleoperator]]:
+    """Each robot's task (its config's, else the robot's default) and teleoperator (if configured).
+
+    Params are validated here, at start, and errors name the dotted field (edge.robots[1].task.params.x).
+    """
+    entries = {rc.id: (i, rc) for i, rc in enumerate(cfg.edge.robots)}
+    tasks: dict[str, Task] = {}
+    teleops: dict[str, Teleoperator] = {}
+    for robot in robots:
+        spec = robot.spec
+        index, rc = entries.get(spec.robot_id, (None, RobotConfig(id=spec.robot_id, kind=spec.kind)))
+        where = f"edge.robots[{index}]" if index is not None else f"robot {spec.robot_id}"
+        if rc.task is not None:
+            tasks[spec.robot_id] = TASKS.build(rc.task.kind, rc.task.params, where=f"{where}.task.params", spec=spec)
+        else:
+            tasks[spec.robot_id] = TASKS.build(robot.default_task, {}, where=f"{where}.task.params", spec=spec)
+        if rc.teleop is not None:
+            teleops[spec.robot_id] = TELEOPERATORS.build(
+                rc.teleop.kind, rc.teleop.params, where=f"{where}.teleop.params", spec=spec
+            )
+    return tasks, teleops
 
 
 _COMMANDS: dict[int, Callable[[RobotLoop], None]] = {

@@ -1,7 +1,12 @@
-"""The robot interface every robot implements (sim arm, gym-hil Panda, lerobot robots).
+"""The robot interface every robot implements (sim arm, gym-hil Panda, SO-101, any lerobot robot).
 
-A robot is physical: `act` clips to the declared limits, `hold` keeps it still and safe.
-New robots are one class plus `@register_robot("kind")`.
+A robot is physical: `act` clips to the declared limits, `hold` keeps it still and safe. A robot
+moves and observes; whether a step earned reward is a task's call (edge_agent/task.py). Simulated
+robots still report their simulator's own reward in `Observation.reward`, which the `env` task
+passes through.
+
+New robots are one class with a typed `Params` model plus `@ROBOTS.register("kind")` in a module of
+`edge_agent.robots` (no import list to edit). The class is built as cls(params, robot_id=, seed=).
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from user import spec as spec_contract
+from user.registry import PluginParams, Registry
 from user.v1 import robot_pb2
 
 
@@ -27,7 +33,10 @@ class Observation:
 
 
 class Robot(ABC):
-    """spec -> reset -> (act -> observe)* -> close. Sims advance one control period per act."""
+    """connect -> spec -> reset -> (act -> observe)* -> disconnect. Sims advance one control period per act."""
+
+    Params: type[PluginParams] = PluginParams
+    default_task: str = "env"  # the task kind a config entry without `task:` gets
 
     @property
     @abstractmethod
@@ -49,6 +58,13 @@ class Robot(ABC):
     def hold(self) -> None:
         """Keep still (no policy answer, link lost, paused)."""
 
+    def connect(self) -> None:  # noqa: B027 - optional hook
+        """Open the hardware (serial bus, cameras). Sims are ready when built."""
+
+    def disconnect(self) -> None:
+        """Leave the hardware safe and release it; sims close their simulator."""
+        self.close()
+
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release hardware or simulator resources."""
 
@@ -58,30 +74,20 @@ action_bounds = spec_contract.action_bounds
 clip_action = spec_contract.clip_action
 
 
-RobotFactory = Callable[..., Robot]
-_REGISTRY: dict[str, RobotFactory] = {}
+ROBOTS: Registry[Robot] = Registry("robot", Robot, "edge_agent.robots")
 
 
-def register_robot(kind: str) -> Callable[[RobotFactory], RobotFactory]:
-    def deco(factory: RobotFactory) -> RobotFactory:
-        _REGISTRY[kind] = factory
-        return factory
-
-    return deco
+def register_robot(kind: str, description: str | None = None) -> Callable[[type[Robot]], type[Robot]]:
+    """Kept for existing plug-ins: the same as `ROBOTS.register(kind)`."""
+    return ROBOTS.register(kind, description)
 
 
-def make_robot(kind: str, robot_id: str, params: dict[str, Any] | None = None, seed: int = 0) -> Robot:
-    """Build a registered robot: factory(robot_id=..., seed=..., **params)."""
-    import edge_agent.robots  # noqa: F401 - registers the built-in robots
-
-    try:
-        factory = _REGISTRY[kind]
-    except KeyError:
-        raise ValueError(f"unknown robot kind {kind!r}; known: {sorted(_REGISTRY)}") from None
-    return factory(robot_id=robot_id, seed=seed, **(params or {}))
+def make_robot(
+    kind: str, robot_id: str, params: dict[str, Any] | None = None, seed: int = 0, where: str = "params"
+) -> Robot:
+    """Build a registered robot after validating `params` against its `Params` (errors name `where.<field>`)."""
+    return ROBOTS.build(kind, params, where=where, robot_id=robot_id, seed=seed)
 
 
 def known_robot_kinds() -> list[str]:
-    import edge_agent.robots  # noqa: F401
-
-    return sorted(_REGISTRY)
+    return ROBOTS.kinds()

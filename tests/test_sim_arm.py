@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 
 from edge_agent.robot import make_robot
-from edge_agent.robots.sim_arm import SimReachArm
 from user.v1 import tensor_pb2
 
 
@@ -33,7 +32,7 @@ def test_spec_and_observation_match() -> None:
 
 
 def test_out_of_range_and_nan_actions_are_clipped() -> None:
-    robot = SimReachArm("a", seed=0)
+    robot = make_robot("sim_reach_arm", "a", seed=0)
     robot.reset()
     applied = robot.act(np.array([5.0, -7.0, 0.5]))
     np.testing.assert_array_equal(applied, np.array([1.0, -1.0, 0.5], np.float32))
@@ -48,7 +47,7 @@ def test_out_of_range_and_nan_actions_are_clipped() -> None:
 
 
 def test_scripted_reach_succeeds() -> None:
-    robot = SimReachArm("a", seed=1)
+    robot = make_robot("sim_reach_arm", "a", seed=1)
     successes = []
     for _ in range(10):
         obs = robot.reset()
@@ -68,7 +67,7 @@ def test_scripted_reach_succeeds() -> None:
 
 def test_same_seed_same_episodes() -> None:
     def rollout(seed: int) -> np.ndarray:
-        robot = SimReachArm("a", seed=seed)
+        robot = make_robot("sim_reach_arm", "a", seed=seed)
         actions = np.random.default_rng(0).uniform(-1, 1, size=(20, 3))
         states = [robot.reset().features["state"]]
         for a in actions:
@@ -82,7 +81,7 @@ def test_same_seed_same_episodes() -> None:
 
 
 def test_reset_seed_overrides_and_targets_vary() -> None:
-    robot = SimReachArm("a", seed=0)
+    robot = make_robot("sim_reach_arm", "a", seed=0)
     t1 = robot.reset(seed=42).features["state"]
     t2 = robot.reset(seed=42).features["state"]
     np.testing.assert_array_equal(t1, t2)
@@ -93,7 +92,7 @@ def test_reset_seed_overrides_and_targets_vary() -> None:
 
 
 def test_hold_keeps_end_effector_still() -> None:
-    robot = SimReachArm("a", seed=2)
+    robot = make_robot("sim_reach_arm", "a", seed=2)
     robot.reset()
     start = robot.ee_pos()
     for _ in range(10):
@@ -113,7 +112,7 @@ def test_hold_keeps_end_effector_still() -> None:
 
 
 def test_camera_feature() -> None:
-    robot = SimReachArm("cam", seed=0, camera=True)
+    robot = make_robot("sim_reach_arm", "cam", {"camera": True}, seed=0)
     try:
         names = [f.name for f in robot.spec.observation]
         assert names == ["state", "camera.front"]

@@ -196,10 +196,23 @@ class ExperimentConfig(Strict):
 LEGACY_SAC_FIELDS = ("hidden", "batch_size", "gamma", "tau", "actor_lr", "critic_lr", "alpha_lr", "init_alpha")
 
 
+class PluginConfig(Strict):
+    """One plug-in choice: a registered kind and its params (validated against the kind's Params at start)."""
+
+    kind: str = Field(min_length=1, description="registered kind")
+    params: dict[str, Any] = Field(default={}, description="the kind's typed params")
+
+
 class RobotConfig(Strict):
     id: str = Field(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")
     kind: str = Field(default="sim_reach_arm", description="registered robot kind")
     params: dict[str, Any] = Field(default={}, description="keyword arguments of the robot class")
+    task: PluginConfig | None = Field(
+        default=None, description="reward/success judge {kind, params}; none: the robot's default (reach, env)"
+    )
+    teleop: PluginConfig | None = Field(
+        default=None, description="who may take over {kind, params}, e.g. scripted_expert; none: the policy drives"
+    )
 
 
 class EdgeConfig(Strict):

@@ -215,8 +215,9 @@ class Stack:
         panda -> panda-0, ...), then each further entry once (another embodiment beside them)."""
         first, *others = self.cfg.edge.robots
         base_id = re.sub(r"-\d+$", "", first.id)
-        robots = [{**first.model_dump(mode="json"), "id": f"{base_id}-{i}"} for i in range(self.cfg.up.edge_agents)]
-        return robots + [r.model_dump(mode="json") for r in others]
+        dump = {**first.model_dump(mode="json", exclude_none=True)}
+        robots = [{**dump, "id": f"{base_id}-{i}"} for i in range(self.cfg.up.edge_agents)]
+        return robots + [r.model_dump(mode="json", exclude_none=True) for r in others]
 
     def dead_children(self) -> list[Child]:
         return [c for c in self.children if c.proc.poll() is not None]
@@ -247,6 +248,7 @@ class Episode:
     length: int
     policy_version: int
     experiment: str = ""
+    intervention_steps: int = 0  # steps a teleoperator drove
 
 
 @dataclass
@@ -298,6 +300,7 @@ class Monitor:
                         ep.length,
                         ep.policy_version,
                         info.experiment,
+                        ep.intervention_steps,
                     )
         return Snapshot(now, robots, learner, replay)
 
@@ -335,7 +338,20 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
         expand=True,
     )
     # Short headers: the table must stay readable in an 80-column terminal.
-    for col in ("robot", "exp", "state", "eps", "success", "steps", "steps/s", "policy", "stale", "p99", "spool"):
+    for col in (
+        "robot",
+        "exp",
+        "state",
+        "eps",
+        "success",
+        "steps",
+        "steps/s",
+        "policy",
+        "stale",
+        "p99",
+        "spool",
+        "human",
+    ):
         robots.add_column(col, justify="right" if col not in ("robot", "exp") else "left")
     for info in sorted(snap.robots, key=lambda i: (i.experiment, i.spec.robot_id)):
         st = info.status
@@ -355,6 +371,7 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
             str(max(0, versions.get(info.experiment, 0) - st.policy_version)),
             f"{st.loop_period_p99_ms:.1f}",
             f"{st.spool_steps}{' FULL' if st.spool_full else ''}",
+            str(st.intervention_steps),
         )
     learner = Table(expand=True)
     for col in (
@@ -414,6 +431,7 @@ def write_report(run_dir: Path, episodes: list[Episode], summary: dict[str, Any]
                 "length": e.length,
                 "policy_version": e.policy_version,
                 "experiment": e.experiment,
+                "intervention_steps": e.intervention_steps,
             }
             for e in episodes
         ],
@@ -545,6 +563,7 @@ def _summary(
                 "policy_version": st.policy_version,
                 "loop_period_p99_ms": round(st.loop_period_p99_ms, 2),
                 "held_steps": st.held_steps,
+                "intervention_steps": st.intervention_steps,
             }
     learner = final.learner if final else None
     return {

@@ -1,3 +1,1 @@
-"""Built-in robots; importing this package registers them."""
-
-from edge_agent.robots import gym_hil_panda, lang_reach, sim_arm  # noqa: F401 - gym_hil_panda registers only if gym-hil imports
+"""Built-in robots, one module each; `edge_agent.robot.ROBOTS` imports every module here on first use."""

@@ -17,13 +17,14 @@ instruction still decides which one counts, so the policy must ground the words.
 from __future__ import annotations
 
 import threading
-from typing import Any
 
 import mujoco
 import numpy as np
+from pydantic import Field
 
 from edge_agent.robot import Observation, clip_action, register_robot
 from edge_agent.robots.sim_arm import ARM_XML, HOME_QPOS, INIT_NOISE, MAX_SPEED, TIMESTEP, SimReachArm, sample_target
+from user.registry import PluginParams
 from user.text import INSTRUCTION_BYTES, INSTRUCTION_KEY, encode_instruction
 from user.v1 import robot_pb2, tensor_pb2
 
@@ -55,23 +56,21 @@ def instruction_for(colour: str) -> str:
 class LangReachArm(SimReachArm):
     """Reach the target the instruction names (red, green or blue)."""
 
-    def __init__(
-        self,
-        robot_id: str,
-        seed: int = 0,
-        control_rate_hz: float = 20.0,
-        max_episode_steps: int = 60,
-        camera: bool = True,
-        camera_size: int = 64,
-        target_state: bool = True,
-        **_: Any,
-    ) -> None:
-        if control_rate_hz <= 0:
-            raise ValueError("control_rate_hz must be > 0")
+    class Params(PluginParams):
+        control_rate_hz: float = Field(default=20.0, gt=0)
+        max_episode_steps: int = Field(default=60, ge=1)
+        camera: bool = Field(default=True, description="render the front camera (camera.front)")
+        camera_size: int = Field(default=64, ge=8, le=512, description="camera image side in pixels")
+        target_state: bool = Field(default=True, description="the three targets' offsets in the state vector")
+
+    default_task = "env"  # the robot scores the named target itself (wrong targets end the episode)
+
+    def __init__(self, params: Params, robot_id: str, seed: int = 0) -> None:  # type: ignore[override]
+        camera, camera_size = params.camera, params.camera_size
         self.robot_id = robot_id
-        self.control_rate_hz = float(control_rate_hz)
-        self.max_episode_steps = int(max_episode_steps)
-        self.target_state = bool(target_state)
+        self.control_rate_hz = float(params.control_rate_hz)
+        self.max_episode_steps = int(params.max_episode_steps)
+        self.target_state = bool(params.target_state)
         self.model = mujoco.MjModel.from_xml_string(_xml())
         self.data = mujoco.MjData(self.model)
         self.period = 1.0 / self.control_rate_hz

@@ -3,6 +3,11 @@
 The policy commands an end-effector velocity; damped least-squares IK turns it into joint
 position targets for the servo actuators, the same interface a real arm's Cartesian
 controller offers. One act() = one control period of simulated time.
+
+The arm does not judge: the `reach` task (its default) computes reward and success from the
+end-effector-to-target distance this robot reports in `Observation.info`. `Observation.reward` still
+carries the same reach reward as the simulator's own, so code that steps the arm directly, gym-style
+(cloud_learner.sac.train_local), sees it too; both come from `tasks.reach.reach_outcome`.
 """
 
 from __future__ import annotations
@@ -12,19 +17,19 @@ import os
 # Headless rendering for the optional camera; must be set before mujoco is imported.
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-from typing import Any
-
 import mujoco
 import numpy as np
+from pydantic import Field
 
-from edge_agent.robot import Observation, Robot, clip_action, register_robot
+from edge_agent.rendering import CameraRenderer
+from edge_agent.robot import ROBOTS, Observation, Robot, clip_action
+from edge_agent.tasks.reach import reach_outcome
+from user.registry import PluginParams
 from user.v1 import robot_pb2, tensor_pb2
 
 KIND = "sim_reach_arm"
 TIMESTEP = 0.002  # physics step (s)
 MAX_SPEED = 0.3  # m/s of end-effector motion for |action| = 1
-SUCCESS_RADIUS = 0.02  # m
-SUCCESS_BONUS = 5.0
 IK_DAMPING = 0.02
 SHOULDER = np.array([0.0, 0.0, 0.15])  # shoulder pitch axis position in the world
 HOME_QPOS = np.array([0.0, -0.6, 1.4])
@@ -81,24 +86,22 @@ def sample_target(rng: np.random.Generator) -> np.ndarray:
     return SHOULDER + offset
 
 
-@register_robot(KIND)
+@ROBOTS.register(KIND)
 class SimReachArm(Robot):
-    """Reach task: bring the end-effector site within 2 cm of a random target."""
+    """3-joint MuJoCo arm reaching a random target (task: reach within 2 cm)."""
 
-    def __init__(
-        self,
-        robot_id: str,
-        seed: int = 0,
-        control_rate_hz: float = 20.0,
-        max_episode_steps: int = 50,
-        camera: bool = False,
-        **_: Any,
-    ) -> None:
-        if control_rate_hz <= 0:
-            raise ValueError("control_rate_hz must be > 0")
+    class Params(PluginParams):
+        control_rate_hz: float = Field(default=20.0, gt=0)
+        max_episode_steps: int = Field(default=50, ge=1)
+        camera: bool = Field(default=False, description="add a 64x64 front camera image")
+
+    default_task = "reach"
+
+    def __init__(self, params: Params, robot_id: str, seed: int = 0) -> None:
+        camera = params.camera
         self.robot_id = robot_id
-        self.control_rate_hz = float(control_rate_hz)
-        self.max_episode_steps = int(max_episode_steps)
+        self.control_rate_hz = float(params.control_rate_hz)
+        self.max_episode_steps = int(params.max_episode_steps)
         self.model = mujoco.MjModel.from_xml_string(ARM_XML)
         self.data = mujoco.MjData(self.model)
         self.period = 1.0 / self.control_rate_hz
@@ -109,9 +112,9 @@ class SimReachArm(Robot):
         self._jacp = np.zeros((3, self.model.nv))
         self._rng = np.random.default_rng(seed)
         self._target = sample_target(self._rng)
-        self._renderer: mujoco.Renderer | None = None
+        self._renderer: CameraRenderer | None = None
         if camera:
-            self._renderer = mujoco.Renderer(self.model, CAMERA_SIZE, CAMERA_SIZE)
+            self._renderer = CameraRenderer(self.model, CAMERA_SIZE, CAMERA_SIZE)
         self._spec = self._build_spec(camera)
         self._reward, self._terminated, self._success = 0.0, False, False
         self._holding = False
@@ -174,14 +177,13 @@ class SimReachArm(Robot):
     def observe(self) -> Observation:
         features = {"state": self._state()}
         if self._renderer is not None:
-            self._renderer.update_scene(self.data, camera="front")
-            features["camera.front"] = self._renderer.render().copy()
+            features["camera.front"] = self._renderer.render(self.data, "front")
         return Observation(
             features=features,
             reward=self._reward,
             terminated=self._terminated,
             success=self._success,
-            info={"distance": self.distance()},
+            info={"distance": self.distance(), "ee_pos": self.ee_pos(), "target_pos": self.target},
         )
 
     # --- control -----------------------------------------------------------------------------------
@@ -222,11 +224,8 @@ class SimReachArm(Robot):
         before = self.distance()
         self.data.ctrl[:] = self._ik_targets(applied.astype(np.float64) * MAX_SPEED)
         self._advance()
-        after = self.distance()
-        self._success = after < SUCCESS_RADIUS
-        self._terminated = self._success
-        # Progress toward the target, ~1 per step at full speed straight at it, plus a bonus on success.
-        self._reward = (before - after) / (MAX_SPEED * self.period) + (SUCCESS_BONUS if self._success else 0.0)
+        outcome = reach_outcome(before, self.distance(), MAX_SPEED * self.period)
+        self._reward, self._terminated, self._success = outcome.reward, outcome.terminated, outcome.success
         return applied
 
     def hold(self) -> None:

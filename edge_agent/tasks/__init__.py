@@ -1,1 +1,1 @@
-"""Built-in tasks: each module registers its kinds with edge_agent.task.TASKS (found without an import list)."""
+"""Built-in tasks, one module each; `edge_agent.task.TASKS` imports every module here on first use."""

@@ -1,1 +1,1 @@
-"""Built-in teleoperators: each module registers with edge_agent.teleop.TELEOPERATORS (found without an import list)."""
+"""Built-in teleoperators, one module each; `edge_agent.teleop.TELEOPERATORS` imports every module here on first use."""
