@@ -50,14 +50,7 @@ def _parser() -> argparse.ArgumentParser:
 def _plugins() -> int:
     from user.registry import Registry, plugin_lines
 
-    lines = plugin_lines()
-    if not any(line.startswith("robot ") for line in lines):  # robots not yet on user.registry
-        from edge_agent.robot import _REGISTRY, known_robot_kinds
-
-        for kind in known_robot_kinds():
-            doc = (getattr(_REGISTRY[kind], "__doc__", "") or "").strip().splitlines()
-            lines.append(f"robot {kind} {doc[0] if doc else ''}".rstrip())
-    print("\n".join(sorted(lines)))
+    print("\n".join(sorted(plugin_lines())))
     for reg in Registry._all.values():
         for module, error in sorted(reg.import_errors.items()):
             print(f"userctl plugins: {reg.interface} module {module} not loaded: {error}", file=sys.stderr)
