@@ -100,6 +100,7 @@ def build_policy(
     spec: learner_pb2.PolicySpec, tensors: Mapping[str, np.ndarray], version: int, device: str = "cpu"
 ) -> Policy:
     """Rebuild a policy from the wire on `device` (e.g. "cpu", "cuda:0"); any mismatch raises ValueError."""
+    _import_builtin_policies()
     try:
         factory = _REGISTRY[spec.kind]
     except KeyError:
@@ -119,7 +120,19 @@ def check_device(device: str) -> torch.device:
 
 
 def known_policy_kinds() -> list[str]:
+    _import_builtin_policies()
     return sorted(_REGISTRY)
+
+
+def _import_builtin_policies() -> None:
+    """Import every module of user.policies (mlp, cnn, ...) so their kinds are registered."""
+    import importlib
+    import pkgutil
+
+    import user.policies
+
+    for info in pkgutil.iter_modules(user.policies.__path__, prefix="user.policies."):
+        importlib.import_module(info.name)
 
 
 # --- sac_mlp --------------------------------------------------------------------------------------
