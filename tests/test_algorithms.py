@@ -15,8 +15,9 @@ import pytest
 import torch
 
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, Feature, Layout
-from cloud_learner.algorithms.sac import SAC, random_shift
+from cloud_learner.algorithms.sac import SAC
 from cloud_learner.local import Buffer, Table
+from user.policies.cnn import random_shift
 from user.policy import build_policy
 from user.registry import PluginError
 

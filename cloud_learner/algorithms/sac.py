@@ -27,7 +27,7 @@ from torch import nn
 
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
 from user.policies.cnn import KIND as CNN_KIND
-from user.policies.cnn import ConvEncoder
+from user.policies.cnn import ConvEncoder, random_shift
 from user.policies.mlp import KIND as MLP_KIND
 from user.policies.mlp import GaussianActor, StateEncoder, policy_spec
 from user.policy import module_tensors
@@ -109,18 +109,6 @@ def make_encoder(layout: Layout, p: EncoderParams) -> nn.Module:
         return StateEncoder(state_keys, state_dims)
     shapes = [list(layout.observation[k].shape) for k in image_keys]
     return ConvEncoder(image_keys, shapes, state_keys, state_dims, p.channels, p.strides, p.latent_dim)
-
-
-def random_shift(image: torch.Tensor, pad: int) -> torch.Tensor:
-    """DrQ augmentation: replicate-pad (B, H, W, C) pixels by `pad` and crop back at a random offset per image."""
-    b, h, w, _ = image.shape
-    padded = nn.functional.pad(image.float().permute(0, 3, 1, 2), (pad, pad, pad, pad), mode="replicate")
-    padded = padded.permute(0, 2, 3, 1)
-    dy = torch.randint(0, 2 * pad + 1, (b, 1, 1), device=image.device)
-    dx = torch.randint(0, 2 * pad + 1, (b, 1, 1), device=image.device)
-    rows = torch.arange(h, device=image.device).view(1, h, 1) + dy
-    cols = torch.arange(w, device=image.device).view(1, 1, w) + dx
-    return padded[torch.arange(b, device=image.device).view(b, 1, 1), rows, cols]
 
 
 def augment(obs: Mapping[str, torch.Tensor], layout: Layout, pad: int) -> dict[str, torch.Tensor]:

@@ -96,6 +96,18 @@ def encoder_from_config(config: Mapping[str, Any]) -> ConvEncoder:
     )
 
 
+def random_shift(image: torch.Tensor, pad: int) -> torch.Tensor:
+    """DrQ augmentation: replicate-pad (B, H, W, C) pixels by `pad` and crop back at a random offset per image."""
+    b, h, w, _ = image.shape
+    padded = nn.functional.pad(image.float().permute(0, 3, 1, 2), (pad, pad, pad, pad), mode="replicate")
+    padded = padded.permute(0, 2, 3, 1)
+    dy = torch.randint(0, 2 * pad + 1, (b, 1, 1), device=image.device)
+    dx = torch.randint(0, 2 * pad + 1, (b, 1, 1), device=image.device)
+    rows = torch.arange(h, device=image.device).view(1, h, 1) + dy
+    cols = torch.arange(w, device=image.device).view(1, 1, w) + dx
+    return padded[torch.arange(b, device=image.device).view(b, 1, 1), rows, cols]
+
+
 @register_policy(KIND)
 class CnnPolicy(ActorPolicy):
     """Per-camera CNN encoders plus state, squashed Gaussian head."""
