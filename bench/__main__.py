@@ -25,6 +25,7 @@ BENCHES = {
     "replay": "bench.replay_bench",
     "weights": "bench.weights_bench",
     "inference": "bench.inference_bench",
+    "learning": "bench.learning_bench",
 }
 
 
@@ -38,6 +39,9 @@ LEGEND = {
     "both real gRPC servers on 127.0.0.1, versions alternate.",
     "inference": "inference: ours InferenceService (micro-batching) vs the same Act proto served one forward per "
     "request in the handler; each robot is a separate process, windows alternate.",
+    "learning": "learning: success curves of the in-process trainer (cloud_learner.local) vs a uniform random policy "
+    "on the same robot: reach (SAC, state; target 90% in 5 min) and gym-hil Panda pick-cube (RLPD + scripted demos and "
+    "interventions, state; target 80% in 30 min); curves in runs/bench/learning/*.json|png.",
 }
 
 

@@ -24,7 +24,8 @@ from edge_agent.task import Task
 from user.policy import build_policy
 from user.v1 import robot_pb2, tensor_pb2
 
-Expert = Callable[[Robot, Observation], np.ndarray | None]
+# (observation, step within the episode) -> the expert's action, or None to let the policy act
+Expert = Callable[[Observation, int], np.ndarray | None]
 
 
 def layout_from_spec(spec: robot_pb2.RobotSpec) -> Layout:
@@ -140,13 +141,14 @@ def train_local(
     updates_per_step: float = 1.0,
     policy_every: int = 1,
     on_episode: Callable[[Curve], None] | None = None,
+    max_seconds: float | None = None,
 ) -> dict[str, Any]:
     """Collect with the published stochastic policy and update after every step.
 
     Uniform random actions for the first `random_steps` (default `min_transitions`) steps; updates
     start once the online table holds `min_transitions` rows, `updates_per_step` per env step.
     Episodes are truncated at spec.max_episode_steps, as the edge agent does. `buffer` may arrive
-    pre-filled (e.g. a "demos" table).
+    pre-filled (e.g. a "demos" table). Stops early after `max_seconds` of wall time.
     """
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
@@ -163,9 +165,9 @@ def train_local(
     obs = robot.reset(seed=seed)
     if task is not None:
         task.reset(obs)
-    ep_return, ep_len, ep_interventions, credit = 0.0, 0, 0, 0.0
+    ep_return, ep_len, ep_interventions, credit, step = 0.0, 0, 0, 0.0, -1
     for step in range(env_steps):
-        override = expert(robot, obs) if expert is not None else None
+        override = expert(obs, ep_len) if expert is not None else None
         if override is not None:
             action = np.asarray(override, np.float32)
         elif step < random_steps:
@@ -203,4 +205,32 @@ def train_local(
             if (step + 1) % policy_every == 0:
                 policy = build_policy(*algorithm.policy(), version=algorithm.updates)
 
-    return {"curve": curve, "updates": algorithm.updates, "env_steps": env_steps, "buffer": buffer}
+        if max_seconds is not None and time.perf_counter() - start > max_seconds:
+            break
+
+    return {"curve": curve, "updates": algorithm.updates, "env_steps": step + 1, "buffer": buffer}
+
+
+def record_episodes(
+    robot: Robot, expert: Expert, episodes: int, table: Table, task: Task | None = None, seed: int = 0
+) -> list[bool]:
+    """Run `expert` alone for `episodes` episodes into `table` (scripted demos); returns their successes."""
+    max_steps = int(robot.spec.max_episode_steps) or 1_000_000
+    successes = []
+    for episode in range(episodes):
+        obs = robot.reset(seed=seed + episode)
+        if task is not None:
+            task.reset(obs)
+        for ep_step in range(max_steps):
+            action = expert(obs, ep_step)
+            if action is None:
+                raise ValueError("the expert must act on every step of a recorded episode")
+            applied = robot.act(action)
+            next_obs = robot.observe()
+            reward, terminated, success = _judge(task, obs, applied, next_obs)
+            table.add(obs.features, applied, reward, next_obs.features, terminated, intervention=True)
+            obs = next_obs
+            if terminated:
+                break
+        successes.append(success)
+    return successes
