@@ -187,6 +187,19 @@ def test_params_are_validated_by_name() -> None:
         ALGORITHMS.params("bc", {"loss": "l1"})
     with pytest.raises(ValueError, match="target_subset"):
         _algorithm("sac", False, num_critics=2, target_subset=3)
+    with pytest.raises(ValueError, match="not in the observation"):
+        _algorithm("sac", False, features=["camera.back"])
+
+
+def test_features_select_what_the_networks_see() -> None:
+    algo = _algorithm("sac", pixels=True, features=["camera.front"])  # pixels only: the state is left out
+    spec, tensors = algo.policy()
+    policy = build_policy(spec, tensors, version=1)
+    assert policy.observation_keys == ["camera.front"]
+    image = _obs(torch.Generator().manual_seed(0), 2, pixels=True)["camera.front"].numpy()
+    assert policy.act({"camera.front": image}).shape == (2, ACTION_DIM)
+    scalars = algo.update(_request_batch(algo, 0, pixels=True))
+    assert np.isfinite(scalars["critic_loss"])
 
 
 @pytest.mark.parametrize("loss", ["mse", "nll"])

@@ -38,6 +38,10 @@ from user.v1 import learner_pb2
 class EncoderParams(PluginParams):
     """How observations are encoded: shared by every algorithm that trains a GaussianActor."""
 
+    features: list[str] | None = Field(
+        default=None, description="observation keys the networks see (default all; e.g. leave out privileged state)"
+    )
+
     channels: list[int] = Field(default=[16, 32, 32], description="conv channels per camera encoder layer")
     strides: list[int] = Field(default=[2, 2, 2], description="conv strides per camera encoder layer")
     latent_dim: int = Field(default=50, ge=1, description="per-camera latent size")
@@ -101,10 +105,14 @@ class Critic(nn.Module):
 
 
 def make_encoder(layout: Layout, p: EncoderParams) -> nn.Module:
-    """State-only: concatenate the float features. With cameras: per-camera CNN + state."""
-    state_keys = [k for k in layout.state_keys() if layout.observation[k].dtype.startswith("float")]
+    """State-only: concatenate the float features (sorted keys). With cameras: per-camera CNN + state."""
+    unknown = sorted(set(p.features or []) - set(layout.observation))
+    if unknown:
+        raise ValueError(f"features {unknown} are not in the observation {sorted(layout.observation)}")
+    wanted = set(p.features or layout.observation)
+    state_keys = [k for k in layout.state_keys() if layout.observation[k].dtype.startswith("float") and k in wanted]
     state_dims = [int(np.prod(layout.observation[k].shape)) for k in state_keys]
-    image_keys = layout.image_keys()
+    image_keys = [k for k in layout.image_keys() if k in wanted]
     if not image_keys:
         return StateEncoder(state_keys, state_dims)
     shapes = [list(layout.observation[k].shape) for k in image_keys]
