@@ -109,10 +109,12 @@ class Buffer:
 
 @dataclass
 class Curve:
-    """One row per finished episode: when it ended (env steps, seconds) and how it went."""
+    """One row per finished episode: when it ended (env steps, wall and process CPU seconds) and how it went.
+    CPU seconds tell what a dedicated core would take when the machine is shared."""
 
     env_steps: list[int] = field(default_factory=list)
     wall_s: list[float] = field(default_factory=list)
+    cpu_s: list[float] = field(default_factory=list)
     success: list[bool] = field(default_factory=list)
     episode_return: list[float] = field(default_factory=list)
     interventions: list[int] = field(default_factory=list)
@@ -160,7 +162,7 @@ def train_local(
     online = buffer.table("online")
     curve = Curve()
     policy = build_policy(*algorithm.policy(), version=0)
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), time.process_time()
 
     obs = robot.reset(seed=seed)
     if task is not None:
@@ -187,6 +189,7 @@ def train_local(
         if terminated or ep_len >= max_steps:
             curve.env_steps.append(step + 1)
             curve.wall_s.append(time.perf_counter() - start)
+            curve.cpu_s.append(time.process_time() - cpu_start)
             curve.success.append(success)
             curve.episode_return.append(ep_return)
             curve.interventions.append(ep_interventions)
