@@ -187,6 +187,8 @@ def test_params_are_validated_by_name() -> None:
         ALGORITHMS.params("bc", {"loss": "l1"})
     with pytest.raises(ValueError, match="target_subset"):
         _algorithm("sac", False, num_critics=2, target_subset=3)
+    with pytest.raises(ValueError, match="share > 0"):
+        _algorithm("rlpd", False, tables={"online": 1.0, "demos": 0.0})
     with pytest.raises(ValueError, match="not in the observation"):
         _algorithm("sac", False, features=["camera.back"])
 

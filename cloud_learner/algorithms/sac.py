@@ -179,6 +179,8 @@ class SAC(Algorithm):
         p = self.p = params
         if p.target_subset > p.num_critics:
             raise ValueError(f"target_subset {p.target_subset} exceeds num_critics {p.num_critics}")
+        if not p.tables or any(share <= 0 for share in p.tables.values()):
+            raise ValueError(f"tables must name at least one table, each with a share > 0: {p.tables}")
         self.low = np.asarray(layout.action_low, np.float32).reshape(-1)
         self.high = np.asarray(layout.action_high, np.float32).reshape(-1)
         action_dim = self.low.size
