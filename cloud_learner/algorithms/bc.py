@@ -48,7 +48,7 @@ class BC(Algorithm):
         return BatchRequest(batch_size=self.p.batch_size, tables=dict(self.p.tables))
 
     def update(self, batch: Batch) -> dict[str, float]:
-        features = self.actor.encoder(augment(batch.observation, self.layout, self.p.image_pad))
+        features = self.actor.encoder(augment(batch.observation, self.actor.encoder, self.p.image_pad))
         if self.p.loss == "mse":
             _, _, mean_action = self.actor.head(features)
             per_row = (mean_action - batch.action).pow(2).mean(dim=-1)

@@ -113,15 +113,17 @@ def make_encoder(layout: Layout, p: EncoderParams) -> nn.Module:
     state_keys = [k for k in layout.state_keys() if layout.observation[k].dtype.startswith("float") and k in wanted]
     state_dims = [int(np.prod(layout.observation[k].shape)) for k in state_keys]
     image_keys = [k for k in layout.image_keys() if k in wanted]
+    if not image_keys and not state_keys:
+        raise ValueError(f"no float or image features to learn from in {sorted(wanted)}")
     if not image_keys:
         return StateEncoder(state_keys, state_dims)
     shapes = [list(layout.observation[k].shape) for k in image_keys]
     return ConvEncoder(image_keys, shapes, state_keys, state_dims, p.channels, p.strides, p.latent_dim)
 
 
-def augment(obs: Mapping[str, torch.Tensor], layout: Layout, pad: int) -> dict[str, torch.Tensor]:
-    """Random-shift every camera image of a batch (no-op when pad is 0 or there are no cameras)."""
-    images = set(layout.image_keys()) if pad > 0 else set()
+def augment(obs: Mapping[str, torch.Tensor], encoder: nn.Module, pad: int) -> dict[str, torch.Tensor]:
+    """Random-shift the images the encoder reads (no-op when pad is 0 or it reads no cameras)."""
+    images = set(getattr(encoder, "image_keys", [])) if pad > 0 else set()
     return {k: random_shift(v, pad) if k in images else v for k, v in obs.items()}
 
 
@@ -220,7 +222,10 @@ class SAC(Algorithm):
     def update_critic(self, batch: Batch) -> tuple[torch.Tensor, dict[str, float]]:
         """One critic (and encoder) step; returns the batch's features, detached, for the actor."""
         pad = self.p.image_pad
-        obs, next_obs = augment(batch.observation, self.layout, pad), augment(batch.next_observation, self.layout, pad)
+        obs, next_obs = (
+            augment(batch.observation, self.encoder, pad),
+            augment(batch.next_observation, self.encoder, pad),
+        )
         target = self.td_target(batch, next_obs)
         features = self.encoder(obs)
         q = self.critic(features, batch.action)
