@@ -160,9 +160,9 @@ def rows_for(
 
 def reach(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None]) -> list[Row]:
     seed, target = 0, 0.9
-    env_steps = 300 if quick else 50_000
+    env_steps = 200 if quick else 50_000
     robot = make_robot("sim_reach_arm", "bench-reach", seed=seed)
-    algorithm = make_algorithm("sac", {}, robot.spec)
+    algorithm = make_algorithm("sac", {"hidden": [32, 32], "batch_size": 32} if quick else {}, robot.spec)
     out = train_local(
         robot,
         algorithm,
@@ -238,7 +238,7 @@ def panda(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None], 
     source = "from the front + wrist cameras" if pixels else "from state"
     demos = Buffer().table("demos")
     demo_success = record_episodes(
-        robot, lambda o, _: panda_pick_expert(o.features["state"]), 2 if quick else 20, demos, seed=1000
+        robot, lambda o, _: panda_pick_expert(o.features["state"]), 1 if quick else 20, demos, seed=1000
     )
     buffer = Buffer({"online": Table(), "demos": demos})
     params = {"hidden": [128, 128], "batch_size": 128, "utd": 4, "num_critics": 10}
@@ -247,7 +247,7 @@ def panda(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None], 
     if pixels:  # the networks see the images only (no joint or cube state): the policy learns from pixels
         params |= {"features": cameras, "batch_size": 16 if quick else 64, "utd": 2}
     algorithm = make_algorithm("rlpd", params, robot.spec)
-    env_steps = 60 if quick else 1_000_000
+    env_steps = 30 if quick else 1_000_000
     expert = ScriptedInterventions(start_share=0.5, after_steps=30, decay_steps=20_000, seed=seed)
     out = train_local(
         robot,
@@ -261,7 +261,7 @@ def panda(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None], 
         policy_every=10,
         max_seconds=None if quick else minutes * 60,
     )
-    peer = random_success(robot, min(out["env_steps"], 2000), seed)
+    peer = random_success(robot, min(out["env_steps"], 2000), seed)  # the random baseline is cheap: no updates
     robot.close()
     title = f"gym-hil Panda pick-cube {source}, RLPD + {len(demo_success)} scripted demos + scripted interventions"
     meta = {"title": title, "algorithm": "rlpd", "params": params, "demo_success": float(np.mean(demo_success))}
