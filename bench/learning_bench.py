@@ -191,8 +191,11 @@ def panda_pick_expert(state: np.ndarray) -> np.ndarray:
     def toward(point: np.ndarray) -> np.ndarray:
         return np.clip((point - tcp) / 0.025, -1.0, 1.0)
 
-    if gripper > 0.5:  # closed on the cube: lift
+    holding = np.linalg.norm(cube - tcp) < 0.03
+    if gripper > 0.5 and holding:  # closed on the cube: lift
         action[2], action[6] = 1.0, 1.0
+    elif gripper > 0.1 and not holding:  # closed on nothing (a policy's attempt): open and rise
+        action[2], action[6] = 1.0, -1.0
     elif np.linalg.norm(cube[:2] - tcp[:2]) > 0.01:  # not above it yet: move over, staying high
         action[:3], action[6] = toward(np.array([cube[0], cube[1], max(tcp[2], cube[2] + 0.05)])), -1.0
     elif tcp[2] - cube[2] > 0.01:  # above it: descend with the gripper open
@@ -241,7 +244,8 @@ def panda(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None], 
         robot, lambda o, _: panda_pick_expert(o.features["state"]), 1 if quick else 20, demos, seed=1000
     )
     buffer = Buffer({"online": Table(), "demos": demos})
-    params = {"hidden": [128, 128], "batch_size": 128, "utd": 4, "num_critics": 10}
+    # SERL's starting temperature: with a 0/1 reward, RLPD's 1.0 keeps the policy near random for thousands of steps.
+    params = {"hidden": [128, 128], "batch_size": 128, "utd": 4, "num_critics": 10, "init_alpha": 0.01}
     if quick:
         params = {"hidden": [32, 32], "batch_size": 16, "utd": 2, "num_critics": 4}
     if pixels:  # the networks see the images only (no joint or cube state): the policy learns from pixels
