@@ -30,6 +30,7 @@ BENCHES = {
     "hg_dagger": "bench.hg_dagger_bench",
     "spool": "bench.spool_bench",
     "edge": "bench.edge_bench",
+    "curves": "bench.curves_bench",
 }
 SLOW = {"learning"}  # whole stacks as processes: minutes, not part of the --quick smoke run unless named
 
@@ -58,6 +59,9 @@ LEGEND = {
     "edge": "edge: ours Robot.act + observe + env task (the edge loop's per-tick work minus the network), "
     "cameras rendered without shadows/MSAA, vs the bare gym env.step (gym-hil's image_obs renderer for cameras); "
     "the same random actions, rounds alternate.",
+    "curves": "curves: success curves of the in-process trainer (cloud_learner.local) vs a uniform random policy "
+    "on the same robot: reach (SAC, state; target 90% in 5 min) and gym-hil Panda pick-cube (RLPD + scripted demos and "
+    "interventions, state; target 80% in 30 min); curves in runs/bench/curves/*.json|png.",
 }
 
 

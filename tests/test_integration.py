@@ -78,7 +78,7 @@ def test_stack_learns_through_all_services(tmp_path: Path) -> None:
         assert set(exps) == {"reach", "pick"}
         assert all(e.sample_errors == 0 and e.state == "training" for e in exps.values())
         assert sorted(exps["reach"].robot_ids) == ["arm-0", "arm-1"] and list(exps["pick"].robot_ids) == ["panda-0"]
-        assert "alpha" in exps["reach"].scalars and "qf_loss" in exps["pick"].scalars
+        assert "alpha" in exps["reach"].scalars and "critic_loss" in exps["pick"].scalars
 
         def edge_versions():
             infos = control.ListRobots(control_pb2.ListRobotsRequest(), timeout=5).robots

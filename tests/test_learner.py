@@ -29,7 +29,7 @@ LOW, HIGH = np.full(ACT_DIM, -1.0, np.float32), np.array([1.0, 2.0, 0.5], np.flo
 LAYOUT = Layout(
     {"state": Feature((OBS_DIM,), "float32"), "camera.front": Feature((8, 8, 3), "uint8", is_image=True)}, LOW, HIGH
 )
-SMALL = {"hidden": [32, 32], "batch_size": 16}
+SMALL = {"hidden": [32, 32], "batch_size": 16, "features": ["state"]}  # the 8x8 camera is not learned from
 
 
 def sac_batch(seed: int) -> Batch:
@@ -56,7 +56,7 @@ def trained_sac(updates: int = 5, seed: int = 0):
 
 def mean_actions(algo, obs: torch.Tensor) -> torch.Tensor:
     with torch.no_grad():
-        return algo.sac.actor(obs)[2]
+        return algo.actor({"state": obs})[2]
 
 
 # --------------------------------------------------------------------------- checkpoint files
@@ -150,7 +150,7 @@ def test_published_weights_rebuild_the_same_policy() -> None:
 
     algo = trained_sac(updates=3)
     spec, tensors = algo.policy()
-    assert spec.kind == "sac_mlp"
+    assert spec.kind == "mlp"
     packed = pack_weights(4, spec, tensors, learner_updates=algo.updates)
     asm, weights = WeightAssembler(), None
     for msg in iter_weight_messages(packed, 1024):

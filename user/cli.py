@@ -5,6 +5,7 @@ userctl up --config configs/demo.yaml      # the whole stack locally, with a liv
 userctl health HOST:PORT                   # exit 0 when SERVING (docker health checks)
 userctl plugins                            # every registered kind: `interface kind description` per line
 userctl replay ls|export|import ...        # a replay buffer's tables; LeRobotDataset out and in
+userctl reward train --frames DIR --out DIR  # success classifier for the `classifier` task
 """
 
 from __future__ import annotations
@@ -44,6 +45,15 @@ def _parser() -> argparse.ArgumentParser:
     h.add_argument("--config", "-c")
     h.add_argument("--set", dest="overrides", action="append", default=[])
     h.add_argument("--timeout", type=float, default=2.0)
+    reward = sub.add_parser("reward", help="learned rewards").add_subparsers(dest="reward_command", required=True)
+    train = reward.add_parser("train", help="train a success classifier from labelled frames (user/reward_model.py)")
+    train.add_argument("--frames", required=True, help="folder with success/ and failure/ frames, or an .npz")
+    train.add_argument("--out", required=True, help="output folder (model.safetensors + config.json)")
+    train.add_argument("--camera", default="camera.front", help="observation key the frames come from")
+    train.add_argument("--epochs", type=int, default=30)
+    train.add_argument("--batch-size", type=int, default=32)
+    train.add_argument("--lr", type=float, default=1e-3)
+    train.add_argument("--seed", type=int, default=0)
     return parser
 
 
@@ -66,6 +76,10 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if args.command == "plugins":
         return _plugins()
+    if args.command == "reward":
+        from user.reward_model import run_cli
+
+        return run_cli(args)
     try:
         cfg: StackConfig = load_config(args.config, args.overrides)
     except ConfigError as exc:

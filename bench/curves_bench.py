@@ -1,0 +1,334 @@
+"""Learning curves: success over env steps and over wall time, each run against its stated target.
+
+- reach: the 3-joint MuJoCo arm from state with SAC (cloud_learner.algorithms.sac); target >= 90 %
+  success (last 20 episodes) within 5 minutes on 2 cores.
+- panda: gym-hil's Panda pick-cube from state with RLPD: 50/50 batches of online transitions and
+  20 scripted demonstrations, plus scripted interventions (the expert takes over a stalled episode,
+  in a share of episodes that decays to zero); sparse reward (1 when the cube is 10 cm up, which
+  ends the episode); target >= 80 % success within 30 minutes on 2 cores.
+  Success is also reported over the episodes nobody intervened in.
+- panda_pixels: the same from the front and wrist cameras only (RLPD with the shared CNN encoder and
+  DrQ shift); target: success rising within 30 minutes on CPU. Skipped when the robot has no cameras.
+
+All train in one process (cloud_learner.local.train_local: the algorithm the learner service runs,
+acting through the published policy as an edge does). The peer is the naive baseline: a uniform
+random policy on the same robot for the same number of env steps. Curves go to
+runs/bench/curves/<name>.json and .png (the work dir with --quick).
+
+    python -m bench.curves_bench [--quick] [--only reach,panda,panda_pixels] [--reach-minutes 5] ...
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from bench import Row
+from cloud_learner.local import Buffer, Curve, Table, make_algorithm, record_episodes, train_local
+from edge_agent.robot import Observation, Robot, action_bounds, make_robot
+
+PEER = "random policy"
+WINDOW = 20  # episodes in the rolling success rate
+OUT = Path("runs/bench/curves")
+
+
+def rolling_success(curve: Curve, window: int = WINDOW) -> np.ndarray:
+    s = np.asarray(curve.success, dtype=np.float64)
+    return np.array([s[max(0, i + 1 - window) : i + 1].mean() for i in range(len(s))])
+
+
+def first_reaching(curve: Curve, target: float) -> tuple[int, float, float] | None:
+    """(env steps, wall s, CPU s) when the rolling success first reached `target` over a full window."""
+    rolling = rolling_success(curve)
+    for i, value in enumerate(rolling):
+        if i + 1 >= WINDOW and value >= target:
+            return curve.env_steps[i], curve.wall_s[i], curve.cpu_s[i]
+    return None
+
+
+def random_success(robot: Robot, env_steps: int, seed: int) -> float:
+    """Success rate over the last WINDOW episodes of a uniform random policy."""
+    rng = np.random.default_rng(seed)
+    low, high = (b.reshape(-1) for b in action_bounds(robot.spec))
+    max_steps = int(robot.spec.max_episode_steps)
+    successes, ep_len = [], 0
+    robot.reset(seed=seed)
+    for _ in range(env_steps):
+        robot.act(rng.uniform(low, high))
+        obs, ep_len = robot.observe(), ep_len + 1
+        if obs.terminated or ep_len >= max_steps:
+            successes.append(obs.success)
+            robot.reset()
+            ep_len = 0
+    return float(np.mean(successes[-WINDOW:])) if successes else 0.0
+
+
+def save_curve(name: str, curve: Curve, target: float, meta: dict[str, Any], out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out.mkdir(parents=True, exist_ok=True)
+    rolling = rolling_success(curve)
+    doc = {
+        "name": name,
+        "target": target,
+        "window": WINDOW,
+        **meta,
+        **curve.to_json(),
+        "rolling_success": list(rolling),
+    }
+    (out / f"{name}.json").write_text(json.dumps(doc, indent=1))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.5), sharey=True)
+    for ax, x, label in (
+        (axes[0], np.asarray(curve.env_steps), "env steps"),
+        (axes[1], np.asarray(curve.wall_s) / 60, "wall time (min); orange: process CPU time"),
+    ):
+        ax.plot(x, rolling, label=f"success (last {WINDOW} episodes)")
+        if ax is axes[1]:  # on a shared machine the process's CPU time is what a dedicated core would take
+            ax.plot(np.asarray(curve.cpu_s) / 60, rolling, color="tab:orange", alpha=0.7, label="same vs CPU min")
+        ax.axhline(target, color="gray", linestyle="--", label=f"target {target:.0%}")
+        ax.set_xlabel(label)
+        ax.set_ylim(-0.02, 1.02)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("success rate")
+    axes[0].legend(loc="lower right")
+    axes[1].legend(loc="lower right")
+    fig.suptitle(f"{name}: {meta.get('title', '')}")
+    fig.tight_layout()
+    fig.savefig(out / f"{name}.png", dpi=100)
+    plt.close(fig)
+
+
+def rows_for(
+    name: str, title: str, out: dict[str, Any], target: float, minutes: float, peer: float, quick: bool
+) -> list[Row]:
+    curve: Curve = out["curve"]
+    group = f"curves {name} ({title})"
+    last = float(np.mean(curve.success[-WINDOW:])) if curve.success else 0.0
+    reached = first_reaching(curve, target)
+    wall = curve.wall_s[-1] if curve.wall_s else 0.0
+    cpu = curve.cpu_s[-1] if curve.cpu_s else 0.0
+    rows = [
+        Row(group, f"success, last {WINDOW} episodes", f"{last:.2f}", f"{peer:.2f}", peer_name=PEER),
+        Row(
+            group,
+            f"first {target:.0%} rolling success",
+            f"{reached[0]:,} steps, {reached[1] / 60:.1f} min ({reached[2] / 60:.1f} CPU min)"
+            if reached
+            else "not reached",
+            "never" if peer < target else "at once",
+            peer_name=PEER,
+            note=f"target: {target:.0%} within {minutes:g} min on 2 cores"
+            + (" (--quick: far too short)" if quick else ""),
+        ),
+        Row(
+            group,
+            "env steps, updates, wall (CPU) time",
+            f"{out['env_steps']:,}, {out['updates']:,}, {wall / 60:.1f} ({cpu / 60:.1f}) min",
+            f"{out['env_steps']:,}, 0, -",
+            peer_name=PEER,
+            note=f"{len(curve.success)} episodes",
+        ),
+    ]
+    if any(curve.interventions):
+        autonomous = [s for s, n in zip(curve.success, curve.interventions, strict=True) if n == 0]
+        rows.append(
+            Row(
+                group,
+                f"success without intervention, last {WINDOW}",
+                f"{np.mean(autonomous[-WINDOW:]):.2f}" if autonomous else "-",
+                f"{peer:.2f}",
+                peer_name=PEER,
+                note=f"{sum(1 for n in curve.interventions if n)} of {len(curve.success)} episodes had interventions",
+            )
+        )
+    return rows
+
+
+# --- reach with SAC --------------------------------------------------------------------------------
+
+
+def reach(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None]) -> list[Row]:
+    seed, target = 0, 0.9
+    env_steps = 200 if quick else 50_000
+    robot = make_robot("sim_reach_arm", "bench-reach", seed=seed)
+    algorithm = make_algorithm("sac", {"hidden": [32, 32], "batch_size": 32} if quick else {}, robot.spec)
+    out = train_local(
+        robot,
+        algorithm,
+        env_steps,
+        seed=seed,
+        min_transitions=100 if quick else 250,
+        max_seconds=None if quick else minutes * 60,
+    )
+    peer = random_success(robot, out["env_steps"], seed)
+    robot.close()
+    title = "sim_reach_arm from state, SAC"
+    save_curve("reach_sac_state", out["curve"], target, {"title": title, "algorithm": "sac"}, out_dir)
+    log(f"reach: {len(out['curve'].success)} episodes, last success {np.mean(out['curve'].success[-WINDOW:]):.2f}")
+    return rows_for("reach", title, out, target, minutes, peer, quick)
+
+
+# --- Panda pick-cube with RLPD + scripted demos and interventions ----------------------------------
+
+
+def panda_pick_expert(state: np.ndarray) -> np.ndarray:
+    """A scripted pick from privileged sim state (TCP, gripper, cube position), standing in for a human:
+    over the cube, down, close, lift. Positions in metres; actions are steps of ee_step_m (0.025 m)."""
+    gripper, tcp, cube = state[14], state[15:18], state[18:21]
+    action = np.zeros(7, np.float32)
+
+    def toward(point: np.ndarray) -> np.ndarray:
+        return np.clip((point - tcp) / 0.025, -1.0, 1.0)
+
+    holding = np.linalg.norm(cube - tcp) < 0.03
+    if gripper > 0.5 and holding:  # closed on the cube: lift
+        action[2], action[6] = 1.0, 1.0
+    elif gripper > 0.1 and not holding:  # closed on nothing (a policy's attempt): open and rise
+        action[2], action[6] = 1.0, -1.0
+    elif np.linalg.norm(cube[:2] - tcp[:2]) > 0.01:  # not above it yet: move over, staying high
+        action[:3], action[6] = toward(np.array([cube[0], cube[1], max(tcp[2], cube[2] + 0.05)])), -1.0
+    elif tcp[2] - cube[2] > 0.01:  # above it: descend with the gripper open
+        action[:3], action[6] = toward(cube), -1.0
+    else:  # around it: close
+        action[6] = 1.0
+    return action
+
+
+class ScriptedInterventions:
+    """Takes over an episode the policy has not finished by `after_steps`, in a share of episodes that
+    decays linearly from `start_share` to 0 over `decay_steps` env steps (as a human helps less)."""
+
+    def __init__(self, start_share: float, after_steps: int, decay_steps: int, seed: int) -> None:
+        self.start_share, self.after_steps, self.decay_steps = start_share, after_steps, decay_steps
+        self.rng = np.random.default_rng(seed)
+        self.total_steps, self.helping = 0, False
+
+    def __call__(self, obs: Observation, ep_step: int) -> np.ndarray | None:
+        self.total_steps += 1
+        if ep_step == 0:
+            share = self.start_share * max(0.0, 1.0 - self.total_steps / self.decay_steps)
+            self.helping = bool(self.rng.random() < share)
+        if self.helping and ep_step >= self.after_steps:
+            return panda_pick_expert(obs.features["state"])
+        return None
+
+
+def panda(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None], pixels: bool = False) -> list[Row]:
+    """From state (target 80 %), or from the front and wrist cameras only (target: success rising, 20 %)."""
+    robot_params: dict[str, Any] = {"reward_type": "sparse", **({"cameras": True} if pixels else {})}
+    try:
+        robot = make_robot("gym_hil_panda", "bench-panda", params=robot_params, seed=0)
+    except ValueError as exc:  # gym-hil missing: the kind is not registered
+        log(f"panda skipped: {exc}")
+        return []
+    cameras = [f.name for f in robot.spec.observation if f.is_image]
+    if pixels and not cameras:
+        log("panda from pixels skipped: this gym_hil_panda robot has no cameras")
+        robot.close()
+        return []
+    seed, target = 0, 0.2 if pixels else 0.8
+    source = "from the front + wrist cameras" if pixels else "from state"
+    demos = Buffer().table("demos")
+    demo_success = record_episodes(
+        robot, lambda o, _: panda_pick_expert(o.features["state"]), 1 if quick else 20, demos, seed=1000
+    )
+    buffer = Buffer({"online": Table(), "demos": demos})
+    # SERL's starting temperature: with a 0/1 reward, RLPD's 1.0 keeps the policy near random for thousands of steps.
+    params = {"hidden": [128, 128], "batch_size": 128, "utd": 4, "num_critics": 10, "init_alpha": 0.01}
+    if quick:
+        params = {"hidden": [32, 32], "batch_size": 16, "utd": 2, "num_critics": 4}
+    if pixels:  # the networks see the images only (no joint or cube state): the policy learns from pixels
+        params |= {"features": cameras, "batch_size": 16 if quick else 64, "utd": 2}
+    algorithm = make_algorithm("rlpd", params, robot.spec)
+    env_steps = 30 if quick else 1_000_000
+    expert = ScriptedInterventions(start_share=0.5, after_steps=30, decay_steps=20_000, seed=seed)
+    out = train_local(
+        robot,
+        algorithm,
+        env_steps,
+        seed=seed,
+        buffer=buffer,
+        expert=expert,
+        min_transitions=20 if quick else 200,
+        random_steps=0,
+        policy_every=10,
+        max_seconds=None if quick else minutes * 60,
+    )
+    peer = random_success(robot, min(out["env_steps"], 2000), seed)  # the random baseline is cheap: no updates
+    robot.close()
+    title = f"gym-hil Panda pick-cube {source}, RLPD + {len(demo_success)} scripted demos + scripted interventions"
+    meta = {"title": title, "algorithm": "rlpd", "params": params, "demo_success": float(np.mean(demo_success))}
+    save_curve(f"panda_pick_rlpd_{'pixels' if pixels else 'state'}", out["curve"], target, meta, out_dir)
+    log(f"panda: {len(out['curve'].success)} episodes, demos {np.mean(demo_success):.2f} successful")
+    rows = rows_for("panda pick-cube", f"{source}, RLPD + demos + interventions", out, target, minutes, peer, quick)
+    rows.append(
+        Row(
+            rows[0].group,
+            "scripted expert success (demos)",
+            f"{np.mean(demo_success):.2f}",
+            f"{peer:.2f}",
+            peer_name=PEER,
+            note=f"{len(demo_success)} demo episodes, {demos.size} transitions",
+        )
+    )
+    return rows
+
+
+def panda_pixels(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None]) -> list[Row]:
+    return panda(quick, minutes, out_dir, log, pixels=True)
+
+
+EXPERIMENTS = {"reach": (reach, 5.0), "panda": (panda, 30.0), "panda_pixels": (panda_pixels, 30.0)}
+
+
+def run(
+    quick: bool,
+    workdir: Path,
+    log: Callable[..., None] = print,
+    only: list[str] | None = None,
+    minutes: dict[str, float] | None = None,
+) -> list[Row]:
+    torch.set_num_threads(1)
+    out_dir = Path(workdir) / "curves" if quick else OUT
+    rows: list[Row] = []
+    for name in only or list(EXPERIMENTS):
+        fn, default_minutes = EXPERIMENTS[name]
+        start = time.perf_counter()
+        rows += fn(quick, (minutes or {}).get(name, default_minutes), out_dir, log)
+        log(f"curves {name}: {time.perf_counter() - start:.0f} s, curves in {out_dir}")
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--only", default=",".join(EXPERIMENTS))
+    parser.add_argument("--reach-minutes", type=float, default=5.0)
+    parser.add_argument("--panda-minutes", type=float, default=30.0)
+    parser.add_argument("--panda-pixels-minutes", type=float, default=30.0)
+    parser.add_argument("--workdir", default="runs/bench")
+    args = parser.parse_args()
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    rows = run(
+        args.quick,
+        Path(args.workdir),
+        only=[n.strip() for n in args.only.split(",") if n.strip()],
+        minutes={"reach": args.reach_minutes, "panda": args.panda_minutes, "panda_pixels": args.panda_pixels_minutes},
+    )
+    for row in rows:
+        print(f"{row.group} | {row.metric} | {row.ours} | {row.peer} | {row.note}")
+
+
+if __name__ == "__main__":
+    main()

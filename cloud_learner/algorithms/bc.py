@@ -1,0 +1,74 @@
+"""Behaviour cloning: regress the policy onto human (or scripted) actions; the supervised baseline.
+
+Batches come from the demonstration and intervention tables (`tables`). The loss is the MSE between
+the policy's deterministic action and the demonstrated one, or the negative log-likelihood of the
+demonstrated action under the squashed Gaussian (`loss: nll`, which also learns how unsure to be).
+With `only_interventions`, rows a human did not choose are masked out (the HG-DAgger rule: learn
+from corrections only). From pixels the CNN encoder trains end to end with the head, on randomly
+shifted images. The policy is published as the same "mlp" / "cnn" kind SAC and RLPD publish.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from pydantic import Field
+
+from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
+from cloud_learner.algorithms.sac import EncoderParams, augment, make_encoder, publish
+from user.policies.mlp import GaussianActor, log_prob_of
+from user.v1 import learner_pb2
+
+
+class BCParams(EncoderParams):
+    hidden: list[int] = Field(default=[256, 256], description="MLP widths of the policy head")
+    batch_size: int = Field(default=256, ge=1)
+    lr: float = Field(default=1e-3, gt=0)
+    loss: Literal["mse", "nll"] = Field(default="mse", description="mse on the mean action, or Gaussian NLL")
+    only_interventions: bool = Field(default=False, description="learn only from rows a human chose")
+    tables: dict[str, float] = Field(
+        default={"demos": 0.5, "interventions": 0.5}, description="replay table -> share of each batch"
+    )
+
+
+@ALGORITHMS.register("bc", description="Behaviour cloning on demos and interventions (MSE or Gaussian NLL)")
+class BC(Algorithm):
+    Params = BCParams
+
+    def __init__(self, params: BCParams, layout: Layout, device: torch.device) -> None:
+        super().__init__(params, layout, torch.device(device))
+        self.p = params
+        self.actor = GaussianActor(make_encoder(layout, params), params.hidden, layout.action_low, layout.action_high)
+        self.actor.to(self.device)
+        self.optimizer = torch.optim.Adam(self.actor.parameters(), lr=params.lr)
+
+    def batch_request(self) -> BatchRequest:
+        return BatchRequest(batch_size=self.p.batch_size, tables=dict(self.p.tables))
+
+    def update(self, batch: Batch) -> dict[str, float]:
+        features = self.actor.encoder(augment(batch.observation, self.actor.encoder, self.p.image_pad))
+        if self.p.loss == "mse":
+            _, _, mean_action = self.actor.head(features)
+            per_row = (mean_action - batch.action).pow(2).mean(dim=-1)
+        else:
+            per_row = -log_prob_of(self.actor.head, features, batch.action)
+        weight = batch.intervention.float() if self.p.only_interventions else torch.ones_like(per_row)
+        loss = (per_row * weight).sum() / weight.sum().clamp(min=1.0)
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        self.updates += 1
+        return {"bc_loss": float(loss.detach()), "rows": float(weight.sum())}
+
+    def policy(self) -> tuple[learner_pb2.PolicySpec, dict[str, np.ndarray]]:
+        return publish(self.actor, self.layout, self.p)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"actor": self.actor.state_dict(), "optimizer": self.optimizer.state_dict(), "updates": self.updates}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.actor.load_state_dict(state["actor"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.updates = int(state["updates"])

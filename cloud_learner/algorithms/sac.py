@@ -1,0 +1,297 @@
+"""Soft Actor-Critic behind the Algorithm interface, from state or from pixels; reads top to bottom.
+
+From state, the float observation features are concatenated in sorted key order. From pixels, each
+camera has a small CNN (user.policies.cnn) shared by the actor and the critics: critic gradients train
+it, the actor sees its features detached (DrQ, SERL), and every sampled image is randomly shifted by
+up to `image_pad` pixels (DrQ augmentation). The critic is an ensemble of `num_critics` Q heads; the
+TD target takes the min over a random subset of `target_subset` target heads, so plain SAC (2 and 2)
+and RLPD (10 and 2, see rlpd.py) share this file. `utd` critic steps run per actor step on a batch
+of utd * batch_size rows, split in utd minibatches.
+
+The actor is user.policies' GaussianActor, published as policy kind "mlp" or "cnn", so the inference
+service and the edges rebuild it from spec + tensors (no pickle).
+"""
+
+from __future__ import annotations
+
+import copy
+import itertools
+import math
+from collections.abc import Mapping
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from pydantic import Field
+from torch import nn
+
+from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
+from user.policies.cnn import KIND as CNN_KIND
+from user.policies.cnn import ConvEncoder, random_shift
+from user.policies.mlp import KIND as MLP_KIND
+from user.policies.mlp import GaussianActor, StateEncoder, policy_spec
+from user.policy import module_tensors
+from user.registry import PluginParams
+from user.v1 import learner_pb2
+
+
+class EncoderParams(PluginParams):
+    """How observations are encoded: shared by every algorithm that trains a GaussianActor."""
+
+    features: list[str] | None = Field(
+        default=None, description="observation keys the networks see (default all; e.g. leave out privileged state)"
+    )
+
+    channels: list[int] = Field(default=[16, 32, 32], description="conv channels per camera encoder layer")
+    strides: list[int] = Field(default=[2, 2, 2], description="conv strides per camera encoder layer")
+    latent_dim: int = Field(default=50, ge=1, description="per-camera latent size")
+    image_pad: int = Field(default=4, ge=0, description="DrQ random shift in pixels; 0 turns augmentation off")
+
+
+class SACParams(EncoderParams):
+    hidden: list[int] = Field(default=[128, 128], description="MLP widths of the actor and critic heads")
+    batch_size: int = Field(default=128, ge=1, description="transitions per critic step")
+    gamma: float = Field(default=0.95, gt=0, le=1, description="discount (replaced by gamma**n rows when n-step)")
+    tau: float = Field(default=0.005, gt=0, le=1, description="Polyak rate of the target critics (and encoder)")
+    actor_lr: float = Field(default=1e-3, gt=0)
+    critic_lr: float = Field(default=1e-3, gt=0)
+    alpha_lr: float = Field(default=1e-3, gt=0)
+    init_alpha: float = Field(default=0.1, gt=0, description="initial entropy temperature (then tuned)")
+    target_entropy_scale: float = Field(default=1.0, gt=0, description="target entropy = -scale * action_dim")
+    num_critics: int = Field(default=2, ge=1, description="Q heads in the critic ensemble")
+    target_subset: int = Field(default=2, ge=1, description="TD target: min over this many random target heads")
+    critic_layer_norm: bool = Field(default=False, description="LayerNorm after each critic hidden layer")
+    actor_q: Literal["min", "mean"] = Field(default="min", description="how the actor aggregates the ensemble")
+    utd: int = Field(default=1, ge=1, description="critic steps per actor step (update-to-data ratio)")
+    tables: dict[str, float] = Field(default={"online": 1.0}, description="replay table -> share of each batch")
+    n_step: int = Field(default=1, ge=1, description="n-step returns, summed by the replay service")
+
+
+# --- networks -----------------------------------------------------------------------------------
+
+
+class EnsembleLinear(nn.Module):
+    """N independent linear layers applied in one batched matmul: (N, B, in) -> (N, B, out)."""
+
+    def __init__(self, num: int, in_dim: int, out_dim: int) -> None:
+        super().__init__()
+        bound = 1.0 / math.sqrt(in_dim)  # nn.Linear's default init, per member
+        self.weight = nn.Parameter(torch.empty(num, in_dim, out_dim).uniform_(-bound, bound))
+        self.bias = nn.Parameter(torch.empty(num, 1, out_dim).uniform_(-bound, bound))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.baddbmm(self.bias, x, self.weight)
+
+
+class Critic(nn.Module):
+    """Q_i(features, action) for i in 1..num_critics; `encoder` is the one the actor shares."""
+
+    def __init__(
+        self, encoder: nn.Module, action_dim: int, hidden: list[int], num_critics: int, layer_norm: bool
+    ) -> None:
+        super().__init__()
+        self.encoder, self.num_critics, self.layer_norm = encoder, num_critics, layer_norm
+        widths = [encoder.out_dim + action_dim, *hidden]
+        self.layers = nn.ModuleList(EnsembleLinear(num_critics, a, b) for a, b in itertools.pairwise(widths))
+        self.out = EnsembleLinear(num_critics, widths[-1], 1)
+
+    def forward(self, features: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """(B, F) features and (B, A) actions -> (num_critics, B) values."""
+        x = torch.cat([features, action], dim=-1).expand(self.num_critics, -1, -1)
+        for layer in self.layers:
+            x = layer(x)
+            x = torch.relu(nn.functional.layer_norm(x, x.shape[-1:]) if self.layer_norm else x)
+        return self.out(x).squeeze(-1)
+
+
+def make_encoder(layout: Layout, p: EncoderParams) -> nn.Module:
+    """State-only: concatenate the float features (sorted keys). With cameras: per-camera CNN + state."""
+    unknown = sorted(set(p.features or []) - set(layout.observation))
+    if unknown:
+        raise ValueError(f"features {unknown} are not in the observation {sorted(layout.observation)}")
+    wanted = set(p.features or layout.observation)
+    state_keys = [k for k in layout.state_keys() if layout.observation[k].dtype.startswith("float") and k in wanted]
+    state_dims = [int(np.prod(layout.observation[k].shape)) for k in state_keys]
+    image_keys = [k for k in layout.image_keys() if k in wanted]
+    if not image_keys and not state_keys:
+        raise ValueError(f"no float or image features to learn from in {sorted(wanted)}")
+    if not image_keys:
+        return StateEncoder(state_keys, state_dims)
+    shapes = [list(layout.observation[k].shape) for k in image_keys]
+    return ConvEncoder(image_keys, shapes, state_keys, state_dims, p.channels, p.strides, p.latent_dim)
+
+
+def augment(obs: Mapping[str, torch.Tensor], encoder: nn.Module, pad: int) -> dict[str, torch.Tensor]:
+    """Random-shift the images the encoder reads (no-op when pad is 0 or it reads no cameras)."""
+    images = set(getattr(encoder, "image_keys", [])) if pad > 0 else set()
+    return {k: random_shift(v, pad) if k in images else v for k, v in obs.items()}
+
+
+def split(batch: Batch, parts: int) -> list[Batch]:
+    """Cut a batch into `parts` minibatches along the rows (the UTD loop's critic steps)."""
+    if parts == 1:
+        return [batch]
+    size = math.ceil(len(batch) / parts)
+
+    def cut(x: Any, i: int) -> Any:
+        if x is None:
+            return None
+        if isinstance(x, Mapping):
+            return {k: v[i : i + size] for k, v in x.items()}
+        return x[i : i + size]
+
+    return [
+        Batch(**{f: cut(getattr(batch, f), i) for f in Batch.__dataclass_fields__}) for i in range(0, len(batch), size)
+    ]
+
+
+def publish(
+    actor: GaussianActor, layout: Layout, p: EncoderParams
+) -> tuple[learner_pb2.PolicySpec, dict[str, np.ndarray]]:
+    """The actor as policy kind "mlp" (state only) or "cnn" (cameras): spec JSON + named tensors."""
+    enc = actor.encoder
+    state = enc if isinstance(enc, StateEncoder) else enc.state
+    config: dict[str, Any] = {
+        "state_keys": state.keys if state is not None else [],
+        "state_dims": state.dims if state is not None else [],
+        "hidden": [m.out_features for m in actor.head.net if isinstance(m, nn.Linear)][:-1],
+        "action_low": [float(x) for x in np.asarray(layout.action_low).reshape(-1)],
+        "action_high": [float(x) for x in np.asarray(layout.action_high).reshape(-1)],
+    }
+    if isinstance(enc, ConvEncoder):
+        config |= {
+            "image_keys": enc.image_keys,
+            "image_shapes": [list(layout.observation[k].shape) for k in enc.image_keys],
+            "channels": list(p.channels),
+            "strides": list(p.strides),
+            "latent_dim": p.latent_dim,
+        }
+    return policy_spec(CNN_KIND if isinstance(enc, ConvEncoder) else MLP_KIND, config), module_tensors(actor)
+
+
+# --- the algorithm ------------------------------------------------------------------------------
+
+
+@ALGORITHMS.register("sac", description="Soft Actor-Critic from state or pixels (DrQ shift, shared CNN encoder)")
+class SAC(Algorithm):
+    Params = SACParams
+
+    def __init__(self, params: SACParams, layout: Layout, device: torch.device) -> None:
+        super().__init__(params, layout, torch.device(device))
+        p = self.p = params
+        if p.target_subset > p.num_critics:
+            raise ValueError(f"target_subset {p.target_subset} exceeds num_critics {p.num_critics}")
+        if not p.tables or any(share <= 0 for share in p.tables.values()):
+            raise ValueError(f"tables must name at least one table, each with a share > 0: {p.tables}")
+        self.low = np.asarray(layout.action_low, np.float32).reshape(-1)
+        self.high = np.asarray(layout.action_high, np.float32).reshape(-1)
+        action_dim = self.low.size
+
+        # One encoder object, held by both the actor and the critic; the target critic gets a copy.
+        self.encoder = make_encoder(layout, p)
+        self.actor = GaussianActor(self.encoder, p.hidden, self.low, self.high).to(self.device)
+        self.critic = Critic(self.encoder, action_dim, p.hidden, p.num_critics, p.critic_layer_norm).to(self.device)
+        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
+
+        self.target_entropy = -p.target_entropy_scale * float(action_dim)
+        self.log_alpha = torch.tensor(math.log(p.init_alpha), device=self.device, requires_grad=True)
+        # The actor optimizer owns only the head: the encoder learns from the critic loss alone.
+        self.actor_optimizer = torch.optim.Adam(self.actor.head.parameters(), lr=p.actor_lr)
+        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=p.critic_lr)
+        self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=p.alpha_lr)
+
+    @property
+    def alpha(self) -> float:
+        return float(self.log_alpha.detach().exp())
+
+    def batch_request(self) -> BatchRequest:
+        return BatchRequest(batch_size=self.p.batch_size * self.p.utd, tables=dict(self.p.tables), n_step=self.p.n_step)
+
+    @torch.no_grad()
+    def td_target(self, batch: Batch, next_obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """r + discount * (min over a random subset of target heads - alpha * log pi), unless terminated.
+
+        Only termination stops bootstrapping; a truncated episode still has a future."""
+        next_action, next_log_prob, _ = self.actor.head(self.encoder(next_obs))
+        target_q = self.critic_target(self.critic_target.encoder(next_obs), next_action)
+        subset = torch.randperm(self.p.num_critics, device=self.device)[: self.p.target_subset]
+        next_v = target_q[subset].min(dim=0).values - self.log_alpha.exp() * next_log_prob
+        discount = batch.discount if batch.discount is not None else self.p.gamma
+        return batch.reward + discount * (1.0 - batch.terminated) * next_v
+
+    def update_critic(self, batch: Batch) -> tuple[torch.Tensor, dict[str, float]]:
+        """One critic (and encoder) step; returns the batch's features, detached, for the actor."""
+        pad = self.p.image_pad
+        obs, next_obs = (
+            augment(batch.observation, self.encoder, pad),
+            augment(batch.next_observation, self.encoder, pad),
+        )
+        target = self.td_target(batch, next_obs)
+        features = self.encoder(obs)
+        q = self.critic(features, batch.action)
+        critic_loss = (q - target).pow(2).mean(dim=1).sum()  # each head regresses on the same target
+        self.critic_optimizer.zero_grad(set_to_none=True)
+        critic_loss.backward()
+        self.critic_optimizer.step()
+        with torch.no_grad():
+            for param, target_param in zip(self.critic.parameters(), self.critic_target.parameters(), strict=True):
+                target_param.lerp_(param, self.p.tau)
+        return features.detach(), {"critic_loss": float(critic_loss.detach()), "q": float(q.detach().mean())}
+
+    def update_actor(self, features: torch.Tensor) -> dict[str, float]:
+        """Maximize Q minus the entropy cost of fresh samples; then tune alpha toward the target entropy."""
+        alpha = self.log_alpha.detach().exp()
+        action, log_prob, _ = self.actor.head(features)
+        q = self.critic(features, action)
+        q_pi = q.min(dim=0).values if self.p.actor_q == "min" else q.mean(dim=0)
+        actor_loss = (alpha * log_prob - q_pi).mean()
+        self.actor_optimizer.zero_grad(set_to_none=True)
+        actor_loss.backward()  # also leaves grads on the critic; its optimizer clears them before its step
+        self.actor_optimizer.step()
+
+        # Raise alpha when the entropy is below target, lower it when above.
+        alpha_loss = -(self.log_alpha * (log_prob.detach() + self.target_entropy)).mean()
+        self.alpha_optimizer.zero_grad(set_to_none=True)
+        alpha_loss.backward()
+        self.alpha_optimizer.step()
+        return {
+            "actor_loss": float(actor_loss.detach()),
+            "alpha_loss": float(alpha_loss.detach()),
+            "alpha": self.alpha,
+            "entropy": float(-log_prob.detach().mean()),
+        }
+
+    def update(self, batch: Batch) -> dict[str, float]:
+        for minibatch in split(batch, self.p.utd):
+            features, critic_info = self.update_critic(minibatch)
+        self.updates += 1
+        return {**critic_info, **self.update_actor(features)}
+
+    # --- what the learner publishes and checkpoints ---------------------------------------------
+
+    def policy(self) -> tuple[learner_pb2.PolicySpec, dict[str, np.ndarray]]:
+        return publish(self.actor, self.layout, self.p)
+
+    def state_dict(self) -> dict[str, Any]:
+        """Tensors, ints and plain dicts only, so torch.load(weights_only=True) reads it back."""
+        return {
+            "actor": self.actor.state_dict(),
+            "critic": self.critic.state_dict(),
+            "critic_target": self.critic_target.state_dict(),
+            "actor_optimizer": self.actor_optimizer.state_dict(),
+            "critic_optimizer": self.critic_optimizer.state_dict(),
+            "alpha_optimizer": self.alpha_optimizer.state_dict(),
+            "log_alpha": self.log_alpha.detach().clone(),
+            "updates": int(self.updates),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.actor.load_state_dict(state["actor"])
+        self.critic.load_state_dict(state["critic"])
+        self.critic_target.load_state_dict(state["critic_target"])
+        self.actor_optimizer.load_state_dict(state["actor_optimizer"])
+        self.critic_optimizer.load_state_dict(state["critic_optimizer"])
+        self.alpha_optimizer.load_state_dict(state["alpha_optimizer"])
+        with torch.no_grad():
+            self.log_alpha.copy_(torch.as_tensor(state["log_alpha"], device=self.device))
+        self.updates = int(state["updates"])

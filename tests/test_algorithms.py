@@ -1,0 +1,252 @@
+"""SAC, RLPD and BC behind the Algorithm interface, from state and from tiny pixels.
+
+Each algorithm: updates give finite scalars, a weights-only checkpoint resumes to the identical next
+update, the published policy rebuilds through build_policy and acts like the trained actor. Plus the
+parts that carry the method: termination stops bootstrapping, only critic gradients reach a shared
+image encoder, DrQ shifts stay inside the padding, RLPD asks for 50/50 batches, BC fits demos.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import pytest
+import torch
+
+from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, Feature, Layout
+from cloud_learner.algorithms.sac import SAC
+from cloud_learner.local import Buffer, Table
+from user.policies.cnn import random_shift
+from user.policy import build_policy
+from user.registry import PluginError
+
+STATE_DIM, ACTION_DIM, IMAGE = 5, 2, (12, 12, 3)
+LOW, HIGH = np.array([-1.0, -2.0], np.float32), np.array([1.0, 2.0], np.float32)
+TINY = {"hidden": [16, 16], "batch_size": 8}
+PIXEL = {"channels": [4, 8], "strides": [2, 2], "latent_dim": 8, "image_pad": 2}
+SMALL = {"sac": TINY, "rlpd": {**TINY, "num_critics": 4, "utd": 2}, "bc": TINY}
+
+
+@pytest.fixture(autouse=True)
+def _one_thread() -> None:
+    torch.set_num_threads(1)
+
+
+def _layout(pixels: bool) -> Layout:
+    obs = {"state": Feature((STATE_DIM,), "float32")}
+    if pixels:
+        obs["camera.front"] = Feature(IMAGE, "uint8", is_image=True)
+    return Layout(obs, LOW, HIGH, ("test_arm",))
+
+
+def _algorithm(kind: str, pixels: bool, seed: int = 0, **extra: object) -> Algorithm:
+    torch.manual_seed(seed)
+    params = {**SMALL[kind], **(PIXEL if pixels else {}), **extra}
+    return ALGORITHMS.build(kind, params, layout=_layout(pixels), device=torch.device("cpu"))
+
+
+def _obs(g: torch.Generator, n: int, pixels: bool) -> dict[str, torch.Tensor]:
+    obs = {"state": torch.randn(n, STATE_DIM, generator=g)}
+    if pixels:
+        obs["camera.front"] = torch.randint(0, 256, (n, *IMAGE), generator=g, dtype=torch.uint8)
+    return obs
+
+
+def _batch(seed: int, n: int, pixels: bool) -> Batch:
+    g = torch.Generator().manual_seed(seed)
+    return Batch(
+        observation=_obs(g, n, pixels),
+        action=(torch.rand(n, ACTION_DIM, generator=g) * 2 - 1) * torch.from_numpy(HIGH),
+        reward=torch.randn(n, generator=g),
+        next_observation=_obs(g, n, pixels),
+        terminated=(torch.rand(n, generator=g) < 0.3).float(),
+        intervention=torch.rand(n, generator=g) < 0.5,
+    )
+
+
+def _request_batch(algo: Algorithm, seed: int, pixels: bool) -> Batch:
+    return _batch(seed, algo.batch_request().batch_size, pixels)
+
+
+CASES = [(kind, pixels) for kind in ("sac", "rlpd", "bc") for pixels in (False, True)]
+IDS = [f"{k}-{'pixels' if p else 'state'}" for k, p in CASES]
+
+
+@pytest.mark.parametrize(("kind", "pixels"), CASES, ids=IDS)
+def test_update_returns_finite_scalars(kind: str, pixels: bool) -> None:
+    algo = _algorithm(kind, pixels)
+    for i in range(3):
+        scalars = algo.update(_request_batch(algo, i, pixels))
+    assert algo.updates == 3
+    assert scalars and all(np.isfinite(v) for v in scalars.values()), scalars
+    expected = {"bc_loss"} if kind == "bc" else {"critic_loss", "actor_loss", "alpha_loss", "alpha", "entropy"}
+    assert expected <= set(scalars)
+
+
+@pytest.mark.parametrize(("kind", "pixels"), CASES, ids=IDS)
+def test_checkpoint_round_trip_resumes_identically(kind: str, pixels: bool) -> None:
+    algo = _algorithm(kind, pixels, seed=0)
+    for i in range(2):
+        algo.update(_request_batch(algo, i, pixels))
+    buf = io.BytesIO()
+    torch.save(algo.state_dict(), buf)
+    buf.seek(0)
+    restored = _algorithm(kind, pixels, seed=1)  # different init: everything must come from the checkpoint
+    restored.load_state_dict(torch.load(buf, weights_only=True))
+    assert restored.updates == 2
+    batch = _request_batch(algo, 9, pixels)
+    torch.manual_seed(7)
+    a = algo.update(batch)
+    torch.manual_seed(7)
+    b = restored.update(batch)
+    assert a == pytest.approx(b, rel=1e-5, abs=1e-6)
+    restored_actor = restored.state_dict()["actor"]
+    for name, x in algo.state_dict()["actor"].items():
+        torch.testing.assert_close(x, restored_actor[name], msg=name)
+
+
+@pytest.mark.parametrize(("kind", "pixels"), CASES, ids=IDS)
+def test_published_policy_rebuilds_and_acts(kind: str, pixels: bool) -> None:
+    algo = _algorithm(kind, pixels)
+    algo.update(_request_batch(algo, 0, pixels))
+    spec, tensors = algo.policy()
+    assert spec.kind == ("cnn" if pixels else "mlp")
+    assert all(isinstance(t, np.ndarray) for t in tensors.values())
+    policy = build_policy(spec, tensors, version=5)
+    assert policy.version == 5 and policy.action_shape == (ACTION_DIM,) and policy.chunk_horizon == 1
+    assert set(policy.observation_keys) == ({"state", "camera.front"} if pixels else {"state"})
+    obs = {k: v.numpy() for k, v in _obs(torch.Generator().manual_seed(3), 4, pixels).items()}
+    acted = policy.act(obs, deterministic=True)
+    with torch.no_grad():
+        expected = algo.actor({k: torch.from_numpy(v) for k, v in obs.items()})[2].numpy()
+    np.testing.assert_allclose(acted, expected, rtol=1e-5, atol=1e-6)
+    sampled = policy.act(obs)
+    assert sampled.shape == (4, ACTION_DIM) and np.all(sampled >= LOW) and np.all(sampled <= HIGH)
+    with pytest.raises(ValueError, match="lacks"):
+        policy.act({"other": obs["state"]})
+    with pytest.raises(ValueError, match="expects"):
+        policy.act({**obs, "state": np.zeros((4, STATE_DIM + 1), np.float32)})
+
+
+def test_termination_stops_bootstrapping_truncation_does_not() -> None:
+    algo = _algorithm("sac", pixels=False)
+    assert isinstance(algo, SAC)
+    batch = _batch(0, 8, pixels=False)
+    batch.terminated = torch.ones(8)
+    torch.testing.assert_close(algo.td_target(batch, batch.next_observation), batch.reward)
+    batch.terminated = torch.zeros(8)  # truncated or running: the discounted future stays
+    assert not torch.allclose(algo.td_target(batch, batch.next_observation), batch.reward)
+
+
+def test_only_the_critic_trains_the_shared_image_encoder() -> None:
+    algo = _algorithm("sac", pixels=True)
+    assert isinstance(algo, SAC) and algo.actor.encoder is algo.critic.encoder
+    before = {k: v.clone() for k, v in algo.encoder.state_dict().items()}
+    features, _ = algo.update_critic(_batch(0, 8, pixels=True))
+    after_critic = {k: v.clone() for k, v in algo.encoder.state_dict().items()}
+    assert any(not torch.equal(before[k], after_critic[k]) for k in before)
+    head_before = [p.clone() for p in algo.actor.head.parameters()]
+    algo.update_actor(features)
+    assert all(torch.equal(after_critic[k], v) for k, v in algo.encoder.state_dict().items())
+    assert any(not torch.equal(a, b) for a, b in zip(head_before, algo.actor.head.parameters(), strict=True))
+    # The target critic has its own copy of the encoder, moved by Polyak averaging only.
+    assert algo.critic_target.encoder is not algo.encoder
+
+
+def test_random_shift_moves_images_within_the_padding() -> None:
+    torch.manual_seed(0)
+    image = torch.zeros(64, 9, 9, 1, dtype=torch.uint8)
+    image[:, 4, 4] = 255
+    shifted = random_shift(image, pad=2)
+    assert shifted.shape == image.shape and shifted.dtype == torch.float32
+    positions = {tuple(torch.nonzero(s[..., 0])[0].tolist()) for s in shifted}
+    assert len(positions) > 5  # different offsets per image
+    assert all(2 <= r <= 6 and 2 <= c <= 6 for r, c in positions)
+
+
+def test_rlpd_defaults_are_the_paper_recipe() -> None:
+    algo = ALGORITHMS.build("rlpd", {}, layout=_layout(False), device=torch.device("cpu"))
+    request = algo.batch_request()
+    assert request.tables == {"online": 0.5, "demos": 0.5}
+    assert request.batch_size == 256 * algo.params.utd and algo.params.utd > 1
+    assert algo.critic.num_critics == 10 and algo.critic.layer_norm
+    q = algo.critic(torch.zeros(3, STATE_DIM), torch.zeros(3, ACTION_DIM))
+    assert q.shape == (10, 3)
+    custom = ALGORITHMS.build(
+        "rlpd", {"tables": {"online": 0.5, "interventions": 0.5}}, layout=_layout(False), device=torch.device("cpu")
+    )
+    assert custom.batch_request().tables == {"online": 0.5, "interventions": 0.5}
+
+
+def test_params_are_validated_by_name() -> None:
+    assert {"sac", "rlpd", "bc"} <= set(ALGORITHMS.kinds())
+    with pytest.raises(PluginError, match=r"algorithm\.params\.batch_sise"):
+        ALGORITHMS.params("sac", {"batch_sise": 3}, where="algorithm.params")
+    with pytest.raises(PluginError, match="loss"):
+        ALGORITHMS.params("bc", {"loss": "l1"})
+    with pytest.raises(ValueError, match="target_subset"):
+        _algorithm("sac", False, num_critics=2, target_subset=3)
+    with pytest.raises(ValueError, match="share > 0"):
+        _algorithm("rlpd", False, tables={"online": 1.0, "demos": 0.0})
+    with pytest.raises(ValueError, match="not in the observation"):
+        _algorithm("sac", False, features=["camera.back"])
+
+
+def test_features_select_what_the_networks_see() -> None:
+    algo = _algorithm("sac", pixels=True, features=["camera.front"])  # pixels only: the state is left out
+    spec, tensors = algo.policy()
+    policy = build_policy(spec, tensors, version=1)
+    assert policy.observation_keys == ["camera.front"]
+    image = _obs(torch.Generator().manual_seed(0), 2, pixels=True)["camera.front"].numpy()
+    assert policy.act({"camera.front": image}).shape == (2, ACTION_DIM)
+    scalars = algo.update(_request_batch(algo, 0, pixels=True))
+    assert np.isfinite(scalars["critic_loss"])
+
+
+@pytest.mark.parametrize("loss", ["mse", "nll"])
+def test_bc_fits_a_demonstrator(loss: str) -> None:
+    algo = _algorithm("bc", pixels=False, loss=loss, lr=3e-3, batch_size=64)
+    weights = torch.randn(STATE_DIM, ACTION_DIM, generator=torch.Generator().manual_seed(0))
+
+    def demo_batch(seed: int) -> Batch:
+        batch = _batch(seed, 64, pixels=False)
+        batch.action = 0.5 * torch.tanh(0.5 * batch.observation["state"] @ weights) * torch.from_numpy(HIGH)
+        return batch
+
+    probe = demo_batch(999)
+
+    def error() -> float:
+        with torch.no_grad():
+            mean = algo.actor(probe.observation)[2]
+        return float((mean - probe.action).pow(2).mean())
+
+    start = error()
+    for i in range(300):
+        algo.update(demo_batch(i))
+    assert error() < 0.25 * start, (start, error())
+
+
+def test_bc_only_interventions_ignores_autonomous_rows() -> None:
+    algo = _algorithm("bc", pixels=False, only_interventions=True)
+    batch = _batch(0, 8, pixels=False)
+    batch.intervention = torch.zeros(8, dtype=torch.bool)
+    before = [p.clone() for p in algo.actor.parameters()]
+    scalars = algo.update(batch)
+    assert scalars["rows"] == 0 and scalars["bc_loss"] == 0
+    assert all(torch.equal(a, b) for a, b in zip(before, algo.actor.parameters(), strict=True))
+
+
+def test_local_buffer_mixes_tables_by_share() -> None:
+    buffer = Buffer()
+    for name, value in (("online", 0.0), ("demos", 1.0)):
+        table = buffer.table(name)
+        for _ in range(20):
+            table.add({"state": np.zeros(3, np.float32)}, np.zeros(2), value, {"state": np.zeros(3)}, False)
+    request = _algorithm("rlpd", False).batch_request()
+    batch = buffer.sample(request, np.random.default_rng(0), torch.device("cpu"))
+    assert len(batch) == request.batch_size
+    assert float(batch.reward.mean()) == pytest.approx(0.5)
+    # An empty offline table gives its share to the online one instead of failing.
+    only_online = Buffer({"online": buffer.tables["online"], "demos": Table()})
+    assert float(only_online.sample(request, np.random.default_rng(0), torch.device("cpu")).reward.sum()) == 0.0

@@ -1,0 +1,60 @@
+"""The learning bench's --quick path writes its curves, and the in-process trainer's plumbing:
+expert steps become interventions in their own table, demos are recorded, the scripted pick works."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from bench import curves_bench
+from cloud_learner.local import Buffer, make_algorithm, record_episodes, train_local
+from edge_agent.robot import known_robot_kinds, make_robot
+
+
+@pytest.fixture(autouse=True)
+def _one_thread() -> None:
+    torch.set_num_threads(1)
+
+
+def test_quick_reach_curve_is_written(tmp_path: Path) -> None:
+    rows = curves_bench.run(quick=True, workdir=tmp_path, log=lambda *a: None, only=["reach"])
+    assert {r.metric for r in rows} >= {"success, last 20 episodes", "first 90% rolling success"}
+    assert all(r.higher_is_better is None for r in rows)  # facts, no ratio against a 0 % peer
+    doc = json.loads((tmp_path / "curves" / "reach_sac_state.json").read_text())
+    assert doc["target"] == 0.9 and len(doc["env_steps"]) == len(doc["success"]) == len(doc["wall_s"]) > 0
+    assert doc["env_steps"] == sorted(doc["env_steps"]) and doc["env_steps"][-1] <= 200
+    assert (tmp_path / "curves" / "reach_sac_state.png").stat().st_size > 1000
+
+
+def test_expert_steps_are_stored_as_interventions() -> None:
+    robot = make_robot("sim_reach_arm", "t", seed=0)
+    algorithm = make_algorithm("sac", {"hidden": [16], "batch_size": 8}, robot.spec)
+    calls = []
+
+    def expert(obs, ep_step):  # takes over the second half of every episode, pushing +x
+        calls.append(ep_step)
+        return np.array([1.0, 0.0, 0.0], np.float32) if ep_step >= 25 else None
+
+    out = train_local(robot, algorithm, 120, min_transitions=10, expert=expert)
+    buffer: Buffer = out["buffer"]
+    online, interventions = buffer.tables["online"], buffer.tables["interventions"]
+    assert online.size == 120 and interventions.size == sum(1 for s in calls if s >= 25) > 0
+    flags = np.array(online.rows["intervention"])
+    assert flags.sum() == interventions.size
+    np.testing.assert_allclose(np.stack(interventions.rows["action"])[:, 0], 1.0)
+    assert out["curve"].interventions[0] == 25 and out["updates"] == 111
+
+
+@pytest.mark.skipif("gym_hil_panda" not in known_robot_kinds(), reason="gym-hil not installed")
+def test_scripted_pick_expert_succeeds_and_records_demos() -> None:
+    robot = make_robot("gym_hil_panda", "t", params={"reward_type": "sparse"}, seed=0)
+    demos = Buffer().table("demos")
+    successes = record_episodes(robot, lambda o, _: curves_bench.panda_pick_expert(o.features["state"]), 3, demos)
+    robot.close()
+    assert sum(successes) >= 2
+    assert demos.size > 0 and all(np.array(demos.rows["intervention"]))
+    assert float(np.sum(demos.rows["reward"])) == sum(successes)  # sparse: 1 only on the lifting step

@@ -1,0 +1,120 @@
+"""CNN + state Gaussian policy (policy kind "cnn"): one small conv encoder per camera.
+
+Each camera image (uint8 (B, H, W, C), or float 0..255 after augmentation) goes through its own
+conv stack -> linear -> LayerNorm -> tanh (the DrQ / SERL encoder shape); the latents and the float
+state features are concatenated and fed to the same squashed-Gaussian head as the MLP policy. The
+algorithms share this encoder between actor and critics (critic gradients train it). Config JSON:
+
+    {"image_keys": ["camera.front"], "image_shapes": [[64, 64, 3]], "channels": [16, 32, 32],
+     "strides": [2, 2, 2], "latent_dim": 50, "state_keys": ["state"], "state_dims": [15],
+     "hidden": [256, 256], "action_low": [...], "action_high": [...]}
+
+Pretrained frozen encoders are not offered: torchvision's weights come from a model hub that cannot be
+reached here, and no installed package ships vision weights locally.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import torch
+from torch import nn
+
+from user.policies.mlp import ActorPolicy, GaussianActor, StateEncoder
+from user.policy import register_policy
+
+KIND = "cnn"
+
+
+def module_name(key: str) -> str:
+    """Camera keys contain dots ("camera.front"); module names may not."""
+    return key.replace(".", "_")
+
+
+class CameraEncoder(nn.Module):
+    """(B, H, W, C) pixels in 0..255 -> (B, latent_dim) in [-1, 1]."""
+
+    def __init__(self, shape: Sequence[int], channels: Sequence[int], strides: Sequence[int], latent_dim: int) -> None:
+        super().__init__()
+        height, width, in_channels = (int(s) for s in shape)
+        if len(channels) != len(strides) or not channels:
+            raise ValueError(f"channels {list(channels)} and strides {list(strides)} must be non-empty, same length")
+        layers: list[nn.Module] = []
+        for out_channels, stride in zip(channels, strides, strict=True):
+            layers += [nn.Conv2d(in_channels, int(out_channels), 3, stride=int(stride)), nn.ReLU()]
+            in_channels = int(out_channels)
+        self.convs = nn.Sequential(*layers, nn.Flatten())
+        with torch.no_grad():
+            flat = self.convs(torch.zeros(1, int(shape[2]), height, width)).shape[1]
+        self.project = nn.Sequential(nn.Linear(flat, int(latent_dim)), nn.LayerNorm(int(latent_dim)), nn.Tanh())
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        x = image.float().permute(0, 3, 1, 2) / 255.0  # uint8 stays uint8 until here
+        return self.project(self.convs(x - 0.5))
+
+
+class ConvEncoder(nn.Module):
+    """Per-camera CNN latents, then the state features, concatenated."""
+
+    def __init__(
+        self,
+        image_keys: Sequence[str],
+        image_shapes: Sequence[Sequence[int]],
+        state_keys: Sequence[str] = (),
+        state_dims: Sequence[int] = (),
+        channels: Sequence[int] = (16, 32, 32),
+        strides: Sequence[int] = (2, 2, 2),
+        latent_dim: int = 50,
+    ) -> None:
+        super().__init__()
+        if not image_keys or len(image_keys) != len(image_shapes):
+            raise ValueError(f"image_keys {list(image_keys)} and image_shapes must be non-empty, same length")
+        self.image_keys = list(image_keys)
+        pairs = zip(image_keys, image_shapes, strict=True)
+        encoders = {module_name(k): CameraEncoder(s, channels, strides, latent_dim) for k, s in pairs}
+        self.cameras = nn.ModuleDict(encoders)
+        self.state = StateEncoder(state_keys, state_dims) if state_keys else None
+        self.out_dim = int(latent_dim) * len(self.image_keys) + (self.state.out_dim if self.state else 0)
+
+    def forward(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        parts = [self.cameras[module_name(k)](obs[k]) for k in self.image_keys]
+        if self.state is not None:
+            parts.append(self.state(obs))
+        return torch.cat(parts, dim=-1)
+
+
+def encoder_from_config(config: Mapping[str, Any]) -> ConvEncoder:
+    return ConvEncoder(
+        config["image_keys"],
+        config["image_shapes"],
+        config["state_keys"],
+        config["state_dims"],
+        config["channels"],
+        config["strides"],
+        int(config["latent_dim"]),
+    )
+
+
+def random_shift(image: torch.Tensor, pad: int) -> torch.Tensor:
+    """DrQ augmentation: replicate-pad (B, H, W, C) pixels by `pad` and crop back at a random offset per image."""
+    b, h, w, _ = image.shape
+    padded = nn.functional.pad(image.float().permute(0, 3, 1, 2), (pad, pad, pad, pad), mode="replicate")
+    padded = padded.permute(0, 2, 3, 1)
+    dy = torch.randint(0, 2 * pad + 1, (b, 1, 1), device=image.device)
+    dx = torch.randint(0, 2 * pad + 1, (b, 1, 1), device=image.device)
+    rows = torch.arange(h, device=image.device).view(1, h, 1) + dy
+    cols = torch.arange(w, device=image.device).view(1, 1, w) + dx
+    return padded[torch.arange(b, device=image.device).view(b, 1, 1), rows, cols]
+
+
+@register_policy(KIND)
+class CnnPolicy(ActorPolicy):
+    """Per-camera CNN encoders plus state, squashed Gaussian head."""
+
+    kind = KIND
+    required = (*ActorPolicy.required, "image_keys", "image_shapes", "channels", "strides", "latent_dim")
+
+    @classmethod
+    def build_actor(cls, config: Mapping[str, Any]) -> GaussianActor:
+        return GaussianActor(encoder_from_config(config), config["hidden"], config["action_low"], config["action_high"])

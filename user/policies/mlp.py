@@ -1,0 +1,179 @@
+"""MLP Gaussian policy over state features (policy kind "mlp"), and the parts the CNN policy reuses.
+
+An actor is `GaussianActor(encoder, head)`: the encoder turns an observation dict into one feature
+vector (here: the float features concatenated in sorted key order; in `cnn.py`: per-camera CNNs plus
+state), the head is `user.policy.SquashedGaussianActor` over those features. SAC, RLPD and BC train
+the same module and publish it unchanged, so the learner, the inference service and the edges run
+identical code. Config JSON of kind "mlp":
+
+    {"state_keys": ["state"], "state_dims": [15], "hidden": [256, 256],
+     "action_low": [...], "action_high": [...]}
+
+Tensors are `GaussianActor.state_dict()` (names "head.net.0.weight", ...).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from user.policy import Policy, SquashedGaussianActor, check_device, load_tensors, register_policy
+from user.v1 import learner_pb2
+
+KIND = "mlp"
+
+
+def mlp(in_dim: int, hidden: Sequence[int], out_dim: int, layer_norm: bool = False) -> nn.Sequential:
+    """Linear -> (LayerNorm) -> ReLU per hidden width, then a linear output layer."""
+    layers: list[nn.Module] = []
+    width = int(in_dim)
+    for h in hidden:
+        layers += [nn.Linear(width, int(h)), *([nn.LayerNorm(int(h))] if layer_norm else []), nn.ReLU()]
+        width = int(h)
+    layers.append(nn.Linear(width, int(out_dim)))
+    return nn.Sequential(*layers)
+
+
+class StateEncoder(nn.Module):
+    """Concatenate the float features `keys` (each flattened after the batch dim); no weights."""
+
+    def __init__(self, keys: Sequence[str], dims: Sequence[int]) -> None:
+        super().__init__()
+        if len(keys) != len(dims):
+            raise ValueError(f"state_keys {list(keys)} and state_dims {list(dims)} differ in length")
+        self.keys, self.dims = list(keys), [int(d) for d in dims]
+        self.out_dim = sum(self.dims)
+
+    def forward(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        parts = [obs[k].reshape(obs[k].shape[0], -1).float() for k in self.keys]
+        if not parts:
+            raise ValueError("StateEncoder has no state keys")
+        return torch.cat(parts, dim=-1)
+
+
+class GaussianActor(nn.Module):
+    """encoder(obs) -> squashed Gaussian over actions. `detach_encoder` stops actor gradients reaching
+    a shared encoder (DrQ / SERL: only the critic trains the image encoder)."""
+
+    def __init__(self, encoder: nn.Module, hidden: Sequence[int], action_low: Any, action_high: Any) -> None:
+        super().__init__()
+        low = np.asarray(action_low, dtype=np.float32).reshape(-1)
+        self.encoder = encoder
+        self.head = SquashedGaussianActor(encoder.out_dim, low.size, list(hidden), low, action_high)
+
+    def forward(
+        self, obs: Mapping[str, torch.Tensor], detach_encoder: bool = False
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        features = self.encoder(obs)
+        return self.head(features.detach() if detach_encoder else features)
+
+
+def log_prob_of(head: SquashedGaussianActor, features: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    """log pi(action | features) under the squashed Gaussian (BC's NLL loss); actions at the bounds are
+    pulled in by 1e-4 of the half-range so atanh stays finite."""
+    mean, log_std = head.distribution(features)
+    squashed = ((action - head.action_bias) / head.action_scale).clamp(-1 + 1e-4, 1 - 1e-4)
+    pre = torch.atanh(squashed)
+    normal_logp = (-0.5 * ((pre - mean) / log_std.exp()) ** 2 - log_std - 0.5 * np.log(2 * np.pi)).sum(-1)
+    return normal_logp - torch.log(head.action_scale * (1 - squashed.pow(2)) + 1e-6).sum(-1)
+
+
+# --- the published policy ---------------------------------------------------------------------------
+
+
+def parse_config(spec: learner_pb2.PolicySpec, required: Sequence[str]) -> dict[str, Any]:
+    try:
+        config = json.loads(spec.config_json)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{spec.kind} config_json is not JSON: {exc}") from None
+    if not isinstance(config, dict):
+        raise ValueError(f"{spec.kind} config_json must be an object")
+    missing = [k for k in required if k not in config]
+    if missing:
+        raise ValueError(f"{spec.kind} config is missing {missing}")
+    return config
+
+
+def batch_tensors(observation: Mapping[str, np.ndarray], keys: Sequence[str], device: torch.device) -> dict:
+    """The needed keys as tensors with one shared leading batch dimension; uint8 images stay uint8."""
+    missing = [k for k in keys if k not in observation]
+    if missing:
+        raise ValueError(f"observation lacks {missing}")
+    arrays = {k: np.asarray(observation[k]) for k in keys}
+    sizes = {a.shape[0] if a.ndim else 0 for a in arrays.values()}
+    if len(sizes) != 1 or 0 in sizes:
+        raise ValueError("observation values need the same leading batch dimension")
+    out = {}
+    for k, a in arrays.items():
+        a = a if a.dtype == np.uint8 else a.astype(np.float32, copy=False)
+        out[k] = torch.from_numpy(np.ascontiguousarray(a)).to(device)
+    return out
+
+
+class ActorPolicy(Policy):
+    """A published GaussianActor: subclasses say how to rebuild the encoder from the config."""
+
+    kind = ""
+    required: tuple[str, ...] = ("state_keys", "state_dims", "hidden", "action_low", "action_high")
+
+    def __init__(
+        self, spec: learner_pb2.PolicySpec, tensors: Mapping[str, np.ndarray], version: int, device: str = "cpu"
+    ) -> None:
+        self.spec, self.version = spec, int(version)
+        self.config = parse_config(spec, self.required)
+        self.actor = self.build_actor(self.config)
+        load_tensors(self.actor, tensors)
+        self.device = check_device(device)
+        self.actor.to(self.device).eval()
+
+    @classmethod
+    def build_actor(cls, config: Mapping[str, Any]) -> GaussianActor:
+        raise NotImplementedError
+
+    @property
+    def observation_keys(self) -> tuple[str, ...]:
+        return (*sorted(self.config["state_keys"]), *sorted(self.config.get("image_keys", [])))
+
+    @property
+    def action_shape(self) -> tuple[int, ...]:
+        return (len(self.config["action_low"]),)
+
+    @property
+    def chunk_horizon(self) -> int:
+        return 1
+
+    def _check_shapes(self, obs: Mapping[str, torch.Tensor]) -> None:
+        for key, dim in zip(self.config["state_keys"], self.config["state_dims"], strict=True):
+            if obs[key][0].numel() != int(dim):
+                raise ValueError(f"observation {key!r} has {obs[key][0].numel()} values, the policy expects {dim}")
+        for key, shape in zip(self.config.get("image_keys", []), self.config.get("image_shapes", []), strict=True):
+            if tuple(obs[key].shape[1:]) != tuple(shape):
+                raise ValueError(f"image {key!r} has shape {tuple(obs[key].shape[1:])}, the policy expects {shape}")
+
+    @torch.no_grad()
+    def act(self, observation: Mapping[str, np.ndarray], deterministic: bool = False) -> np.ndarray:
+        obs = batch_tensors(observation, self.observation_keys, self.device)
+        self._check_shapes(obs)
+        action, _, mean_action = self.actor(obs)
+        return (mean_action if deterministic else action).cpu().numpy().astype(np.float32, copy=False)
+
+
+@register_policy(KIND)
+class MlpPolicy(ActorPolicy):
+    """MLP Gaussian actor over the concatenated float features."""
+
+    kind = KIND
+
+    @classmethod
+    def build_actor(cls, config: Mapping[str, Any]) -> GaussianActor:
+        encoder = StateEncoder(config["state_keys"], config["state_dims"])
+        return GaussianActor(encoder, config["hidden"], config["action_low"], config["action_high"])
+
+
+def policy_spec(kind: str, config: Mapping[str, Any]) -> learner_pb2.PolicySpec:
+    return learner_pb2.PolicySpec(kind=kind, config_json=json.dumps(dict(config), sort_keys=True))
