@@ -122,10 +122,13 @@ class MetricsInterceptor(grpc.ServerInterceptor):
             return handler
         method = handler_call_details.method
 
-        def observe(start: float, context: grpc.ServicerContext, failed: bool) -> None:
+        def observe(start: float, context: grpc.ServicerContext, failed: bool, cancelled: bool = False) -> None:
             code = context.code() if hasattr(context, "code") else None
             if code is None:
-                code = grpc.StatusCode.UNKNOWN if failed else grpc.StatusCode.OK
+                if cancelled:
+                    code = grpc.StatusCode.CANCELLED
+                else:
+                    code = grpc.StatusCode.UNKNOWN if failed else grpc.StatusCode.OK
             name = code.name if isinstance(code, grpc.StatusCode) else str(code)
             RPC_TOTAL.labels(method, name).inc()
             RPC_SECONDS.labels(method).observe(time.perf_counter() - start)
@@ -134,14 +137,17 @@ class MetricsInterceptor(grpc.ServerInterceptor):
             if streaming:
 
                 def run_stream(request: Any, context: grpc.ServicerContext) -> Iterator[Any]:
-                    start, failed = time.perf_counter(), False
+                    start, failed, cancelled = time.perf_counter(), False, False
                     try:
                         yield from behavior(request, context)
+                    except GeneratorExit:  # the client cancelled or went away: not a handler failure
+                        cancelled = True
+                        raise
                     except BaseException:
                         failed = True
                         raise
                     finally:
-                        observe(start, context, failed)
+                        observe(start, context, failed, cancelled)
 
                 return run_stream
 

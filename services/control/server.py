@@ -19,6 +19,7 @@ import uuid
 from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from typing import Any
 
 import grpc
 import prometheus_client
@@ -33,7 +34,9 @@ from user.wire import WireError, dtype_from_proto
 log = logging.getLogger(__name__)
 
 SERVICE_NAME = control_pb2.DESCRIPTOR.services_by_name["Control"].full_name
-ROBOT_ID_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
+ROBOT_ID_RE = re.compile(r"[A-Za-z0-9_.\-]{1,64}")  # always fullmatch: `$` would let a trailing newline in
+MAX_TEXT_BYTES = 256  # hostname, software_version, command ids: enough for any real value, bounded in memory
+MAX_ROBOTS_PER_AGENT = 256
 FLOAT_DTYPES = (tpb.DTYPE_UNSPECIFIED, tpb.DTYPE_FLOAT32, tpb.DTYPE_FLOAT64, tpb.DTYPE_FLOAT16)
 QUEUE_POLL_S = 0.25  # how often a Connect stream notices its client went away
 
@@ -59,7 +62,7 @@ class SpecError(ValueError):
 def validate_spec(spec: robot_pb2.RobotSpec) -> None:
     """Raise SpecError naming the robot and the offending field."""
     rid = spec.robot_id
-    if not ROBOT_ID_RE.match(rid):
+    if not ROBOT_ID_RE.fullmatch(rid):
         raise SpecError(f"robot_id {rid!r} must match {ROBOT_ID_RE.pattern}")
     where = f"robot {rid}"
     act = spec.action
@@ -77,7 +80,7 @@ def validate_spec(spec: robot_pb2.RobotSpec) -> None:
     if act.names and len(act.names) != size:
         raise SpecError(f"{where}: action.names has {len(act.names)} entries for {size} action elements")
     if act.dtype not in FLOAT_DTYPES:
-        raise SpecError(f"{where}: action.dtype must be a float type, got {tpb.DType.Name(act.dtype)}")
+        raise SpecError(f"{where}: action.dtype must be a float type, got {enum_name(tpb.DType, act.dtype)}")
     _validate_features(where, spec.observation)
     for cam in spec.cameras:
         if not cam.name or cam.width <= 0 or cam.height <= 0:
@@ -104,16 +107,42 @@ def _validate_features(where: str, features: list[robot_pb2.FeatureSpec]) -> Non
             raise SpecError(f"{where}: observation {feat.name!r}: {exc}") from None
 
 
+def enum_name(enum: Any, value: int) -> str:
+    """The enum's name for value, or the number: proto3 enums are open, so any int32 can arrive."""
+    return enum.Name(value) if value in enum.values() else str(value)
+
+
 def validate_register(req: control_pb2.RegisterRequest) -> None:
-    if not ROBOT_ID_RE.match(req.agent_id):
+    if not ROBOT_ID_RE.fullmatch(req.agent_id):
         raise SpecError(f"agent_id {req.agent_id!r} must match {ROBOT_ID_RE.pattern}")
+    for name in ("hostname", "software_version"):
+        if len(getattr(req, name).encode()) > MAX_TEXT_BYTES:
+            raise SpecError(f"{name} is longer than {MAX_TEXT_BYTES} bytes")
     if not req.robots:
         raise SpecError("register needs at least one robot")
+    if len(req.robots) > MAX_ROBOTS_PER_AGENT:
+        raise SpecError(f"one agent registers at most {MAX_ROBOTS_PER_AGENT} robots, got {len(req.robots)}")
     ids = [spec.robot_id for spec in req.robots]
     if len(ids) != len(set(ids)):
         raise SpecError(f"robot ids must be unique within a registration, got {ids}")
     for spec in req.robots:
         validate_spec(spec)
+
+
+def command_problem(cmd: control_pb2.Command) -> str | None:
+    """Why a command must not reach an edge, or None. Only what an edge knows how to do is forwarded."""
+    if cmd.kind not in KNOWN_COMMANDS:
+        return f"command.kind must be PAUSE, RESUME or RESET, got {enum_name(control_pb2.CommandKind, cmd.kind)}"
+    if cmd.robot_id and not ROBOT_ID_RE.fullmatch(cmd.robot_id):
+        return f"command.robot_id {cmd.robot_id!r} must be empty (every robot) or match {ROBOT_ID_RE.pattern}"
+    if len(cmd.command_id.encode()) > MAX_TEXT_BYTES:
+        return f"command.command_id is longer than {MAX_TEXT_BYTES} bytes"
+    return None
+
+
+KNOWN_COMMANDS = frozenset(
+    {control_pb2.COMMAND_KIND_PAUSE, control_pb2.COMMAND_KIND_RESUME, control_pb2.COMMAND_KIND_RESET}
+)
 
 
 # --------------------------------------------------------------------------- registry
@@ -445,8 +474,9 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
     ) -> control_pb2.SendCommandResponse:
         cmd = control_pb2.Command()
         cmd.CopyFrom(request.command)
-        if cmd.kind == control_pb2.COMMAND_KIND_UNSPECIFIED:
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "command.kind must be set (PAUSE, RESUME or RESET)")
+        problem = command_problem(cmd)
+        if problem:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, problem)
         if not cmd.command_id:
             cmd.command_id = uuid.uuid4().hex
         known, delivered = self.registry.route(cmd)

@@ -31,7 +31,7 @@ from services.replay.store import (
     ReplayStore,
     StoreClosedError,
 )
-from services.replay.validate import StepError, validate_step
+from services.replay.validate import EpisodeGuard, StepError, validate_step
 from user import rpc, wire
 from user.config import AuthConfig, StackConfig
 from user.log import kv
@@ -220,6 +220,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
     ) -> None:
         self.store = store
         self.specs = SpecBook(spec_source, store)
+        self.episodes = EpisodeGuard()
         self.commit_max_steps = commit_max_steps
         self.commit_max_delay_s = commit_max_delay_s
         self.rejected = 0
@@ -338,9 +339,12 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             return "unknown_robot", f"unknown robot {rid} (control has no registration for it)"
         try:
             validate_step(step, spec)
+            self.episodes.check(step)
             return None
         except StepError as exc:
             error = exc
+            if error.reason == "episode_order":  # a fresher spec cannot fix the order
+                return error.reason, str(error)
         # The robot may have re-registered with a new spec since it was cached: ask again, rarely.
         if self.specs.may_refresh(rid):
             try:
@@ -352,6 +356,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             if fresh != spec:
                 try:
                     validate_step(step, fresh)
+                    self.episodes.check(step)
                     return None
                 except StepError as exc:
                     error = exc
