@@ -29,6 +29,12 @@ class AuthConfig(Strict):
     tls_cert: Path | None = Field(default=None, description="server cert (PEM); enables TLS")
     tls_key: Path | None = Field(default=None, description="server private key (PEM)")
     tls_ca: Path | None = Field(default=None, description="CA bundle clients trust; enables TLS")
+    tokens_file: Path | None = Field(
+        default=None, description="server: role tokens (admin/operator/reader/edge/worker), re-read on change"
+    )
+    tls_client_ca: Path | None = Field(default=None, description="server: require client certs from this CA (mTLS)")
+    tls_client_cert: Path | None = Field(default=None, description="client certificate (PEM) for mTLS")
+    tls_client_key: Path | None = Field(default=None, description="client private key (PEM) for mTLS")
 
     def resolved_token(self) -> str | None:
         if not self.enabled:

@@ -373,6 +373,14 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
         if first.WhichOneof("msg") != "register":
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, "the first message on Connect must be `register`")
         req = first.register
+        who = rpc.caller(context)
+        if who is not None and not (
+            who.owns_agent(req.agent_id) and all(who.owns_robot(s.robot_id) for s in req.robots)
+        ):
+            context.abort(
+                grpc.StatusCode.PERMISSION_DENIED,
+                f"{who.role} token of {who.name!r} may not register agent {req.agent_id!r} with these robots",
+            )
         try:
             validate_register(req)
             conn, replaced = self.registry.register(req)

@@ -33,6 +33,7 @@ from services.replay.store import (
 )
 from services.replay.validate import EpisodeGuard, StepError, validate_step
 from user import rpc, wire
+from user.auth import Identity
 from user.config import AuthConfig, StackConfig
 from user.log import kv
 from user.v1 import control_pb2, control_pb2_grpc, replay_pb2, replay_pb2_grpc, robot_pb2, step_pb2
@@ -263,12 +264,14 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         inbox = _Inbox(request_iterator, maxsize=2 * self.commit_max_steps)
         self._stream_delta(+1)
         try:
-            yield from self._insert(inbox, context)
+            yield from self._insert(inbox, context, rpc.caller(context))
         finally:
             inbox.close()
             self._stream_delta(-1)
 
-    def _insert(self, inbox: _Inbox, context: grpc.ServicerContext) -> Iterator[replay_pb2.InsertAck]:
+    def _insert(
+        self, inbox: _Inbox, context: grpc.ServicerContext, who: Identity | None = None
+    ) -> Iterator[replay_pb2.InsertAck]:
         pending: list[replay_pb2.InsertRequest] = []
         deadline = 0.0
         while True:
@@ -289,6 +292,11 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             if item is not None:
                 RECEIVED.inc()
                 failure = self._admit(item)
+                if failure is None and who is not None and not who.owns_robot(item.step.robot_id):
+                    failure = (
+                        grpc.StatusCode.PERMISSION_DENIED,
+                        f"seq {item.seq}: {who.name!r} may not write robot {item.step.robot_id!r}",
+                    )
                 if failure is not None:
                     if pending:  # everything before the failing step is committed and acknowledged first
                         yield self._commit(pending, context)
