@@ -236,6 +236,21 @@ def test_control_unary(stack: dict[str, Any], list_req: Any, get_req: Any) -> No
     unary(stack["control"].GetRobot, get_req)
 
 
+WORKER = control_pb2.WorkerInfo(worker_id="learner@h:1", kind="learner", devices=[control_pb2.DeviceInfo(name="cpu")])
+
+
+@FUZZ
+@given(
+    worker=any_or_near(control_pb2.RegisterWorkerRequest(worker=WORKER)),
+    workers=any_or_near(control_pb2.ListWorkersRequest()),
+    command=any_or_near(control_pb2.GetCommandRequest(command_id="x")),
+)
+def test_control_workers_and_commands(stack: dict[str, Any], worker: Any, workers: Any, command: Any) -> None:
+    unary(stack["control"].RegisterWorker, worker)
+    unary(stack["control"].ListWorkers, workers)
+    unary(stack["control"].GetCommand, command)
+
+
 # --------------------------------------------------------------------------- Replay
 
 

@@ -3,6 +3,8 @@
 userctl control|replay|inference|learner|edge --config configs/demo.yaml [--set a.b=c] [--ready-file F]
 userctl up --config configs/demo.yaml      # the whole stack locally, with a live console
 userctl health HOST:PORT                   # exit 0 when SERVING (docker health checks)
+userctl robots ls | workers ls | command pause|resume|reset [ROBOT]   # operators (see user/ops_cli.py)
+userctl edge discover | edge install-service                         # robot-PC setup (user/edge_setup.py)
 """
 
 from __future__ import annotations
@@ -40,10 +42,18 @@ def _parser() -> argparse.ArgumentParser:
     h.add_argument("--config", "-c")
     h.add_argument("--set", dest="overrides", action="append", default=[])
     h.add_argument("--timeout", type=float, default=2.0)
+    from user import ops_cli
+
+    ops_cli.add_parsers(sub)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["edge"] and argv[1:2] and argv[1] in ("discover", "install-service"):
+        from user import edge_setup  # robot-PC setup commands; `userctl edge -c ...` runs the daemon
+
+        return edge_setup.main(argv[1:])
     args = _parser().parse_args(argv)
     try:
         cfg: StackConfig = load_config(args.config, args.overrides)
@@ -59,6 +69,10 @@ def main(argv: list[str] | None = None) -> int:
         except ConfigError:  # health checks are exempt from auth: probing needs no token
             auth = auth.model_copy(update={"enabled": False})
         return 0 if check_health(args.target, auth, timeout_s=args.timeout) else 1
+    if args.command in ("robots", "workers", "command"):
+        from user import ops_cli
+
+        return ops_cli.main(args, cfg)
     if args.command == "up":
         from user.up import run_up
 

@@ -76,6 +76,10 @@ class ControlConfig(_ServerSection):
     lease_ttl_s: float = Field(default=10.0, gt=0, description="a robot without a heartbeat this long goes offline")
     heartbeat_interval_s: float = Field(default=1.0, gt=0, description="heartbeat period asked of edge agents")
     episodes_kept: int = Field(default=200, ge=1, description="recent episodes kept per robot")
+    state_path: Path | None = Field(
+        default=None, description="SQLite file for robots, episode history and workers; none = memory only"
+    )
+    worker_ttl_s: float = Field(default=30.0, gt=0, description="a worker not re-registering this long is offline")
 
 
 class ReplayConfig(_ServerSection):
@@ -92,6 +96,7 @@ class ReplayConfig(_ServerSection):
 class InferenceConfig(_ServerSection):
     server: ServerConfig = ServerConfig(port=50053, metrics_port=9103)
     learner_addr: str = Field(default="127.0.0.1:50054", description="learner whose weight stream is served")
+    control_addr: str = Field(default="127.0.0.1:50051", description="control service: where this worker registers")
     max_batch: int = Field(default=64, ge=1, description="most requests per policy forward")
     max_wait_ms: float = Field(default=2.0, ge=0, description="longest a request waits for others to batch with")
     device: str = DEVICE
