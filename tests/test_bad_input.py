@@ -170,3 +170,13 @@ def test_final_observation_only_on_the_last_step() -> None:
     step.truncated = False
     with pytest.raises(StepError, match="only on the last step"):
         validate_step(step, spec("arm-0"))
+
+
+@pytest.mark.parametrize("shape", [[], [4], [2, 2, 2, 2], [2, 2, 4]])
+def test_an_image_tensor_with_a_non_image_shape_is_a_wire_error(shape: list[int]) -> None:
+    # Found by the fuzz suite: an empty shape with ENCODING_JPEG raised IndexError (-> UNKNOWN in Act).
+    from user import wire
+
+    tensor = tpb.Tensor(dtype=tpb.DTYPE_UINT8, shape=shape, encoding=tpb.ENCODING_JPEG, data=b"\xff\xd8")
+    with pytest.raises(wire.WireError, match="images"):
+        wire.from_tensor(tensor)

@@ -114,6 +114,8 @@ def _decode_image(data: bytes, shape: tuple[int, ...], dtype: np.dtype) -> np.nd
 
     if dtype != np.uint8:
         raise WireError("JPEG/PNG tensors must be uint8")
+    if len(shape) not in (2, 3) or (len(shape) == 3 and shape[-1] not in (1, 3)):
+        raise WireError(f"JPEG/PNG tensors are images (H, W), (H, W, 1) or (H, W, 3), got shape {shape}")
     flag = cv2.IMREAD_GRAYSCALE if len(shape) == 2 or shape[-1] == 1 else cv2.IMREAD_COLOR
     img = cv2.imdecode(np.frombuffer(data, np.uint8), flag)
     if img is None:
