@@ -180,3 +180,20 @@ def test_an_image_tensor_with_a_non_image_shape_is_a_wire_error(shape: list[int]
     tensor = tpb.Tensor(dtype=tpb.DTYPE_UINT8, shape=shape, encoding=tpb.ENCODING_JPEG, data=b"\xff\xd8")
     with pytest.raises(wire.WireError, match="images"):
         wire.from_tensor(tensor)
+
+
+@pytest.mark.parametrize("ext", [".png", ".jpg"])
+def test_an_image_is_checked_against_its_declared_shape_before_decoding(ext: str) -> None:
+    # A 22 kB PNG of zeros decodes to 16 MB: the header's size must match the declared shape first.
+    import cv2
+    import numpy as np
+
+    from user import wire
+
+    _, buf = cv2.imencode(ext, np.zeros((4000, 4000), np.uint8))
+    enc = tpb.ENCODING_PNG if ext == ".png" else tpb.ENCODING_JPEG
+    tensor = tpb.Tensor(dtype=tpb.DTYPE_UINT8, shape=[10, 10], encoding=enc, data=buf.tobytes())
+    with pytest.raises(wire.WireError, match=r"header says \(4000, 4000\)"):
+        wire.from_tensor(tensor)
+    small = wire.to_tensor(np.full((10, 10), 7, np.uint8), encoding=enc)
+    assert wire.from_tensor(small).shape == (10, 10)
