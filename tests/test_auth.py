@@ -91,9 +91,9 @@ def connect_code(stub: control_pb2_grpc.ControlStub, agent_id: str, *robot_ids: 
     return code_of(stub.Connect, register(agent_id, *robot_ids), timeout=10)
 
 
-def insert_code(svc: ReplayService, token: str, robot_id: str) -> grpc.StatusCode:
+def insert_code(svc: ReplayService, token: str, robot_id: str, index: int = 0, last: bool = False) -> grpc.StatusCode:
     stub = replay_pb2_grpc.ReplayStub(make_channel(svc.address, AuthConfig(token=token)))
-    req = replay_pb2.InsertRequest(seq=0, step=make_step(robot_id, "ep", 0))
+    req = replay_pb2.InsertRequest(seq=0, step=make_step(robot_id, "ep", index, last=last))
     return code_of(stub.Insert, iter([req]), timeout=10)
 
 
@@ -135,12 +135,15 @@ def test_an_edge_writes_only_its_robots_steps(stack) -> None:
     assert connect_code(control_stub(control, ADMIN), "lab-x", "arm-5", "gripper-0") == grpc.StatusCode.OK
     assert insert_code(replay, EDGE, "arm-5") == grpc.StatusCode.OK
     assert insert_code(replay, EDGE, "gripper-0") == grpc.StatusCode.PERMISSION_DENIED
+    # A denied step leaves no trace: this would-be last step does not end gripper-0's episode.
+    assert insert_code(replay, EDGE, "gripper-0", index=0, last=True) == grpc.StatusCode.PERMISSION_DENIED
+    assert insert_code(replay, ADMIN, "gripper-0", index=3) == grpc.StatusCode.OK
     assert insert_code(replay, READER, "arm-5") == grpc.StatusCode.PERMISSION_DENIED
     assert insert_code(replay, OPERATOR, "arm-5") == grpc.StatusCode.PERMISSION_DENIED
     stats = replay_pb2_grpc.ReplayStub(make_channel(replay.address, AuthConfig(token=READER))).Stats(
         replay_pb2.StatsRequest(), timeout=5
     )
-    assert dict(stats.steps_per_robot) == {"arm-5": 1}
+    assert dict(stats.steps_per_robot) == {"arm-5": 1, "gripper-0": 1}
 
 
 def test_tokens_rotate_without_a_restart(stack, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

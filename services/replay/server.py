@@ -291,12 +291,13 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
                 return
             if item is not None:
                 RECEIVED.inc()
-                failure = self._admit(item)
-                if failure is None and who is not None and not who.owns_robot(item.step.robot_id):
+                if who is not None and not who.owns_robot(item.step.robot_id):  # before _admit records anything
                     failure = (
                         grpc.StatusCode.PERMISSION_DENIED,
                         f"seq {item.seq}: {who.name!r} may not write robot {item.step.robot_id!r}",
                     )
+                else:
+                    failure = self._admit(item)
                 if failure is not None:
                     if pending:  # everything before the failing step is committed and acknowledged first
                         yield self._commit(pending, context)
