@@ -15,6 +15,7 @@ FIND_PY312 := for c in python3.12 $$HOME/.pyenv/versions/3.12*/bin/python3.12 /u
 help:
 	@echo "make demo   install + train two simulated arms through the five services (userctl up)"
 	@echo "make test   install + run the test suite"
+	@echo "make fuzz   long property-based run over every RPC (10k examples per test)"
 	@echo "make proto | lint | bench | clean"
 
 $(STAMP): pyproject.toml constraints.txt

@@ -28,6 +28,7 @@ ADMIN = "admin-token-0123456789"
 OPERATOR = "operator-token-0123456789"
 READER = "reader-token-0123456789"
 EDGE = "edge-token-lab-pc-1-0123456789"
+WORKER = "worker-token-gpu-1-0123456789"
 
 
 def write_tokens(path: Path, operator: str = OPERATOR) -> None:
@@ -36,6 +37,7 @@ def write_tokens(path: Path, operator: str = OPERATOR) -> None:
         {"token": READER, "role": "reader", "name": "grafana"},
         {"token": EDGE, "role": "edge", "name": "lab-pc-1", "agent_id": "lab-pc-1", "robots": ["arm-*"]},
         {"cert_cn": "lab-pc-2", "role": "edge", "agent_id": "lab-pc-2"},
+        {"token": WORKER, "role": "worker", "name": "gpu-1"},
     ]
     tmp = path.with_suffix(".tmp")
     tmp.write_text(yaml.safe_dump(entries))
@@ -128,6 +130,19 @@ def test_each_role_calls_only_its_methods(stack) -> None:
     # The shared token is every role (how services talk to each other, and how older configs work).
     assert code_of(admin.SendCommand, cmd, timeout=5) == grpc.StatusCode.OK
     assert connect_code(admin, "any-agent", "other-0") == grpc.StatusCode.OK
+
+
+def test_workers_report_devices_and_only_workers_do(stack) -> None:
+    control, _, _ = stack
+    report = control_pb2.RegisterWorkerRequest(worker=control_pb2.WorkerInfo(worker_id="learner@gpu-1", kind="learner"))
+    cmd = control_pb2.SendCommandRequest(command=control_pb2.Command(kind=control_pb2.COMMAND_KIND_PAUSE))
+    worker, operator = control_stub(control, WORKER), control_stub(control, OPERATOR)
+    assert code_of(worker.RegisterWorker, report, timeout=5) == grpc.StatusCode.OK
+    assert code_of(worker.SendCommand, cmd, timeout=5) == grpc.StatusCode.PERMISSION_DENIED
+    assert code_of(operator.RegisterWorker, report, timeout=5) == grpc.StatusCode.PERMISSION_DENIED
+    assert code_of(control_stub(control, EDGE).RegisterWorker, report, timeout=5) == grpc.StatusCode.PERMISSION_DENIED
+    workers = control_stub(control, READER).ListWorkers(control_pb2.ListWorkersRequest(), timeout=5).workers
+    assert [w.worker_id for w in workers] == ["learner@gpu-1"]
 
 
 def test_an_edge_writes_only_its_robots_steps(stack) -> None:
