@@ -213,11 +213,30 @@ def edge_messages() -> st.SearchStrategy[control_pb2.EdgeMessage]:
 @FUZZ
 @given(msgs=st.lists(edge_messages(), min_size=1, max_size=5))
 def test_control_connect(stack: dict[str, Any], msgs: list[control_pb2.EdgeMessage]) -> None:
+    before = robot_records(stack)
+    registered = False
     try:
-        for _ in stack["control"].Connect(iter(msgs), timeout=CALL_S):
-            pass
+        for reply in stack["control"].Connect(iter(msgs), timeout=CALL_S):
+            registered |= reply.WhichOneof("msg") == "registered"
     except grpc.RpcError as err:
         assert_defined(err)
+    if not registered:  # a refused registration changed nothing
+        assert robot_records(stack) == before
+
+
+def worker_records(stack: dict[str, Any]) -> list[bytes]:
+    """What control stored about workers (`online` left out: it follows the clock)."""
+    listed = stack["control"].ListWorkers(control_pb2.ListWorkersRequest(include_offline=True), timeout=CALL_S)
+    out = []
+    for w in listed.workers:
+        w.online = False
+        out.append(w.SerializeToString())
+    return out
+
+
+def robot_records(stack: dict[str, Any]) -> list[tuple[str, str, str]]:
+    robots = stack["control"].ListRobots(control_pb2.ListRobotsRequest(include_offline=True), timeout=CALL_S).robots
+    return [(r.spec.robot_id, r.agent_id, r.spec.SerializeToString().hex()) for r in robots]
 
 
 @FUZZ
@@ -246,7 +265,12 @@ WORKER = control_pb2.WorkerInfo(worker_id="learner@h:1", kind="learner", devices
     command=any_or_near(control_pb2.GetCommandRequest(command_id="x")),
 )
 def test_control_workers_and_commands(stack: dict[str, Any], worker: Any, workers: Any, command: Any) -> None:
-    unary(stack["control"].RegisterWorker, worker)
+    before = worker_records(stack)
+    try:
+        stack["control"].RegisterWorker(worker, timeout=CALL_S)
+    except grpc.RpcError as err:
+        assert_defined(err)
+        assert worker_records(stack) == before  # refused: nothing stored
     unary(stack["control"].ListWorkers, workers)
     unary(stack["control"].GetCommand, command)
 
