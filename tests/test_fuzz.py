@@ -163,6 +163,7 @@ def serve_stack(conn: Any, tmp: Path) -> None:
     cfg.replay.path = tmp / "replay"
     cfg.replay.control_addr = control.address
     cfg.replay.commit_max_delay_ms = 1.0
+    cfg.replay.cache_mb = 16  # replay's decode cache is meant to fill (256 MB by default): keep it out of the RSS
     replay = ReplayService(cfg, start_metrics=False).start()
     inference = InferenceService(cfg, policy_source="manual", start_metrics=False).start()
     inference.load_weights(helpers.random_weights(ACTOR, version=1))
@@ -211,6 +212,15 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     here.send("stop")
     assert here.poll(60) and here.recv() == "stopped"
     child.join(timeout=30)
+
+
+@pytest.fixture(autouse=True)
+def report_memory(stack: dict[str, Any], request: pytest.FixtureRequest) -> Iterator[None]:
+    """Print the services' resident memory after each test (`make fuzz` shows where growth happens)."""
+    _, before = stack["probe"]()
+    yield
+    _, after = stack["probe"]()
+    print(f"\n  {request.node.name}: services' RSS {before:.0f} -> {after:.0f} MB", end="")
 
 
 def assert_defined(err: grpc.RpcError) -> None:
