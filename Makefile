@@ -10,11 +10,12 @@ STUBS := user/v1/.generated
 FIND_PY312 := for c in python3.12 $$HOME/.pyenv/versions/3.12*/bin/python3.12 /usr/local/bin/python3.12 /usr/bin/python3.12; do \
 	if "$$c" -c 'import sys; assert sys.version_info[:2] == (3, 12)' 2>/dev/null; then echo "$$c"; break; fi; done
 
-.PHONY: install proto demo test test-fast lint bench clean help
+.PHONY: install proto demo test test-fast lint bench clean help fuzz
 
 help:
 	@echo "make demo   install + train two embodiments at once (2 sim arms reach, a Panda picks) through the five services"
 	@echo "make test   install + run the test suite"
+	@echo "make fuzz   long property-based run over every RPC (10k examples per test)"
 	@echo "make proto | lint | bench | clean"
 
 $(STAMP): pyproject.toml constraints.txt
@@ -43,6 +44,10 @@ test: install
 
 test-fast: install
 	MUJOCO_GL=egl $(PY) -m pytest -q -m "not slow"
+
+# Long property-based run: >= 10k messages per RPC group of every service (the normal run does 40).
+fuzz: install
+	USER_FUZZ_EXAMPLES=10000 MUJOCO_GL=egl $(PY) -m pytest -q -s tests/test_fuzz.py
 
 lint: install
 	$(VENV)/bin/ruff check .

@@ -20,6 +20,7 @@ from user.policy import check_device
 from user.registry import PluginError
 from user.v1 import learner_pb2, learner_pb2_grpc
 from user.weights import WeightServicer, WeightStore
+from user.worker import report_worker
 
 log = logging.getLogger(__name__)
 
@@ -110,7 +111,9 @@ class LearnerService(rpc.GrpcService):
 
 def run(cfg: StackConfig, ready_file: str | None) -> int:
     service = LearnerService(cfg)
-    rpc.serve_until_signal(service, "learner", ready_file, healthy=lambda: not service.learner.failed)
+    lc = cfg.learner
+    with report_worker(service, "learner", lc.control_addr, cfg.auth, lc.device, [lc.robot_kind]):
+        rpc.serve_until_signal(service, "learner", ready_file, healthy=lambda: not service.learner.failed)
     if service.learner.failed:
         log.error("learner stopped on an error", extra=kv(error=str(service.learner.error)))
         return 1

@@ -194,7 +194,19 @@ class ControlClient:
             self._dispatch(msg.command)
 
     def _dispatch(self, cmd: control_pb2.Command) -> None:
-        COMMANDS.labels(control_pb2.CommandKind.Name(cmd.kind).removeprefix("COMMAND_KIND_").lower()).inc()
+        # proto3 enums are open: a kind this build does not know must not end the stream thread.
+        known = cmd.kind in control_pb2.CommandKind.values()
+        COMMANDS.labels(
+            control_pb2.CommandKind.Name(cmd.kind).removeprefix("COMMAND_KIND_").lower() if known else "unknown"
+        ).inc()
+        if not known or cmd.kind == control_pb2.COMMAND_KIND_UNSPECIFIED:
+            log.warning("unknown command ignored", extra=kv(command_id=cmd.command_id, kind=cmd.kind))
+            self._results.put(
+                control_pb2.CommandResult(
+                    command_id=cmd.command_id, ok=False, message=f"unknown command kind {cmd.kind}"
+                )
+            )
+            return
         try:
             outcome = self._on_command(cmd)
             ok, message = outcome if outcome is not None else (True, "")

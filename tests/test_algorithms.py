@@ -197,7 +197,7 @@ def test_features_select_what_the_networks_see() -> None:
     algo = _algorithm("sac", pixels=True, features=["camera.front"])  # pixels only: the state is left out
     spec, tensors = algo.policy()
     policy = build_policy(spec, tensors, version=1)
-    assert policy.observation_keys == ["camera.front"]
+    assert policy.observation_keys == ("camera.front",)
     image = _obs(torch.Generator().manual_seed(0), 2, pixels=True)["camera.front"].numpy()
     assert policy.act({"camera.front": image}).shape == (2, ACTION_DIM)
     scalars = algo.update(_request_batch(algo, 0, pixels=True))

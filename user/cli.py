@@ -6,6 +6,8 @@ userctl health HOST:PORT                   # exit 0 when SERVING (docker health 
 userctl plugins                            # every registered kind: `interface kind description` per line
 userctl replay ls|export|import ...        # a replay buffer's tables; LeRobotDataset out and in
 userctl reward train --frames DIR --out DIR  # success classifier for the `classifier` task
+userctl robots ls | workers ls | command pause|resume|reset [ROBOT]   # operators (see user/ops_cli.py)
+userctl edge discover | edge install-service                         # robot-PC setup (user/edge_setup.py)
 """
 
 from __future__ import annotations
@@ -54,6 +56,9 @@ def _parser() -> argparse.ArgumentParser:
     train.add_argument("--batch-size", type=int, default=32)
     train.add_argument("--lr", type=float, default=1e-3)
     train.add_argument("--seed", type=int, default=0)
+    from user import ops_cli
+
+    ops_cli.add_parsers(sub)
     return parser
 
 
@@ -73,6 +78,10 @@ def main(argv: list[str] | None = None) -> int:
         from services.replay.tools import main as replay_tools
 
         return replay_tools(argv[1:])
+    if argv[:1] == ["edge"] and argv[1:2] and argv[1] in ("discover", "install-service"):
+        from user import edge_setup  # robot-PC setup commands; `userctl edge -c ...` runs the daemon
+
+        return edge_setup.main(argv[1:])
     args = _parser().parse_args(argv)
     if args.command == "plugins":
         return _plugins()
@@ -94,6 +103,10 @@ def main(argv: list[str] | None = None) -> int:
         except ConfigError:  # health checks are exempt from auth: probing needs no token
             auth = auth.model_copy(update={"enabled": False})
         return 0 if check_health(args.target, auth, timeout_s=args.timeout) else 1
+    if args.command in ("robots", "workers", "command"):
+        from user import ops_cli
+
+        return ops_cli.main(args, cfg)
     if args.command == "up":
         from user.up import run_up
 

@@ -29,6 +29,12 @@ class AuthConfig(Strict):
     tls_cert: Path | None = Field(default=None, description="server cert (PEM); enables TLS")
     tls_key: Path | None = Field(default=None, description="server private key (PEM)")
     tls_ca: Path | None = Field(default=None, description="CA bundle clients trust; enables TLS")
+    tokens_file: Path | None = Field(
+        default=None, description="server: role tokens (admin/operator/reader/edge/worker), re-read on change"
+    )
+    tls_client_ca: Path | None = Field(default=None, description="server: require client certs from this CA (mTLS)")
+    tls_client_cert: Path | None = Field(default=None, description="client certificate (PEM) for mTLS")
+    tls_client_key: Path | None = Field(default=None, description="client private key (PEM) for mTLS")
 
     def resolved_token(self) -> str | None:
         if not self.enabled:
@@ -81,6 +87,10 @@ class ControlConfig(_ServerSection):
     replay_shards: list[ReplayShard] = Field(
         default=[], description="replay shard per site/agent, first match wins; none: each edge its own replay_addr"
     )
+    state_path: Path | None = Field(
+        default=None, description="SQLite file for robots, episode history and workers; none = memory only"
+    )
+    worker_ttl_s: float = Field(default=30.0, gt=0, description="a worker not re-registering this long is offline")
 
 
 class ReplayConfig(_ServerSection):
@@ -115,7 +125,9 @@ class ReplayConfig(_ServerSection):
 class InferenceConfig(_ServerSection):
     server: ServerConfig = ServerConfig(port=50053, metrics_port=9103)
     learner_addr: str = Field(default="127.0.0.1:50054", description="learner whose weight stream is served")
-    control_addr: str = Field(default="127.0.0.1:50051", description="control: which robot is in which experiment")
+    control_addr: str = Field(
+        default="127.0.0.1:50051", description="control: which robot is in which experiment; registers this worker"
+    )
     max_batch: int = Field(default=64, ge=1, description="most requests per policy forward")
     max_wait_ms: float = Field(default=2.0, ge=0, description="longest a request waits for others to batch with")
     device: str = DEVICE

@@ -6,7 +6,6 @@ A service is `start_server(...)` + `wait_for_shutdown(...)`; a client is `make_c
 
 from __future__ import annotations
 
-import hmac
 import json
 import logging
 import os
@@ -26,7 +25,8 @@ import prometheus_client
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection
 
-from user.config import AuthConfig, ServerConfig
+from user.auth import AuthError, AuthTable, Identity
+from user.config import AuthConfig, ConfigError, ServerConfig
 
 log = logging.getLogger(__name__)
 
@@ -90,27 +90,74 @@ def _wrap_handler(handler: grpc.RpcMethodHandler, wrap: Callable[[Callable, bool
     )
 
 
-class TokenAuthInterceptor(grpc.ServerInterceptor):
-    """Rejects calls without `authorization: Bearer <token>` with UNAUTHENTICATED."""
+_CALLERS: dict[int, Identity] = {}  # id(context) -> identity, while the call runs
 
-    def __init__(self, token: str) -> None:
-        self._expected = f"Bearer {token}".encode()
+
+def caller(context: grpc.ServicerContext) -> Identity | None:
+    """Who is making this call (None when auth is off): handlers use it to bind an edge to its agent."""
+    return _CALLERS.get(id(context))
+
+
+def auth_table(auth: AuthConfig) -> AuthTable | None:
+    """The server's token table: the shared token (admin), the tokens file (roles), or None when auth is off."""
+    if not auth.enabled:
+        return None
+    shared = auth.token or os.environ.get("USER_TOKEN") or None
+    if not (shared or auth.token_file or auth.tokens_file):
+        auth.resolved_token()  # raises the ConfigError that names the field
+    try:
+        return AuthTable(shared, auth.token_file, auth.tokens_file)
+    except AuthError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+class TokenAuthInterceptor(grpc.ServerInterceptor):
+    """Identifies each call by `authorization: Bearer <token>` (or its mTLS certificate) and checks the
+    method against the identity's role: UNAUTHENTICATED without a known identity, PERMISSION_DENIED
+    when the role may not call the method."""
+
+    def __init__(self, table: AuthTable) -> None:
+        self.table = table
 
     def intercept_service(self, continuation, handler_call_details):
         handler = continuation(handler_call_details)
-        if handler is None or handler_call_details.method.startswith(OPEN_METHOD_PREFIXES):
+        method = handler_call_details.method
+        if handler is None or method.startswith(OPEN_METHOD_PREFIXES):
             return handler
-        given = dict(handler_call_details.invocation_metadata or ()).get(AUTH_HEADER, "")
-        if hmac.compare_digest(str(given).encode(), self._expected):
-            return handler
+        bearer = str(dict(handler_call_details.invocation_metadata or ()).get(AUTH_HEADER, ""))
+        table = self.table
 
-        def deny(behavior: Callable, streaming: bool) -> Callable:
-            def reject(request_or_iterator: Any, context: grpc.ServicerContext):
+        def check(context: grpc.ServicerContext) -> Identity:
+            names = [n.decode(errors="replace") for n in (context.auth_context() or {}).get("x509_common_name", [])]
+            ident = table.identify(bearer, names)
+            if ident is None:
                 context.abort(grpc.StatusCode.UNAUTHENTICATED, "missing or invalid token")
+            if not ident.may_call(method):
+                context.abort(grpc.StatusCode.PERMISSION_DENIED, f"role {ident.role} may not call {method}")
+            return ident
 
-            return reject
+        def guard(behavior: Callable, streaming: bool) -> Callable:
+            if streaming:
 
-        return _wrap_handler(handler, deny)
+                def run_stream(request: Any, context: grpc.ServicerContext) -> Iterator[Any]:
+                    _CALLERS[id(context)] = check(context)
+                    try:
+                        yield from behavior(request, context)
+                    finally:
+                        _CALLERS.pop(id(context), None)
+
+                return run_stream
+
+            def run_unary(request: Any, context: grpc.ServicerContext) -> Any:
+                _CALLERS[id(context)] = check(context)
+                try:
+                    return behavior(request, context)
+                finally:
+                    _CALLERS.pop(id(context), None)
+
+            return run_unary
+
+        return _wrap_handler(handler, guard)
 
 
 class MetricsInterceptor(grpc.ServerInterceptor):
@@ -122,10 +169,13 @@ class MetricsInterceptor(grpc.ServerInterceptor):
             return handler
         method = handler_call_details.method
 
-        def observe(start: float, context: grpc.ServicerContext, failed: bool) -> None:
+        def observe(start: float, context: grpc.ServicerContext, failed: bool, cancelled: bool = False) -> None:
             code = context.code() if hasattr(context, "code") else None
             if code is None:
-                code = grpc.StatusCode.UNKNOWN if failed else grpc.StatusCode.OK
+                if cancelled:
+                    code = grpc.StatusCode.CANCELLED
+                else:
+                    code = grpc.StatusCode.UNKNOWN if failed else grpc.StatusCode.OK
             name = code.name if isinstance(code, grpc.StatusCode) else str(code)
             RPC_TOTAL.labels(method, name).inc()
             RPC_SECONDS.labels(method).observe(time.perf_counter() - start)
@@ -134,14 +184,17 @@ class MetricsInterceptor(grpc.ServerInterceptor):
             if streaming:
 
                 def run_stream(request: Any, context: grpc.ServicerContext) -> Iterator[Any]:
-                    start, failed = time.perf_counter(), False
+                    start, failed, cancelled = time.perf_counter(), False, False
                     try:
                         yield from behavior(request, context)
+                    except GeneratorExit:  # the client cancelled or went away: not a handler failure
+                        cancelled = True
+                        raise
                     except BaseException:
                         failed = True
                         raise
                     finally:
-                        observe(start, context, failed)
+                        observe(start, context, failed, cancelled)
 
                 return run_stream
 
@@ -188,7 +241,12 @@ def _server_credentials(auth: AuthConfig) -> grpc.ServerCredentials | None:
         return None
     if not auth.tls_key:
         raise ValueError("auth.tls_key is required with auth.tls_cert")
-    return grpc.ssl_server_credentials([(auth.tls_key.read_bytes(), auth.tls_cert.read_bytes())])
+    pairs = [(auth.tls_key.read_bytes(), auth.tls_cert.read_bytes())]
+    if auth.tls_client_ca:  # mTLS: only clients with a certificate from this CA get a connection
+        return grpc.ssl_server_credentials(
+            pairs, root_certificates=auth.tls_client_ca.read_bytes(), require_client_auth=True
+        )
+    return grpc.ssl_server_credentials(pairs)
 
 
 def start_server(
@@ -205,9 +263,10 @@ def start_server(
     reported SERVING by the health service and listed by reflection.
     """
     interceptors: list[grpc.ServerInterceptor] = [MetricsInterceptor()]
-    token = auth.resolved_token()
-    if token:
-        interceptors.append(TokenAuthInterceptor(token))
+    table = auth_table(auth)
+    token = table is not None
+    if table is not None:
+        interceptors.append(TokenAuthInterceptor(table))
     server = grpc.server(
         futures.ThreadPoolExecutor(max_workers=server_cfg.max_workers, thread_name_prefix=name),
         interceptors=interceptors,
@@ -324,11 +383,11 @@ class TokenClientInterceptor(
     grpc.StreamUnaryClientInterceptor,
     grpc.StreamStreamClientInterceptor,
 ):
-    def __init__(self, token: str) -> None:
-        self._header = (AUTH_HEADER, f"Bearer {token}")
+    def __init__(self, token: str | Callable[[], str]) -> None:
+        self._token = token if callable(token) else (lambda: token)
 
     def _details(self, details: grpc.ClientCallDetails) -> grpc.ClientCallDetails:
-        return _CallDetails(details, [*(details.metadata or []), self._header])
+        return _CallDetails(details, [*(details.metadata or []), (AUTH_HEADER, f"Bearer {self._token()}")])
 
     def intercept_unary_unary(self, continuation, client_call_details, request):
         return continuation(self._details(client_call_details), request)
@@ -346,14 +405,43 @@ class TokenClientInterceptor(
 def make_channel(target: str, auth: AuthConfig) -> grpc.Channel:
     """A channel that sends the token on every call; TLS when auth.tls_ca is set."""
     if auth.tls_ca:
-        creds = grpc.ssl_channel_credentials(root_certificates=auth.tls_ca.read_bytes())
+        key = auth.tls_client_key.read_bytes() if auth.tls_client_key else None
+        cert = auth.tls_client_cert.read_bytes() if auth.tls_client_cert else None
+        creds = grpc.ssl_channel_credentials(
+            root_certificates=auth.tls_ca.read_bytes(), private_key=key, certificate_chain=cert
+        )
         channel = grpc.secure_channel(target, creds, options=CHANNEL_OPTIONS)
     else:
         channel = grpc.insecure_channel(target, options=CHANNEL_OPTIONS)
     token = auth.resolved_token()
     if token:
-        channel = grpc.intercept_channel(channel, TokenClientInterceptor(token))
+        rotating = not auth.token and not os.environ.get("USER_TOKEN") and auth.token_file
+        provider = FileToken(auth.token_file, token) if rotating else token
+        channel = grpc.intercept_channel(channel, TokenClientInterceptor(provider))
     return channel
+
+
+class FileToken:
+    """A token read from a file and re-read when the file changes: rotation without restarting clients."""
+
+    def __init__(self, path: Path, initial: str) -> None:
+        self.path, self._token, self._checked, self._stamp = path, initial, 0.0, None
+        self._lock = threading.Lock()
+
+    def __call__(self) -> str:
+        now = time.monotonic()
+        if now - self._checked >= 1.0:
+            with self._lock:
+                self._checked = now
+                try:
+                    st = os.stat(self.path)
+                    stamp = (st.st_mtime_ns, st.st_size, st.st_ino)
+                    if stamp != self._stamp:
+                        self._token = self.path.read_text().strip() or self._token
+                        self._stamp = stamp
+                except OSError:
+                    pass  # keep the last token; the server will say UNAUTHENTICATED if it is stale
+        return self._token
 
 
 def check_health(target: str, auth: AuthConfig, service: str = "", timeout_s: float = 2.0) -> bool:

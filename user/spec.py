@@ -13,6 +13,7 @@ import math
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -20,7 +21,7 @@ from user import wire
 from user.v1 import robot_pb2, step_pb2
 from user.v1 import tensor_pb2 as tpb
 
-ROBOT_ID_RE = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
+ROBOT_ID_RE = re.compile(r"[A-Za-z0-9_.\-]{1,64}")  # always fullmatch: `$` would let a trailing newline in
 FLOAT_DTYPES = (tpb.DTYPE_UNSPECIFIED, tpb.DTYPE_FLOAT32, tpb.DTYPE_FLOAT64, tpb.DTYPE_FLOAT16)
 # The edge clips every action; beyond float noise an out-of-range action is a bug upstream.
 ACTION_ATOL = 1e-4
@@ -44,10 +45,15 @@ class StepError(wire.WireError):
 # --------------------------------------------------------------------------- the spec itself
 
 
+def enum_name(enum: Any, value: int) -> str:
+    """The enum's name for value, or the number: proto3 enums are open, so any int32 can arrive."""
+    return enum.Name(value) if value in enum.values() else str(value)
+
+
 def validate_spec(spec: robot_pb2.RobotSpec) -> None:
     """Raise SpecError naming the robot and the offending field."""
     rid = spec.robot_id
-    if not ROBOT_ID_RE.match(rid):
+    if not ROBOT_ID_RE.fullmatch(rid):
         raise SpecError(f"robot_id {rid!r} must match {ROBOT_ID_RE.pattern}")
     where = f"robot {rid}"
     act = spec.action
@@ -65,7 +71,7 @@ def validate_spec(spec: robot_pb2.RobotSpec) -> None:
     if act.names and len(act.names) != size:
         raise SpecError(f"{where}: action.names has {len(act.names)} entries for {size} action elements")
     if act.dtype not in FLOAT_DTYPES:
-        raise SpecError(f"{where}: action.dtype must be a float type, got {tpb.DType.Name(act.dtype)}")
+        raise SpecError(f"{where}: action.dtype must be a float type, got {enum_name(tpb.DType, act.dtype)}")
     validate_features(where, spec.observation)
     for cam in spec.cameras:
         if not cam.name or cam.width <= 0 or cam.height <= 0:

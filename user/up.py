@@ -150,7 +150,9 @@ class Stack:
         rd = self.run_dir
         listen = ["server.host=127.0.0.1", "server.port=0", "server.metrics_port=0"]
         on_progress("control")
-        control = self._spawn("control", "control", [f"control.{x}" for x in listen])
+        control = self._spawn(
+            "control", "control", [*(f"control.{x}" for x in listen), f"control.state_path={rd / 'control.sqlite'}"]
+        )
         self._wait_ready(control)
         on_progress("replay")
         replay = self._spawn(

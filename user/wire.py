@@ -161,6 +161,11 @@ def _decode_image(data: bytes, shape: tuple[int, ...], dtype: np.dtype) -> np.nd
 
     if dtype != np.uint8:
         raise WireError("JPEG/PNG tensors must be uint8")
+    if len(shape) not in (2, 3) or (len(shape) == 3 and shape[-1] not in (1, 3)):
+        raise WireError(f"JPEG/PNG tensors are images (H, W), (H, W, 1) or (H, W, 3), got shape {shape}")
+    size = _image_size(data, shape)
+    if size != shape[:2]:  # checked before decoding: a tiny payload may claim a huge image
+        raise WireError(f"image header says {size} (H, W), declared shape is {shape}")
     flag = cv2.IMREAD_GRAYSCALE if len(shape) == 2 or shape[-1] == 1 else cv2.IMREAD_COLOR
     img = cv2.imdecode(np.frombuffer(data, np.uint8), flag)
     if img is None:
@@ -169,6 +174,32 @@ def _decode_image(data: bytes, shape: tuple[int, ...], dtype: np.dtype) -> np.nd
     if img.shape != shape:
         raise WireError(f"decoded image shape {img.shape} != declared {shape}")
     return img
+
+
+_JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+
+
+def _image_size(data: bytes, shape: tuple[int, ...]) -> tuple[int, int] | None:
+    """(height, width) from a PNG IHDR or a JPEG SOF header, without decoding; None if not found."""
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24:
+        width, height = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+        return height, width
+    if data[:2] != b"\xff\xd8":
+        return None
+    i = 2
+    while i + 4 <= len(data):
+        if data[i] != 0xFF:
+            return None
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in _JPEG_SOF and i + 9 <= len(data):
+            return int.from_bytes(data[i + 5 : i + 7], "big"), int.from_bytes(data[i + 7 : i + 9], "big")
+        if marker == 0xDA:  # start of scan before any frame header
+            return None
+        i += 2 + int.from_bytes(data[i + 2 : i + 4], "big")
+    return None
 
 
 def to_tensor_map(arrays: Mapping[str, np.ndarray]) -> tpb.TensorMap:

@@ -11,27 +11,35 @@ from __future__ import annotations
 
 import fnmatch
 import logging
+import math
 import queue
+import re
 import threading
 import time
 import uuid
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import grpc
 import prometheus_client
 
+from services.control.state import ControlState
 from user import rpc
 from user.config import ExperimentConfig, ReplayShard, StackConfig
 from user.experiments import experiment_for
 from user.log import kv
-from user.spec import ROBOT_ID_RE, SpecError, validate_spec
+from user.spec import ROBOT_ID_RE, SpecError, enum_name, validate_spec
 from user.v1 import control_pb2, control_pb2_grpc, robot_pb2
 
 log = logging.getLogger(__name__)
 
 SERVICE_NAME = control_pb2.DESCRIPTOR.services_by_name["Control"].full_name
+MAX_TEXT_BYTES = 256  # hostname, software_version, command ids: enough for any real value, bounded in memory
+MAX_ROBOTS_PER_AGENT = 256
+MAX_COMMAND_WAIT_S = 60.0
+WORKER_ID_RE = re.compile(r"[A-Za-z0-9_.@:\-]{1,128}")
+WORKER_KINDS = frozenset({"learner", "inference"})
 QUEUE_POLL_S = 0.25  # how often a Connect stream notices its client went away
 
 ROBOTS_ONLINE = prometheus_client.Gauge("user_control_robots_online", "Robots with a live lease")
@@ -51,15 +59,51 @@ EPISODES = prometheus_client.Counter(
 
 
 def validate_register(req: control_pb2.RegisterRequest) -> None:
-    if not ROBOT_ID_RE.match(req.agent_id):
+    if not ROBOT_ID_RE.fullmatch(req.agent_id):
         raise SpecError(f"agent_id {req.agent_id!r} must match {ROBOT_ID_RE.pattern}")
+    for name in ("hostname", "software_version"):
+        if len(getattr(req, name).encode()) > MAX_TEXT_BYTES:
+            raise SpecError(f"{name} is longer than {MAX_TEXT_BYTES} bytes")
     if not req.robots:
         raise SpecError("register needs at least one robot")
+    if len(req.robots) > MAX_ROBOTS_PER_AGENT:
+        raise SpecError(f"one agent registers at most {MAX_ROBOTS_PER_AGENT} robots, got {len(req.robots)}")
     ids = [spec.robot_id for spec in req.robots]
     if len(ids) != len(set(ids)):
         raise SpecError(f"robot ids must be unique within a registration, got {ids}")
     for spec in req.robots:
         validate_spec(spec)
+
+
+def command_problem(cmd: control_pb2.Command) -> str | None:
+    """Why a command must not reach an edge, or None. Only what an edge knows how to do is forwarded."""
+    if cmd.kind not in KNOWN_COMMANDS:
+        return f"command.kind must be PAUSE, RESUME or RESET, got {enum_name(control_pb2.CommandKind, cmd.kind)}"
+    if cmd.robot_id and not ROBOT_ID_RE.fullmatch(cmd.robot_id):
+        return f"command.robot_id {cmd.robot_id!r} must be empty (every robot) or match {ROBOT_ID_RE.pattern}"
+    if len(cmd.command_id.encode()) > MAX_TEXT_BYTES:
+        return f"command.command_id is longer than {MAX_TEXT_BYTES} bytes"
+    return None
+
+
+def worker_problem(w: control_pb2.WorkerInfo) -> str | None:
+    """Why a worker report cannot be stored, or None."""
+    if not WORKER_ID_RE.fullmatch(w.worker_id):
+        return f"worker_id {w.worker_id!r} must match {WORKER_ID_RE.pattern}"
+    if w.kind not in WORKER_KINDS:
+        return f"kind must be one of {sorted(WORKER_KINDS)}, got {w.kind!r}"
+    texts = [w.hostname, w.address, w.software_version, w.device, *w.experiments]
+    texts += [t for d in w.devices for t in (d.name, d.model)]
+    if any(len(t.encode()) > MAX_TEXT_BYTES for t in texts):
+        return f"a text field is longer than {MAX_TEXT_BYTES} bytes"
+    if len(w.devices) > 64 or len(w.experiments) > 256:
+        return "at most 64 devices and 256 experiments"
+    return None
+
+
+KNOWN_COMMANDS = frozenset(
+    {control_pb2.COMMAND_KIND_PAUSE, control_pb2.COMMAND_KIND_RESUME, control_pb2.COMMAND_KIND_RESET}
+)
 
 
 # --------------------------------------------------------------------------- registry
@@ -107,15 +151,66 @@ class RobotRecord:
         return self.conn is not None and self.conn.live
 
 
-class Registry:
-    """Thread-safe state shared by the Connect streams, the unary RPCs and the reaper."""
+@dataclass
+class CommandRecord:
+    """A sent command, where it went and what came back (bounded history in RAM)."""
 
-    def __init__(self, lease_ttl_s: float, episodes_kept: int) -> None:
+    command: control_pb2.Command
+    sent_at_ns: int
+    agents: list[str]
+    results: list[control_pb2.CommandResult] = field(default_factory=list)
+
+    def status(self) -> control_pb2.CommandStatus:
+        return control_pb2.CommandStatus(
+            command=self.command, sent_at_ns=self.sent_at_ns, agents=self.agents, results=self.results
+        )
+
+
+class Registry:
+    """Thread-safe state shared by the Connect streams, the unary RPCs and the reaper.
+
+    With a ControlState, robots, episodes and workers are written through to SQLite and read back
+    at start (robots come back offline: a lease needs a live stream)."""
+
+    def __init__(
+        self,
+        lease_ttl_s: float,
+        episodes_kept: int,
+        state: ControlState | None = None,
+        worker_ttl_s: float = 30.0,
+        commands_kept: int = 1000,
+    ) -> None:
         self.lease_ttl_s = lease_ttl_s
         self.episodes_kept = episodes_kept
+        self.worker_ttl_s = worker_ttl_s
+        self.commands_kept = commands_kept
+        self.state = state
         self._lock = threading.Lock()
+        self._results = threading.Condition(self._lock)
         self._robots: dict[str, RobotRecord] = {}
         self._conns: dict[str, Connection] = {}  # lease_id -> live connection
+        self._workers: dict[str, control_pb2.WorkerInfo] = {}
+        self._commands: OrderedDict[str, CommandRecord] = OrderedDict()
+        if state is not None:
+            for saved in state.load_robots(episodes_kept):
+                saved.status.state = control_pb2.ROBOT_STATE_OFFLINE
+                self._robots[saved.spec.robot_id] = RobotRecord(
+                    spec=saved.spec,
+                    agent_id=saved.agent_id,
+                    hostname=saved.hostname,
+                    registered_at_ns=saved.registered_at_ns,
+                    conn=None,
+                    last_heartbeat_ns=saved.last_heartbeat_ns,
+                    status=saved.status,
+                    episodes=deque(saved.episodes, maxlen=episodes_kept),
+                )
+            self._workers = {w.worker_id: w for w in state.load_workers()}
+
+    def _save_locked(self, rec: RobotRecord) -> None:
+        if self.state is not None:
+            self.state.save_robot(
+                rec.spec, rec.agent_id, rec.hostname, rec.registered_at_ns, rec.last_heartbeat_ns, rec.status
+            )
 
     def register(self, req: control_pb2.RegisterRequest) -> tuple[Connection, list[Connection]]:
         """Take the robots for this agent; returns the new connection and the ones it replaced."""
@@ -154,6 +249,7 @@ class Registry:
                     episodes=old_rec.episodes if old_rec else deque(maxlen=self.episodes_kept),
                 )
                 self._robots[spec.robot_id] = rec
+                self._save_locked(rec)
             self._update_gauge_locked()
         return conn, replaced
 
@@ -178,17 +274,19 @@ class Registry:
                 self._store_status_locked(rec, status)
         return foreign
 
-    @staticmethod
-    def _store_status_locked(rec: RobotRecord, status: control_pb2.RobotStatus) -> None:
+    def _store_status_locked(self, rec: RobotRecord, status: control_pb2.RobotStatus) -> None:
         known = {ep.episode_id for ep in rec.episodes}
+        fresh = []
         for ep in status.new_episodes:
             if ep.episode_id in known:  # re-sent after a broken stream: count it once
                 continue
             known.add(ep.episode_id)
-            if not ep.robot_id:
-                ep.robot_id = rec.spec.robot_id
+            ep.robot_id = rec.spec.robot_id  # an edge reports only its own robots' episodes
             rec.episodes.append(ep)
+            fresh.append(ep)
             EPISODES.labels(rec.spec.robot_id, "true" if ep.success else "false").inc()
+        if fresh and self.state is not None:
+            self.state.add_episodes(fresh)
         kept = control_pb2.RobotStatus()
         kept.CopyFrom(status)
         kept.ClearField("new_episodes")  # they live in rec.episodes, bounded
@@ -226,6 +324,7 @@ class Registry:
             if rec is not None and rec.conn is conn:
                 rec.conn = None
                 rec.status.state = control_pb2.ROBOT_STATE_OFFLINE
+                self._save_locked(rec)
         self._update_gauge_locked()
 
     def _update_gauge_locked(self) -> None:
@@ -255,22 +354,78 @@ class Registry:
             recent_episodes=list(rec.episodes),
         )
 
-    def route(self, command: control_pb2.Command) -> tuple[bool, bool]:
-        """Queue a command on the owning stream(s): (robot known, delivered)."""
+    def route(self, command: control_pb2.Command) -> tuple[bool, list[str]]:
+        """Queue a command on the owning stream(s): (robot known, agents it was queued for)."""
         with self._lock:
             if not command.robot_id:  # every robot of every live agent
                 conns = list(self._conns.values())
-                for conn in conns:
-                    conn.outbox.put(control_pb2.ControlMessage(command=command))
-                return True, bool(conns)
-            rec = self._robots.get(command.robot_id)
-            if rec is None:
-                return False, False
-            if not rec.online:
-                return True, False
-            assert rec.conn is not None
-            rec.conn.outbox.put(control_pb2.ControlMessage(command=command))
-            return True, True
+            else:
+                rec = self._robots.get(command.robot_id)
+                if rec is None:
+                    return False, []
+                conns = [rec.conn] if rec.online and rec.conn is not None else []
+            for conn in conns:
+                conn.outbox.put(control_pb2.ControlMessage(command=command))
+            agents = [c.agent_id for c in conns]
+            self._commands[command.command_id] = CommandRecord(command, time.time_ns(), agents)
+            self._commands.move_to_end(command.command_id)
+            while len(self._commands) > self.commands_kept:
+                self._commands.popitem(last=False)
+            return True, agents
+
+    def command_result(self, conn: Connection, result: control_pb2.CommandResult) -> bool:
+        """Attach an edge's result to its command; False for a command this control did not send to it."""
+        with self._lock:
+            rec = self._commands.get(result.command_id)
+            if rec is None or conn.agent_id not in rec.agents:
+                return False
+            if any(r.agent_id == conn.agent_id for r in rec.results):
+                return True  # re-sent after a reconnect
+            kept = control_pb2.CommandResult()
+            kept.CopyFrom(result)
+            kept.agent_id = conn.agent_id
+            kept.message = kept.message[:MAX_TEXT_BYTES]
+            rec.results.append(kept)
+            self._results.notify_all()
+            return True
+
+    def wait_results(self, command_id: str, timeout_s: float) -> control_pb2.CommandStatus | None:
+        """The command's status once every agent answered or timeout_s passed."""
+        deadline = time.monotonic() + timeout_s
+        with self._lock:
+            while True:
+                rec = self._commands.get(command_id)
+                if rec is None:
+                    return None
+                left = deadline - time.monotonic()
+                if len(rec.results) >= len(rec.agents) or left <= 0:
+                    return rec.status()
+                self._results.wait(left)
+
+    def register_worker(self, info: control_pb2.WorkerInfo) -> None:
+        now_ns = time.time_ns()
+        with self._lock:
+            old = self._workers.get(info.worker_id)
+            kept = control_pb2.WorkerInfo()
+            kept.CopyFrom(info)
+            kept.registered_at_ns = old.registered_at_ns if old and old.online else now_ns
+            kept.last_seen_ns = now_ns
+            kept.online = True
+            self._workers[info.worker_id] = kept
+            if self.state is not None:
+                self.state.save_worker(kept)
+
+    def workers(self, include_offline: bool) -> list[control_pb2.WorkerInfo]:
+        cutoff = time.time_ns() - int(self.worker_ttl_s * 1e9)
+        out = []
+        with self._lock:
+            for wid in sorted(self._workers):
+                w = control_pb2.WorkerInfo()
+                w.CopyFrom(self._workers[wid])
+                w.online = w.last_seen_ns >= cutoff
+                if include_offline or w.online:
+                    out.append(w)
+        return out
 
 
 # --------------------------------------------------------------------------- gRPC servicer
@@ -311,6 +466,14 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
         if first.WhichOneof("msg") != "register":
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, "the first message on Connect must be `register`")
         req = first.register
+        who = rpc.caller(context)
+        if who is not None and not (
+            who.owns_agent(req.agent_id) and all(who.owns_robot(s.robot_id) for s in req.robots)
+        ):
+            context.abort(
+                grpc.StatusCode.PERMISSION_DENIED,
+                f"{who.role} token of {who.name!r} may not register agent {req.agent_id!r} with these robots",
+            )
         try:
             validate_register(req)
             conn, replaced = self.registry.register(req)
@@ -383,9 +546,16 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
                         )
                 elif kind == "command_result":
                     res = msg.command_result
+                    known = self.registry.command_result(conn, res)
                     log.info(
                         "command result",
-                        extra=kv(agent_id=conn.agent_id, command_id=res.command_id, ok=res.ok, message=res.message),
+                        extra=kv(
+                            agent_id=conn.agent_id,
+                            command_id=res.command_id[:MAX_TEXT_BYTES],
+                            ok=res.ok,
+                            message=res.message[:MAX_TEXT_BYTES],
+                            known=known,
+                        ),
                     )
                 else:
                     conn.outbox.put(
@@ -417,17 +587,53 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
     ) -> control_pb2.SendCommandResponse:
         cmd = control_pb2.Command()
         cmd.CopyFrom(request.command)
-        if cmd.kind == control_pb2.COMMAND_KIND_UNSPECIFIED:
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "command.kind must be set (PAUSE, RESUME or RESET)")
+        problem = command_problem(cmd)
+        if problem:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, problem)
         if not cmd.command_id:
             cmd.command_id = uuid.uuid4().hex
-        known, delivered = self.registry.route(cmd)
+        wait_s = request.wait_result_s
+        if not (math.isfinite(wait_s) and 0 <= wait_s <= MAX_COMMAND_WAIT_S):
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"wait_result_s must be in 0..{MAX_COMMAND_WAIT_S}")
+        known, agents = self.registry.route(cmd)
         if not known:
             context.abort(grpc.StatusCode.NOT_FOUND, f"unknown robot {cmd.robot_id!r}")
         kind = control_pb2.CommandKind.Name(cmd.kind).removeprefix("COMMAND_KIND_").lower()
         COMMANDS.labels(kind).inc()
-        log.info("command", extra=kv(command_id=cmd.command_id, kind=kind, robot_id=cmd.robot_id, delivered=delivered))
-        return control_pb2.SendCommandResponse(command_id=cmd.command_id, delivered=delivered)
+        log.info("command", extra=kv(command_id=cmd.command_id, kind=kind, robot_id=cmd.robot_id, agents=agents))
+        resp = control_pb2.SendCommandResponse(command_id=cmd.command_id, delivered=bool(agents), agents=agents)
+        if wait_s > 0 and agents:
+            remaining = context.time_remaining()
+            if remaining is not None:  # answer before the caller's deadline, with what arrived
+                wait_s = min(wait_s, max(0.0, remaining - 0.05))
+            status = self.registry.wait_results(cmd.command_id, wait_s)
+            if status is not None:
+                resp.results.extend(status.results)
+        return resp
+
+    def GetCommand(
+        self, request: control_pb2.GetCommandRequest, context: grpc.ServicerContext
+    ) -> control_pb2.CommandStatus:
+        status = self.registry.wait_results(request.command_id, 0.0)
+        if status is None:
+            context.abort(grpc.StatusCode.NOT_FOUND, f"unknown command {request.command_id[:MAX_TEXT_BYTES]!r}")
+        return status
+
+    def RegisterWorker(
+        self, request: control_pb2.RegisterWorkerRequest, context: grpc.ServicerContext
+    ) -> control_pb2.RegisterWorkerResponse:
+        problem = worker_problem(request.worker)
+        if problem:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"bad worker: {problem}")
+        self.registry.register_worker(request.worker)
+        return control_pb2.RegisterWorkerResponse(
+            ttl_s=self.registry.worker_ttl_s, interval_s=self.registry.worker_ttl_s / 3
+        )
+
+    def ListWorkers(
+        self, request: control_pb2.ListWorkersRequest, context: grpc.ServicerContext
+    ) -> control_pb2.ListWorkersResponse:
+        return control_pb2.ListWorkersResponse(workers=self.registry.workers(request.include_offline))
 
 
 # --------------------------------------------------------------------------- service lifecycle
@@ -439,7 +645,8 @@ class ControlService(rpc.GrpcService):
     def __init__(self, cfg: StackConfig, start_metrics: bool = True) -> None:
         self.cfg = cfg
         c = cfg.control
-        self.registry = Registry(c.lease_ttl_s, c.episodes_kept)
+        self.state = ControlState(c.state_path) if c.state_path else None
+        self.registry = Registry(c.lease_ttl_s, c.episodes_kept, self.state, c.worker_ttl_s)
         self.servicer = ControlServicer(
             self.registry, c.heartbeat_interval_s, cfg.resolved_experiments(), c.replay_shards
         )
@@ -484,6 +691,9 @@ class ControlService(rpc.GrpcService):
         if self.running is not None:
             self.running.stop()
             self.running = None
+        if self.state is not None:  # after the streams ended: their robots were saved offline
+            self.state.close()
+            self.state = None
 
 
 def run(cfg: StackConfig, ready_file: str | None) -> int:

@@ -29,6 +29,7 @@ from user.log import kv
 from user.policy import Policy, build_policy, check_device
 from user.v1 import inference_pb2, inference_pb2_grpc
 from user.weights import WeightSet, WeightSubscriber
+from user.worker import report_worker
 
 log = logging.getLogger(__name__)
 
@@ -356,5 +357,7 @@ def run(cfg: StackConfig, ready_file: str | None) -> int:
 
     # Per-robot MLP forwards are latency-bound; extra intra-op threads only contend with the learner.
     torch.set_num_threads(1)
-    rpc.serve_until_signal(InferenceService(cfg), "inference", ready_file)
+    service, ic = InferenceService(cfg), cfg.inference
+    with report_worker(service, "inference", ic.control_addr, cfg.auth, ic.device, []):
+        rpc.serve_until_signal(service, "inference", ready_file)
     return 0

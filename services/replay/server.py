@@ -38,8 +38,9 @@ from services.replay.store import (
     StoreClosedError,
 )
 from services.replay.tables import ONLINE, Draw
-from services.replay.validate import StepError, validate_step
+from services.replay.validate import EpisodeGuard, StepError, validate_step
 from user import rpc, wire
+from user.auth import Identity
 from user.config import AuthConfig, StackConfig
 from user.log import kv
 from user.v1 import control_pb2, control_pb2_grpc, replay_pb2, replay_pb2_grpc, robot_pb2, step_pb2
@@ -266,6 +267,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         self.samples_per_insert_slack = samples_per_insert_slack
         self.sampled = 0  # transitions handed out (the rate limiter's sample count)
         self.specs = SpecBook(spec_source, store)
+        self.episodes = EpisodeGuard()
         self.commit_max_steps = commit_max_steps
         self.commit_max_delay_s = commit_max_delay_s
         self.rejected = 0
@@ -309,12 +311,14 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         inbox = _Inbox(request_iterator, maxsize=2 * self.commit_max_steps)
         self._stream_delta(+1)
         try:
-            yield from self._insert(inbox, context)
+            yield from self._insert(inbox, context, rpc.caller(context))
         finally:
             inbox.close()
             self._stream_delta(-1)
 
-    def _insert(self, inbox: _Inbox, context: grpc.ServicerContext) -> Iterator[replay_pb2.InsertAck]:
+    def _insert(
+        self, inbox: _Inbox, context: grpc.ServicerContext, who: Identity | None = None
+    ) -> Iterator[replay_pb2.InsertAck]:
         """Validate while earlier batches commit: up to MAX_IN_FLIGHT batches wait for the writer at once.
 
         Acks still go out in order and only after the commit that holds their steps.
@@ -339,7 +343,13 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
                 return
             if item is not None:
                 RECEIVED.inc()
-                failure = self._admit(item)
+                if who is not None and not who.owns_robot(item.step.robot_id):  # before _admit records anything
+                    failure = (
+                        grpc.StatusCode.PERMISSION_DENIED,
+                        f"seq {item.seq}: {who.name!r} may not write robot {item.step.robot_id!r}",
+                    )
+                else:
+                    failure = self._admit(item)
                 if failure is not None:  # everything before the failing step is committed and acknowledged first
                     yield from self._drain(pending, inflight, context)
                     context.abort(*failure)
@@ -424,9 +434,12 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             return "unknown_robot", f"unknown robot {rid} (control has no registration for it)"
         try:
             validate_step(step, spec)
+            self.episodes.check(step)
             return None
         except StepError as exc:
             error = exc
+            if error.reason == "episode_order":  # a fresher spec cannot fix the order
+                return error.reason, str(error)
         # The robot may have re-registered with a new spec since it was cached: ask again, rarely.
         if self.specs.may_refresh(rid):
             try:
@@ -438,6 +451,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             if fresh != spec:
                 try:
                     validate_step(step, fresh)
+                    self.episodes.check(step)
                     return None
                 except StepError as exc:
                     error = exc

@@ -7,6 +7,8 @@ validate_step raises StepError (a user.wire.WireError) whose message names the f
 from __future__ import annotations
 
 import math
+import threading
+from collections import OrderedDict
 
 import numpy as np
 
@@ -19,6 +21,8 @@ ACTION_ATOL = 1e-4
 ACTION_RTOL = 1e-6
 MAX_EPISODE_ID_BYTES = 256  # keys stay well under LMDB's 511-byte limit
 MAX_ROBOT_ID_BYTES = 128
+# Indices and versions travel as uint64 but are stored and sampled as int64 (and key+1 must not wrap).
+MAX_INT64 = (1 << 63) - 1
 
 
 class StepError(wire.WireError):
@@ -125,6 +129,10 @@ def validate_step(step: step_pb2.Step, spec: robot_pb2.RobotSpec) -> None:
     if step.robot_id != spec.robot_id:
         raise StepError("robot_id", f"robot_id {step.robot_id!r} does not match the spec's {spec.robot_id!r}")
     _check_id("episode_id", step.episode_id, MAX_EPISODE_ID_BYTES)
+    if step.step_index >= MAX_INT64:
+        raise StepError("step_index", f"step_index {step.step_index} must be below 2**63 - 1")
+    if step.policy_version > MAX_INT64:
+        raise StepError("policy_version", f"policy_version {step.policy_version} must fit in int64")
     check_tensor_map("observation", step.observation, list(spec.observation))
     _action_check(spec)(step.action)
     if not math.isfinite(step.reward):
@@ -140,3 +148,34 @@ def validate_step(step: step_pb2.Step, spec: robot_pb2.RobotSpec) -> None:
                 "final_observation is set only on the last step of an episode (terminated or truncated)",
             )
         check_tensor_map("final_observation", step.final_observation, list(spec.observation))
+
+
+class EpisodeGuard:
+    """Episode semantics across steps: an episode is steps 0..last, and only its last step ends it.
+
+    A step after the episode's last step, a second different last step, or a last step below a step
+    already seen is rejected. Re-sent steps (same index) pass, so a reconnecting edge is never refused.
+    Remembers the most recent `capacity` episodes (in RAM; after a restart the store's dedup still holds).
+    """
+
+    def __init__(self, capacity: int = 100_000) -> None:
+        self.capacity = capacity
+        self._lock = threading.Lock()
+        self._episodes: OrderedDict[tuple[str, str], tuple[int, int | None]] = OrderedDict()  # -> (max index, last)
+
+    def check(self, step: step_pb2.Step) -> None:
+        """Raise StepError if `step` breaks its episode; otherwise remember it."""
+        key, index = (step.robot_id, step.episode_id), step.step_index
+        ends = step.terminated or step.truncated
+        with self._lock:
+            highest, last = self._episodes.get(key, (index, None))
+            if last is not None and index > last:
+                raise StepError("episode_order", f"step {index} comes after the episode's last step {last}")
+            if ends and last is not None and index != last:
+                raise StepError("episode_order", f"step {index} ends an episode that already ended at step {last}")
+            if ends and highest > index:
+                raise StepError("episode_order", f"step {index} cannot end the episode: step {highest} was seen")
+            self._episodes[key] = (max(highest, index), index if ends else last)
+            self._episodes.move_to_end(key)
+            if len(self._episodes) > self.capacity:
+                self._episodes.popitem(last=False)

@@ -1,0 +1,197 @@
+"""Who may call what: role tokens (or mTLS certificate names), checked per method by user/rpc.py.
+
+Roles:
+  admin     every method. The single `auth.token` is an admin token (services use it between themselves),
+            so a stack configured with one shared token works as before.
+  operator  reads everything and calls every write method except the edge's own (Connect, Insert) and the
+            workers' (RegisterWorker): commands, experiments.
+  reader    read-only methods (List*, Get*, Stats, Status, Sample, SubscribeWeights) for dashboards and tools.
+  edge      what an edge agent needs: Control.Connect (as its own agent_id, only its robots), Replay.Insert
+            (steps of its robots), Inference.Act, Learner.SubscribeWeights. Nothing else: it cannot read the fleet.
+  worker    Control.RegisterWorker (learner and inference hosts reporting their devices) plus reads.
+
+The tokens file (auth.tokens_file) is a YAML list, re-read when it changes, so tokens rotate without
+restarting anything: add the new token, move clients to it, remove the old one.
+
+    - {token: "s3cret-op", role: operator, name: alice}
+    - {token: "s3cret-dash", role: reader, name: grafana}
+    - {token: "s3cret-pc1", role: edge, agent_id: lab-pc-1, robots: ["so100-*"]}
+    - {cert_cn: "lab-pc-2", role: edge, agent_id: lab-pc-2}     # identified by its mTLS client certificate
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import hmac
+import logging
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+
+log = logging.getLogger(__name__)
+
+Role = Literal["admin", "operator", "reader", "edge", "worker"]
+READ_PREFIXES = ("List", "Get", "Stats", "Status", "Sample", "Subscribe")
+EDGE_METHODS = frozenset(
+    {
+        "/user.v1.Control/Connect",
+        "/user.v1.Replay/Insert",
+        "/user.v1.Inference/Act",
+        "/user.v1.Learner/SubscribeWeights",
+    }
+)
+EDGE_WRITES = frozenset({"/user.v1.Control/Connect", "/user.v1.Replay/Insert"})
+WORKER_WRITES = frozenset({"/user.v1.Control/RegisterWorker"})
+RELOAD_CHECK_S = 1.0  # how often the tokens file's mtime is looked at
+
+
+class TokenEntry(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    token: str | None = Field(default=None, min_length=16, description="bearer token (16+ characters)")
+    cert_cn: str | None = Field(default=None, description="or: the common name of an mTLS client certificate")
+    role: Role
+    name: str = Field(default="", description="who holds it (logs)")
+    agent_id: str | None = Field(default=None, description="edge: the only agent_id it may register")
+    robots: list[str] = Field(default=["*"], description="edge: robot id patterns (fnmatch) it may register/write")
+
+
+_ENTRIES = TypeAdapter(list[TokenEntry])
+
+
+@dataclass(frozen=True)
+class Identity:
+    role: Role
+    name: str = ""
+    agent_id: str | None = None
+    robots: tuple[str, ...] = ("*",)
+
+    def may_call(self, method: str) -> bool:
+        if self.role == "admin":
+            return True
+        if self.role == "edge":
+            return method in EDGE_METHODS
+        is_read = method.rsplit("/", 1)[-1].startswith(READ_PREFIXES)
+        if self.role == "reader":
+            return is_read
+        if self.role == "worker":
+            return is_read or method in WORKER_WRITES
+        return method not in EDGE_WRITES and method not in WORKER_WRITES  # operator
+
+    def owns_robot(self, robot_id: str) -> bool:
+        """An edge identity writes only robots matching its patterns; other roles are not limited."""
+        return self.role != "edge" or any(fnmatch.fnmatchcase(robot_id, p) for p in self.robots)
+
+    def owns_agent(self, agent_id: str) -> bool:
+        return self.role != "edge" or self.agent_id is None or self.agent_id == agent_id
+
+
+ADMIN = Identity("admin", "shared-token")
+
+
+class AuthError(ValueError):
+    """A tokens file that cannot be used (names the file and the problem)."""
+
+
+def load_entries(path: Path) -> list[TokenEntry]:
+    try:
+        raw = yaml.safe_load(path.read_text()) or []
+        entries = _ENTRIES.validate_python(raw)
+    except (OSError, yaml.YAMLError, ValidationError) as exc:
+        raise AuthError(f"auth.tokens_file {path}: {exc}") from None
+    for e in entries:
+        if (e.token is None) == (e.cert_cn is None):
+            raise AuthError(f"auth.tokens_file {path}: each entry needs exactly one of token or cert_cn")
+        if e.role == "edge" and not e.agent_id:
+            raise AuthError(f"auth.tokens_file {path}: edge entry {e.name or e.cert_cn!r} needs agent_id")
+    return entries
+
+
+@dataclass
+class AuthTable:
+    """Tokens and certificate names -> identities; re-reads its files when they change (rotation)."""
+
+    shared_token: str | None = None
+    token_file: Path | None = None  # the shared (admin) token, re-read too
+    tokens_file: Path | None = None
+    _tokens: list[tuple[bytes, Identity]] = field(default_factory=list)
+    _certs: dict[str, Identity] = field(default_factory=dict)
+    _stamp: tuple = ()
+    _checked: float = 0.0
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def __post_init__(self) -> None:
+        self._reload(force=True)
+
+    def _file_stamp(self) -> tuple:
+        stamp = []
+        for path in (self.token_file, self.tokens_file):
+            try:
+                st = os.stat(path) if path else None
+                stamp.append((st.st_mtime_ns, st.st_size, st.st_ino) if st else None)
+            except OSError:
+                stamp.append("missing")
+        return tuple(stamp)
+
+    def _reload(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if not force and now - self._checked < RELOAD_CHECK_S:
+            return
+        with self._lock:
+            self._checked = now
+            stamp = self._file_stamp()
+            if not force and stamp == self._stamp:
+                return
+            tokens: list[tuple[bytes, Identity]] = []
+            certs: dict[str, Identity] = {}
+            shared = self.shared_token
+            if self.token_file and not shared:
+                try:
+                    shared = self.token_file.read_text().strip() or None
+                except OSError as exc:
+                    if force:
+                        raise AuthError(f"auth.token_file: {exc}") from None
+            if shared:
+                tokens.append((shared.encode(), ADMIN))
+            if self.tokens_file:
+                try:
+                    entries = load_entries(self.tokens_file)
+                except AuthError as exc:
+                    if force:
+                        raise
+                    log.error(
+                        "tokens file unusable; keeping the previous tokens", extra={"fields": {"error": str(exc)}}
+                    )
+                    return
+                for e in entries:
+                    ident = Identity(e.role, e.name or e.role, e.agent_id, tuple(e.robots))
+                    if e.token:
+                        tokens.append((e.token.encode(), ident))
+                    else:
+                        certs[e.cert_cn] = ident
+            self._tokens, self._certs, self._stamp = tokens, certs, stamp
+            if not force:
+                log.info("auth tokens reloaded", extra={"fields": {"tokens": len(tokens), "certs": len(certs)}})
+
+    @property
+    def empty(self) -> bool:
+        return not self._tokens and not self._certs
+
+    def identify(self, bearer: str, cert_names: list[str]) -> Identity | None:
+        """The identity of `authorization: Bearer <token>` or of a verified client certificate name."""
+        self._reload()
+        given = bearer.removeprefix("Bearer ").encode() if bearer.startswith("Bearer ") else b""
+        found = None
+        for token, ident in self._tokens:  # compare with every token: no early exit to time
+            if hmac.compare_digest(given, token) and found is None:
+                found = ident
+        if found is None:
+            for name in cert_names:
+                if name in self._certs:
+                    return self._certs[name]
+        return found

@@ -1,0 +1,140 @@
+"""Operator commands of userctl: what the fleet looks like and telling it what to do.
+
+userctl robots ls [--all] [--json]            robots, their agent, state, episodes (Control.ListRobots)
+userctl workers ls [--all] [--json]           learner/inference hosts with CPUs and GPUs (Control.ListWorkers)
+userctl command pause|resume|reset [ROBOT]    send a command and print each edge's result
+userctl edge discover [--sim KIND ...]        probe cameras and serial ports, print a ready edge config
+userctl edge install-service [--dry-run]      systemd unit for the edge daemon on this robot PC
+
+The control address is --control, else edge.control_addr from the config; the token is auth.* as usual.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from typing import Any
+
+import grpc
+from google.protobuf.json_format import MessageToDict
+from rich.console import Console
+from rich.table import Table
+
+from user.config import StackConfig
+from user.rpc import make_channel
+from user.v1 import control_pb2, control_pb2_grpc
+
+COMMANDS = ("robots", "workers", "command")
+
+
+def add_parsers(sub: Any) -> None:
+    for name, help_ in [("robots", "list robots"), ("workers", "list learner and inference workers")]:
+        p = sub.add_parser(name, help=help_)
+        p.add_argument("action", choices=["ls"])
+        p.add_argument("--all", action="store_true", help="include offline ones")
+        p.add_argument("--json", action="store_true", help="one JSON document instead of a table")
+        _common(p)
+    p = sub.add_parser("command", help="send pause/resume/reset to a robot (or every robot)")
+    p.add_argument("kind", choices=["pause", "resume", "reset"])
+    p.add_argument("robot", nargs="?", default="", help="robot id; omitted = every robot of every live agent")
+    p.add_argument("--wait", type=float, default=5.0, help="seconds to wait for the edges' results")
+    _common(p)
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", "-c", help="stack YAML (configs/)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE")
+    p.add_argument("--control", help="control address HOST:PORT (default: edge.control_addr)")
+    p.add_argument("--timeout", type=float, default=10.0)
+
+
+def _ago(ns: int) -> str:
+    if ns <= 0:
+        return "-"
+    s = max(0.0, time.time() - ns / 1e9)
+    return f"{s:.0f}s ago" if s < 120 else f"{s / 60:.0f}m ago" if s < 7200 else f"{s / 3600:.1f}h ago"
+
+
+def _gib(n: int) -> str:
+    return f"{n / 2**30:.1f} GiB"
+
+
+def robots_table(robots: list[control_pb2.RobotInfo]) -> Table:
+    table = Table("robot", "kind", "agent", "host", "state", "episodes", "success", "steps/s", "policy", "last beat")
+    for r in robots:
+        st = r.status
+        state = control_pb2.RobotState.Name(st.state).removeprefix("ROBOT_STATE_").lower() if r.online else "offline"
+        rate = f"{st.successes / st.episodes:.0%}" if st.episodes else "-"
+        table.add_row(
+            r.spec.robot_id,
+            r.spec.kind,
+            r.agent_id,
+            r.hostname,
+            state,
+            str(st.episodes),
+            rate,
+            f"{st.env_steps_per_s:.1f}",
+            str(st.policy_version),
+            _ago(r.last_heartbeat_ns),
+        )
+    return table
+
+
+def workers_table(workers: list[control_pb2.WorkerInfo]) -> Table:
+    table = Table("worker", "kind", "address", "device", "CPUs", "GPUs", "serves", "online", "last seen")
+    for w in workers:
+        gpus = [d for d in w.devices if d.name.startswith("cuda")]
+        gpu_text = ", ".join(f"{d.name} {d.model} {_gib(d.memory_bytes)}" for d in gpus) or "-"
+        table.add_row(
+            w.worker_id,
+            w.kind,
+            w.address,
+            w.device,
+            str(w.cpu_count),
+            gpu_text,
+            ", ".join(w.experiments) or "-",
+            "yes" if w.online else "no",
+            _ago(w.last_seen_ns),
+        )
+    return table
+
+
+def main(args: argparse.Namespace, cfg: StackConfig) -> int:
+    target = args.control or cfg.edge.control_addr
+    out = Console(width=160)
+    with make_channel(target, cfg.auth) as channel:
+        stub = control_pb2_grpc.ControlStub(channel)
+        try:
+            if args.command == "robots":
+                robots = stub.ListRobots(control_pb2.ListRobotsRequest(include_offline=args.all), timeout=args.timeout)
+                if args.json:
+                    print(json.dumps(MessageToDict(robots), indent=1))
+                else:
+                    out.print(robots_table(list(robots.robots)))
+            elif args.command == "workers":
+                workers = stub.ListWorkers(
+                    control_pb2.ListWorkersRequest(include_offline=args.all), timeout=args.timeout
+                )
+                if args.json:
+                    print(json.dumps(MessageToDict(workers), indent=1))
+                else:
+                    out.print(workers_table(list(workers.workers)))
+            else:
+                kind = control_pb2.CommandKind.Value(f"COMMAND_KIND_{args.kind.upper()}")
+                req = control_pb2.SendCommandRequest(
+                    command=control_pb2.Command(kind=kind, robot_id=args.robot), wait_result_s=args.wait
+                )
+                resp = stub.SendCommand(req, timeout=args.timeout + args.wait)
+                print(f"command {resp.command_id}: queued for {', '.join(resp.agents) or 'no live agent'}")
+                for res in resp.results:
+                    print(f"  {res.agent_id}: {'ok' if res.ok else 'FAILED'} {res.message}".rstrip())
+                missing = set(resp.agents) - {r.agent_id for r in resp.results}
+                for agent in sorted(missing):
+                    print(f"  {agent}: no result within {args.wait}s")
+                return 0 if resp.agents and all(r.ok for r in resp.results) and not missing else 1
+        except grpc.RpcError as err:
+            print(f"userctl {args.command}: {target}: {err.code().name}: {err.details()}", file=sys.stderr)
+            return 1
+    return 0
