@@ -262,6 +262,7 @@ class RobotLoop:
         self._success = False
         self._episode_version = 0
         self._episode_interventions = 0
+        self.policy.reset(self.robot_id)  # a chunk left from the last episode must not act in this one
         self.task.reset(obs)
         if self.teleop is not None:
             self.teleop.reset(obs)

@@ -260,6 +260,11 @@ class RoutedPolicy(PolicySource):
         source = self.routes.get(robot_id)
         return source.act(robot_id, observation, deadline_s) if source is not None else None
 
+    def reset(self, robot_id: str) -> None:
+        source = self.routes.get(robot_id)
+        if source is not None:
+            source.reset(robot_id)
+
     def close(self) -> None:
         for source in set(self.routes.values()):
             source.close()
