@@ -56,6 +56,7 @@ class BatchRequest:
     batch_size: int
     tables: dict[str, float] = field(default_factory=lambda: {"online": 1.0})  # table -> share of the batch
     n_step: int = 1
+    gamma: float = 1.0  # the discount replay sums n-step rewards with (used when n_step > 1)
 
 
 @dataclass

@@ -120,6 +120,8 @@ def decode_arrays(batch: replay_pb2.Batch, keys: list[str]) -> dict[str, Any]:
         "terminated": _decode(batch.terminated, "terminated").reshape(n).astype(np.float32, copy=False),
         "intervention": intervention,
     }
+    if batch.HasField("n_steps"):  # n-step rows: bootstrap with gamma ** n_steps (fewer at an episode's end)
+        out["n_steps"] = _decode(batch.n_steps, "n_steps").reshape(n).astype(np.float32, copy=False)
     for key in keys:
         for part in (obs[key], nxt[key]):
             if part.shape[:1] != (n,):
@@ -167,7 +169,9 @@ def _concat(parts: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
-def to_batch(arrays: dict[str, Any], device: str | torch.device) -> Batch:
+def to_batch(arrays: dict[str, Any], device: str | torch.device, gamma: float = 1.0) -> Batch:
+    """Arrays -> Batch; n-step rows (replay's `n_steps`) get discount gamma ** n_steps for bootstrapping."""
+
     def t(a: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(a)).to(device)
 
@@ -180,6 +184,7 @@ def to_batch(arrays: dict[str, Any], device: str | torch.device) -> Batch:
         intervention=t(arrays["intervention"]),
         embodiment=t(arrays["embodiment"]) if "embodiment" in arrays else None,
         action_mask=t(arrays["action_mask"]) if "action_mask" in arrays else None,
+        discount=t(np.power(gamma, arrays["n_steps"]).astype(np.float32)) if "n_steps" in arrays else None,
     )
 
 
@@ -367,6 +372,8 @@ class ExperimentRun:
 
     def _request(self, batch_size: int, robot_ids: list[str], req: BatchRequest) -> replay_pb2.SampleRequest:
         request = replay_pb2.SampleRequest(batch_size=batch_size, robot_ids=robot_ids)
+        if req.n_step > 1:  # replay sums the discounted rewards; the batch says how many steps each row holds
+            request.n_step, request.gamma = req.n_step, req.gamma
         if "tables" in replay_pb2.SampleRequest.DESCRIPTOR.fields_by_name:  # replay with tables (RLPD's shares)
             # The algorithm's default ("online" only) means the experiment's own table; for "online" that is
             # no tables at all (uniform over every transition, as before tables existed).
@@ -411,7 +418,7 @@ class ExperimentRun:
                 return None
             parts.append(arrays)
         self._set_transitions(transitions)
-        return Prefetched(to_batch(_concat(parts), self.lc.device), transitions)
+        return Prefetched(to_batch(_concat(parts), self.lc.device, req.gamma), transitions)
 
     def _sample_error(self, reason: str, message: str) -> None:
         self.state.sample_errors += 1

@@ -222,3 +222,18 @@ def test_the_learner_trains_from_every_shard_and_through_a_shard_outage(
         edge.close()
         control.stop()
     assert not learner.failed
+
+
+def test_n_step_batches_reach_the_algorithm_with_their_discount(shards: dict[str, Shard]) -> None:
+    """A real replay sums n-step rewards; the learner's decode turns n_steps into gamma ** n per row."""
+    from cloud_learner.learner import decode_arrays, to_batch
+
+    with make_channel(shards["a"].addr, AUTH) as channel:
+        stub = replay_pb2_grpc.ReplayStub(channel)
+        resp = stub.Sample(replay_pb2.SampleRequest(batch_size=64, n_step=3, gamma=0.9), timeout=10)
+    arrays = decode_arrays(resp.batch, ["state"])
+    assert "n_steps" in arrays and set(arrays["n_steps"].tolist()) <= {1.0, 2.0, 3.0}
+    batch = to_batch(arrays, "cpu", gamma=0.9)
+    assert batch.discount is not None
+    np.testing.assert_allclose(batch.discount.numpy(), 0.9 ** arrays["n_steps"], rtol=1e-6)
+    assert 3.0 in arrays["n_steps"].tolist()  # most rows are whole n-step windows

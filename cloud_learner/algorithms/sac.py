@@ -205,7 +205,12 @@ class SAC(Algorithm):
         return float(self.log_alpha.detach().exp())
 
     def batch_request(self) -> BatchRequest:
-        return BatchRequest(batch_size=self.p.batch_size * self.p.utd, tables=dict(self.p.tables), n_step=self.p.n_step)
+        return BatchRequest(
+            batch_size=self.p.batch_size * self.p.utd,
+            tables=dict(self.p.tables),
+            n_step=self.p.n_step,
+            gamma=self.p.gamma,
+        )
 
     @torch.no_grad()
     def td_target(self, batch: Batch, next_obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
