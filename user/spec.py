@@ -28,6 +28,8 @@ ACTION_ATOL = 1e-4
 ACTION_RTOL = 1e-6
 MAX_EPISODE_ID_BYTES = 256  # keys stay well under LMDB's 511-byte limit
 MAX_ROBOT_ID_BYTES = 128
+# Indices and versions travel as uint64 but are stored and sampled as int64 (and key+1 must not wrap).
+MAX_INT64 = (1 << 63) - 1
 
 
 class SpecError(ValueError):
@@ -262,6 +264,10 @@ def validate_step(step: step_pb2.Step, spec: robot_pb2.RobotSpec) -> None:
     if step.robot_id != spec.robot_id:
         raise StepError("robot_id", f"robot_id {step.robot_id!r} does not match the spec's {spec.robot_id!r}")
     _check_id("episode_id", step.episode_id, MAX_EPISODE_ID_BYTES)
+    if step.step_index >= MAX_INT64:
+        raise StepError("step_index", f"step_index {step.step_index} must be below 2**63 - 1")
+    if step.policy_version > MAX_INT64:
+        raise StepError("policy_version", f"policy_version {step.policy_version} must fit in int64")
     check_tensor_map("observation", step.observation, list(spec.observation))
     action_check(spec)(step.action)
     if not math.isfinite(step.reward):
