@@ -54,10 +54,7 @@ def actor_config(obs_dim: int, action_dim: int, hidden: list[int]) -> dict[str, 
 
 def models() -> list[tuple[str, dict[str, Any]]]:
     """The sim-arm SAC actor exactly as the learner publishes it, and a ~10M-parameter MLP for scale."""
-    from cloud_learner.sac import SAC
-
-    ones = np.ones(3, dtype=np.float32)
-    sac = SAC(15, -ones, ones, LearnerConfig()).actor_config()
+    sac = actor_config(15, 3, list(LearnerConfig().hidden))  # the sim arm's actor at the learner's default widths
     return [("SAC actor", sac), ("big MLP", actor_config(1024, 7, [2048, 2048, 2048]))]
 
 
@@ -389,20 +386,29 @@ def bench_fanout(
 
 def bench_learner_rate(subscriber_counts: list[int], seconds: float, log: Callable[..., None]) -> list[Row]:
     """Real SAC updates on the sim-arm shapes, publishing every publish_every updates into a served store."""
-    from cloud_learner.sac import SAC
+    from cloud_learner.algorithm import ALGORITHMS, Batch, Feature, Layout
     from tests.helpers import random_sac_batch
 
     obs_dim, act_dim = 15, 3
     lc = LearnerConfig()
     ones = np.ones(act_dim, dtype=np.float32)
+    layout = Layout({"state": Feature((obs_dim,), "float32")}, -ones, ones)
+    raw = random_sac_batch(obs_dim, act_dim, seed=0, n=lc.batch_size)
+    batch = Batch(
+        observation={"state": raw["obs"]},
+        action=raw["action"],
+        reward=raw["reward"],
+        next_observation={"state": raw["next_obs"]},
+        terminated=raw["terminated"],
+        intervention=torch.zeros(lc.batch_size, dtype=torch.bool),
+    )
     rates: dict[int, float] = {}
     for n in subscriber_counts:
         torch.manual_seed(0)
-        sac = SAC(obs_dim, -ones, ones, lc)
-        spec = policy_spec_for({"obs_keys": ["state"], **sac.actor_config()})
+        sac = ALGORITHMS.build("sac", {"hidden": list(lc.hidden)}, layout=layout, device=torch.device("cpu"))
+        spec, _ = sac.policy()
         fan = OursFanout(spec, n, WE.WEIGHT_ENCODING_ADAPTIVE)
         try:
-            batch = random_sac_batch(obs_dim, act_dim, seed=0, n=lc.batch_size)
             version, updates = 0, 0
             start = time.perf_counter()
             while time.perf_counter() - start < seconds:
@@ -410,7 +416,8 @@ def bench_learner_rate(subscriber_counts: list[int], seconds: float, log: Callab
                 updates += 1
                 if updates % lc.publish_every == 0:
                     version += 1
-                    fan.store.publish(version, spec, sac.actor_tensors(), updates)
+                    spec, tensors = sac.policy()
+                    fan.store.publish(version, spec, tensors, updates)
             rates[n] = updates / (time.perf_counter() - start)
         finally:
             fan.close()

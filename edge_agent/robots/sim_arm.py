@@ -7,7 +7,7 @@ controller offers. One act() = one control period of simulated time.
 The arm does not judge: the `reach` task (its default) computes reward and success from the
 end-effector-to-target distance this robot reports in `Observation.info`. `Observation.reward` still
 carries the same reach reward as the simulator's own, so code that steps the arm directly, gym-style
-(cloud_learner.sac.train_local), sees it too; both come from `tasks.reach.reach_outcome`.
+(cloud_learner.local.train_local), sees it too; both come from `tasks.reach.reach_outcome`.
 """
 
 from __future__ import annotations
