@@ -23,7 +23,15 @@ import numpy as np
 from pydantic import Field
 
 from edge_agent.robot import Observation, clip_action, register_robot
-from edge_agent.robots.sim_arm import ARM_XML, HOME_QPOS, INIT_NOISE, MAX_SPEED, TIMESTEP, SimReachArm, sample_target
+from edge_agent.robots.sim_arm import (
+    ARM_XML,
+    HOME_QPOS,
+    INIT_NOISE,
+    MAX_SPEED,
+    SimReachArm,
+    ee_velocity_action,
+    sample_target,
+)
 from user.registry import PluginParams
 from user.text import INSTRUCTION_BYTES, INSTRUCTION_KEY, encode_instruction
 from user.v1 import robot_pb2, tensor_pb2
@@ -67,19 +75,8 @@ class LangReachArm(SimReachArm):
 
     def __init__(self, params: Params, robot_id: str, seed: int = 0) -> None:  # type: ignore[override]
         camera, camera_size = params.camera, params.camera_size
-        self.robot_id = robot_id
-        self.control_rate_hz = float(params.control_rate_hz)
-        self.max_episode_steps = int(params.max_episode_steps)
         self.target_state = bool(params.target_state)
-        self.model = mujoco.MjModel.from_xml_string(_xml())
-        self.data = mujoco.MjData(self.model)
-        self.period = 1.0 / self.control_rate_hz
-        self.substeps = max(1, round(self.period / TIMESTEP))
-        self._site = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, "ee")
-        self._qlow = self.model.jnt_range[:, 0].copy()
-        self._qhigh = self.model.jnt_range[:, 1].copy()
-        self._jacp = np.zeros((3, self.model.nv))
-        self._rng = np.random.default_rng(seed)
+        self._load_arm(_xml(), robot_id, params.control_rate_hz, params.max_episode_steps, seed)
         self.camera_size = int(camera_size)
         self._renderer = None  # SimReachArm's; cameras here render through _camera() (one per thread)
         self.camera = bool(camera)
@@ -110,9 +107,7 @@ class LangReachArm(SimReachArm):
         return robot_pb2.RobotSpec(
             robot_id=self.robot_id,
             kind=KIND,
-            action=robot_pb2.ActionSpace(
-                shape=[3], low=[-1.0] * 3, high=[1.0] * 3, names=["vx", "vy", "vz"], dtype=tensor_pb2.DTYPE_FLOAT32
-            ),
+            action=ee_velocity_action(),
             observation=observation,
             cameras=cameras,
             control_rate_hz=self.control_rate_hz,

@@ -77,6 +77,13 @@ ARM_XML = """
 """
 
 
+def ee_velocity_action() -> robot_pb2.ActionSpace:
+    """End-effector velocity (vx, vy, vz) in [-1, 1], scaled by MAX_SPEED."""
+    return robot_pb2.ActionSpace(
+        shape=[3], low=[-1.0] * 3, high=[1.0] * 3, names=["vx", "vy", "vz"], dtype=tensor_pb2.DTYPE_FLOAT32
+    )
+
+
 def sample_target(rng: np.random.Generator) -> np.ndarray:
     """A point in front of the arm, well inside its reach (0.55 m) and above the floor."""
     yaw = rng.uniform(-np.pi / 3, np.pi / 3)
@@ -99,18 +106,7 @@ class SimReachArm(Robot):
 
     def __init__(self, params: Params, robot_id: str, seed: int = 0) -> None:
         camera = params.camera
-        self.robot_id = robot_id
-        self.control_rate_hz = float(params.control_rate_hz)
-        self.max_episode_steps = int(params.max_episode_steps)
-        self.model = mujoco.MjModel.from_xml_string(ARM_XML)
-        self.data = mujoco.MjData(self.model)
-        self.period = 1.0 / self.control_rate_hz
-        self.substeps = max(1, round(self.period / TIMESTEP))
-        self._site = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, "ee")
-        self._qlow = self.model.jnt_range[:, 0].copy()
-        self._qhigh = self.model.jnt_range[:, 1].copy()
-        self._jacp = np.zeros((3, self.model.nv))
-        self._rng = np.random.default_rng(seed)
+        self._load_arm(ARM_XML, robot_id, params.control_rate_hz, params.max_episode_steps, seed)
         self._target = sample_target(self._rng)
         self._renderer: CameraRenderer | None = None
         if camera:
@@ -119,6 +115,21 @@ class SimReachArm(Robot):
         self._reward, self._terminated, self._success = 0.0, False, False
         self._holding = False
         self.reset()
+
+    def _load_arm(self, xml: str, robot_id: str, control_rate_hz: float, max_episode_steps: int, seed: int) -> None:
+        """The MuJoCo model, timing and IK buffers every arm built on this one shares."""
+        self.robot_id = robot_id
+        self.control_rate_hz = float(control_rate_hz)
+        self.max_episode_steps = int(max_episode_steps)
+        self.model = mujoco.MjModel.from_xml_string(xml)
+        self.data = mujoco.MjData(self.model)
+        self.period = 1.0 / self.control_rate_hz
+        self.substeps = max(1, round(self.period / TIMESTEP))
+        self._site = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_SITE, "ee")
+        self._qlow = self.model.jnt_range[:, 0].copy()
+        self._qhigh = self.model.jnt_range[:, 1].copy()
+        self._jacp = np.zeros((3, self.model.nv))
+        self._rng = np.random.default_rng(seed)
 
     def _build_spec(self, camera: bool) -> robot_pb2.RobotSpec:
         observation = [
@@ -140,9 +151,7 @@ class SimReachArm(Robot):
         return robot_pb2.RobotSpec(
             robot_id=self.robot_id,
             kind=KIND,
-            action=robot_pb2.ActionSpace(
-                shape=[3], low=[-1.0] * 3, high=[1.0] * 3, names=["vx", "vy", "vz"], dtype=tensor_pb2.DTYPE_FLOAT32
-            ),
+            action=ee_velocity_action(),
             observation=observation,
             cameras=cameras,
             control_rate_hz=self.control_rate_hz,
