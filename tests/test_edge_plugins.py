@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from edge_agent.agent import EdgeAgent, RobotLoop, build_judges_and_teleops
+from edge_agent.policy_source import PolicySource
 from edge_agent.robot import ROBOTS, Observation, Robot, clip_action, known_robot_kinds, make_robot
 from edge_agent.task import TASKS, Outcome, Task
 from edge_agent.tasks.human_label import QueueKeys
@@ -117,14 +118,15 @@ class ToyHuman(Teleoperator):
         self.connected = False
 
 
-class ConstantPolicy:
+class ConstantPolicy(PolicySource):
     """A policy source that always answers POLICY_ACTION at version 7."""
 
     def act(self, robot_id: str, features: dict[str, np.ndarray], deadline_s: float) -> tuple[np.ndarray, int]:
         return np.array([POLICY_ACTION], np.float32), 7
 
-    def close(self) -> None:
-        pass
+    @property
+    def version(self) -> int:
+        return 7
 
 
 class ListSink:
