@@ -66,13 +66,11 @@ def start_ours(cfg: StackConfig, weights: Any) -> tuple[str, Callable[[], None]]
     return service.address, service.stop
 
 
-def start_naive(cfg: StackConfig, weights: Any) -> tuple[str, Callable[[], None]]:
-    from user.policy import build_policy
-
-    servicer = NaiveServicer(build_policy(weights.policy, weights.tensors, weights.version))
+def serve_peer(cfg: StackConfig, servicer: Any, label: str) -> tuple[str, Callable[[], None]]:
+    """A peer Inference servicer on our server bootstrap (same auth and transport), for a fair comparison."""
     name = inference_pb2.DESCRIPTOR.services_by_name["Inference"].full_name
     running = rpc.start_server(
-        "naive-inference",
+        label,
         lambda s: inference_pb2_grpc.add_InferenceServicer_to_server(servicer, s),
         [name],
         cfg.inference.server,
@@ -80,6 +78,14 @@ def start_naive(cfg: StackConfig, weights: Any) -> tuple[str, Callable[[], None]
         start_metrics=False,
     )
     return running.address(), running.stop
+
+
+def start_naive(cfg: StackConfig, weights: Any) -> tuple[str, Callable[[], None]]:
+    from user.policy import build_policy
+
+    return serve_peer(
+        cfg, NaiveServicer(build_policy(weights.policy, weights.tensors, weights.version)), "naive-inference"
+    )
 
 
 def _robot(task: tuple[str, str, int, int, float, float]) -> tuple[list[float], list[int]]:

@@ -23,6 +23,7 @@ import grpc
 import numpy as np
 
 from bench import Row, median
+from bench.inference_bench import serve_peer, start_ours
 from user import rpc, wire
 from user.config import AuthConfig, ServerConfig, StackConfig
 from user.v1 import inference_pb2, inference_pb2_grpc
@@ -80,28 +81,11 @@ class OneAtATimeServicer(inference_pb2_grpc.InferenceServicer):
         )
 
 
-def start_ours(cfg: StackConfig, weights: Any) -> tuple[str, Callable[[], None]]:
-    from services.inference.server import InferenceService
-
-    service = InferenceService(cfg, policy_source="manual", start_metrics=False).start()
-    service.load_weights(weights)
-    return service.address, service.stop
-
-
 def start_peer(cfg: StackConfig, weights: Any) -> tuple[str, Callable[[], None]]:
     from user.policy import build_policy
 
     servicer = OneAtATimeServicer(build_policy(weights.policy, weights.tensors, weights.version))
-    name = inference_pb2.DESCRIPTOR.services_by_name["Inference"].full_name
-    running = rpc.start_server(
-        "one-at-a-time-inference",
-        lambda s: inference_pb2_grpc.add_InferenceServicer_to_server(servicer, s),
-        [name],
-        cfg.inference.server,
-        cfg.auth,
-        start_metrics=False,
-    )
-    return running.address(), running.stop
+    return serve_peer(cfg, servicer, "one-at-a-time-inference")
 
 
 def _robot(task: tuple[str, int, float, float]) -> tuple[list[float], list[int], list[list[int]], list[str]]:
