@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import json
+import logging
 import os
 import re
 import secrets
@@ -28,6 +29,7 @@ from typing import Any
 import grpc
 
 from user.config import StackConfig
+from user.log import kv
 from user.rpc import make_channel
 from user.v1 import (
     control_pb2,
@@ -39,8 +41,11 @@ from user.v1 import (
 )
 
 READY_TIMEOUT_S = 120.0
+START_RESTARTS = 2  # a child killed by a signal while starting is started again this many times
 STOP_TIMEOUT_S = 20.0
 PR_SET_PDEATHSIG = 1
+
+log = logging.getLogger(__name__)
 
 
 def _die_with_parent() -> None:
@@ -58,6 +63,21 @@ class Child:
     ready_file: Path
     log_path: Path
     info: dict[str, Any] = field(default_factory=dict)
+    cmd: list[str] = field(default_factory=list)
+    env: dict[str, str] | None = None
+    restarts: int = 0
+
+    def launch(self) -> None:
+        with open(self.log_path, "ab") as log_file:
+            self.proc = subprocess.Popen(
+                self.cmd,
+                stdout=log_file,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                env=self.env,
+                preexec_fn=_die_with_parent,
+                start_new_session=True,  # Ctrl-C reaches only the supervisor, which stops children in order
+            )
 
     @property
     def grpc_addr(self) -> str:
@@ -121,17 +141,8 @@ class Stack:
         for item in [*self.overrides, *extra]:
             cmd += ["--set", item]
         cmd += ["--ready-file", str(ready)]
-        with open(log_path, "ab") as log_file:
-            proc = subprocess.Popen(
-                cmd,
-                stdout=log_file,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                env=self.env,
-                preexec_fn=_die_with_parent,
-                start_new_session=True,  # Ctrl-C reaches only the supervisor, which stops children in order
-            )
-        child = Child(name, proc, ready, log_path)
+        child = Child(name, None, ready, log_path, cmd=cmd, env=self.env)  # type: ignore[arg-type]
+        child.launch()
         self.children.append(child)
         return child
 
@@ -141,8 +152,15 @@ class Stack:
             if child.ready_file.exists():
                 child.info = json.loads(child.ready_file.read_text())
                 return
-            if child.proc.poll() is not None:
-                raise RuntimeError(f"{child.name} exited with {child.proc.returncode}:\n{child.log_tail()}")
+            code = child.proc.poll()
+            if code is not None and code < 0 and child.restarts < START_RESTARTS:
+                # Killed by a signal while starting (a native library aborting): a supervisor restarts it.
+                child.restarts += 1
+                log.warning("child crashed while starting; restarting", extra=kv(child=child.name, code=code))
+                child.launch()
+                continue
+            if code is not None:
+                raise RuntimeError(f"{child.name} exited with {code}:\n{child.log_tail()}")
             time.sleep(0.05)
         raise RuntimeError(f"{child.name} not ready after {READY_TIMEOUT_S:.0f}s:\n{child.log_tail()}")
 

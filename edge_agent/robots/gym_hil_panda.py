@@ -66,6 +66,12 @@ class GymHilPanda(Robot):
             random_block_position=params.random_block_position,
         )
         self._base = self._env.unwrapped
+        # gym-hil builds (and renders once with) an EGL renderer it never needs here: free it now, in the
+        # thread that made it, instead of whenever the process exits.
+        viewer = getattr(self._base, "_viewer", None)
+        if viewer is not None:
+            viewer.close()
+            self._base._viewer = None
         self._cameras: CameraRenderer | None = None
         if params.cameras:  # our own renderer: gym-hil's keeps the 4096 shadow map and MSAA
             self._cameras = CameraRenderer(self._base.model, params.camera_size, params.camera_size)
