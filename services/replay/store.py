@@ -533,19 +533,7 @@ class ReplayStore:
                 continue
             group = self._groups[gid]  # type: ignore[index]
             for (key, step), seq in zip(mine, seqs.tolist(), strict=True):
-                tail = _Tail(
-                    gid,  # type: ignore[arg-type]
-                    seq,
-                    tensor_array(step.action),
-                    step.reward,
-                    step.terminated,
-                    step.truncated,
-                    step.intervention,
-                    step.policy_version,
-                )
-                if step.HasField("final_observation"):
-                    tail.final_seq = group.write_tensors(step.final_observation)
-                self._remember(key, tail)
+                self._remember(key, self._new_tail(gid, seq, group, step))  # type: ignore[arg-type]
 
     def _remember(self, key: bytes, tail: _Tail) -> None:
         if len(self._tails) >= MAX_OPEN_TAILS:  # successors that never came: forget the oldest
@@ -564,6 +552,11 @@ class ReplayStore:
             gid = self._robot_group[step.robot_id] = self._group(layout_of(step))
             group = self._groups[gid]
             seq = group.write_tensors(step.observation)
+        self._remember(key, self._new_tail(gid, seq, group, step))
+
+    @staticmethod
+    def _new_tail(gid: int, seq: int, group: Any, step: step_pb2.Step) -> _Tail:
+        """A stored step's row-to-be: its observation's frame, action, flags and (last step) final frame."""
         tail = _Tail(
             gid,
             seq,
@@ -576,7 +569,7 @@ class ReplayStore:
         )
         if step.HasField("final_observation"):
             tail.final_seq = group.write_tensors(step.final_observation)
-        self._remember(key, tail)
+        return tail
 
     def _evict_over_capacity(self) -> None:
         """Whole episodes, oldest first, until the stored bytes fit capacity_mb again (with 5% slack)."""
