@@ -11,6 +11,12 @@ training). Then:
   sampleable transitions) so a tiny buffer is not overfitted;
 - sync: collect `sync_env_steps` new transitions, pause the experiment's robots (Control PAUSE),
   run `sync_updates` updates, publish, resume; the baseline the asynchronous pipeline is measured against.
+  It samples and counts env steps over every replay shard (learner.replay_addrs) as async does.
+
+Control may stop an experiment (`userctl exp stop`): the learner sees it in Control.ListExperiments, polled
+with the robots, and pauses that experiment's sampling and training (checkpoint written, state "stopped")
+until it is started again. Control unreachable or too old to know experiments: the last answer stands,
+and with none every configured experiment trains.
 
 Every `publish_every` updates a weight version goes to the WeightStore under the experiment's name;
 every `checkpoint_every` updates, and on shutdown, an atomic checkpoint is written to
@@ -37,7 +43,7 @@ import torch
 
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
 from cloud_learner.checkpoint import load_latest, read_version_mark, save_checkpoint, write_version_mark
-from cloud_learner.replay_sampler import replay_source
+from cloud_learner.replay_sampler import ShardedSampler, replay_source
 from user import rpc
 from user.config import ExperimentConfig, StackConfig
 from user.experiments import EMBODIMENT_KEY, LayoutError, assign, check_plugins, layout_for, pad_action, ready
@@ -296,6 +302,30 @@ class ExperimentRun:
         self._last_ckpt_updates = -1
         self._lock = threading.Lock()  # robot set changes vs. sampling
         self._tables_warned = False
+        self.stopped = threading.Event()  # control stopped the experiment: no sampling, no updates
+
+    def set_stopped(self, stopped: bool) -> None:
+        if stopped == self.stopped.is_set():
+            return
+        if stopped:
+            self.stopped.set()
+            log.info("experiment stopped by control; training pauses", extra=kv(experiment=self.exp.name))
+        else:
+            self.stopped.clear()
+            log.info("experiment started by control; training resumes", extra=kv(experiment=self.exp.name))
+        if self.state.state != "failed":
+            self.state.state = "stopped" if stopped else "waiting_for_data"
+
+    def _wait_while_stopped(self, checkpoint: bool = True) -> bool:
+        """Block while control has the experiment stopped; True if it was stopped. The training thread
+        checkpoints at the stop (it is the one updating, so the state is consistent)."""
+        if not self.stopped.is_set():
+            return False
+        if checkpoint:
+            self.checkpoint()
+        while self.stopped.is_set() and not self._stop.is_set():
+            self._stop.wait(0.1)
+        return True
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -310,7 +340,7 @@ class ExperimentRun:
         # Never reuse a published number (the checkpoint may predate the last publishes, e.g. after
         # kill -9): subscribers holding a higher one would reject the new weights.
         self.publish(max(restored, read_version_mark(self.ckpt_dir)) + 1)
-        self.state.state = "waiting_for_data"
+        self.state.state = "stopped" if self.stopped.is_set() else "waiting_for_data"
         if self.lc.mode == "async":
             self._spawn(self._sample_loop, "sampler")
             self._spawn(self._train_async, "train")
@@ -434,6 +464,8 @@ class ExperimentRun:
         with rpc.make_channel(self.lc.replay_addr, self.learner.cfg.auth) as channel:
             stub = replay_source(self.lc, self.learner.cfg.auth, channel)  # one replay, or shards
             while not self._stop.is_set():
+                if self._wait_while_stopped(checkpoint=False):
+                    continue
                 item = self.sample_once(stub)
                 if item is None:
                     backoff.sleep(self._stop)
@@ -454,6 +486,9 @@ class ExperimentRun:
     def _train_async(self) -> None:
         rate = _Rate(self.algo.updates)
         while not self._stop.is_set():
+            if self._wait_while_stopped():
+                self._drain()  # batches sampled before the stop are stale
+                continue
             start = time.perf_counter()
             try:
                 item = self._queue.get(timeout=0.5)
@@ -467,6 +502,13 @@ class ExperimentRun:
             self.update(item.batch)
             self._rate(rate)
 
+    def _drain(self) -> None:
+        while True:
+            try:
+                self._queue.get_nowait()
+            except queue.Empty:
+                return
+
     def _train_sync(self) -> None:
         """Collect K new transitions, pause the robots, U updates, publish, resume: in turn."""
         rate = _Rate(self.algo.updates)
@@ -474,30 +516,41 @@ class ExperimentRun:
             rpc.make_channel(self.lc.replay_addr, self.learner.cfg.auth) as rch,
             rpc.make_channel(self.lc.control_addr, self.learner.cfg.auth) as cch,
         ):
-            replay = replay_pb2_grpc.ReplayStub(rch)
-            control = control_pb2_grpc.ControlStub(cch)
-            seen = 0
-            while not self._stop.is_set():
-                self._command(control, control_pb2.COMMAND_KIND_RESUME)
-                target = max(seen + self.lc.sync_env_steps, self.lc.min_transitions)
-                while not self._stop.is_set() and self._env_steps(replay) < target:
-                    self._stop.wait(0.05)
-                self._command(control, control_pb2.COMMAND_KIND_PAUSE)
-                seen = self._env_steps(replay)
-                done = 0
-                while done < self.lc.sync_updates and not self._stop.is_set():
-                    item = self.sample_once(replay)
-                    if item is None:
-                        self._stop.wait(0.1)
-                        continue
-                    self.update(item.batch, publish=False)
-                    done += 1
-                    self._rate(rate)
-                if not self._stop.is_set():
-                    self.publish(self.state.weight_version + 1)
-            self._command(control, control_pb2.COMMAND_KIND_RESUME)
+            replay = replay_source(self.lc, self.learner.cfg.auth, rch)  # one replay, or every shard
+            try:
+                self._sync_rounds(replay, control_pb2_grpc.ControlStub(cch), rate)
+            finally:
+                if isinstance(replay, ShardedSampler):
+                    replay.close()
 
-    def _env_steps(self, replay: replay_pb2_grpc.ReplayStub) -> int:
+    def _sync_rounds(
+        self, replay: replay_pb2_grpc.ReplayStub | ShardedSampler, control: control_pb2_grpc.ControlStub, rate: _Rate
+    ) -> None:
+        seen = 0
+        while not self._stop.is_set():
+            if self._wait_while_stopped():
+                seen = self._env_steps(replay)  # steps taken before the stop are not this round's
+                continue
+            self._command(control, control_pb2.COMMAND_KIND_RESUME)
+            target = max(seen + self.lc.sync_env_steps, self.lc.min_transitions)
+            while not self._stop.is_set() and not self.stopped.is_set() and self._env_steps(replay) < target:
+                self._stop.wait(0.05)
+            self._command(control, control_pb2.COMMAND_KIND_PAUSE)
+            seen = self._env_steps(replay)
+            done = 0
+            while done < self.lc.sync_updates and not self._stop.is_set() and not self.stopped.is_set():
+                item = self.sample_once(replay)
+                if item is None:
+                    self._stop.wait(0.1)
+                    continue
+                self.update(item.batch, publish=False)
+                done += 1
+                self._rate(rate)
+            if not self._stop.is_set():
+                self.publish(self.state.weight_version + 1)
+        self._command(control, control_pb2.COMMAND_KIND_RESUME)
+
+    def _env_steps(self, replay: replay_pb2_grpc.ReplayStub | ShardedSampler) -> int:
         try:
             stats = replay.Stats(replay_pb2.StatsRequest(), timeout=self.lc.rpc_timeout_s)
         except grpc.RpcError:
@@ -596,6 +649,7 @@ class Learner:
             for e in self.experiments
         }
         self.runs: dict[str, ExperimentRun] = {}
+        self.stopped_experiments: set[str] = set()  # by control (Control.ListExperiments)
         self.error: BaseException | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -651,8 +705,22 @@ class Learner:
                     backoff.sleep(self._stop)
                     continue
                 self._on_robots([info.spec for info in resp.robots])
+                self._poll_experiments(stub)
                 if not backoff.sleep(self._stop):
                     break
+
+    def _poll_experiments(self, stub: control_pb2_grpc.ControlStub) -> None:
+        """Which experiments control has stopped; any failure keeps the last answer (none: all train)."""
+        try:
+            resp = stub.ListExperiments(control_pb2.ListExperimentsRequest(), timeout=self.lc.rpc_timeout_s)
+        except grpc.RpcError as err:
+            if err.code() != grpc.StatusCode.UNIMPLEMENTED:  # an older control has no experiments
+                log.warning("ListExperiments failed", extra=kv(addr=self.lc.control_addr, code=str(err.code())))
+            return
+        self.stopped_experiments = {e.name for e in resp.experiments if e.state == control_pb2.EXPERIMENT_STATE_STOPPED}
+        for name, run in self.runs.items():
+            if isinstance(run, ExperimentRun):
+                run.set_stopped(name in self.stopped_experiments)
 
     def _on_robots(self, specs: list[robot_pb2.RobotSpec]) -> None:
         assigned = assign(specs, self.experiments)
@@ -676,6 +744,7 @@ class Learner:
                 self.runs[exp.name] = _FailedRun(exp, mine)  # type: ignore[assignment]
                 continue
             self.runs[exp.name] = run
+            run.set_stopped(exp.name in self.stopped_experiments)
             run.start()
 
 

@@ -124,6 +124,27 @@ class ShardedSampler:
                 batch=merge_batches(batches), transitions=sum(s.transitions for s in self.shards if s.up)
             )
 
+    def Stats(self, request: replay_pb2.StatsRequest, timeout: float | None = None) -> replay_pb2.StatsResponse:
+        """Counts summed over the shards that answer (steps, transitions, episodes, steps per robot):
+        sync mode's env-step count. UNAVAILABLE when none answers."""
+        timeout = timeout or self.timeout_s
+        futures = [self._pool.submit(s.stub.Stats, request, timeout=timeout) for s in self.shards]
+        out, answered = replay_pb2.StatsResponse(), 0
+        for future in futures:
+            try:
+                part = future.result()
+            except grpc.RpcError:
+                continue
+            answered += 1
+            out.steps += part.steps
+            out.transitions += part.transitions
+            out.episodes += part.episodes
+            for robot_id, n in part.steps_per_robot.items():
+                out.steps_per_robot[robot_id] += n
+        if not answered:
+            raise self._nothing_error()
+        return out
+
     def close(self) -> None:
         self._pool.shutdown(wait=False)
         for shard in self.shards:

@@ -148,6 +148,8 @@ class RobotLoop:
         self._hold_action = clip_action(self.spec, np.zeros(action_bounds(self.spec)[0].shape, np.float32))
         self._stop = threading.Event()
         self._paused = threading.Event()
+        self._lease_hold = threading.Event()  # control: no running experiment for this robot (see set_lease)
+        self.lease = control_pb2.RobotLease(robot_id=self.robot_id)
         self._reset_requested = threading.Event()
         self._lock = threading.Lock()  # guards the stats below against status() from the control thread
         self._thread: threading.Thread | None = None
@@ -189,6 +191,19 @@ class RobotLoop:
     def resume(self) -> None:
         self._paused.clear()
 
+    def set_lease(self, lease: control_pb2.RobotLease) -> None:
+        """Control's lease: hold (no actions, no steps) while the robot's experiment is stopped or full.
+        Separate from PAUSE: an operator's RESUME does not override a stopped experiment."""
+        self.lease = lease
+        if lease.hold:
+            self._lease_hold.set()
+        else:
+            self._lease_hold.clear()
+
+    @property
+    def held_by_lease(self) -> bool:
+        return self._lease_hold.is_set()
+
     def request_reset(self) -> None:
         """End the current episode: the next step is marked truncated and a new episode starts."""
         self._reset_requested.set()
@@ -210,7 +225,7 @@ class RobotLoop:
                 if self._stop.is_set():
                     break
                 last_tick = self._record_period(last_tick, tick_start)
-                if self._paused.is_set() or not self._sink_accepting():
+                if self._paused.is_set() or self._lease_hold.is_set() or not self._sink_accepting():
                     self.robot.hold()
                     stale = True
                     if self.mode == "fast":
@@ -436,7 +451,7 @@ class RobotLoop:
         return (n1 - n0) / (t1 - t0) if t1 > t0 else 0.0
 
     def _state_locked(self) -> int:
-        if self._paused.is_set() or not self._sink_accepting():
+        if self._paused.is_set() or self._lease_hold.is_set() or not self._sink_accepting():
             return control_pb2.ROBOT_STATE_PAUSED
         if self.error is not None:
             return control_pb2.ROBOT_STATE_OFFLINE
@@ -492,6 +507,7 @@ class EdgeAgent:
             on_registered=self.on_registered,
             site=edge.site,
             start=False,
+            on_leases=self.on_leases,
         )
 
     @staticmethod
@@ -565,6 +581,18 @@ class EdgeAgent:
 
     def on_command(self, cmd: control_pb2.Command) -> tuple[bool, str]:
         return apply_command(self.loops, cmd)
+
+    def on_leases(self, leases: list[control_pb2.RobotLease]) -> None:
+        for lease in leases:
+            loop = self.loops.get(lease.robot_id)
+            if loop is None:
+                continue
+            if loop.lease.hold != lease.hold:
+                log.info(
+                    "robot holds: no running experiment" if lease.hold else "robot leased: running",
+                    extra=kv(robot_id=lease.robot_id, experiment=lease.experiment, reason=lease.reason),
+                )
+            loop.set_lease(lease)
 
 
 def build_judges_and_teleops(cfg: StackConfig, robots: list[Robot]) -> tuple[dict[str, Task], dict[str, Teleoperator]]:

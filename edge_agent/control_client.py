@@ -43,6 +43,7 @@ _POLL_S = 0.2
 StatusFn = Callable[[], list[control_pb2.RobotStatus]]
 CommandFn = Callable[[control_pb2.Command], "tuple[bool, str] | None"]
 RegisteredFn = Callable[[control_pb2.Registered], None]
+LeasesFn = Callable[[list[control_pb2.RobotLease]], None]
 
 
 class ControlClient:
@@ -60,6 +61,7 @@ class ControlClient:
         start: bool = True,
         on_registered: RegisteredFn | None = None,
         site: str = "",
+        on_leases: LeasesFn | None = None,
     ) -> None:
         self.addr = addr
         self.agent_id = agent_id
@@ -71,6 +73,7 @@ class ControlClient:
             site=site,
         )
         self._on_registered = on_registered
+        self._on_leases = on_leases
         self._status_fn = status_fn
         self._on_command = on_command
         self._channel = make_channel(addr, auth)
@@ -178,6 +181,7 @@ class ControlClient:
                     self._on_registered(msg.registered)
                 except Exception:  # a bad callback must not kill the stream
                     log.exception("on_registered handler failed", extra=kv(agent_id=self.agent_id))
+            self._apply_leases(list(msg.registered.leases))
             self._registered_event.set()
             self._backoff.reset()
             CONNECTED.set(1)
@@ -192,6 +196,17 @@ class ControlClient:
             )
         elif kind == "command":
             self._dispatch(msg.command)
+        elif kind == "leases":
+            self._apply_leases(list(msg.leases.leases))
+
+    def _apply_leases(self, leases: list[control_pb2.RobotLease]) -> None:
+        """Which experiment each robot works for now; the agent holds the robots told to (before the loops act)."""
+        if not leases or self._on_leases is None:
+            return
+        try:
+            self._on_leases(leases)
+        except Exception:  # a bad callback must not kill the stream
+            log.exception("on_leases handler failed", extra=kv(agent_id=self.agent_id))
 
     def _dispatch(self, cmd: control_pb2.Command) -> None:
         # proto3 enums are open: a kind this build does not know must not end the stream thread.

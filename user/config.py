@@ -202,6 +202,9 @@ class ExperimentConfig(Strict):
     shared_embodiment: bool = Field(
         default=False, description="one policy for robots of different shapes: pad state/action, mask, embodiment id"
     )
+    max_robots: int = Field(
+        default=0, ge=0, description="control leases at most this many of the selected robots; 0 = all of them"
+    )
 
 
 # SAC fields of the learner section that the implicit default experiment (learner.robot_kind) passes on.

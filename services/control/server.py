@@ -40,6 +40,7 @@ MAX_ROBOTS_PER_AGENT = 256
 MAX_COMMAND_WAIT_S = 60.0
 WORKER_ID_RE = re.compile(r"[A-Za-z0-9_.@:\-]{1,128}")
 WORKER_KINDS = frozenset({"learner", "inference"})
+EXPERIMENT_NAME_RE = re.compile(r"[A-Za-z0-9_.\-]{1,64}")  # ExperimentConfig.name
 QUEUE_POLL_S = 0.25  # how often a Connect stream notices its client went away
 
 ROBOTS_ONLINE = prometheus_client.Gauge("user_control_robots_online", "Robots with a live lease")
@@ -109,6 +110,12 @@ KNOWN_COMMANDS = frozenset(
 # --------------------------------------------------------------------------- registry
 
 
+def _copy(lease: control_pb2.RobotLease) -> control_pb2.RobotLease:
+    out = control_pb2.RobotLease()
+    out.CopyFrom(lease)
+    return out
+
+
 class AlreadyRegistered(Exception):
     """A robot_id held by a different live agent (-> ALREADY_EXISTS)."""
 
@@ -145,6 +152,7 @@ class RobotRecord:
     lease_expires_ns: int = 0
     status: control_pb2.RobotStatus = field(default_factory=control_pb2.RobotStatus)
     episodes: deque = field(default_factory=deque)
+    lease: control_pb2.RobotLease | None = None  # what its edge was last told; None = offline, nothing sent
 
     @property
     def online(self) -> bool:
@@ -166,11 +174,34 @@ class CommandRecord:
         )
 
 
+@dataclass
+class ExperimentRecord:
+    """An experiment of the stack config and whether it runs (persisted: a restart keeps a stop)."""
+
+    config: ExperimentConfig
+    running: bool
+    started_at_ns: int
+    stopped_at_ns: int = 0
+
+
+@dataclass
+class EpisodeTotals:
+    episodes: int = 0
+    successes: int = 0
+    return_sum: float = 0.0
+
+
 class Registry:
     """Thread-safe state shared by the Connect streams, the unary RPCs and the reaper.
 
-    With a ControlState, robots, episodes and workers are written through to SQLite and read back
-    at start (robots come back offline: a lease needs a live stream)."""
+    With a ControlState, robots, episodes, workers, experiments, leases and commands are written through
+    to SQLite and read back at start (robots come back offline: a lease needs a live stream).
+
+    Leases: every online robot that a running experiment's selector picks (the first experiment whose
+    selector holds, as the learner and inference route) is leased to it, up to its max_robots (the
+    robot that held it last goes first, then by id). A robot whose experiment is stopped or full is
+    told to hold; one no experiment selects is free. Leases are recomputed whenever a robot comes or
+    goes and when an experiment starts or stops; edges hear only the robots whose lease changed."""
 
     def __init__(
         self,
@@ -179,6 +210,7 @@ class Registry:
         state: ControlState | None = None,
         worker_ttl_s: float = 30.0,
         commands_kept: int = 1000,
+        experiments: list[ExperimentConfig] | None = None,
     ) -> None:
         self.lease_ttl_s = lease_ttl_s
         self.episodes_kept = episodes_kept
@@ -191,6 +223,16 @@ class Registry:
         self._conns: dict[str, Connection] = {}  # lease_id -> live connection
         self._workers: dict[str, control_pb2.WorkerInfo] = {}
         self._commands: OrderedDict[str, CommandRecord] = OrderedDict()
+        self._experiments: dict[str, ExperimentRecord] = {}  # config order: the first matching selector wins
+        self._last_lease: dict[str, str] = state.load_leases() if state is not None else {}
+        self._totals: dict[tuple[str, str], EpisodeTotals] = {}  # (experiment, robot_id) -> whole history
+        self._load_experiments(experiments or [])
+        if state is not None:
+            for exp, rid, n, succ, ret in state.episode_totals():
+                self._totals[(exp, rid)] = EpisodeTotals(int(n), int(succ or 0), float(ret or 0.0))
+            for st in state.load_commands(commands_kept):
+                rec = CommandRecord(st.command, st.sent_at_ns, list(st.agents), list(st.results))
+                self._commands[st.command.command_id] = rec
         if state is not None:
             for saved in state.load_robots(episodes_kept):
                 saved.status.state = control_pb2.ROBOT_STATE_OFFLINE
@@ -205,6 +247,16 @@ class Registry:
                     episodes=deque(saved.episodes, maxlen=episodes_kept),
                 )
             self._workers = {w.worker_id: w for w in state.load_workers()}
+
+    def _load_experiments(self, experiments: list[ExperimentConfig]) -> None:
+        """The config's experiments; a state file says which were stopped (a new one starts running)."""
+        saved = self.state.load_experiments() if self.state is not None else {}
+        now_ns = time.time_ns()
+        for exp in experiments:
+            running, started, stopped = saved.get(exp.name, (True, now_ns, 0))
+            self._experiments[exp.name] = ExperimentRecord(exp, running, started, stopped)
+            if exp.name not in saved and self.state is not None:
+                self.state.save_experiment(exp.name, running, started, stopped)
 
     def _save_locked(self, rec: RobotRecord) -> None:
         if self.state is not None:
@@ -251,7 +303,18 @@ class Registry:
                 self._robots[spec.robot_id] = rec
                 self._save_locked(rec)
             self._update_gauge_locked()
+            self._relay_leases_locked(skip=conn)  # robots of other agents may lose a max_robots place
         return conn, replaced
+
+    def leases_of(self, conn: Connection) -> list[control_pb2.RobotLease]:
+        """The leases of a connection's robots, for its Registered message."""
+        with self._lock:
+            out = []
+            for rid in conn.robot_ids:
+                rec = self._robots.get(rid)
+                if rec is not None and rec.conn is conn and rec.lease is not None:
+                    out.append(_copy(rec.lease))
+            return out
 
     def heartbeat(self, conn: Connection, hb: control_pb2.Heartbeat) -> list[str]:
         """Renew the lease and store statuses; returns robot ids in the heartbeat that this stream does not own."""
@@ -285,8 +348,15 @@ class Registry:
             rec.episodes.append(ep)
             fresh.append(ep)
             EPISODES.labels(rec.spec.robot_id, "true" if ep.success else "false").inc()
-        if fresh and self.state is not None:
-            self.state.add_episodes(fresh)
+        if fresh:
+            experiment = self._episode_experiment_locked(rec)
+            totals = self._totals.setdefault((experiment, rec.spec.robot_id), EpisodeTotals())
+            for ep in fresh:
+                totals.episodes += 1
+                totals.successes += int(ep.success)
+                totals.return_sum += float(ep.episode_return)
+            if self.state is not None:
+                self.state.add_episodes(fresh, experiment)
         kept = control_pb2.RobotStatus()
         kept.CopyFrom(status)
         kept.ClearField("new_episodes")  # they live in rec.episodes, bounded
@@ -323,9 +393,163 @@ class Registry:
             rec = self._robots.get(rid)
             if rec is not None and rec.conn is conn:
                 rec.conn = None
+                rec.lease = None  # released: its experiment goes on with the others
                 rec.status.state = control_pb2.ROBOT_STATE_OFFLINE
                 self._save_locked(rec)
         self._update_gauge_locked()
+        self._relay_leases_locked()  # a place it held at max_robots goes to a waiting robot
+
+    # ------------------------------------------------------------------ leases
+
+    def _episode_experiment_locked(self, rec: RobotRecord) -> str:
+        if rec.lease is not None and rec.lease.experiment:
+            return rec.lease.experiment
+        exp = experiment_for(rec.spec, [e.config for e in self._experiments.values()])
+        return exp.name if exp is not None else ""
+
+    def _compute_leases_locked(self) -> dict[str, control_pb2.RobotLease]:
+        """robot_id -> its lease, for every online robot."""
+        configs = [e.config for e in self._experiments.values()]
+        wanted: dict[str, list[RobotRecord]] = {}
+        out: dict[str, control_pb2.RobotLease] = {}
+        for rid in sorted(self._robots):
+            rec = self._robots[rid]
+            if not rec.online:
+                continue
+            exp = experiment_for(rec.spec, configs)
+            if exp is None:
+                out[rid] = control_pb2.RobotLease(robot_id=rid)  # free: no experiment selects it
+            else:
+                wanted.setdefault(exp.name, []).append(rec)
+        for name, recs in wanted.items():
+            exp = self._experiments[name]
+            if not exp.running:
+                for rec in recs:
+                    out[rec.spec.robot_id] = control_pb2.RobotLease(
+                        robot_id=rec.spec.robot_id, hold=True, reason=f"experiment {name} stopped"
+                    )
+                continue
+            # The robots it had first (a lease is sticky across reconnects and restarts), then by id.
+            recs.sort(key=lambda r: (self._last_lease.get(r.spec.robot_id) != name, r.spec.robot_id))
+            cap = exp.config.max_robots or len(recs)
+            for i, rec in enumerate(recs):
+                rid = rec.spec.robot_id
+                if i < cap:
+                    out[rid] = control_pb2.RobotLease(robot_id=rid, experiment=name)
+                else:
+                    out[rid] = control_pb2.RobotLease(
+                        robot_id=rid, hold=True, reason=f"experiment {name} at max_robots={cap}"
+                    )
+        return out
+
+    def _relay_leases_locked(self, skip: Connection | None = None) -> None:
+        """Recompute every lease; queue a LeaseUpdate on each stream whose robots' leases changed.
+        `skip`: a stream not yet answered with Registered (which carries its leases)."""
+        updates: dict[str, list[control_pb2.RobotLease]] = {}
+        for rid, lease in self._compute_leases_locked().items():
+            rec = self._robots[rid]
+            if rec.lease == lease:
+                continue
+            rec.lease = lease
+            if lease.experiment and self._last_lease.get(rid) != lease.experiment:
+                self._last_lease[rid] = lease.experiment
+                if self.state is not None:
+                    self.state.save_lease(rid, lease.experiment)
+            if rec.conn is not None and rec.conn is not skip:
+                updates.setdefault(rec.conn.lease_id, []).append(_copy(lease))
+            log.info(
+                "lease",
+                extra=kv(robot_id=rid, experiment=lease.experiment, hold=lease.hold, reason=lease.reason),
+            )
+        for lease_id, leases in updates.items():
+            conn = self._conns.get(lease_id)
+            if conn is not None:
+                conn.outbox.put(control_pb2.ControlMessage(leases=control_pb2.LeaseUpdate(leases=leases)))
+
+    # ------------------------------------------------------------------ experiments
+
+    def experiment_names(self) -> list[str]:
+        with self._lock:
+            return list(self._experiments)
+
+    def experiment_configs(self) -> list[ExperimentConfig]:
+        with self._lock:
+            return [e.config for e in self._experiments.values()]
+
+    def set_running(self, name: str, running: bool) -> control_pb2.ExperimentInfo | None:
+        """Start or stop an experiment (idempotent); None if unknown."""
+        with self._lock:
+            exp = self._experiments.get(name)
+            if exp is None:
+                return None
+            if exp.running != running:
+                exp.running = running
+                if running:
+                    exp.started_at_ns = time.time_ns()
+                else:
+                    exp.stopped_at_ns = time.time_ns()
+                if self.state is not None:
+                    self.state.save_experiment(name, exp.running, exp.started_at_ns, exp.stopped_at_ns)
+                log.info("experiment " + ("started" if running else "stopped"), extra=kv(experiment=name))
+                self._relay_leases_locked()
+            return self._experiment_info_locked(exp)
+
+    def experiment_info(self, name: str) -> control_pb2.ExperimentInfo | None:
+        with self._lock:
+            exp = self._experiments.get(name)
+            return self._experiment_info_locked(exp) if exp is not None else None
+
+    def experiments(self) -> list[control_pb2.ExperimentInfo]:
+        with self._lock:
+            return [self._experiment_info_locked(e) for e in self._experiments.values()]
+
+    def _experiment_info_locked(self, exp: ExperimentRecord) -> control_pb2.ExperimentInfo:
+        name = exp.config.name
+        configs = [e.config for e in self._experiments.values()]
+        rids = {rid for (e, rid) in self._totals if e == name}
+        for rid, rec in self._robots.items():
+            match = experiment_for(rec.spec, configs)
+            if match is not None and match.name == name:
+                rids.add(rid)
+        info = control_pb2.ExperimentInfo(
+            name=name,
+            state=control_pb2.EXPERIMENT_STATE_RUNNING if exp.running else control_pb2.EXPERIMENT_STATE_STOPPED,
+            definition_json=exp.config.model_dump_json(),
+            started_at_ns=exp.started_at_ns,
+            stopped_at_ns=exp.stopped_at_ns,
+            max_robots=exp.config.max_robots,
+        )
+        return_sum = 0.0
+        for rid in sorted(rids):
+            rec = self._robots.get(rid)
+            totals = self._totals.get((name, rid), EpisodeTotals())
+            leased = rec is not None and rec.lease is not None and rec.lease.experiment == name
+            version = rec.status.policy_version if rec is not None else 0
+            info.robots.append(
+                control_pb2.ExperimentRobot(
+                    robot_id=rid,
+                    online=rec is not None and rec.online,
+                    leased=leased,
+                    episodes=totals.episodes,
+                    successes=totals.successes,
+                    mean_return=totals.return_sum / totals.episodes if totals.episodes else 0.0,
+                    policy_version=version,
+                )
+            )
+            if leased:
+                info.leased_robots.append(rid)
+            info.episodes += totals.episodes
+            info.successes += totals.successes
+            return_sum += totals.return_sum
+            info.policy_version = max(info.policy_version, version)
+        info.mean_return = return_sum / info.episodes if info.episodes else 0.0
+        cutoff = time.time_ns() - int(self.worker_ttl_s * 1e9)
+        info.learners.extend(
+            w.worker_id
+            for w in self._workers.values()
+            if w.kind == "learner" and name in w.experiments and w.last_seen_ns >= cutoff
+        )
+        return info
 
     def _update_gauge_locked(self) -> None:
         ROBOTS_ONLINE.set(sum(1 for r in self._robots.values() if r.online))
@@ -342,7 +566,10 @@ class Registry:
 
     @staticmethod
     def _info_locked(rec: RobotRecord) -> control_pb2.RobotInfo:
+        lease = rec.lease if rec.online and rec.lease is not None else control_pb2.RobotLease()
         return control_pb2.RobotInfo(
+            lease=lease.experiment,
+            lease_reason=lease.reason,
             spec=rec.spec,
             agent_id=rec.agent_id,
             hostname=rec.hostname,
@@ -367,10 +594,13 @@ class Registry:
             for conn in conns:
                 conn.outbox.put(control_pb2.ControlMessage(command=command))
             agents = [c.agent_id for c in conns]
-            self._commands[command.command_id] = CommandRecord(command, time.time_ns(), agents)
+            rec = CommandRecord(command, time.time_ns(), agents)
+            self._commands[command.command_id] = rec
             self._commands.move_to_end(command.command_id)
             while len(self._commands) > self.commands_kept:
                 self._commands.popitem(last=False)
+            if self.state is not None:
+                self.state.save_command(rec.status(), self.commands_kept)
             return True, agents
 
     def command_result(self, conn: Connection, result: control_pb2.CommandResult) -> bool:
@@ -386,6 +616,8 @@ class Registry:
             kept.agent_id = conn.agent_id
             kept.message = kept.message[:MAX_TEXT_BYTES]
             rec.results.append(kept)
+            if self.state is not None:
+                self.state.save_command(rec.status(), self.commands_kept)
             self._results.notify_all()
             return True
 
@@ -444,16 +676,14 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
         self,
         registry: Registry,
         heartbeat_interval_s: float,
-        experiments: list[ExperimentConfig] | None = None,
         replay_shards: list[ReplayShard] | None = None,
     ) -> None:
         self.registry = registry
         self.heartbeat_interval_s = heartbeat_interval_s
-        self.experiments = experiments or []  # which experiment each robot belongs to (RobotInfo.experiment)
         self.replay_shards = replay_shards or []
 
     def _tag(self, info: control_pb2.RobotInfo) -> control_pb2.RobotInfo:
-        exp = experiment_for(info.spec, self.experiments)
+        exp = experiment_for(info.spec, self.registry.experiment_configs())
         info.experiment = exp.name if exp is not None else ""
         return info
 
@@ -504,6 +734,7 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
                 lease_ttl_s=self.registry.lease_ttl_s,
                 heartbeat_interval_s=self.heartbeat_interval_s,
                 replay_addr=replay_addr,
+                leases=self.registry.leases_of(conn),
             )
         )
         reader_done = threading.Event()
@@ -635,6 +866,57 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
     ) -> control_pb2.ListWorkersResponse:
         return control_pb2.ListWorkersResponse(workers=self.registry.workers(request.include_offline))
 
+    def ListExperiments(
+        self, request: control_pb2.ListExperimentsRequest, context: grpc.ServicerContext
+    ) -> control_pb2.ListExperimentsResponse:
+        return control_pb2.ListExperimentsResponse(experiments=self.registry.experiments())
+
+    def GetExperiment(
+        self, request: control_pb2.GetExperimentRequest, context: grpc.ServicerContext
+    ) -> control_pb2.ExperimentInfo:
+        self._check_name(request.name, context)
+        info = self.registry.experiment_info(request.name)
+        if info is None:
+            self._not_found(request.name, context)
+        return info
+
+    def StartExperiment(
+        self, request: control_pb2.StartExperimentRequest, context: grpc.ServicerContext
+    ) -> control_pb2.ExperimentInfo:
+        return self._set_running(request.name, True, context)
+
+    def StopExperiment(
+        self, request: control_pb2.StopExperimentRequest, context: grpc.ServicerContext
+    ) -> control_pb2.ExperimentInfo:
+        return self._set_running(request.name, False, context)
+
+    def _set_running(self, name: str, running: bool, context: grpc.ServicerContext) -> control_pb2.ExperimentInfo:
+        self._check_name(name, context)
+        info = self.registry.set_running(name, running)
+        if info is None:
+            self._not_found(name, context)
+        who = rpc.caller(context)
+        log.info(
+            "experiment " + ("start" if running else "stop") + " requested",
+            extra=kv(experiment=name, by=who.name if who is not None else ""),
+        )
+        return info
+
+    @staticmethod
+    def _check_name(name: str, context: grpc.ServicerContext) -> None:
+        if not EXPERIMENT_NAME_RE.fullmatch(name):
+            context.abort(
+                grpc.StatusCode.INVALID_ARGUMENT,
+                f"experiment name {name[:64]!r} must match {EXPERIMENT_NAME_RE.pattern}",
+            )
+
+    def _not_found(self, name: str, context: grpc.ServicerContext) -> None:
+        known = ", ".join(self.registry.experiment_names()) or "none"
+        context.abort(
+            grpc.StatusCode.NOT_FOUND,
+            f"unknown experiment {name!r} (known: {known}); experiments come from the stack config",
+        )
+
 
 # --------------------------------------------------------------------------- service lifecycle
 
@@ -646,10 +928,10 @@ class ControlService(rpc.GrpcService):
         self.cfg = cfg
         c = cfg.control
         self.state = ControlState(c.state_path) if c.state_path else None
-        self.registry = Registry(c.lease_ttl_s, c.episodes_kept, self.state, c.worker_ttl_s)
-        self.servicer = ControlServicer(
-            self.registry, c.heartbeat_interval_s, cfg.resolved_experiments(), c.replay_shards
+        self.registry = Registry(
+            c.lease_ttl_s, c.episodes_kept, self.state, c.worker_ttl_s, experiments=cfg.resolved_experiments()
         )
+        self.servicer = ControlServicer(self.registry, c.heartbeat_interval_s, c.replay_shards)
         self.start_metrics = start_metrics
         self.running: rpc.RunningServer | None = None
         self._stop = threading.Event()

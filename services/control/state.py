@@ -1,6 +1,8 @@
-"""Control's durable state in one SQLite file: robots (spec, owner, last status), every finished episode,
-and workers. A restarted control knows every robot (offline until its edge reconnects), its episode
-history and the GPU pool; leases are not persisted, a live edge simply registers again.
+"""Control's durable state in one SQLite file: robots (spec, owner, last status), every finished episode
+(with the experiment it ran in), workers, experiments (running or stopped), each robot's last lease and
+the command history. A restarted control knows every robot (offline until its edge reconnects), its
+episode history, the GPU pool, which experiments run and every command it sent with the results edges
+reported; a live edge registers again and gets its lease back (the last holder is preferred at max_robots).
 
 Rows hold serialized protos (the wire types are the schema); writes happen at registration, at the end of
 a lease, when episodes arrive and when a worker reports, never per heartbeat, so the file stays quiet.
@@ -25,7 +27,18 @@ CREATE TABLE IF NOT EXISTS episodes (
   summary BLOB NOT NULL, UNIQUE (robot_id, episode_id)
 );
 CREATE TABLE IF NOT EXISTS workers (worker_id TEXT PRIMARY KEY, info BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS experiments (
+  name TEXT PRIMARY KEY, running INTEGER NOT NULL, started_at_ns INTEGER NOT NULL, stopped_at_ns INTEGER NOT NULL
+);
+CREATE TABLE IF NOT EXISTS leases (robot_id TEXT PRIMARY KEY, experiment TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS commands (command_id TEXT PRIMARY KEY, seq INTEGER NOT NULL, status BLOB NOT NULL);
 """
+# Columns added to `episodes` after the first release (older files get them with these defaults).
+EPISODE_COLUMNS = {
+    "experiment": "TEXT NOT NULL DEFAULT ''",
+    "success": "INTEGER NOT NULL DEFAULT 0",
+    "episode_return": "REAL NOT NULL DEFAULT 0",
+}
 
 
 @dataclass
@@ -51,6 +64,10 @@ class ControlState:
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=NORMAL")
             self._db.executescript(SCHEMA)
+            have = {row[1] for row in self._db.execute("PRAGMA table_info(episodes)")}
+            for name, decl in EPISODE_COLUMNS.items():
+                if name not in have:
+                    self._db.execute(f"ALTER TABLE episodes ADD COLUMN {name} {decl}")
 
     def load_robots(self, episodes_kept: int) -> list[SavedRobot]:
         with self._lock:
@@ -98,7 +115,7 @@ class ControlState:
                 ),
             )
 
-    def add_episodes(self, episodes: list[control_pb2.EpisodeSummary]) -> None:
+    def add_episodes(self, episodes: list[control_pb2.EpisodeSummary], experiment: str = "") -> None:
         """Idempotent: an episode re-sent after a broken stream is stored once."""
         if not episodes:
             return
@@ -106,9 +123,68 @@ class ControlState:
             if self._closed:
                 return
             self._db.executemany(
-                "INSERT OR IGNORE INTO episodes (robot_id, episode_id, summary) VALUES (?, ?, ?)",
-                [(e.robot_id, e.episode_id, e.SerializeToString()) for e in episodes],
+                "INSERT OR IGNORE INTO episodes (robot_id, episode_id, summary, experiment, success, episode_return)"
+                " VALUES (?, ?, ?, ?, ?, ?)",
+                [
+                    (e.robot_id, e.episode_id, e.SerializeToString(), experiment, int(e.success), e.episode_return)
+                    for e in episodes
+                ],
             )
+
+    def episode_totals(self) -> list[tuple[str, str, int, int, float]]:
+        """(experiment, robot_id, episodes, successes, sum of returns) over the whole history."""
+        with self._lock:
+            return self._db.execute(
+                "SELECT experiment, robot_id, COUNT(*), SUM(success), SUM(episode_return) FROM episodes"
+                " GROUP BY experiment, robot_id"
+            ).fetchall()
+
+    # ------------------------------------------------------------------ experiments, leases, commands
+
+    def load_experiments(self) -> dict[str, tuple[bool, int, int]]:
+        """name -> (running, started_at_ns, stopped_at_ns)."""
+        with self._lock:
+            rows = self._db.execute("SELECT name, running, started_at_ns, stopped_at_ns FROM experiments").fetchall()
+        return {name: (bool(running), started, stopped) for name, running, started, stopped in rows}
+
+    def save_experiment(self, name: str, running: bool, started_at_ns: int, stopped_at_ns: int) -> None:
+        with self._lock:
+            if not self._closed:
+                self._db.execute(
+                    "INSERT OR REPLACE INTO experiments VALUES (?, ?, ?, ?)",
+                    (name, int(running), started_at_ns, stopped_at_ns),
+                )
+
+    def load_leases(self) -> dict[str, str]:
+        """robot_id -> the experiment it was last leased to."""
+        with self._lock:
+            return dict(self._db.execute("SELECT robot_id, experiment FROM leases").fetchall())
+
+    def save_lease(self, robot_id: str, experiment: str) -> None:
+        with self._lock:
+            if not self._closed:
+                self._db.execute("INSERT OR REPLACE INTO leases VALUES (?, ?)", (robot_id, experiment))
+
+    def load_commands(self, kept: int) -> list[control_pb2.CommandStatus]:
+        """The newest `kept` commands, oldest first."""
+        with self._lock:
+            rows = self._db.execute("SELECT status FROM commands ORDER BY seq DESC LIMIT ?", (kept,)).fetchall()
+        return [control_pb2.CommandStatus.FromString(s) for (s,) in reversed(rows)]
+
+    def save_command(self, status: control_pb2.CommandStatus, kept: int) -> None:
+        """Insert or update (results arrive later); the history keeps the newest `kept`."""
+        cid = status.command.command_id
+        with self._lock:
+            if self._closed:
+                return
+            row = self._db.execute("SELECT seq FROM commands WHERE command_id = ?", (cid,)).fetchone()
+            if row is not None:
+                blob = status.SerializeToString()
+                self._db.execute("UPDATE commands SET status = ? WHERE command_id = ?", (blob, cid))
+                return
+            top = self._db.execute("SELECT COALESCE(MAX(seq), 0) FROM commands").fetchone()[0]
+            self._db.execute("INSERT INTO commands VALUES (?, ?, ?)", (cid, top + 1, status.SerializeToString()))
+            self._db.execute("DELETE FROM commands WHERE seq <= ?", (top + 1 - kept,))
 
     def episode_count(self, robot_id: str) -> int:
         with self._lock:
