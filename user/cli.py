@@ -7,6 +7,7 @@ userctl plugins                            # every registered kind: `interface k
 userctl replay ls|export|import ...        # a replay buffer's tables; LeRobotDataset out and in
 userctl reward train --frames DIR --out DIR  # success classifier for the `classifier` task
 userctl robots ls | workers ls | command pause|resume|reset [ROBOT]   # operators (see user/ops_cli.py)
+userctl exp ls | exp start|stop|status NAME                          # experiments and their leases
 userctl edge discover | edge install-service                         # robot-PC setup (user/edge_setup.py)
 """
 
@@ -103,7 +104,7 @@ def main(argv: list[str] | None = None) -> int:
         except ConfigError:  # health checks are exempt from auth: probing needs no token
             auth = auth.model_copy(update={"enabled": False})
         return 0 if check_health(args.target, auth, timeout_s=args.timeout) else 1
-    if args.command in ("robots", "workers", "command"):
+    if args.command in ("robots", "workers", "command", "exp"):
         from user import ops_cli
 
         return ops_cli.main(args, cfg)

@@ -3,6 +3,9 @@
 userctl robots ls [--all] [--json]            robots, their agent, state, episodes (Control.ListRobots)
 userctl workers ls [--all] [--json]           learner/inference hosts with CPUs and GPUs (Control.ListWorkers)
 userctl command pause|resume|reset [ROBOT]    send a command and print each edge's result
+userctl exp ls [--json]                       experiments: state, leased robots, episodes, success
+userctl exp start|stop NAME                   lease its robots again / release them (edges hold, learner pauses)
+userctl exp status NAME [--json]              one experiment: its robots, episodes, success, returns, version
 userctl edge discover [--sim KIND ...]        probe cameras and serial ports, print a ready edge config
 userctl edge install-service [--dry-run]      systemd unit for the edge daemon on this robot PC
 
@@ -26,7 +29,7 @@ from user.config import StackConfig
 from user.rpc import make_channel
 from user.v1 import control_pb2, control_pb2_grpc
 
-COMMANDS = ("robots", "workers", "command")
+COMMANDS = ("robots", "workers", "command", "exp")
 
 
 def add_parsers(sub: Any) -> None:
@@ -40,6 +43,11 @@ def add_parsers(sub: Any) -> None:
     p.add_argument("kind", choices=["pause", "resume", "reset"])
     p.add_argument("robot", nargs="?", default="", help="robot id; omitted = every robot of every live agent")
     p.add_argument("--wait", type=float, default=5.0, help="seconds to wait for the edges' results")
+    _common(p)
+    p = sub.add_parser("exp", help="experiments: ls | start NAME | stop NAME | status NAME")
+    p.add_argument("action", choices=["ls", "start", "stop", "status"])
+    p.add_argument("name", nargs="?", default="", help="experiment name (start, stop, status)")
+    p.add_argument("--json", action="store_true", help="one JSON document instead of a table")
     _common(p)
 
 
@@ -62,7 +70,9 @@ def _gib(n: int) -> str:
 
 
 def robots_table(robots: list[control_pb2.RobotInfo]) -> Table:
-    table = Table("robot", "kind", "agent", "host", "state", "episodes", "success", "steps/s", "policy", "last beat")
+    table = Table(
+        "robot", "kind", "agent", "host", "state", "lease", "episodes", "success", "steps/s", "policy", "last beat"
+    )
     for r in robots:
         st = r.status
         state = control_pb2.RobotState.Name(st.state).removeprefix("ROBOT_STATE_").lower() if r.online else "offline"
@@ -73,6 +83,7 @@ def robots_table(robots: list[control_pb2.RobotInfo]) -> Table:
             r.agent_id,
             r.hostname,
             state,
+            _lease(r),
             str(st.episodes),
             rate,
             f"{st.env_steps_per_s:.1f}",
@@ -80,6 +91,85 @@ def robots_table(robots: list[control_pb2.RobotInfo]) -> Table:
             _ago(r.last_heartbeat_ns),
         )
     return table
+
+
+def _lease(r: control_pb2.RobotInfo) -> str:
+    if r.lease:
+        return r.lease
+    if r.lease_reason:
+        return f"held ({r.lease_reason})"
+    return "-"
+
+
+def _state(e: control_pb2.ExperimentInfo) -> str:
+    return control_pb2.ExperimentState.Name(e.state).removeprefix("EXPERIMENT_STATE_").lower()
+
+
+def _rate(successes: int, episodes: int) -> str:
+    return f"{successes / episodes:.0%}" if episodes else "-"
+
+
+def experiments_table(experiments: list[control_pb2.ExperimentInfo]) -> Table:
+    table = Table("experiment", "state", "leased", "max", "episodes", "success", "mean return", "policy", "since")
+    for e in experiments:
+        since = e.started_at_ns if e.state == control_pb2.EXPERIMENT_STATE_RUNNING else e.stopped_at_ns
+        table.add_row(
+            e.name,
+            _state(e),
+            str(len(e.leased_robots)),
+            str(e.max_robots or "all"),
+            str(e.episodes),
+            _rate(e.successes, e.episodes),
+            f"{e.mean_return:.2f}" if e.episodes else "-",
+            str(e.policy_version),
+            _ago(since),
+        )
+    return table
+
+
+def experiment_text(e: control_pb2.ExperimentInfo) -> str:
+    """`exp status`: a header and one line per robot (stable columns, for people and grep)."""
+    lines = [
+        f"experiment {e.name}: {_state(e)}",
+        f"  started {_ago(e.started_at_ns)}; stopped {_ago(e.stopped_at_ns)}; max_robots {e.max_robots or 'all'}",
+        f"  leased {len(e.leased_robots)}: {', '.join(e.leased_robots) or '-'}",
+        f"  episodes {e.episodes}, success {_rate(e.successes, e.episodes)}, "
+        f"mean return {e.mean_return:.2f}, policy version {e.policy_version}",
+        f"  learners: {', '.join(e.learners) or '-'}",
+        f"  {'robot':<24} {'online':<7} {'leased':<7} {'episodes':>8} {'success':>8} {'return':>8} {'policy':>7}",
+    ]
+    for r in e.robots:
+        lines.append(
+            f"  {r.robot_id:<24} {'yes' if r.online else 'no':<7} {'yes' if r.leased else 'no':<7} "
+            f"{r.episodes:>8} {_rate(r.successes, r.episodes):>8} {r.mean_return:>8.2f} {r.policy_version:>7}"
+        )
+    return "\n".join(lines)
+
+
+def _exp(args: argparse.Namespace, stub: control_pb2_grpc.ControlStub, out: Console) -> int:
+    if args.action == "ls":
+        resp = stub.ListExperiments(control_pb2.ListExperimentsRequest(), timeout=args.timeout)
+        if args.json:
+            print(json.dumps(MessageToDict(resp), indent=1))
+        else:
+            out.print(experiments_table(list(resp.experiments)))
+        return 0
+    if not args.name:
+        print(f"userctl exp {args.action}: name the experiment (userctl exp ls lists them)", file=sys.stderr)
+        return 2
+    if args.action == "status":
+        info = stub.GetExperiment(control_pb2.GetExperimentRequest(name=args.name), timeout=args.timeout)
+    elif args.action == "start":
+        info = stub.StartExperiment(control_pb2.StartExperimentRequest(name=args.name), timeout=args.timeout)
+    else:
+        info = stub.StopExperiment(control_pb2.StopExperimentRequest(name=args.name), timeout=args.timeout)
+    if args.json:
+        print(json.dumps(MessageToDict(info), indent=1))
+    elif args.action == "status":
+        print(experiment_text(info))
+    else:
+        print(f"experiment {info.name}: {_state(info)}; leased {', '.join(info.leased_robots) or '-'}")
+    return 0
 
 
 def workers_table(workers: list[control_pb2.WorkerInfo]) -> Table:
@@ -113,6 +203,8 @@ def main(args: argparse.Namespace, cfg: StackConfig) -> int:
                     print(json.dumps(MessageToDict(robots), indent=1))
                 else:
                     out.print(robots_table(list(robots.robots)))
+            elif args.command == "exp":
+                return _exp(args, stub, out)
             elif args.command == "workers":
                 workers = stub.ListWorkers(
                     control_pb2.ListWorkersRequest(include_offline=args.all), timeout=args.timeout

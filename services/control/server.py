@@ -429,8 +429,14 @@ class Registry:
                         robot_id=rec.spec.robot_id, hold=True, reason=f"experiment {name} stopped"
                     )
                 continue
-            # The robots it had first (a lease is sticky across reconnects and restarts), then by id.
-            recs.sort(key=lambda r: (self._last_lease.get(r.spec.robot_id) != name, r.spec.robot_id))
+            # Robots holding a place keep it; then those it had last (across reconnects and restarts); then by id.
+            recs.sort(
+                key=lambda r: (
+                    r.lease is None or r.lease.experiment != name,
+                    self._last_lease.get(r.spec.robot_id) != name,
+                    r.spec.robot_id,
+                )
+            )
             cap = exp.config.max_robots or len(recs)
             for i, rec in enumerate(recs):
                 rid = rec.spec.robot_id
