@@ -580,7 +580,7 @@ class ExperimentRun:
         scalars = self.algo.update(batch)
         st = self.state
         st.updates, st.scalars = int(self.algo.updates), {k: float(v) for k, v in scalars.items()}
-        st.state, st.last_update_mono = "training", time.monotonic()
+        st.state, st.last_update_mono = "stopped" if self.stopped.is_set() else "training", time.monotonic()
         UPDATES.labels(self.exp.name).inc()
         for name, value in st.scalars.items():
             SCALARS.labels(self.exp.name, name).set(value)
@@ -650,6 +650,7 @@ class Learner:
         }
         self.runs: dict[str, ExperimentRun] = {}
         self.stopped_experiments: set[str] = set()  # by control (Control.ListExperiments)
+        self.experiment_polls = 0  # answers from control so far
         self.error: BaseException | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -718,6 +719,7 @@ class Learner:
                 log.warning("ListExperiments failed", extra=kv(addr=self.lc.control_addr, code=str(err.code())))
             return
         self.stopped_experiments = {e.name for e in resp.experiments if e.state == control_pb2.EXPERIMENT_STATE_STOPPED}
+        self.experiment_polls += 1
         for name, run in self.runs.items():
             if isinstance(run, ExperimentRun):
                 run.set_stopped(name in self.stopped_experiments)

@@ -411,3 +411,73 @@ def test_userctl_exp_names_the_problem(make_control, capsys: pytest.CaptureFixtu
         ("alpha", "EXPERIMENT_STATE_RUNNING"),
         ("beta", "EXPERIMENT_STATE_RUNNING"),
     ]
+
+
+# --------------------------------------------------------------------------- stop: the edge holds, the learner pauses
+
+
+def test_a_stopped_experiment_holds_its_robots_and_pauses_the_learner(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import torch
+
+    from cloud_learner.learner import Learner
+    from edge_agent.agent import EdgeAgent
+    from services.inference.server import InferenceService
+    from services.replay.server import ReplayService
+    from tests.test_edge_agent import AUTH as EDGE_AUTH
+    from tests.test_edge_agent import edge_cfg, random_weights, replay_stats, stack_cfg
+    from user.weights import WeightStore
+
+    torch.set_num_threads(1)
+    cfg = stack_cfg(tmp_path)  # the default experiment: every sim_reach_arm
+    control = ControlService(cfg, start_metrics=False).start()
+    cfg.replay.control_addr = control.address
+    replay = ReplayService(cfg, start_metrics=False).start()
+    inference = InferenceService(cfg, policy_source="manual", start_metrics=False).start()
+    inference.load_weights(random_weights(5))
+    edge_cfg(cfg, control, replay, inference)
+    lc = cfg.learner
+    lc.control_addr, lc.replay_addr, lc.checkpoint_dir = control.address, replay.address, tmp_path / "ckpt"
+    lc.hidden, lc.batch_size, lc.min_transitions, lc.rpc_timeout_s = [16], 32, 50, 2.0
+    agent = EdgeAgent(cfg)
+    learner = Learner(cfg, WeightStore())
+    (state,) = learner.experiment_states.values()
+    s = control_pb2_grpc.ControlStub(make_channel(control.address, EDGE_AUTH))
+    loop = agent.loops["arm-0"]
+
+    def settle() -> tuple[int, int, int]:
+        """Counts after the learner heard control twice more (steps in flight at the stop have landed)."""
+        polls = learner.experiment_polls
+        wait_for(lambda: learner.experiment_polls >= polls + 2, "learner polls", limit_s=60)
+        assert agent.sender.flush(30)
+        return loop.env_steps, state.updates, replay_stats(replay.address).steps
+
+    agent.start()
+    learner.start()
+    try:
+        wait_for(lambda: state.updates > 0 and loop.env_steps > 100, "collecting and training", limit_s=120)
+        s.StopExperiment(control_pb2.StopExperimentRequest(name="default"), timeout=5)
+        wait_for(lambda: loop.held_by_lease and state.state == "stopped", "edge holds, learner stopped", limit_s=60)
+        held = settle()
+        assert settle() == held  # no steps taken, none sent to replay, no updates
+        info = control_pb2.GetRobotRequest(robot_id="arm-0")
+        wait_for(lambda: s.GetRobot(info, timeout=5).status.state == control_pb2.ROBOT_STATE_PAUSED)
+        assert cli.main(["robots", "ls", "--control", control.address, "--set", "auth.token=test-token"]) == 0
+        assert "held (experiment default stopped)" in capsys.readouterr().out
+        # An operator's RESUME does not override the stopped experiment.
+        cmd = control_pb2.Command(kind=control_pb2.COMMAND_KIND_RESUME, robot_id="arm-0")
+        s.SendCommand(control_pb2.SendCommandRequest(command=cmd, wait_result_s=10), timeout=15)
+        assert settle() == held
+        s.StartExperiment(control_pb2.StartExperimentRequest(name="default"), timeout=5)
+        wait_for(
+            lambda: loop.env_steps > held[0] and state.updates > held[1], "collecting and training again", limit_s=120
+        )
+        assert not loop.held_by_lease
+    finally:
+        learner.stop()
+        agent.stop()
+        inference.stop()
+        replay.stop()
+        control.stop()
+    assert not learner.failed
