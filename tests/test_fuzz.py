@@ -290,6 +290,34 @@ def test_control_unary(stack: dict[str, Any], list_req: Any, get_req: Any) -> No
     unary(stack["control"].GetRobot, get_req)
 
 
+def experiment_states(stack: dict[str, Any]) -> dict[str, int]:
+    listed = stack["control"].ListExperiments(control_pb2.ListExperimentsRequest(), timeout=CALL_S).experiments
+    return {e.name: e.state for e in listed}
+
+
+@FUZZ
+@given(
+    ls=any_or_near(control_pb2.ListExperimentsRequest()),
+    get=any_or_near(control_pb2.GetExperimentRequest(name="default")),
+    start=any_or_near(control_pb2.StartExperimentRequest(name="default")),
+    stop=any_or_near(control_pb2.StopExperimentRequest(name="default")),
+)
+def test_control_experiments(stack: dict[str, Any], ls: Any, get: Any, start: Any, stop: Any) -> None:
+    control = stack["control"]
+    try:
+        unary(control.ListExperiments, ls)
+        unary(control.GetExperiment, get)
+        for method, req in ((control.StopExperiment, stop), (control.StartExperiment, start)):
+            before = experiment_states(stack)
+            try:
+                method(req, timeout=CALL_S)
+            except grpc.RpcError as err:
+                assert err.code() in (grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.NOT_FOUND), err.details()
+                assert experiment_states(stack) == before  # refused: nothing changed
+    finally:  # the other tests' edge keeps its lease
+        control.StartExperiment(control_pb2.StartExperimentRequest(name="default"), timeout=CALL_S)
+
+
 WORKER = control_pb2.WorkerInfo(worker_id="learner@h:1", kind="learner", devices=[control_pb2.DeviceInfo(name="cpu")])
 
 
