@@ -112,7 +112,8 @@ class LearnerService(rpc.GrpcService):
 def run(cfg: StackConfig, ready_file: str | None) -> int:
     service = LearnerService(cfg)
     lc = cfg.learner
-    with report_worker(service, "learner", lc.control_addr, cfg.auth, lc.device, [lc.robot_kind]):
+    experiments = [e.name for e in cfg.resolved_experiments()]  # `userctl exp status` lists its learners by these
+    with report_worker(service, "learner", lc.control_addr, cfg.auth, lc.device, experiments):
         rpc.serve_until_signal(service, "learner", ready_file, healthy=lambda: not service.learner.failed)
     if service.learner.failed:
         log.error("learner stopped on an error", extra=kv(error=str(service.learner.error)))
