@@ -51,6 +51,7 @@ class Edge:
 
     def __init__(self, addr: str, agent_id: str, specs: list[robot_pb2.RobotSpec], statuses: list | None = None):
         self.leases: dict[str, control_pb2.RobotLease] = {}
+        self.history: list[control_pb2.RobotLease] = []
         self.commands: list[control_pb2.Command] = []
         self.statuses = statuses if statuses is not None else []
         self.client = ControlClient(
@@ -61,8 +62,12 @@ class Edge:
             lambda: [_copy(s) for s in self.statuses],
             self._command,
             backoff=Backoff(0.05, 0.3),
-            on_leases=lambda leases: self.leases.update({lease.robot_id: lease for lease in leases}),
+            on_leases=self._on_leases,
         )
+
+    def _on_leases(self, leases: list[control_pb2.RobotLease]) -> None:
+        self.history.extend(leases)
+        self.leases.update({lease.robot_id: lease for lease in leases})
 
     def _command(self, cmd: control_pb2.Command) -> tuple[bool, str]:
         self.commands.append(cmd)
@@ -236,12 +241,12 @@ def test_a_killed_and_restarted_control_keeps_experiments_leases_episodes_and_co
 def make_control(tmp_path: Path) -> Iterator:
     started: list[ControlService] = []
 
-    def make(exps: list[ExperimentConfig]) -> ControlService:
+    def make(exps: list[ExperimentConfig], lease_ttl_s: float = 0.5) -> ControlService:
         cfg = StackConfig(auth=AUTH, experiments=exps)
         cfg.control.server.port = cfg.control.server.metrics_port = 0
         cfg.control.server.grace_s = 0.5
         cfg.control.heartbeat_interval_s = 0.05
-        cfg.control.lease_ttl_s = 0.5
+        cfg.control.lease_ttl_s = lease_ttl_s
         cfg.control.state_path = tmp_path / "control.sqlite"
         svc = ControlService(cfg, start_metrics=False).start()
         started.append(svc)
@@ -305,7 +310,7 @@ def test_a_robot_that_goes_silent_is_released_and_the_experiment_goes_on(make_co
 
 
 def test_max_robots_leases_the_first_and_a_waiting_robot_takes_a_freed_place(make_control) -> None:
-    control = make_control(experiments(max_alpha=1))
+    control = make_control(experiments(max_alpha=1), lease_ttl_s=30.0)  # no lease ends by the clock here
     s = stub_for(control.address)
     pc1 = Edge(control.address, "lab-pc-1", [team_spec("arm-0", "a")])
     assert pc1.client.wait_registered(10)
@@ -315,6 +320,12 @@ def test_max_robots_leases_the_first_and_a_waiting_robot_takes_a_freed_place(mak
         assert pc1.lease("arm-0") == ("alpha", False)
         assert pc2.lease("arm-1") == ("", True)
         assert robot(s, "arm-1").lease_reason == "experiment alpha at max_robots=1"
+        # lab-pc-1 reconnects (a new stream supersedes its old one): arm-0 keeps its place throughout.
+        again = SilentEdge(control.address, "lab-pc-1", [team_spec("arm-0", "a")])
+        assert [(lease.robot_id, lease.experiment) for lease in again.registered.leases] == [("arm-0", "alpha")]
+        assert again.ended.wait(30)  # pc1's client reconnected and superseded it in turn
+        again.close()
+        assert all(lease.hold for lease in pc2.history)  # arm-1 was never leased meanwhile
         pc1.close()  # hangs up: its place goes to arm-1, told through its stream
         wait_for(lambda: pc2.lease("arm-1") == ("alpha", False), "arm-1 leased")
         # arm-0 returns: the place stays with the robot holding it.

@@ -277,8 +277,8 @@ class Registry:
                     )
             # One stream per agent: a re-registration (reconnect) supersedes the old one.
             replaced = [c for c in self._conns.values() if c.agent_id == req.agent_id]
-            for old in replaced:
-                self._end_locked(old)
+            for old in replaced:  # leases are recomputed below, so a reconnect keeps its max_robots places
+                self._end_locked(old, relay=False)
             conn = Connection(
                 lease_id=uuid.uuid4().hex,
                 agent_id=req.agent_id,
@@ -386,7 +386,7 @@ class Registry:
                 self._end_locked(conn)
         return conns
 
-    def _end_locked(self, conn: Connection) -> None:
+    def _end_locked(self, conn: Connection, relay: bool = True) -> None:
         conn.live = False
         self._conns.pop(conn.lease_id, None)
         for rid in conn.robot_ids:
@@ -397,7 +397,8 @@ class Registry:
                 rec.status.state = control_pb2.ROBOT_STATE_OFFLINE
                 self._save_locked(rec)
         self._update_gauge_locked()
-        self._relay_leases_locked()  # a place it held at max_robots goes to a waiting robot
+        if relay:
+            self._relay_leases_locked()  # a place it held at max_robots goes to a waiting robot
 
     # ------------------------------------------------------------------ leases
 
