@@ -1,4 +1,4 @@
-"""Control service: the registry of robots, their leases and heartbeats, and cloud-to-edge commands.
+"""Control service: the registry of robots, their leases and heartbeats, experiments, and cloud-to-edge commands.
 
 An edge agent opens one long-lived Connect stream: `register` first (validated specs -> a lease),
 then heartbeats that renew the lease and report each robot's status and finished episodes.
@@ -50,6 +50,10 @@ LEASE_EXPIRATIONS = prometheus_client.Counter(
     "user_control_lease_expirations_total", "Leases ended because no heartbeat arrived within lease_ttl_s"
 )
 COMMANDS = prometheus_client.Counter("user_control_commands_total", "Commands sent to edges", ["kind"])
+LEASED = prometheus_client.Gauge("user_control_robots_leased", "Robots leased to an experiment", ["experiment"])
+EXPERIMENT_RUNNING = prometheus_client.Gauge(
+    "user_control_experiment_running", "1 while an experiment runs, 0 while stopped", ["experiment"]
+)
 EPISODES = prometheus_client.Counter(
     "user_control_episodes_total", "Finished episodes reported by edges", ["robot_id", "success"]
 )
@@ -198,9 +202,9 @@ class Registry:
     to SQLite and read back at start (robots come back offline: a lease needs a live stream).
 
     Leases: every online robot that a running experiment's selector picks (the first experiment whose
-    selector holds, as the learner and inference route) is leased to it, up to its max_robots (the
-    robot that held it last goes first, then by id). A robot whose experiment is stopped or full is
-    told to hold; one no experiment selects is free. Leases are recomputed whenever a robot comes or
+    selector holds, as the learner and inference route) is leased to it, up to its max_robots (a robot
+    holding a place keeps it, then the one that held it last, then by id). A robot whose experiment is
+    stopped or full is told to hold; one no experiment selects is free. Leases are recomputed whenever a robot comes or
     goes and when an experiment starts or stops; edges hear only the robots whose lease changed."""
 
     def __init__(
@@ -468,6 +472,10 @@ class Registry:
                 "lease",
                 extra=kv(robot_id=rid, experiment=lease.experiment, hold=lease.hold, reason=lease.reason),
             )
+        leased = [r.lease.experiment for r in self._robots.values() if r.online and r.lease is not None]
+        for name, exp in self._experiments.items():
+            LEASED.labels(name).set(leased.count(name))
+            EXPERIMENT_RUNNING.labels(name).set(int(exp.running))
         for lease_id, leases in updates.items():
             conn = self._conns.get(lease_id)
             if conn is not None:
