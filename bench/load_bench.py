@@ -30,6 +30,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import socket
 import statistics
 import time
@@ -84,14 +85,18 @@ def _closed_port() -> int:
         return s.getsockname()[1]
 
 
-def rss_mb(pid: int) -> float:
+def rss_mb(pid: int) -> tuple[float, float]:
+    """(resident MB, of which anonymous MB). File-backed pages (LMDB's map, shared libraries) are the rest:
+    a growing LMDB file grows RSS without any allocation, so leaks show in the anonymous part."""
+    fields = {}
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    except OSError:
+            key, _, value = line.partition(":")
+            if key in ("VmRSS", "RssAnon"):
+                fields[key] = int(value.split()[0]) / 1024
+    except (OSError, ValueError):
         pass
-    return math.nan
+    return fields.get("VmRSS", math.nan), fields.get("RssAnon", math.nan)
 
 
 def cpu_s(pid: int) -> float:
@@ -180,12 +185,13 @@ class LoadRun:
 
         self.opts, self.workdir, self.log = opts, workdir, log
         workdir.mkdir(parents=True, exist_ok=True)
+        shutil.rmtree(workdir / "stack", ignore_errors=True)  # a fresh replay and spools: counts start at 0
         self.config_path = workdir / "load.yaml"
         self.config_path.write_text(yaml.safe_dump(self._config()))
         self.cfg = load_config(self.config_path, opts.overrides)
         self.stack = Stack(self.cfg, str(self.config_path), list(opts.overrides), workdir / "stack")
         self.robot_agent: dict[str, str] = {}
-        self.rss: dict[str, list[tuple[float, float]]] = defaultdict(list)  # process -> [(t, MB)]
+        self.rss: dict[str, list[tuple[float, float, float]]] = defaultdict(list)  # process -> [(t, MB, anon MB)]
 
     def _config(self) -> dict[str, Any]:
         return {
@@ -260,7 +266,7 @@ class LoadRun:
 
     def _sample_rss(self, t: float) -> None:
         for child in self.stack.children:
-            self.rss[child.name].append((t, rss_mb(child.proc.pid)))
+            self.rss[child.name].append((t, *rss_mb(child.proc.pid)))
 
     def _cpu(self) -> dict[str, float]:
         return {c.name: cpu_s(c.proc.pid) for c in self.stack.children}
@@ -389,11 +395,20 @@ class LoadRun:
                     server_errors[f"{name} {method} {code}"] = int(v)
         rss = {}
         for proc, series in self.rss.items():
-            ts = np.array([t for t, _ in series])
-            mb = np.array([m for _, m in series])
+            ts, mb, anon = (np.array(col) for col in zip(*series, strict=True))
             half = ts >= ts[-1] / 2
-            slope = float(np.polyfit(ts[half], mb[half], 1)[0] * 60) if half.sum() >= 3 else math.nan
-            rss[proc] = {"start_mb": float(mb[0]), "end_mb": float(mb[-1]), "slope_mb_per_min": slope}
+
+            def slope(y: np.ndarray, half: np.ndarray = half, ts: np.ndarray = ts) -> float:
+                return float(np.polyfit(ts[half], y[half], 1)[0] * 60) if half.sum() >= 3 else math.nan
+
+            rss[proc] = {
+                "start_mb": float(mb[0]),
+                "end_mb": float(mb[-1]),
+                "slope_mb_per_min": slope(mb),
+                "anon_start_mb": float(anon[0]),
+                "anon_end_mb": float(anon[-1]),
+                "anon_slope_mb_per_min": slope(anon),
+            }
         return {
             "window_s": window,
             "robots": len(steps),
@@ -421,6 +436,8 @@ class LoadRun:
             "rejected": int(stats.rejected),
             "rss": rss,
             "agent_of_robot": dict(self.robot_agent),
+            # replay's RAM tier (a cache up to replay.cache_mb) grows with the data: part of its RSS growth
+            "replay_hot_mb": [total(s["replay"], "user_replay_hot_bytes") / 2**20 for s in (services0, services1)],
         }
 
 
@@ -434,7 +451,7 @@ def _fmt_counts(counts: dict[str, int]) -> str:
 def rows(result: dict[str, Any]) -> list[Row]:
     opts = result["options"]
     agents = math.ceil(opts["robots"] / opts["robots_per_agent"])
-    group = f"load {opts['robots']} robots ({agents} edge processes) {opts['hz']:g} Hz {result['window_s']:.0f} s"
+    group = f"load {opts['robots']} robots ({agents} edge processes) {opts['hz']:g} Hz {opts['duration_s']:.0f} s"
     rates = list(result["rate_hz"].values()) or [0.0]
     la0, la1 = result["loadavg_start"][0], result["loadavg_end"][0]
     ms = 1e3
@@ -444,7 +461,8 @@ def rows(result: dict[str, Any]) -> list[Row]:
 
     out = [
         Row(group, "control rate per robot, median", statistics.median(rates), float(opts["hz"]), "Hz", True,
-            f"min {min(rates):.2f}, max {max(rates):.2f} Hz; {result['overruns']:.0f} ticks skipped; "
+            f"min {min(rates):.2f}, max {max(rates):.2f} Hz over {result['window_s']:.0f} s; "
+            f"{result['overruns']:.0f} ticks skipped; "
             f"load avg {la0:.1f} -> {la1:.1f}", PEER),
         fact("steps held (no action in deadline)", 100 * result["held_share"], "%",
              f"deadline {opts['action_deadline_ms']:g} ms"),
@@ -466,21 +484,21 @@ def rows(result: dict[str, Any]) -> list[Row]:
         procs.append(
             (
                 f"{len(edges)} edges (sum)",
-                {
-                    "start_mb": sum(r["start_mb"] for r in edges),
-                    "end_mb": sum(r["end_mb"] for r in edges),
-                    "slope_mb_per_min": sum(r["slope_mb_per_min"] for r in edges),
-                },
+                {key: sum(r[key] for r in edges) for key in edges[0]},
             )
         )
     for name, r in procs:
         cpu = result["cpu_share"].get(name)
         if cpu is None:
             cpu = sum(v for k, v in result["cpu_share"].items() if k.startswith("edge-"))
-        out.append(
-            Row(group, f"RSS {name}, end", r["end_mb"], r["start_mb"], "MB", False,
-                f"{r['slope_mb_per_min']:+.2f} MB/min over the 2nd half; CPU {100 * cpu:.0f} % of a core", PEER)
-        )  # fmt: skip
+        note = (
+            f"2nd half {r['slope_mb_per_min']:+.2f} MB/min; anonymous {r['anon_start_mb']:.0f} -> "
+            f"{r['anon_end_mb']:.0f} MB ({r['anon_slope_mb_per_min']:+.2f} MB/min); CPU {100 * cpu:.0f} % of a core"
+        )
+        if name == "replay":
+            hot0, hot1 = result["replay_hot_mb"]
+            note += f"; RAM tier (cache) {hot0:.1f} -> {hot1:.1f} MB"
+        out.append(Row(group, f"RSS {name}, end", r["end_mb"], r["start_mb"], "MB", False, note, PEER))
     return out
 
 
