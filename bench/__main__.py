@@ -134,13 +134,19 @@ def markdown(rows: list[Row]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def selected(only: str | None, quick: bool) -> list[str]:
+    """The groups to run: those named, else all but the opt-in ones (and, with --quick, the slow ones)."""
+    if only:
+        return [n.strip() for n in only.split(",") if n.strip()]
+    return [n for n in BENCHES if n not in OPT_IN and not (quick and n in SLOW)]
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if not args.quick:
         args.json_path = args.json_path or str(DEFAULT_OUT / "latest.json")
         args.md_path = args.md_path or str(DEFAULT_OUT / "latest.md")
-    only = args.only or ",".join(n for n in BENCHES if n not in OPT_IN and not (args.quick and n in SLOW))
-    names = [n.strip() for n in only.split(",") if n.strip()]
+    names = selected(args.only, args.quick)
     unknown = [n for n in names if n not in BENCHES]
     if unknown:
         print(f"unknown benchmark(s) {unknown}; known: {list(BENCHES)}", file=sys.stderr)

@@ -65,3 +65,10 @@ def test_histogram_quantile_reads_cumulative_buckets() -> None:
     over = dict([h("0.01", 1), h("+Inf", 10)])
     assert histogram_quantile(over, "lat", 0.99) == pytest.approx(0.01)  # in +Inf: the largest finite bound
     assert math.isnan(histogram_quantile({}, "lat", 0.5))
+
+
+def test_load_runs_only_when_named() -> None:
+    from bench.__main__ import selected
+
+    assert "load" not in selected(None, quick=False) and "load" not in selected(None, quick=True)
+    assert selected("load", quick=False) == ["load"]
