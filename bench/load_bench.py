@@ -462,8 +462,8 @@ def rows(result: dict[str, Any]) -> list[Row]:
     out = [
         Row(group, "control rate per robot, median", statistics.median(rates), float(opts["hz"]), "Hz", True,
             f"min {min(rates):.2f}, max {max(rates):.2f} Hz over {result['window_s']:.0f} s; "
-            f"{result['overruns']:.0f} ticks skipped; "
-            f"load avg {la0:.1f} -> {la1:.1f}", PEER),
+            f"{result['overruns']:.0f} ticks skipped; the stack used {sum(result['cpu_share'].values()):.2f} of "
+            f"{os.cpu_count()} cores; load avg {la0:.1f} -> {la1:.1f}", PEER),
         fact("steps held (no action in deadline)", 100 * result["held_share"], "%",
              f"deadline {opts['action_deadline_ms']:g} ms"),
         fact("Act p50", result["act_p50_s"] * ms, "ms", f"{result['acts']:.0f} answered, edge histogram"),
