@@ -10,12 +10,13 @@ STUBS := user/v1/.generated
 FIND_PY312 := for c in python3.12 $$HOME/.pyenv/versions/3.12*/bin/python3.12 /usr/local/bin/python3.12 /usr/bin/python3.12; do \
 	if "$$c" -c 'import sys; assert sys.version_info[:2] == (3, 12)' 2>/dev/null; then echo "$$c"; break; fi; done
 
-.PHONY: install proto demo test test-fast lint bench clean help fuzz
+.PHONY: install proto demo test test-fast lint bench load clean help fuzz
 
 help:
 	@echo "make demo   install + train two embodiments at once (2 sim arms reach, a Panda picks) through the five services"
 	@echo "make test   install + run the test suite"
 	@echo "make fuzz   long property-based run over every RPC (10k examples per test)"
+	@echo "make load   64 simulated robots at 10 Hz for 10 min against one local stack (LOAD_ARGS=\"--duration 30 --edges 8\")"
 	@echo "make proto | lint | bench | clean"
 
 $(STAMP): pyproject.toml constraints.txt
@@ -55,6 +56,10 @@ lint: install
 
 bench: install
 	MUJOCO_GL=egl $(PY) -m bench
+
+# Not part of `make bench`: it holds one stack under load for the whole --duration (600 s by default).
+load: install
+	MUJOCO_GL=egl $(PY) -m bench --only load $(LOAD_ARGS)
 
 clean:
 	rm -rf user/v1 .pytest_cache .ruff_cache

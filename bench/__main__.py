@@ -1,5 +1,8 @@
 """`python -m bench [--quick] [--only replay,weights,inference] [--json out.json] [--markdown out.md]`
 
+`python -m bench --only load [--duration 600] [--edges 64] [--hz 10]` (`make load`): the load test,
+run only when named (it takes the whole --duration, 10 minutes by default).
+
 Runs each benchmark against its real peer in this process and prints one table.
 """
 
@@ -31,8 +34,10 @@ BENCHES = {
     "spool": "bench.spool_bench",
     "edge": "bench.edge_bench",
     "curves": "bench.curves_bench",
+    "load": "bench.load_bench",
 }
 SLOW = {"learning"}  # whole stacks as processes: minutes, not part of the --quick smoke run unless named
+OPT_IN = {"load"}  # run only when named in --only: 10 minutes of one stack under load
 
 
 DEFAULT_OUT = Path("runs/bench")
@@ -62,6 +67,11 @@ LEGEND = {
     "curves": "curves: success curves of the in-process trainer (cloud_learner.local) vs a uniform random policy "
     "on the same robot: reach (SAC, state; target 90% in 5 min) and gym-hil Panda pick-cube (RLPD + scripted demos and "
     "interventions, state; target 80% in 30 min); curves in runs/bench/curves/*.json|png.",
+    "load": "load: one stack as processes on 127.0.0.1 (control, replay, learner training SAC, inference; token auth) "
+    "and state-only sim arms in edge agent processes of 8 robots (the real `userctl edge`: registration, heartbeats, "
+    "Inference.Act within 40 ms, LMDB spool -> Replay.Insert); window after warm-up; latencies from the edges' "
+    "/metrics histograms, RSS from /proc; lost = steps the edges collected - steps replay stores (after a pause and "
+    "drain); peer column = the rate target or the RSS at the window's start; details in runs/bench/load.json.",
 }
 
 
@@ -69,13 +79,20 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m bench", description=__doc__)
     p.add_argument("--quick", action="store_true", help="tiny sizes (smoke test); numbers are not meaningful")
     p.add_argument(
-        "--only", default=None, help=f"comma-separated subset of {list(BENCHES)} (--quick skips {sorted(SLOW)})"
+        "--only",
+        default=None,
+        help=f"comma-separated subset of {list(BENCHES)} (default all but {sorted(OPT_IN)}; --quick skips "
+        f"{sorted(SLOW)})",
     )
     p.add_argument("--json", dest="json_path", help="rows as JSON (default runs/bench/latest.json, not with --quick)")
     p.add_argument(
         "--markdown", dest="md_path", help="table as Markdown (default runs/bench/latest.md, not with --quick)"
     )
     p.add_argument("--workdir", help="where LMDB files go (default: a temporary directory)")
+    load = p.add_argument_group("load (only with --only load)")
+    load.add_argument("--duration", type=float, help="measured window, seconds (default 600; --quick 10)")
+    load.add_argument("--edges", type=int, help="simulated robots, 8 per edge process (default 64; --quick 4)")
+    load.add_argument("--hz", type=float, help="control rate of every robot (default 10)")
     return p
 
 
@@ -117,13 +134,19 @@ def markdown(rows: list[Row]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def selected(only: str | None, quick: bool) -> list[str]:
+    """The groups to run: those named, else all but the opt-in ones (and, with --quick, the slow ones)."""
+    if only:
+        return [n.strip() for n in only.split(",") if n.strip()]
+    return [n for n in BENCHES if n not in OPT_IN and not (quick and n in SLOW)]
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if not args.quick:
         args.json_path = args.json_path or str(DEFAULT_OUT / "latest.json")
         args.md_path = args.md_path or str(DEFAULT_OUT / "latest.md")
-    only = args.only or ",".join(n for n in BENCHES if not (args.quick and n in SLOW))
-    names = [n.strip() for n in only.split(",") if n.strip()]
+    names = selected(args.only, args.quick)
     unknown = [n for n in names if n not in BENCHES]
     if unknown:
         print(f"unknown benchmark(s) {unknown}; known: {list(BENCHES)}", file=sys.stderr)
@@ -144,7 +167,8 @@ def main(argv: list[str] | None = None) -> int:
             console.log(f"bench {name} ...")
             try:
                 module = importlib.import_module(BENCHES[name])
-                rows += module.run(quick=args.quick, workdir=workdir / name, log=console.log)
+                extra = {"duration_s": args.duration, "robots": args.edges, "hz": args.hz} if name == "load" else {}
+                rows += module.run(quick=args.quick, workdir=workdir / name, log=console.log, **extra)
             except Exception:
                 failed.append(name)
                 console.print(f"[red]bench {name} failed[/red]\n{traceback.format_exc()}")

@@ -20,7 +20,7 @@ import prometheus_client
 import user
 from user.config import AuthConfig
 from user.log import kv
-from user.rpc import Backoff, make_channel
+from user.rpc import CLIENT_ERRORS, Backoff, make_channel
 from user.v1 import control_pb2, control_pb2_grpc, robot_pb2
 
 log = logging.getLogger(__name__)
@@ -159,6 +159,8 @@ class ControlClient:
                 log.warning("control closed the stream", extra=kv(addr=self.addr))
         except grpc.RpcError as err:
             code = err.code() if hasattr(err, "code") else grpc.StatusCode.UNKNOWN
+            if not self._stopping.is_set():
+                CLIENT_ERRORS.labels("/user.v1.Control/Connect", code.name).inc()
             if not self._stopping.is_set() and code not in _FATALISH:
                 log.warning("control stream broken", extra=kv(addr=self.addr, code=code.name, details=err.details()))
         finally:

@@ -23,7 +23,7 @@ from edge_agent.chunks import ChunkExecutor
 from user import wire
 from user.config import AuthConfig, StackConfig
 from user.log import kv
-from user.rpc import make_channel
+from user.rpc import CLIENT_ERRORS, make_channel
 from user.v1 import inference_pb2, inference_pb2_grpc, robot_pb2
 
 if TYPE_CHECKING:  # torch is imported only by edges that run a local copy
@@ -32,11 +32,13 @@ if TYPE_CHECKING:  # torch is imported only by edges that run a local copy
 
 log = logging.getLogger(__name__)
 
+# Fine around typical deadlines (20-100 ms): bench/load_bench.py reads p50/p99 off these buckets.
+_LATENCY_BUCKETS = (0.0005, 0.001, 0.0015, 0.002, 0.003, 0.004, 0.005, 0.0075, 0.01, 0.015, 0.02, 0.025, 0.03)
 ACTION_LATENCY = prometheus_client.Histogram(
     "user_edge_action_latency_seconds",
     "Time from asking the policy source for an action to having it (answered requests)",
     ["source"],
-    buckets=(0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.04, 0.08, 0.16, 0.5, 1.0),
+    buckets=(*_LATENCY_BUCKETS, 0.04, 0.05, 0.06, 0.08, 0.1, 0.16, 0.5, 1.0),
 )
 ACTION_TIMEOUTS = prometheus_client.Counter(
     "user_edge_action_timeouts_total",
@@ -154,6 +156,7 @@ class RemotePolicy(PolicySource):
 
     def _note_error(self, code: grpc.StatusCode, err: grpc.RpcError) -> None:
         ACTION_TIMEOUTS.labels("remote", code.name.lower()).inc()
+        CLIENT_ERRORS.labels("/user.v1.Inference/Act", code.name).inc()
         if code != self._last_error:  # log transitions, not every held tick
             details = err.details() if hasattr(err, "details") else str(err)
             log.warning("no action from inference; holding", extra=kv(addr=self.addr, code=code.name, details=details))

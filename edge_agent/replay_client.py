@@ -24,7 +24,7 @@ import prometheus_client
 from edge_agent.spool import MemoryOutbox, Outbox
 from user.config import AuthConfig
 from user.log import kv
-from user.rpc import Backoff, make_channel
+from user.rpc import CLIENT_ERRORS, Backoff, make_channel
 from user.v1 import replay_pb2, replay_pb2_grpc, step_pb2
 
 log = logging.getLogger(__name__)
@@ -39,10 +39,17 @@ STEPS_REJECTED = prometheus_client.Counter(
 )
 RECONNECTS = prometheus_client.Counter("user_edge_replay_reconnects_total", "Replay Insert streams re-opened")
 RETARGETS = prometheus_client.Counter("user_edge_replay_retargets_total", "Moves to another replay shard")
+ACK_LATENCY = prometheus_client.Histogram(
+    "user_edge_step_ack_seconds",
+    "Time from a step entering the outbox to replay acknowledging its commit (steps of this process life)",
+    buckets=(0.002, 0.005, 0.01, 0.02, 0.03, 0.05, 0.075, 0.1, 0.15, 0.2, 0.3, 0.5, 1.0, 2.0, 5.0, 10.0, 60.0),
+)
+INSERT_METHOD = "/user.v1.Replay/Insert"
 
 _SEQ_IN_MESSAGE = re.compile(r"\bseq\s*[=:]?\s*(\d+)")
 _POLL_S = 0.2  # how often an idle request iterator re-checks for shutdown or a stream change
 _READ_CHUNK = 64  # steps read from the outbox at a time
+_ACK_TIMES_KEPT = 200_000  # put times remembered for the ack-latency histogram (dropped steps never ack)
 
 
 class ReplaySender:
@@ -69,6 +76,8 @@ class ReplaySender:
         self._call: grpc.Call | None = None
         # per-instance counters (the Prometheus ones are process-wide)
         self.sent = self.acked = self.rejected = self.reconnects = self.retargets = 0
+        self._put_at: dict[int, float] = {}  # seq -> monotonic time of send(), until its ack
+        self._put_lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="replay-sender", daemon=True)
         STEPS_UNACKED.set(self.outbox.count)
         if start:
@@ -83,6 +92,10 @@ class ReplaySender:
     def send(self, step: step_pb2.Step) -> int:
         """Keep the step in the outbox (a local commit for a spool) and return its seq; never waits on the network."""
         seq = self.outbox.put(step)
+        with self._put_lock:  # robot threads send at once
+            self._put_at[seq] = time.monotonic()
+            if len(self._put_at) > _ACK_TIMES_KEPT:  # steps the outbox dropped never ack: forget the oldest
+                self._put_at.pop(next(iter(self._put_at)))
         STEPS_UNACKED.set(self.outbox.count)
         with self._cond:
             self._cond.notify_all()
@@ -184,6 +197,8 @@ class ReplaySender:
             return None
         except grpc.RpcError as err:
             code = err.code() if hasattr(err, "code") else grpc.StatusCode.UNKNOWN
+            if not self._stopping.is_set():
+                CLIENT_ERRORS.labels(INSERT_METHOD, code.name).inc()
             if code == grpc.StatusCode.INVALID_ARGUMENT:
                 self._drop_rejected(err.details() or "")
             elif not self._stopping.is_set():
@@ -220,6 +235,12 @@ class ReplaySender:
 
     def _on_ack(self, ack: replay_pb2.InsertAck) -> None:
         n = self.outbox.ack(ack.seqs)
+        now = time.monotonic()
+        with self._put_lock:
+            put_times = [self._put_at.pop(seq, None) for seq in ack.seqs]
+        for put_at in put_times:
+            if put_at is not None:
+                ACK_LATENCY.observe(now - put_at)
         self.acked += n
         STEPS_ACKED.inc(n)
         STEPS_UNACKED.set(self.outbox.count)

@@ -66,6 +66,11 @@ RPC_SECONDS = prometheus_client.Histogram(
     ["method"],
     buckets=(0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 1, 5, 30, 300),
 )
+CLIENT_ERRORS = prometheus_client.Counter(
+    "user_grpc_client_errors_total",
+    "Failed calls and broken streams seen by this client, by method and code",
+    ["method", "code"],
+)
 
 
 # --------------------------------------------------------------------------- server side

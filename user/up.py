@@ -21,7 +21,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -165,6 +165,43 @@ class Stack:
         raise RuntimeError(f"{child.name} not ready after {READY_TIMEOUT_S:.0f}s:\n{child.log_tail()}")
 
     def start(self, on_progress: Callable[[str], None] = lambda _msg: None) -> None:
+        self.start_services(on_progress)
+        edges = []
+        for i, robot in enumerate(self._edge_robots()):
+            on_progress(f"edge-{i}")
+            edges.append(
+                self.spawn_edge(f"edge-{i}", [robot], self.cfg.edge.seed + 1000 * i, self.per_edge_overrides.get(i, []))
+            )
+        for edge in edges:
+            self._wait_ready(edge)
+
+    def spawn_edge(self, name: str, robots: list[dict[str, Any]], seed: int, extra: Sequence[str] = ()) -> Child:
+        """An edge agent process `name` driving `robots` (RobotConfig dicts), wired to the running services.
+        Not waited for: wait_ready() it (several edges start faster side by side)."""
+        control, replay = self.child("control"), self.child("replay")
+        inference, learner = self.child("inference"), self.child("learner")
+        return self._spawn(
+            name,
+            "edge",
+            [
+                f"edge.agent_id={name}",
+                f"edge.robots={json.dumps(robots)}",
+                f"edge.seed={seed}",
+                "edge.metrics_port=0",
+                f"edge.control_addr={control.grpc_addr}",
+                f"edge.replay_addr={replay.grpc_addr}",
+                f"edge.inference_addr={inference.grpc_addr}",
+                f"edge.learner_addr={learner.grpc_addr}",
+                f"edge.spool_dir={self.run_dir / 'spool'}",
+                *extra,
+            ],
+        )
+
+    def wait_ready(self, child: Child) -> None:
+        self._wait_ready(child)
+
+    def start_services(self, on_progress: Callable[[str], None] = lambda _msg: None) -> None:
+        """control -> replay -> learner -> inference, each ready before the next starts."""
         rd = self.run_dir
         listen = ["server.host=127.0.0.1", "server.port=0", "server.metrics_port=0"]
         on_progress("control")
@@ -206,29 +243,6 @@ class Stack:
             ],
         )
         self._wait_ready(inference)
-        edges = []
-        for i, robot in enumerate(self._edge_robots()):
-            on_progress(f"edge-{i}")
-            edges.append(
-                self._spawn(
-                    f"edge-{i}",
-                    "edge",
-                    [
-                        f"edge.agent_id=edge-{i}",
-                        f"edge.robots={json.dumps([robot])}",
-                        f"edge.seed={self.cfg.edge.seed + 1000 * i}",
-                        "edge.metrics_port=0",
-                        f"edge.control_addr={control.grpc_addr}",
-                        f"edge.replay_addr={replay.grpc_addr}",
-                        f"edge.inference_addr={inference.grpc_addr}",
-                        f"edge.learner_addr={learner.grpc_addr}",
-                        f"edge.spool_dir={rd / 'spool'}",
-                        *self.per_edge_overrides.get(i, []),
-                    ],
-                )
-            )
-        for edge in edges:
-            self._wait_ready(edge)
 
     def _edge_robots(self) -> list[dict[str, Any]]:
         """One edge agent per robot: up.edge_agents copies of the first robot entry (arm-0, arm-1, ...;
