@@ -283,7 +283,7 @@ class FlowVlaPolicy(Policy):
     def preprocess(self, observation: Mapping[str, np.ndarray], instructions: Sequence[str]) -> Prepared:
         return self.prep(observation, instructions)
 
-    @torch.no_grad()
+    @torch.inference_mode()  # no autograd bookkeeping at all (a few % faster than no_grad on CPU)
     def forward(self, prepared: Prepared, deterministic: bool = False) -> np.ndarray:
         context = self.model.encode(prepared.images, prepared.state, prepared.tokens)
         chunk = self.scaler.unnormalize(self.model.sample(context, deterministic))
