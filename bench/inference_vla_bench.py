@@ -189,7 +189,10 @@ def _rows(
     calls = {s: sum(w.calls for w in ws) for s, ws in windows.items()}
     lat = {s: [x for w in ws for x in w.latencies] for s, ws in windows.items()}
     cpu = {  # ms of CPU per Act call: (server, robots)
-        s: (1e3 * sum(w.server_cpu_s for w in ws) / calls[s], 1e3 * sum(w.robots_cpu_s for w in ws) / calls[s])
+        s: (
+            1e3 * sum(w.server_cpu_s for w in ws) / max(calls[s], 1),
+            1e3 * sum(w.robots_cpu_s for w in ws) / max(calls[s], 1),
+        )
         for s, ws in windows.items()
     }
     for side in windows:
