@@ -16,8 +16,8 @@ the replay service (the table work on replay lands separately).
    in turn; learner updates/s and robot steps/s over the same wall time.
 
 Chunks: targets are the next `horizon` expert actions of the same episode (the last one repeated
-past the end), which this in-process table can give; the robot executes chunks through the edge's
-ChunkExecutor.
+past the end, masked out of the loss), as replay's SampleRequest.action_horizon assembles them;
+the robot executes chunks through the edge's ChunkExecutor.
 """
 
 from __future__ import annotations
@@ -44,6 +44,7 @@ class Table:
 
     obs: list[dict[str, np.ndarray]] = field(default_factory=list)
     chunks: list[np.ndarray] = field(default_factory=list)
+    masks: list[np.ndarray] = field(default_factory=list)  # real (not padded) actions of each chunk
 
     def add_episode(
         self, observations: list[dict[str, np.ndarray]], actions: list[np.ndarray], human: list[bool]
@@ -60,16 +61,17 @@ class Table:
         for t, (o, h) in enumerate(zip(observations, human, strict=True)):
             if not h:
                 continue
-            idx = np.minimum(np.arange(t, t + HORIZON), ends[t])
+            steps = np.arange(t, t + HORIZON)
             self.obs.append(o)
-            self.chunks.append(acts[idx])
+            self.chunks.append(acts[np.minimum(steps, ends[t])])
+            self.masks.append(steps <= ends[t])
             added += 1
         return added
 
-    def sample(self, n: int, rng: np.random.Generator) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    def sample(self, n: int, rng: np.random.Generator) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
         idx = rng.integers(len(self.obs), size=n)
         obs = {k: np.stack([self.obs[i][k] for i in idx]) for k in self.obs[0]}
-        return obs, np.stack([self.chunks[i] for i in idx])
+        return obs, np.stack([self.chunks[i] for i in idx]), np.stack([self.masks[i] for i in idx])
 
 
 def make_batch(tables: list[tuple[Table, float]], n: int, rng: np.random.Generator) -> Any:
@@ -77,12 +79,12 @@ def make_batch(tables: list[tuple[Table, float]], n: int, rng: np.random.Generat
 
     parts = [(t, max(1, round(n * share))) for t, share in tables if t.obs]
     sampled = [t.sample(k, rng) for t, k in parts]
-    obs = {k: torch.from_numpy(np.concatenate([o[k] for o, _ in sampled])) for k in sampled[0][0]}
-    chunk = torch.from_numpy(np.concatenate([c for _, c in sampled]))
+    obs = {k: torch.from_numpy(np.concatenate([o[k] for o, _, _ in sampled])) for k in sampled[0][0]}
+    chunk = torch.from_numpy(np.concatenate([c for _, c, _ in sampled]))
+    mask = torch.from_numpy(np.concatenate([m for _, _, m in sampled]))
     b = len(chunk)
-    batch = Batch(obs, chunk[:, 0], torch.zeros(b), obs, torch.zeros(b), torch.ones(b, dtype=torch.bool))
-    batch.action_chunk = chunk  # type: ignore[attr-defined]
-    return batch
+    ones = torch.ones(b, dtype=torch.bool)
+    return Batch(obs, chunk[:, 0], torch.zeros(b), obs, torch.zeros(b), ones, action_chunk=chunk, chunk_mask=mask)
 
 
 def run_episode(robot: Any, expert: Any, policy: Any | None, seed: int) -> tuple[bool, list, list, list]:

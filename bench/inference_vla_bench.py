@@ -5,8 +5,17 @@ The peer serves the same Inference.Act proto on the same gRPC setup but runs pre
 for one request at a time under a lock, the way openpi's websocket policy server and lerobot's
 async-inference policy server serve a policy (one observation in, one chunk out, in turn). Each
 robot is a separate process sending a 64x64 camera image, its state and an instruction, and
-calling Act in a loop (closed loop: the next request after the answer). Windows alternate
-ours/peer so background load hits both alike. The targets of issue #9 are printed as rows: at 16
+calling Act in a loop (closed loop: the next request after the answer); a robot cycles through
+a few observations made before the window, so the robots' own CPU is the gRPC client and nothing
+else. Windows alternate ours/peer so background load hits both alike. Both servers run in this
+process with one torch thread (as `services.inference.server.run` sets it; on 2 cores a second
+intra-op thread only fights the robots and the gRPC threads).
+
+Besides throughput and latency, the CPU spent per Act call is measured: the serving process's
+(time.process_time over the window: gRPC, handler, batcher, model) and the robots' (each robot
+process's own). On a machine where the robots share the cores with the server, throughput is
+capped near cores / (robot CPU + server CPU per call) whatever the batching does, so these rows
+say how far batching can move the ratio there. The targets of issue #9 are printed as rows: at 16
 robots >= 4x the peer's throughput, with p99 <= 2x our single-robot p99.
 """
 
@@ -16,6 +25,7 @@ import multiprocessing
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +40,7 @@ from user.v1 import inference_pb2, inference_pb2_grpc
 
 PEER = "one-request-at-a-time server (openpi / lerobot policy-server style)"
 RPC_TIMEOUT_S = 30.0
+OBSERVATIONS_PER_ROBOT = 8  # made before the window and cycled, so the window times serving, not numpy
 TOKEN = "bench-token"
 CONCURRENCY = [1, 4, 16, 32]
 START_MARGIN_S = 1.0
@@ -88,29 +99,39 @@ def start_peer(cfg: StackConfig, weights: Any) -> tuple[str, Callable[[], None]]
     return serve_peer(cfg, servicer, "one-at-a-time-inference")
 
 
-def _robot(task: tuple[str, int, float, float]) -> tuple[list[float], list[int], list[list[int]], list[str]]:
-    """One robot process: Act in a loop inside the window; (latencies ms, batch sizes, stage times us)."""
+def _robot(
+    task: tuple[str, int, float, float],
+) -> tuple[list[float], list[int], list[list[int]], list[str], float]:
+    """One robot process: Act in a loop inside the window; (latencies ms, batch sizes, stage times us,
+    errors, CPU seconds this process spent in the window)."""
     addr, index, start_at, end_at = task
     rng = np.random.default_rng(index)
     latencies, batches, stages, errors = [], [], [], []
+    requests = [
+        inference_pb2.ActRequest(
+            robot_id=f"arm-{index}",
+            observation=wire.to_tensor_map(
+                {
+                    "camera.front": rng.integers(0, 256, size=(IMAGE, IMAGE, 3), dtype=np.uint8),
+                    "state": rng.standard_normal(STATE_DIM).astype(np.float32),
+                }
+            ),
+            instruction=INSTRUCTIONS[index % len(INSTRUCTIONS)],
+        )
+        for _ in range(OBSERVATIONS_PER_ROBOT)
+    ]
     with rpc.make_channel(addr, AuthConfig(token=TOKEN)) as channel:
         stub = inference_pb2_grpc.InferenceStub(channel)
-
-        def request() -> inference_pb2.ActRequest:
-            obs = {
-                "camera.front": rng.integers(0, 256, size=(IMAGE, IMAGE, 3), dtype=np.uint8),
-                "state": rng.standard_normal(STATE_DIM).astype(np.float32),
-            }
-            return inference_pb2.ActRequest(
-                robot_id=f"arm-{index}",
-                observation=wire.to_tensor_map(obs),
-                instruction=INSTRUCTIONS[index % len(INSTRUCTIONS)],
-            )
-
-        stub.Act(request(), timeout=RPC_TIMEOUT_S)  # connect and warm up outside the window
+        try:
+            stub.Act(requests[0], timeout=RPC_TIMEOUT_S, wait_for_ready=True)  # connect + warm up before the window
+        except grpc.RpcError as err:  # RpcError does not cross processes: say what it was
+            return [], [], [], [f"warm-up {err.code().name}: {err.details()}"], 0.0
         time.sleep(max(0.0, start_at - time.time()))
+        cpu = time.process_time()
+        i = 0
         while time.time() < end_at:
-            req = request()
+            req = requests[i % len(requests)]
+            i += 1
             start = time.perf_counter()
             try:
                 resp = stub.Act(req, timeout=RPC_TIMEOUT_S)
@@ -120,7 +141,8 @@ def _robot(task: tuple[str, int, float, float]) -> tuple[list[float], list[int],
             latencies.append((time.perf_counter() - start) * 1e3)
             batches.append(resp.batch_size)
             stages.append([resp.queue_us, resp.preprocess_us, resp.forward_us, resp.postprocess_us])
-    return latencies, batches, stages, errors
+        cpu = time.process_time() - cpu
+    return latencies, batches, stages, errors, cpu
 
 
 def _warm(_: int) -> int:
@@ -128,16 +150,72 @@ def _warm(_: int) -> int:
     return 0
 
 
-def drive(pool: Any, addr: str, clients: int, seconds: float) -> tuple[int, list[float], list[int], np.ndarray]:
+@dataclass
+class Window:
+    calls: int
+    latencies: list[float]
+    sizes: list[int]
+    stages: np.ndarray  # (calls, 4) us: queue, preprocess, forward, postprocess
+    server_cpu_s: float  # this process (the server being driven) during the window
+    robots_cpu_s: float  # all robot processes during the window
+
+
+def drive(pool: Any, addr: str, clients: int, seconds: float) -> Window:
     start_at = time.time() + START_MARGIN_S + 0.05 * clients
-    results = pool.map(_robot, [(addr, i, start_at, start_at + seconds) for i in range(clients)], chunksize=1)
+    tasks = [(addr, i, start_at, start_at + seconds) for i in range(clients)]
+    pending = pool.map_async(_robot, tasks, chunksize=1)
+    time.sleep(max(0.0, start_at - time.time()))
+    cpu = time.process_time()  # the window's serving work (the robots' warm-up calls come before it)
+    results = pending.get()
+    server_cpu = time.process_time() - cpu
     lat = [x for r in results for x in r[0]]
     sizes = [b for r in results for b in r[1]]
     stages = np.array([s for r in results for s in r[2]], dtype=np.float64).reshape(-1, 4)
     errors = [e for r in results for e in r[3]]
     if errors:
         raise RuntimeError(f"{len(errors)} Act calls failed at {clients} robots, e.g. {errors[:3]}")
-    return len(lat), lat, sizes, stages
+    return Window(len(lat), lat, sizes, stages, server_cpu, sum(r[4] for r in results))
+
+
+def _rows(
+    c: int,
+    n_params: int,
+    windows: dict[str, list[Window]],
+    seconds: float,
+    rate: dict[tuple[str, int], float],
+    ours_p99: dict[int, float],
+) -> list[Row]:
+    """Rows for one robot count; fills rate[(side, c)] and ours_p99[c]."""
+    calls = {s: sum(w.calls for w in ws) for s, ws in windows.items()}
+    lat = {s: [x for w in ws for x in w.latencies] for s, ws in windows.items()}
+    cpu = {  # ms of CPU per Act call: (server, robots)
+        s: (
+            1e3 * sum(w.server_cpu_s for w in ws) / max(calls[s], 1),
+            1e3 * sum(w.robots_cpu_s for w in ws) / max(calls[s], 1),
+        )
+        for s, ws in windows.items()
+    }
+    for side in windows:
+        rate[(side, c)] = calls[side] / seconds
+    ours_p99[c] = float(np.percentile(lat["ours"], 99))
+    sizes = [b for w in windows["ours"] for b in w.sizes]
+    st = np.concatenate([w.stages for w in windows["ours"]]).mean(axis=0) / 1e3
+    note = (
+        f"mean batch {np.mean(sizes):.1f}; ours stages ms: queue {st[0]:.1f}, preprocess {st[1]:.1f}, "
+        f"forward {st[2]:.1f}, postprocess {st[3]:.2f}"
+    )
+    # With robots and server on the same cores, calls/s <= cores / (robot + server CPU per call).
+    ceiling = sum(cpu["peer"]) / sum(cpu["ours"])
+    cpu_note = f"ours/peer calls/s can reach about (peer robot+server CPU)/(ours) = {ceiling:.2f}x when CPU-bound"
+    group = f"inference flow_vla ({n_params / 1e6:.2f}M params, 64x64 camera, chunk 8x3), {c} robots"
+    p99 = float(np.percentile(lat["peer"], 99))
+    return [
+        Row(group, "Act calls/s", rate[("ours", c)], rate[("peer", c)], "calls/s", True, note, PEER),
+        Row(group, "Act latency p50", median(lat["ours"]), median(lat["peer"]), "ms", False, "", PEER),
+        Row(group, "Act latency p99", ours_p99[c], p99, "ms", False, "", PEER),
+        Row(group, "server CPU per Act", cpu["ours"][0], cpu["peer"][0], "ms", False, cpu_note, PEER),
+        Row(group, "robot CPU per Act", cpu["ours"][1], cpu["peer"][1], "ms", False, "the gRPC client", PEER),
+    ]
 
 
 def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Row]:
@@ -152,51 +230,27 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
     rows: list[Row] = []
     ours_p99: dict[int, float] = {}
     rate: dict[tuple[str, int], float] = {}
-    with multiprocessing.get_context("spawn").Pool(max(concurrency)) as pool:
-        pool.map(_warm, range(max(concurrency)), chunksize=1)
-        servers = {"ours": start_ours(cfg, weights), "peer": start_peer(cfg, weights)}
-        try:
-            for c in concurrency:
-                log(f"inference_vla: {c} robots")
-                calls = {s: 0 for s in servers}
-                lat: dict[str, list[float]] = {s: [] for s in servers}
-                sizes: list[int] = []
-                stages: list[np.ndarray] = []
-                for _ in range(rounds):
-                    for side, (addr, _stop) in servers.items():
-                        n, window_lat, window_sizes, window_stages = drive(pool, addr, c, seconds)
-                        calls[side] += n
-                        lat[side] += window_lat
-                        if side == "ours":
-                            sizes += window_sizes
-                            stages.append(window_stages)
-                window = rounds * seconds
-                for side in servers:
-                    rate[(side, c)] = calls[side] / window
-                ours_p99[c] = float(np.percentile(lat["ours"], 99))
-                st = np.concatenate(stages).mean(axis=0) / 1e3 if stages else np.zeros(4)
-                note = (
-                    f"mean batch {np.mean(sizes):.1f}; ours stages ms: queue {st[0]:.1f}, preprocess {st[1]:.1f}, "
-                    f"forward {st[2]:.1f}, postprocess {st[3]:.2f}"
-                )
-                group = f"inference flow_vla ({n_params / 1e6:.2f}M params, 64x64 camera, chunk 8x3), {c} robots"
-                rows += [
-                    Row(group, "Act calls/s", rate[("ours", c)], rate[("peer", c)], "calls/s", True, note, PEER),
-                    Row(group, "Act latency p50", median(lat["ours"]), median(lat["peer"]), "ms", False, "", PEER),
-                    Row(
-                        group,
-                        "Act latency p99",
-                        ours_p99[c],
-                        float(np.percentile(lat["peer"], 99)),
-                        "ms",
-                        False,
-                        "",
-                        PEER,
-                    ),
-                ]
-        finally:
-            for _addr, stop in servers.values():
-                stop()
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as the inference service's run() does; the same for both servers
+    try:
+        with multiprocessing.get_context("spawn").Pool(max(concurrency)) as pool:
+            pool.map(_warm, range(max(concurrency)), chunksize=1)
+            servers = {"ours": start_ours(cfg, weights), "peer": start_peer(cfg, weights)}
+            try:
+                for c in concurrency:
+                    log(f"inference_vla: {c} robots")
+                    windows: dict[str, list[Window]] = {s: [] for s in servers}
+                    for _ in range(rounds):
+                        for side, (addr, _stop) in servers.items():
+                            windows[side].append(drive(pool, addr, c, seconds))
+                    rows += _rows(c, n_params, windows, rounds * seconds, rate, ours_p99)
+            finally:
+                for _addr, stop in servers.values():
+                    stop()
+    finally:
+        torch.set_num_threads(threads)
     top = max(c for c in concurrency if c <= 16)
     target = "target >= 4x" if top == 16 else "target at 16 robots >= 4x"
     rows.append(

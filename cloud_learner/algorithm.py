@@ -57,6 +57,7 @@ class BatchRequest:
     tables: dict[str, float] = field(default_factory=lambda: {"online": 1.0})  # table -> share of the batch
     n_step: int = 1
     gamma: float = 1.0  # the discount replay sums n-step rewards with (used when n_step > 1)
+    action_horizon: int = 1  # > 1: Batch.action_chunk holds each row's next H actions of its episode
 
 
 @dataclass
@@ -72,6 +73,10 @@ class Batch:
     discount: torch.Tensor | None = None  # (B,) gamma**n per row when n-step; None = gamma
     embodiment: torch.Tensor | None = None  # (B,) int64 index into Layout.embodiments
     action_mask: torch.Tensor | None = None  # (B, action_dim) bool: real (not padded) action dims
+    # BatchRequest.action_horizon > 1: actions t..t+H-1 of each row's episode, (B, H, action_dim) float32,
+    # the last real one repeated past the episode's end, where chunk_mask (B, H) bool is false.
+    action_chunk: torch.Tensor | None = None
+    chunk_mask: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return int(self.action.shape[0])

@@ -128,6 +128,13 @@ def decode_arrays(batch: replay_pb2.Batch, keys: list[str]) -> dict[str, Any]:
     }
     if batch.HasField("n_steps"):  # n-step rows: bootstrap with gamma ** n_steps (fewer at an episode's end)
         out["n_steps"] = _decode(batch.n_steps, "n_steps").reshape(n).astype(np.float32, copy=False)
+    if batch.HasField("action_chunk"):  # the next H actions per row (SampleRequest.action_horizon > 1)
+        chunk = _decode(batch.action_chunk, "action_chunk")
+        mask = _decode(batch.chunk_mask, "chunk_mask") if batch.HasField("chunk_mask") else None
+        if chunk.ndim < 2 or chunk.shape[0] != n or mask is None or mask.shape != chunk.shape[:2]:
+            raise WireError(f"action_chunk {list(chunk.shape)} and chunk_mask do not match a batch of {n}")
+        out["action_chunk"] = chunk.reshape(n, chunk.shape[1], -1).astype(np.float32, copy=False)
+        out["chunk_mask"] = mask.astype(bool, copy=False)
     for key in keys:
         for part in (obs[key], nxt[key]):
             if part.shape[:1] != (n,):
@@ -145,6 +152,9 @@ def _check_layout(arrays: dict[str, Any], layout: Layout) -> None:
                 )
     if arrays["action"].shape != (n, layout.action_dim):
         raise WireError(f"actions are {list(arrays['action'].shape)}, the layout has {layout.action_dim} dims")
+    chunk = arrays.get("action_chunk")
+    if chunk is not None and chunk.shape[2:] != (layout.action_dim,):
+        raise WireError(f"action chunks are {list(chunk.shape)}, the layout has {layout.action_dim} dims")
 
 
 def _pad(arrays: dict[str, Any], layout: Layout, kind: str) -> dict[str, Any]:
@@ -153,6 +163,10 @@ def _pad(arrays: dict[str, Any], layout: Layout, kind: str) -> dict[str, Any]:
 
     n = arrays["action"].shape[0]
     action, mask = pad_action(arrays["action"], layout.action_dim)
+    chunk = arrays.get("action_chunk")
+    if chunk is not None:  # pad each action of the chunk alike
+        padded, _ = pad_action(chunk.reshape(-1, chunk.shape[-1]), layout.action_dim)
+        arrays = {**arrays, "action_chunk": padded.reshape(n, chunk.shape[1], layout.action_dim)}
     return {
         **arrays,
         "observation": pad_observation(layout, kind, arrays["observation"], n),
@@ -190,6 +204,8 @@ def to_batch(arrays: dict[str, Any], device: str | torch.device, gamma: float = 
         intervention=t(arrays["intervention"]),
         embodiment=t(arrays["embodiment"]) if "embodiment" in arrays else None,
         action_mask=t(arrays["action_mask"]) if "action_mask" in arrays else None,
+        action_chunk=t(arrays["action_chunk"]) if "action_chunk" in arrays else None,
+        chunk_mask=t(arrays["chunk_mask"]) if "chunk_mask" in arrays else None,
         discount=t(np.power(gamma, arrays["n_steps"]).astype(np.float32)) if "n_steps" in arrays else None,
     )
 
@@ -404,6 +420,8 @@ class ExperimentRun:
         request = replay_pb2.SampleRequest(batch_size=batch_size, robot_ids=robot_ids)
         if req.n_step > 1:  # replay sums the discounted rewards; the batch says how many steps each row holds
             request.n_step, request.gamma = req.n_step, req.gamma
+        if req.action_horizon > 1:  # replay assembles each row's next H actions (action-chunking policies)
+            request.action_horizon = req.action_horizon
         if "tables" in replay_pb2.SampleRequest.DESCRIPTOR.fields_by_name:  # replay with tables (RLPD's shares)
             # The algorithm's default ("online" only) means the experiment's own table; for "online" that is
             # no tables at all (uniform over every transition, as before tables existed).

@@ -183,7 +183,9 @@ class ShardedSampler:
     def _sample_one(
         self, shard: Shard, request: replay_pb2.SampleRequest, n: int, timeout: float
     ) -> replay_pb2.Batch | None:
-        req = replay_pb2.SampleRequest(batch_size=n, robot_ids=request.robot_ids)
+        req = replay_pb2.SampleRequest()
+        req.CopyFrom(request)  # the same tables, sampler, n-step, frame stack and action horizon
+        req.batch_size = n
         try:
             resp = shard.stub.Sample(req, timeout=timeout)
         except grpc.RpcError as err:

@@ -189,10 +189,11 @@ def test_the_policys_own_steps_are_not_imitated_from_a_mixed_table() -> None:
 def test_chunk_targets_need_chunks() -> None:
     algo = ALGORITHMS.build("flow_bc", {"horizon": 4, "hidden": 32}, layout=LAYOUT, device=torch.device("cpu"))
     assert algo.batch_request().tables == {"demos": 0.5, "interventions": 0.5}
+    assert algo.batch_request().action_horizon == 4  # replay assembles the chunks
     batch, _ = human_batch(intervention=True)
     with pytest.raises(ValueError, match="action_chunk"):
         algo.update(batch)
-    batch.action_chunk = batch.action[:, None, :].repeat(1, 4, 1)  # type: ignore[attr-defined]
+    batch.action_chunk = batch.action[:, None, :].repeat(1, 4, 1)
     assert np.isfinite(algo.update(batch)["flow_loss"])
 
 

@@ -6,9 +6,12 @@ is a batch drawn half from the `demos` table and half from `interventions` (conf
 one gradient step on the flow-matching loss per update. Rows the policy chose itself (not an
 intervention) are skipped when they come from a table that mixes both (e.g. `online`).
 
-Chunks: a row's target chunk is `batch.action_chunk` (B, horizon, A) when the sampler provides n
-consecutive actions; a Batch of single-step actions trains horizon 1 (set `horizon: 1`), since
-guessing the rest of a chunk would teach the wrong thing.
+Chunks: with `horizon` H > 1 the batch request asks replay for each row's next H actions of its
+episode (BatchRequest.action_horizon -> SampleRequest.action_horizon); the target is
+`batch.action_chunk` (B, H, A) and the loss skips the padding past an episode's end
+(`batch.chunk_mask`). An intervention row's chunk holds only the human's actions (replay ends it
+where the human handed back). A batch without chunks trains horizon 1 only: guessing the rest of
+a chunk would teach the wrong thing.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ from user.v1 import learner_pb2
 class FlowBcParams(PluginParams):
     batch_size: int = Field(64, ge=1, description="rows per update")
     lr: float = Field(3e-4, gt=0, description="Adam learning rate")
-    horizon: int = Field(1, ge=1, description="actions per chunk (needs action_chunk in batches when > 1)")
+    horizon: int = Field(1, ge=1, le=256, description="actions per chunk; > 1 asks replay for action chunks")
     tables: dict[str, float] = Field(
         default_factory=lambda: {"demos": 0.5, "interventions": 0.5}, description="replay tables and their shares"
     )
@@ -78,18 +81,21 @@ class FlowBc(Algorithm):
         self.scaler = ActionScaler(self.config, device)
 
     def batch_request(self) -> BatchRequest:
-        return BatchRequest(batch_size=self.p.batch_size, tables=dict(self.p.tables))
+        return BatchRequest(
+            batch_size=self.p.batch_size, tables=dict(self.p.tables), action_horizon=self.config.horizon
+        )
 
-    def targets(self, batch: Batch) -> torch.Tensor:
-        """(B, horizon, A) normalised target chunks."""
-        chunk = getattr(batch, "action_chunk", None)
+    def targets(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(B, horizon, A) normalised target chunks and their (B, horizon) mask of real actions (None: all)."""
+        chunk, mask = batch.action_chunk, batch.chunk_mask
         if chunk is None:
             if self.config.horizon != 1:
                 raise ValueError(f"flow_bc horizon {self.config.horizon} needs batch.action_chunk; this batch has none")
             chunk = batch.action[:, None, :]
         if tuple(chunk.shape[1:]) != (self.config.horizon, self.config.action_dim):
             raise ValueError(f"action_chunk shape {tuple(chunk.shape)} does not match the policy's chunk")
-        return self.scaler.normalize(chunk.to(self.device).float())
+        mask = mask.to(self.device).bool() if mask is not None else None
+        return self.scaler.normalize(chunk.to(self.device).float()), mask
 
     def row_weights(self, batch: Batch) -> torch.Tensor | None:
         """1 for human rows, 0 for the policy's own; None = every row counts."""
@@ -111,7 +117,8 @@ class FlowBc(Algorithm):
             return {"flow_loss": float("nan"), "human_rows": 0.0}
         self.model.train()
         context = self.model.encode(prepared.images, prepared.state, prepared.tokens)
-        loss = self.model.flow_loss(context, self.targets(batch), weight)
+        target, mask = self.targets(batch)
+        loss = self.model.flow_loss(context, target, weight, mask)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()

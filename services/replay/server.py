@@ -29,6 +29,7 @@ import grpc
 import numpy as np
 import prometheus_client
 
+from services.replay.chunks import add_action_chunks, horizon_problem
 from services.replay.prefetch import Prefetcher
 from services.replay.store import (
     EmptyBufferError,
@@ -486,7 +487,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             self._rate_limit(request, robot_ids, context)
             key = request.SerializeToString(deterministic=True)
             served = self.prefetch.served
-            batch, size = self.prefetch.get(key, lambda: self._assemble(draw))
+            batch, size = self.prefetch.get(key, lambda: self._assemble(draw, request.action_horizon))
             if self.prefetch.served > served:
                 PREFETCH_SERVED.inc()
             transitions = self.store.transitions_for(robot_ids)
@@ -508,10 +509,11 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         SAMPLE_SECONDS.observe(time.perf_counter() - start)
         return resp
 
-    def _assemble(self, draw: Draw) -> tuple[replay_pb2.Batch, int]:
+    def _assemble(self, draw: Draw, action_horizon: int = 1) -> tuple[replay_pb2.Batch, int]:
         with self._rng_lock:
             rng = np.random.default_rng(self._rng.integers(1 << 63))
         arrays = self.store.sample(draw.batch_size, rng, draw=draw)
+        add_action_chunks(self.store, arrays, action_horizon)  # the next H actions per row (H > 1)
         size = _nbytes(arrays)
         if size > MAX_BATCH_BYTES:
             return replay_pb2.Batch(), size
@@ -610,6 +612,8 @@ def sample_request_problem(req: replay_pb2.SampleRequest) -> str | None:
         return f"unknown sampler {req.sampler}"
     if req.frame_stack > MAX_FRAME_STACK:
         return f"frame_stack must be at most {MAX_FRAME_STACK}, got {req.frame_stack}"
+    if (problem := horizon_problem(req.action_horizon)) is not None:
+        return problem
     if req.n_step > MAX_N_STEP:
         return f"n_step must be at most {MAX_N_STEP}, got {req.n_step}"
     if req.n_step > 1 and not (0 < req.gamma <= 1):
@@ -656,6 +660,8 @@ def to_batch(arrays: dict[str, Any]) -> replay_pb2.Batch:
         indices=wire.to_tensor(arrays["indices"]) if "indices" in arrays else None,
         weights=wire.to_tensor(arrays["weights"]) if "weights" in arrays else None,
         n_steps=wire.to_tensor(arrays["n_steps"]) if "n_steps" in arrays else None,
+        action_chunk=wire.to_tensor(arrays["action_chunk"]) if "action_chunk" in arrays else None,
+        chunk_mask=wire.to_tensor(arrays["chunk_mask"]) if "chunk_mask" in arrays else None,
     )
 
 

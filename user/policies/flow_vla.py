@@ -123,12 +123,26 @@ class FlowVla(nn.Module):
         inp = torch.cat([x.flatten(1), _time_embedding(t), context], dim=-1)
         return self.expert(inp).view_as(x)
 
-    def flow_loss(self, context: torch.Tensor, chunk: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
-        """Flow-matching loss for normalised target chunks (B, horizon, A) in [-1, 1]."""
+    def flow_loss(
+        self,
+        context: torch.Tensor,
+        chunk: torch.Tensor,
+        weight: torch.Tensor | None = None,
+        mask: torch.Tensor | None = None,
+    ) -> torch.Tensor:
+        """Flow-matching loss for normalised target chunks (B, horizon, A) in [-1, 1].
+
+        weight (B,): per-row weights; mask (B, horizon) bool: the chunk's real actions (padding past an
+        episode's end does not count; the row's loss is the mean over its real ones)."""
         noise = torch.randn_like(chunk)
         t = torch.rand(chunk.shape[0], device=chunk.device)
         x_t = t[:, None, None] * chunk + (1 - t[:, None, None]) * noise
-        err = (self.velocity(x_t, t, context) - (chunk - noise)).pow(2).mean(dim=(1, 2))
+        err = (self.velocity(x_t, t, context) - (chunk - noise)).pow(2).mean(dim=2)  # (B, horizon)
+        if mask is None:
+            err = err.mean(dim=1)
+        else:
+            m = mask.to(err.dtype)
+            err = (err * m).sum(dim=1) / m.sum(dim=1).clamp(min=1.0)
         return (err * weight).sum() / weight.sum().clamp(min=1e-6) if weight is not None else err.mean()
 
     def sample(self, context: torch.Tensor, deterministic: bool) -> torch.Tensor:
@@ -269,7 +283,7 @@ class FlowVlaPolicy(Policy):
     def preprocess(self, observation: Mapping[str, np.ndarray], instructions: Sequence[str]) -> Prepared:
         return self.prep(observation, instructions)
 
-    @torch.no_grad()
+    @torch.inference_mode()  # no autograd bookkeeping at all (a few % faster than no_grad on CPU)
     def forward(self, prepared: Prepared, deterministic: bool = False) -> np.ndarray:
         context = self.model.encode(prepared.images, prepared.state, prepared.tokens)
         chunk = self.scaler.unnormalize(self.model.sample(context, deterministic))
