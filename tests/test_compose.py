@@ -139,10 +139,13 @@ def test_named_volumes_used_and_declared_match(compose: dict[str, Any], services
     used = {src for svc in services.values() for src, _ in _volumes(svc) if not src.startswith((".", "/"))}
     declared = set(compose.get("volumes") or {})
     assert used == declared
-    assert {"replay-data", "checkpoints", "prometheus-data", "grafana-data"} == declared
+    assert {"control-data", "replay-data", "checkpoints", "prometheus-data", "grafana-data"} == declared
 
 
 def test_state_lives_on_the_named_volumes(services: dict[str, dict[str, Any]], cfg: StackConfig) -> None:
+    control_mounts = {t: s for s, t in _volumes(services["control"])}
+    assert cfg.control.state_path is not None
+    assert control_mounts.get(str(cfg.control.state_path.parent)) == "control-data"
     replay_mounts = {t: s for s, t in _volumes(services["replay"])}
     learner_mounts = {t: s for s, t in _volumes(services["learner"])}
     assert replay_mounts.get(str(cfg.replay.path)) == "replay-data"
@@ -434,7 +437,7 @@ def test_dockerfile_generates_stubs_like_the_makefile() -> None:
 
 def test_dockerfile_prepares_the_volume_mount_points(services: dict[str, dict[str, Any]]) -> None:
     docker = "\n".join(_dockerfile())
-    for name in ("replay", "learner"):
+    for name in ("control", "replay", "learner"):
         for source, target in _volumes(services[name]):
             if not source.startswith("."):
                 assert re.search(rf"mkdir -p [^&]*{re.escape(target)}\b", docker), target
