@@ -3,10 +3,10 @@
 Builds the image, brings docker-compose.yml up under its own project name, and checks:
   every service healthy (docker's health status); steps reaching replay (Replay.Stats); the learner's weight
   version advancing (Learner.GetStatus); Prometheus scraping every target ("up" in /api/v1/targets);
-  then `docker kill` of replay and of the learner: both come back by their restart policy, nothing an edge had
-  acked is lost (replay's stored steps per robot == the edges' acked counters once the robots are paused and
-  their spools are empty: every step reaches replay exactly once), and the weight version keeps advancing and
-  never goes back. Tears everything down (`down -v`) whatever happened. Prints a table and writes
+  then a crash (SIGKILL of the process) of replay and of the learner: both come back by their restart policy,
+  nothing an edge had acked is lost (replay's stored steps per robot == the edges' acked counters once the robots
+  are paused and their spools are empty: every step reaches replay exactly once), and the weight version keeps
+  advancing and never goes back. Tears everything down (`down -v`) whatever happened. Prints a table and writes
   runs/compose/latest.json.
 
 Works with `docker compose` (v2) or Debian's `docker-compose` 1.29, whichever is there. Where public registries
@@ -22,6 +22,7 @@ import os
 import random
 import secrets
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -183,8 +184,13 @@ def check_acked_not_lost(stack: Stack) -> dict[str, Any]:
 def kill_and_recover(stack: Stack, service: str, timeout: float) -> dict[str, Any]:
     before = stack.restarts(service)
     t0 = time.monotonic()
-    run(["docker", "kill", stack.containers()[service]])
-    log(f"docker kill {service}")
+    # A crash, as docker sees one: SIGKILL to the service process (the child of the init, tini). `docker kill`
+    # would not do: docker treats it as a manual stop and cancels the restart policy for that container.
+    cid = stack.containers()[service]
+    init_pid = run(["docker", "inspect", "--format", "{{.State.Pid}}", cid]).strip()
+    child = run(["pgrep", "-P", init_pid]).split()[0]
+    os.kill(int(child), signal.SIGKILL)
+    log(f"SIGKILL {service} (pid {child} on the host)")
     wait_for(f"{service} restarted", lambda: stack.restarts(service) > before, timeout, every=0.5)
     restarted = time.monotonic() - t0
     wait_for(f"{service} healthy again", lambda: stack.health().get(service) == "healthy", timeout, every=1.0)
@@ -292,7 +298,7 @@ def table(res: dict[str, Any]) -> str:
     for svc in ("replay", "learner"):
         k = res.get(f"kill_{svc}")
         if k:
-            rows.append((f"docker kill {svc}", f"restarted {k['restarted_s']} s, healthy {k['healthy_again_s']} s"))
+            rows.append((f"SIGKILL {svc}", f"restarted {k['restarted_s']} s, healthy {k['healthy_again_s']} s"))
     if "final" in res:
         f = res["final"]
         rows.append(("acked == stored (per robot)", ", ".join(f"{r} {int(n)}" for r, n in f["acked"].items())))
