@@ -517,7 +517,8 @@ def test_the_compose_file_has_nothing_compose_1_29_rejects(compose: dict[str, An
 def _docker_compose_1(*args: str, token: str | None) -> subprocess.CompletedProcess[str]:
     import os
 
-    env = {k: v for k, v in os.environ.items() if not k.startswith(("USER_", "COMPOSE_"))}
+    variables = ("USER_", "COMPOSE_", "BASE_IMAGE", "PROMETHEUS_IMAGE")  # what the file reads: defaults only
+    env = {k: v for k, v in os.environ.items() if not k.startswith(variables)}
     if token is not None:
         env["USER_TOKEN"] = token
     return subprocess.run(
