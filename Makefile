@@ -10,13 +10,14 @@ STUBS := user/v1/.generated
 FIND_PY312 := for c in python3.12 $$HOME/.pyenv/versions/3.12*/bin/python3.12 /usr/local/bin/python3.12 /usr/bin/python3.12; do \
 	if "$$c" -c 'import sys; assert sys.version_info[:2] == (3, 12)' 2>/dev/null; then echo "$$c"; break; fi; done
 
-.PHONY: install proto demo test test-fast lint bench load clean help fuzz
+.PHONY: install proto demo test test-fast lint bench load clean help fuzz compose-test
 
 help:
 	@echo "make demo   install + train two embodiments at once (2 sim arms reach, a Panda picks) through the five services"
 	@echo "make test   install + run the test suite"
 	@echo "make fuzz   long property-based run over every RPC (10k examples per test)"
 	@echo "make load   64 simulated robots at 10 Hz for 10 min against one local stack (LOAD_ARGS=\"--duration 30 --edges 8\")"
+	@echo "make compose-test  build the image, run docker-compose.yml, kill replay and learner, check, tear down"
 	@echo "make proto | lint | bench | clean"
 
 $(STAMP): pyproject.toml constraints.txt
@@ -49,6 +50,11 @@ test-fast: install
 # Long property-based run: >= 10k messages per RPC group of every service (the normal run does 40).
 fuzz: install
 	USER_FUZZ_EXAMPLES=10000 MUJOCO_GL=egl $(PY) -m pytest -q -s tests/test_fuzz.py
+
+# Not part of `make test`: needs a docker engine and builds a 6 GB image (docs/notes/ops.md). Uses the local
+# Debian bases from deploy/docker/build-base.sh when they exist (no public registry needed).
+compose-test: install
+	$(PY) deploy/compose_test.py
 
 lint: install
 	$(VENV)/bin/ruff check .

@@ -8,6 +8,8 @@ import fnmatch
 import json
 import re
 import shlex
+import shutil
+import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -137,10 +139,13 @@ def test_named_volumes_used_and_declared_match(compose: dict[str, Any], services
     used = {src for svc in services.values() for src, _ in _volumes(svc) if not src.startswith((".", "/"))}
     declared = set(compose.get("volumes") or {})
     assert used == declared
-    assert {"replay-data", "checkpoints", "prometheus-data", "grafana-data"} == declared
+    assert {"control-data", "replay-data", "checkpoints", "prometheus-data", "grafana-data"} == declared
 
 
 def test_state_lives_on_the_named_volumes(services: dict[str, dict[str, Any]], cfg: StackConfig) -> None:
+    control_mounts = {t: s for s, t in _volumes(services["control"])}
+    assert cfg.control.state_path is not None
+    assert control_mounts.get(str(cfg.control.state_path.parent)) == "control-data"
     replay_mounts = {t: s for s, t in _volumes(services["replay"])}
     learner_mounts = {t: s for s, t in _volumes(services["learner"])}
     assert replay_mounts.get(str(cfg.replay.path)) == "replay-data"
@@ -394,9 +399,13 @@ def _protoc_args(text: str) -> list[str]:
     return [a for a in shlex.split(match.group(1)) if a.startswith("-")]
 
 
-def test_dockerfile_base_entrypoint_user_and_mujoco() -> None:
+def test_dockerfile_base_entrypoint_user_and_mujoco(services: dict[str, dict[str, Any]]) -> None:
     lines = _dockerfile()
-    assert re.fullmatch(r"FROM python:3\.12-slim(-\w+)?", lines[0]), lines[0]
+    arg = re.fullmatch(r"ARG BASE_IMAGE=(\S+)", lines[0])
+    assert arg and re.fullmatch(r"python:3\.12-slim(-\w+)?", arg.group(1)), lines[0]
+    assert lines[1] == "FROM ${BASE_IMAGE}"
+    # compose passes the same default, so `docker compose build` and `docker build` make the same image
+    assert services["control"]["build"]["args"]["BASE_IMAGE"] == f"${{BASE_IMAGE:-{arg.group(1)}}}"
     assert lines.count('ENTRYPOINT ["userctl"]') == 1
     users = [line.split()[1] for line in lines if line.startswith("USER ")]
     assert users and users[-1] not in ("root", "0"), "the image must not run as root"
@@ -428,7 +437,7 @@ def test_dockerfile_generates_stubs_like_the_makefile() -> None:
 
 def test_dockerfile_prepares_the_volume_mount_points(services: dict[str, dict[str, Any]]) -> None:
     docker = "\n".join(_dockerfile())
-    for name in ("replay", "learner"):
+    for name in ("control", "replay", "learner"):
         for source, target in _volumes(services[name]):
             if not source.startswith("."):
                 assert re.search(rf"mkdir -p [^&]*{re.escape(target)}\b", docker), target
@@ -468,3 +477,106 @@ def test_dockerignore_keeps_the_build_inputs_and_drops_local_state() -> None:
         assert not _ignored(path, patterns), f".dockerignore drops {path}"
     for path in (".venv/bin/python", "runs/demo/replay/data.mdb", "user/v1/replay_pb2.py", ".git/HEAD"):
         assert _ignored(path, patterns), f".dockerignore keeps {path}"
+
+
+# --------------------------------------------------------------------------- both compose versions, local bases
+
+PUBLISH = "${USER_PUBLISH_HOST:-127.0.0.1}:"
+
+
+def _compose_schema() -> dict[str, Any]:
+    """The Compose Specification's JSON schema, as check-jsonschema (a pinned dev dependency) vendors it."""
+    from importlib import resources
+
+    vendor = resources.files("check_jsonschema.builtin_schemas.vendor")
+    return json.loads(vendor.joinpath("compose-spec.json").read_text())
+
+
+def test_the_compose_file_follows_the_compose_specification(compose: dict[str, Any]) -> None:
+    """What `docker compose` v2 reads: the Compose Specification (Debian ships no v2 plugin to run it here)."""
+    import jsonschema
+
+    schema = _compose_schema()
+    validator = jsonschema.validators.validator_for(schema)(schema)
+    errors = [f"{'/'.join(map(str, e.absolute_path))}: {e.message}" for e in validator.iter_errors(compose)]
+    assert not errors, errors
+    for path, value in [
+        (("replay", "restart_policy"), "always"),
+        (("learner", "depends_on"), {"replay": {"condition": "healthy"}}),
+    ]:
+        broken = json.loads(json.dumps(compose))
+        broken["services"][path[0]][path[1]] = value
+        assert list(validator.iter_errors(broken)), f"the schema must catch {path}={value}"
+
+
+def test_the_compose_file_has_nothing_compose_1_29_rejects(compose: dict[str, Any]) -> None:
+    assert "name" not in compose, "docker-compose 1.29 rejects a top-level name: (pass -p)"
+    assert "version" not in compose, "the Compose Specification has no version key; v2 warns about it"
+
+
+def _docker_compose_1(*args: str, token: str | None) -> subprocess.CompletedProcess[str]:
+    import os
+
+    variables = ("USER_", "COMPOSE_", "BASE_IMAGE", "PROMETHEUS_IMAGE")  # what the file reads: defaults only
+    env = {k: v for k, v in os.environ.items() if not k.startswith(variables)}
+    if token is not None:
+        env["USER_TOKEN"] = token
+    return subprocess.run(
+        ["docker-compose", "-p", "usertest", "-f", "docker-compose.yml", *args],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+
+
+@pytest.mark.skipif(shutil.which("docker-compose") is None, reason="docker-compose (1.29, Debian) not installed")
+def test_docker_compose_1_29_parses_and_resolves_the_file() -> None:
+    out = _docker_compose_1("config", token="tok")
+    assert out.returncode == 0, out.stderr
+    resolved = yaml.safe_load(out.stdout)
+    assert set(USER_SERVICES) | {"prometheus"} <= set(resolved["services"])
+    for name in USER_SERVICES:
+        svc = resolved["services"][name]
+        assert svc["environment"]["USER_TOKEN"] == "tok"
+        assert svc["build"]["args"]["BASE_IMAGE"].startswith("python:3.12-slim")
+        assert {str(p).split(":")[0] for p in svc["ports"]} == {"127.0.0.1"}, f"{name} publishes beyond the loopback"
+    missing = _docker_compose_1("config", "-q", token=None)
+    assert missing.returncode != 0 and "set USER_TOKEN" in missing.stderr
+
+
+def test_every_port_is_published_on_the_configurable_loopback(services: dict[str, dict[str, Any]]) -> None:
+    for name, svc in services.items():
+        for spec in svc.get("ports", []):
+            assert str(spec).startswith(PUBLISH), f"{name}: {spec} (default must be the loopback)"
+
+
+def test_grafana_is_opt_in_and_prometheus_image_replaceable(services: dict[str, dict[str, Any]]) -> None:
+    assert services["grafana"]["profiles"] == ["grafana"], "Grafana is not in Debian: a profile keeps it optional"
+    assert all("profiles" not in services[name] for name in (*USER_SERVICES, "prometheus"))
+    prom = services["prometheus"]
+    assert re.fullmatch(r"\$\{PROMETHEUS_IMAGE:-prom/prometheus:v[\d.]+\}", prom["image"]), prom["image"]
+    assert prom["healthcheck"]["test"][:4] == ["CMD", "promtool", "check", "healthy"]
+    assert all(a.startswith("--") for a in prom["command"]), "flags only: both images' entrypoint is prometheus"
+    local = (ROOT / "deploy" / "docker" / "prometheus.Dockerfile").read_text()
+    assert 'ENTRYPOINT ["/usr/bin/prometheus"]' in local
+    assert re.search(r"apt-get install [^&]*\bprometheus\b", local)
+
+
+def test_the_local_base_script_builds_what_compose_test_uses() -> None:
+    script = ROOT / "deploy" / "docker" / "build-base.sh"
+    assert script.stat().st_mode & 0o111, "build-base.sh must be executable"
+    subprocess.run(["bash", "-n", str(script)], check=True)
+    text = script.read_text()
+    for pkg in ("python3", "python3-venv", "python3-dev", "gcc", "libc6-dev"):
+        assert re.search(rf"--include=[^ ]*\b{pkg}\b", text), pkg
+    driver = (ROOT / "deploy" / "compose_test.py").read_text()
+    base = re.search(r'LOCAL_BASE, LOCAL_PROMETHEUS = "([^"]+)", "([^"]+)"', driver)
+    assert base, "compose_test.py names the local images"
+    assert base.group(1) == "user-base:trixie" and "BASE_TAG=${USER_BASE_IMAGE:-user-base:$SUITE}" in text
+    assert (
+        base.group(2) == "user-prometheus:trixie"
+        and "PROM_TAG=${USER_PROMETHEUS_IMAGE:-user-prometheus:$SUITE}" in text
+    )
+    assert "SUITE=${1:-trixie}" in text
