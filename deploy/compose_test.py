@@ -6,8 +6,9 @@ Builds the image, brings docker-compose.yml up under its own project name, and c
   then a crash (SIGKILL of the process) of replay and of the learner: both come back by their restart policy,
   nothing an edge had acked is lost (replay's stored steps per robot == the edges' acked counters once the robots
   are paused and their spools are empty: every step reaches replay exactly once), and the weight version keeps
-  advancing and never goes back. Tears everything down (`down -v`) whatever happened. Prints a table and writes
-  runs/compose/latest.json.
+  advancing and never goes back; then `docker kill` of both (docker keeps a killed container down: a manual
+  stop), 10 s down while the edges spool, and the operator's `start`: the same checks.
+Tears everything down (`down -v`) whatever happened. Prints a table and writes runs/compose/latest.json.
 
 Works with `docker compose` (v2) or Debian's `docker-compose` 1.29, whichever is there. Where public registries
 cannot be reached, build the local bases first (deploy/docker/build-base.sh); they are used when present.
@@ -199,6 +200,43 @@ def kill_and_recover(stack: Stack, service: str, timeout: float) -> dict[str, An
     return {"restarted_s": round(restarted, 1), "healthy_again_s": round(healthy, 1)}
 
 
+def versions_after_restart(stack: Stack, version_before: int, what: str, timeout: float) -> list[int]:
+    """The weight versions a restarted learner publishes, until they advance; each must be above every version
+    published before (0 = nothing published yet by the new process, skipped)."""
+    versions: list[int] = []
+
+    def advanced() -> bool:
+        v = stack.learner_status().weight_version
+        if v:
+            versions.append(v)
+        return len(versions) > 1 and versions[-1] > versions[0]
+
+    wait_for(f"weight version advancing after {what}", advanced, timeout)
+    if min(versions) <= version_before:
+        raise Failed(f"weight version {version_before} before {what}, {min(versions)} after: a version was reused")
+    if versions != sorted(versions):
+        raise Failed(f"weight versions went back after {what}: {versions}")
+    return versions
+
+
+def docker_kill_and_start(stack: Stack, services: list[str], timeout: float) -> dict[str, Any]:
+    """`docker kill` (SIGKILL, which docker records as a manual stop: no restart by policy), a pause with the
+    services down while the edges keep collecting into their spools, then the operator's `start`."""
+    version_before = stack.learner_status().weight_version
+    t0 = time.monotonic()
+    run(["docker", "kill", *(stack.containers()[s] for s in services)])
+    log(f"docker kill {' '.join(services)}")
+    wait_for("killed containers down", lambda: all(stack.health().get(s) == "exited" for s in services), timeout)
+    time.sleep(10.0)  # the edges spool what they collect meanwhile
+    stack.dc("start", *services)
+    back = lambda: all(stack.health().get(s) == "healthy" for s in services)  # noqa: E731
+    wait_for("killed services healthy again", back, timeout)
+    healthy = time.monotonic() - t0
+    versions = versions_after_restart(stack, version_before, "docker kill + start", timeout)
+    log(f"docker kill + start: healthy after {healthy:.1f}s, weight version {version_before} -> {versions[-1]}")
+    return {"healthy_again_s": round(healthy, 1), "version_before": version_before, "versions_after": versions[-1]}
+
+
 def scenario(stack: Stack, services: list[str], timeout: float) -> dict[str, Any]:
     res: dict[str, Any] = {}
     t0 = time.monotonic()
@@ -235,18 +273,12 @@ def scenario(stack: Stack, services: list[str], timeout: float) -> dict[str, Any
 
     version_before = stack.learner_status().weight_version
     res["kill_learner"] = kill_and_recover(stack, "learner", timeout)
-    versions = [stack.learner_status().weight_version]
-    _, took = wait_for(
-        "weight version advancing after the learner's restart",
-        lambda: versions.append(stack.learner_status().weight_version) or versions[-1] > versions[0],
-        timeout,
-    )
-    if min(versions) <= version_before:
-        raise Failed(f"weight version {version_before} before the kill, {min(versions)} after: a version was reused")
-    if versions != sorted(versions):
-        raise Failed(f"weight versions went back after the restart: {versions}")
+    versions = versions_after_restart(stack, version_before, "the learner's restart", timeout)
     res["kill_learner"].update(version_before_kill=version_before, versions_after=[versions[0], versions[-1]])
     log(f"weight version {version_before} before the kill, {versions[0]} -> {versions[-1]} after")
+
+    res["docker_kill"] = docker_kill_and_start(stack, ["replay", "learner"], timeout)
+    res["acked_after_docker_kill"] = check_acked_not_lost(stack)
 
     res["final"] = drain_and_compare(stack, timeout)
     targets, _ = wait_for("Prometheus scraping every target after the kills", targets_up, timeout)
@@ -299,6 +331,9 @@ def table(res: dict[str, Any]) -> str:
         k = res.get(f"kill_{svc}")
         if k:
             rows.append((f"SIGKILL {svc}", f"restarted {k['restarted_s']} s, healthy {k['healthy_again_s']} s"))
+    if "docker_kill" in res:
+        k = res["docker_kill"]
+        rows.append(("docker kill replay+learner, start", f"healthy {k['healthy_again_s']} s (10 s down)"))
     if "final" in res:
         f = res["final"]
         rows.append(("acked == stored (per robot)", ", ".join(f"{r} {int(n)}" for r, n in f["acked"].items())))
