@@ -268,6 +268,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         self.sampled = 0  # transitions handed out (the rate limiter's sample count)
         self.specs = SpecBook(spec_source, store)
         self.episodes = EpisodeGuard()
+        self.episodes.seed(store.episode_bounds())  # episodes that ended before a restart stay ended
         self.commit_max_steps = commit_max_steps
         self.commit_max_delay_s = commit_max_delay_s
         self.rejected = 0

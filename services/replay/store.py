@@ -102,6 +102,8 @@ class Episode:
     success: bool = False
     interventions: int = 0
     tids: list[int] = field(default_factory=list)
+    top: int = -1  # highest step index stored
+    last: int = -1  # index of the step that ended it, -1 while open
 
 
 @dataclass(slots=True)
@@ -216,6 +218,9 @@ class ReplayStore:
                 firsts[prefix] = sc[3]
             firsts[prefix] = min(firsts[prefix], sc[3])
             ep.steps += 1
+            ep.top = max(ep.top, t)
+            if sc[1] & ENDS:
+                ep.last = t
             ep.nbytes += sc[4] + len(key)
             ep.success |= bool(sc[1] & SUCCESS)
             ep.interventions += bool(sc[1] & INTERVENTION)
@@ -458,6 +463,9 @@ class ReplayStore:
             if ep is None:
                 ep = self._episodes[prefix] = Episode(step.robot_id, table)
             ep.steps += 1
+            ep.top = max(ep.top, step.step_index)
+            if step.HasField("final_observation"):
+                ep.last = step.step_index
             ep.nbytes += nbytes + len(key)
             ep.success |= step.success
             ep.interventions += step.intervention
@@ -850,6 +858,16 @@ class ReplayStore:
                     r["success_rate"] = r["successes"] / r["episodes"] if r["episodes"] else 0.0
             if INTERVENTIONS in out:  # its episodes and bytes belong to the tables they were inserted into
                 out[INTERVENTIONS]["episodes"] = sum(e.interventions > 0 for e in self._episodes.values())
+            return out
+
+    def episode_bounds(self) -> list[tuple[str, str, int, int | None]]:
+        """(robot, episode, highest step index, last step index or None) of every stored episode, oldest first:
+        what the service's episode guard needs after a restart to refuse steps after an episode's end."""
+        with self._lock:
+            out = []
+            for prefix, ep in self._episodes.items():
+                episode_id = prefix[len(ep.robot.encode()) + 1 : -1].decode()
+                out.append((ep.robot, episode_id, ep.top, ep.last if ep.last >= 0 else None))
             return out
 
     def cache_info(self) -> dict[str, int]:
