@@ -321,3 +321,28 @@ def test_prioritized_draws_are_proportional_to_the_sum_tree(store: ReplayStore) 
     assert set(got.tolist()) <= {9, *range(n, n + 10)} and len(set(got.tolist())) == 11
     one = store.sample(256, np.random.default_rng(7), draw=draw(256, sampler="prioritized", robot_ids=["arm-1"]))
     assert set(one["indices"].tolist()) <= set(range(40, 64))
+
+
+@pytest.mark.parametrize("encoding", ["jpeg", "png"])
+def test_the_hot_tier_keeps_encoded_frames_and_decodes_them_like_lmdb(tmp_path: Path, encoding: str) -> None:
+    """With image_encoding the hot tier holds the stored JPEG/PNG bytes (far less RAM than raw frames) and the
+    sampler decodes them: a hot batch equals the same batch read from LMDB (cache off), frame for frame."""
+    steps = _camera_episode(40)
+    raw = ReplayStore(tmp_path / "raw", 64)
+    hot = ReplayStore(tmp_path / "hot", 64, image_encoding={"*": encoding})
+    cold = ReplayStore(tmp_path / "cold", 64, cache_mb=0, image_encoding={"*": encoding})
+    try:
+        for s in (raw, hot, cold):
+            s.put_steps(steps)
+        assert hot.cache_info()["entries"] == 40
+        assert hot.cache_info()["bytes"] < raw.cache_info()["bytes"] / 3  # smooth camera-like frames compress
+        a = hot.sample(64, np.random.default_rng(0))
+        b = cold.sample(64, np.random.default_rng(0))
+        assert hot.cache_info()["hits"] == 64 and cold.cache_info()["misses"] == 64
+        np.testing.assert_array_equal(a["indices"], b["indices"])
+        for part in ("observation", "next_observation"):
+            for name in a[part]:
+                np.testing.assert_array_equal(a[part][name], b[part][name])
+    finally:
+        for s in (raw, hot, cold):
+            s.close()

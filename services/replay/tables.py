@@ -251,15 +251,82 @@ class Index:
                 by_table.setdefault((INTERVENTIONS, r.robot), []).append(tid)
             if r.key[:1] != b"\0":  # attached buffers are sampled by their table name only
                 by_table.setdefault((ALL, r.robot), []).append(tid)
+        self._append_tables({k: np.asarray(v, np.int64) for k, v in by_table.items()})
+        return tids
+
+    def _append_tables(self, by_table: dict[tuple[str, int], np.ndarray]) -> None:
+        """New tids (ascending) onto their (table, robot) columns, and onto the sum trees built over them."""
         for (table, code), ids in by_table.items():
             grows = self.all if table == ALL else self.tables.setdefault(table, {})
             grow = grows.get(code)
             if grow is None:
                 grow = grows[code] = Grow(np.int64)
-            grow.extend(np.asarray(ids, np.int64))
+            grow.extend(ids)
             for (t_name, t_code, alpha), tree in self._trees.items():
                 if t_name == table and t_code == code:
                     tree.extend(np.full(len(ids), float(self.max_priority) ** alpha))
+
+    def add_columns(
+        self,
+        keys: list[bytes],
+        robot: np.ndarray,
+        tables: list[str],
+        reward: np.ndarray,
+        terminated: np.ndarray,
+        truncated: np.ndarray,
+        intervention: np.ndarray,
+        policy_version: np.ndarray,
+        group: np.ndarray,
+        hot_row: np.ndarray,
+    ) -> np.ndarray:
+        """add_many for transitions that arrived in order (none has a successor indexed yet), as columns:
+        a transition's predecessor is the one before it in the batch, else looked up once per episode."""
+        n = len(keys)
+        first = len(self.keys)
+        tids = np.arange(first, first + n, dtype=np.int64)
+        self.keys.extend(keys)
+        self.tid_of.update(zip(keys, range(first, first + n), strict=True))
+        self.robot.extend(robot)
+        self.group.extend(group)
+        self.hot_row.extend(hot_row)
+        self.reward.extend(reward)
+        self.terminated.extend(terminated)
+        self.truncated.extend(truncated)
+        self.intervention.extend(intervention)
+        self.policy_version.extend(policy_version)
+        self.next_tid.extend(np.full(n, -1, np.int64))
+        self.prev_tid.extend(np.full(n, -1, np.int64))
+        self.alive.extend(np.ones(n, np.bool_))
+        self.priority.extend(np.full(n, self.max_priority, np.float32))
+        prefixes = [k[:-8] for k in keys]
+        t = np.fromiter((int.from_bytes(k[-8:], "big") for k in keys), np.int64, n)
+        prev = np.full(n, -1, np.int64)
+        if n > 1:
+            adj = np.fromiter(map(bytes.__eq__, prefixes[1:], prefixes[:-1]), np.bool_, n - 1) & (t[1:] == t[:-1] + 1)
+            prev[1:][adj] = tids[:-1][adj]
+        for i in np.flatnonzero((prev < 0) & (t > 0)).tolist():
+            prev[i] = self.tid_of.get(prefixes[i] + int(t[i] - 1).to_bytes(8, "big"), -1)
+        has = prev >= 0
+        self.prev_tid.a[tids[has]] = prev[has]
+        self.next_tid.a[prev[has]] = tids[has]
+        names = set(tables)
+        table_of = np.asarray(tables) if len(names) > 1 else None
+        by_table: dict[tuple[str, int], np.ndarray] = {}
+        for code in np.unique(robot).tolist():
+            mine = robot == code
+            for name in names:
+                m = mine if table_of is None else mine & (table_of == name)
+                if m.any():
+                    by_table[(name, code)] = tids[m]
+            m = mine & intervention
+            if table_of is not None:
+                m &= table_of != INTERVENTIONS
+            if m.any() and INTERVENTIONS not in names:
+                by_table[(INTERVENTIONS, code)] = tids[m]
+            elif m.any():
+                by_table[(INTERVENTIONS, code)] = np.union1d(by_table.get((INTERVENTIONS, code), tids[:0]), tids[m])
+            by_table[(ALL, code)] = tids[mine]
+        self._append_tables(by_table)
         return tids
 
     def evict(self, tids: list[int]) -> None:
