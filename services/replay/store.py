@@ -1043,6 +1043,11 @@ class ReplayStore:
             names = list(tables) or [""]
             return sum(self.index.count(t, robot_ids) for t in names)
 
+    def too_many_tables(self, table: str, limit: int) -> bool:
+        """Whether inserting into `table` would make more than `limit` tables."""
+        with self._lock:
+            return table not in self.index.tables and len(self.index.tables) >= limit
+
     def tables(self) -> list[str]:
         with self._lock:
             return sorted(self.index.tables)
