@@ -377,15 +377,16 @@ class Index:
         for table, k in shares.items():
             if k == 0:
                 continue
-            if self.count(table, req.robot_ids) == 0:
-                what = f"table {table!r}" if table else "the buffer"
-                robots = f" for robots {sorted(set(req.robot_ids))}" if req.robot_ids else ""
-                raise EmptyBufferError(f"no sampleable transitions in {what}{robots} yet")
             if req.sampler == "prioritized":
+                if self.count(table, req.robot_ids) == 0:
+                    raise _empty(table, req.robot_ids)
                 t, w = self._draw_prioritized(table, k, req, rng)
             else:
                 newest = req.window if req.sampler == "recency" else 0  # tids grow with arrival: newest are last
-                t, w = self._draw_one(self.candidates(table, req.robot_ids, newest), k, req, rng)
+                cands = self.candidates(table, req.robot_ids, newest)
+                if len(cands) == 0:
+                    raise _empty(table, req.robot_ids)
+                t, w = self._draw_one(cands, k, req, rng)
             tids.append(t)
             weights.append(w)
         tid = np.concatenate(tids) if len(tids) > 1 else tids[0]
@@ -493,6 +494,12 @@ class Index:
         if ok.any():
             self.max_priority = max(self.max_priority, float(priorities[ok].max()))
         return int(ok.sum())
+
+
+def _empty(table: str, robot_ids: list[str]) -> EmptyBufferError:
+    what = f"table {table!r}" if table else "the buffer"
+    robots = f" for robots {sorted(set(robot_ids))}" if robot_ids else ""
+    return EmptyBufferError(f"no sampleable transitions in {what}{robots} yet")
 
 
 def _split(batch_size: int, ratios: dict[str, float]) -> dict[str, int]:
