@@ -199,6 +199,19 @@ class HotGroup:
             out[name] = self._decode(name, at)
         return out
 
+    def observations_pair(self, rows: np.ndarray, next_rows: np.ndarray) -> tuple[dict, dict]:
+        """observations(rows, "obs") and observations(next_rows, "next"), decoding each encoded frame once
+        (a batch's next observations are often other draws' observations)."""
+        a, b = self.t_obs_row[rows], self.t_next_row[next_rows]
+        obs = {name: column[a] for name, column in self.frames.items()}
+        nxt = {name: column[b] for name, column in self.frames.items()}
+        if self.encoded:
+            uniq, inv = np.unique(np.concatenate([a, b]), return_inverse=True)
+            for name in self.encoded:
+                frames = self._decode(name, uniq)
+                obs[name], nxt[name] = frames[inv[: len(a)]], frames[inv[len(a) :]]
+        return obs, nxt
+
     def _decode(self, name: str, at: np.ndarray) -> np.ndarray:
         """Frames of an encoded feature at ring rows, decoded into one array (on the decoder threads)."""
         shape = self.encoded[name]

@@ -1131,8 +1131,7 @@ class ReplayStore:
         self.hits += n_hot
         self.misses += len(tids) - n_hot
         if hot is not None and n_hot == len(tids) and (same or ok_next.all()):
-            out["observation"] = hot.observations(rows, "obs")
-            out["next_observation"] = hot.observations(next_rows, "next")
+            out["observation"], out["next_observation"] = hot.observations_pair(rows, next_rows)
             action = hot.action[rows]
             out["action"] = action if action.dtype == np.float32 else action.astype(np.float32)
             return
