@@ -13,6 +13,7 @@ import math
 import signal
 import subprocess
 import sys
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +27,7 @@ from user.wire import to_tensor, to_tensor_map
 
 BATCH = 256
 IN_FLIGHT = 8  # Insert requests a client has sent before it waits for their acks (a stream does not wait per step)
+TURN = 8192  # steps each side inserts per turn: ours drains its window at the end of a turn, then the peer goes
 EPISODE_LEN = 50
 STATE_DIM = 15
 ACTION_DIM = 3
@@ -37,17 +39,34 @@ CAMERAS = ("front", "wrist")
 class Shape:
     name: str
     images: bool
+    smooth: bool = False  # camera-like frames (smooth scene + sensor noise) instead of uniform noise
 
     def observation(self, rng: np.random.Generator) -> dict[str, np.ndarray]:
         obs = {"state": rng.standard_normal(STATE_DIM).astype(np.float32)}
         if self.images:
             for cam in CAMERAS:
-                obs[f"camera.{cam}"] = rng.integers(0, 256, (IMAGE_HW, IMAGE_HW, 3), dtype=np.uint8)
+                obs[f"camera.{cam}"] = camera_frame(rng) if self.smooth else noise_frame(rng)
         return obs
 
 
+def noise_frame(rng: np.random.Generator) -> np.ndarray:
+    """Uniform noise: the worst case for any image codec."""
+    return rng.integers(0, 256, (IMAGE_HW, IMAGE_HW, 3), dtype=np.uint8)
+
+
+def camera_frame(rng: np.random.Generator) -> np.ndarray:
+    """A smooth scene (shaded gradients at a random phase, per channel) plus +-3 sensor noise: what a camera sees
+    compresses, noise does not."""
+    yy, xx = np.mgrid[0:IMAGE_HW, 0:IMAGE_HW].astype(np.float32)
+    phase = rng.uniform(0, 2 * np.pi, 3)
+    chans = [110 + 90 * np.sin(xx / (9 + 4 * c) + phase[c]) * np.cos(yy / (13 + 3 * c) - phase[c]) for c in range(3)]
+    img = np.stack(chans, axis=-1) + rng.integers(-3, 4, (IMAGE_HW, IMAGE_HW, 3))
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
 SIM_ARM = Shape("sim-arm (state 15 f32, action 3)", images=False)
-IMAGES = Shape(f"images (2 cams {IMAGE_HW}x{IMAGE_HW}x3 u8, state 15)", images=True)
+IMAGES = Shape(f"images (2 cams {IMAGE_HW}x{IMAGE_HW}x3 u8 noise, state 15)", images=True)
+CAMERA = Shape(f"camera-like (2 cams {IMAGE_HW}x{IMAGE_HW}x3 u8, state 15)", images=True, smooth=True)
 
 
 @dataclass
@@ -115,14 +134,26 @@ def store_transitions(store: Any) -> int:
 
 
 def insert_ours(store: Any, steps: list[step_pb2.Step], on_commit: Callable[[int], None] | None = None) -> None:
-    """Requests of BATCH steps queued as an Insert stream queues them; returns when the last is acknowledged."""
-    futures = [store.submit(steps[i : i + BATCH]) for i in range(0, len(steps), BATCH)]
-    for i, future in enumerate(futures):
-        _stored, dups = future.result()  # resolves after the commit (fsync) that holds these steps
+    """Requests of BATCH steps as an Insert stream sends them: up to IN_FLIGHT unacknowledged, the next sent as
+    the oldest is acknowledged (an edge stream never stops to wait for all); returns when the last is acked."""
+    futures: deque[Any] = deque()
+    done = 0
+
+    def ack() -> None:
+        nonlocal done
+        _stored, dups = futures.popleft().result()  # resolves after the commit (fsync) that holds these steps
         if dups:
             raise RuntimeError(f"{dups} unexpected duplicates")
+        done = min(done + BATCH, len(steps))
         if on_commit is not None:
-            on_commit(min((i + 1) * BATCH, len(steps)))
+            on_commit(done)
+
+    for i in range(0, len(steps), BATCH):
+        if len(futures) >= IN_FLIGHT:
+            ack()
+        futures.append(store.submit(steps[i : i + BATCH]))
+    while futures:
+        ack()
 
 
 def map_size_for(shape: Shape, n: int) -> int:
@@ -234,32 +265,51 @@ def crash_survival(workdir: Path, shape: Shape, n: int) -> tuple[int, int, int, 
 # --------------------------------------------------------------------------- driver
 
 
-def bench_shape(shape: Shape, n: int, sample_repeats: int, workdir: Path, log: Callable[..., None]) -> list[Row]:
-    """Ours and the peer take turns (a batch of inserts, a sample) so background load hits both alike."""
+def bench_shape(
+    shape: Shape,
+    n: int,
+    sample_repeats: int,
+    workdir: Path,
+    log: Callable[..., None],
+    encoding: str = "",
+    hot_fraction: float = 1.0,
+    crash: bool = True,
+) -> list[Row]:
+    """Ours and the peer take turns (a batch of inserts, a sample) so background load hits both alike.
+
+    encoding: replay.image_encoding for the cameras (the hot tier then keeps them encoded too);
+    hot_fraction: the hot tier holds this share of the N transitions (the rest is read from LMDB).
+    """
     episodes = make_episodes(shape, n)
     steps = to_steps(episodes)
     peer_in = peer_transitions(episodes)  # same transitions, same order
-    group = f"replay {shape.name}, N={n}"
-    path = workdir / ("img" if shape.images else "arm")
+    config = [f"{encoding} in LMDB and hot tier"] if encoding else []
+    config += [f"hot tier = N/{round(1 / hot_fraction)}"] if hot_fraction < 1 else []
+    group = f"replay {shape.name}, N={n}" + "".join(f", {c}" for c in config)
+    path = workdir / (("img" if shape.images else "arm") + (f"-{encoding}" if encoding else "") + f"-{hot_fraction}")
     path.mkdir(parents=True, exist_ok=True)
     # Both sides are timed in their steady state, full and overwriting. Theirs: a ring preallocated with
     # torch.empty, filled once untimed (the first fill pays page faults), then overwritten. Ours, alike:
     # hot tier and byte capacity sized for N, filled once untimed by another robot, whose episodes the
     # timed pass evicts (oldest first) while LMDB reuses their pages.
-    per_step = sum(len(st.SerializeToString()) + 40 for st in steps[:EPISODE_LEN]) / EPISODE_LEN
     store = open_store(
-        path, map_size_for(shape, 2 * n), cache_mb=0, capacity_mb=max(1, math.ceil(1.1 * n * per_step / 2**20))
+        path, map_size_for(shape, 2 * n), cache_mb=0, image_encoding={"*": encoding} if encoding else None
     )
+    stored = [store._stored_form(st) for st in steps[:EPISODE_LEN]]  # the bytes LMDB keeps (encoded or raw)
+    per_step = sum(len(st.SerializeToString()) + 40 for st in stored) / len(stored)
+    store.capacity_bytes = math.ceil(1.1 * n * per_step)
     frame = sum(a.nbytes for a in episodes[0].observations[0].values())
-    store.hot_bytes = int(1.05 * n * (frame * 9 / 8 + ACTION_DIM * 4 + 48))
+    if encoding:  # the hot tier sizes its rings for encoded frames as 1/8 of raw (hot.ENCODED_GUESS)
+        frame = STATE_DIM * 4 + sum(len(t.data) for st in stored[:1] for t in st.observation.tensors.values())
+    store.hot_bytes = int(hot_fraction * 1.05 * n * (frame * 9 / 8 + ACTION_DIM * 4 + 48))
     insert_ours(store, to_steps(episodes, robot_id="warm-0"))
     buf = make_peer(n)
     for tr in peer_in:
         buf.add(**tr)
     try:
         ours_s = peer_s = 0.0
-        for i in range(0, n, IN_FLIGHT * BATCH):
-            end = i + IN_FLIGHT * BATCH
+        for i in range(0, n, TURN):
+            end = i + TURN
             ours_s += timed(lambda i=i, end=end: insert_ours(store, steps[i:end]))[0]
             peer_s += timed(lambda i=i, end=end: [buf.add(**tr) for tr in peer_in[i:end]])[0]
         have = store.transitions_for(["arm-0"])
@@ -277,11 +327,17 @@ def bench_shape(shape: Shape, n: int, sample_repeats: int, workdir: Path, log: C
         peer_bytes = peer_nbytes(buf) / n
         ours_ram = ours_resident_bytes(store) / n
         hit = store.cache_info()
+        st = store.stats()
+        disk_per_step = st["bytes_on_disk"] / max(1, st["steps"])
     finally:
         store.close()
-    acked, kept, lost, dups, on_disk = crash_survival(workdir, shape, n)
-    ours_disk = on_disk / n
-    return [
+    if crash:
+        acked, kept, lost, dups, on_disk = crash_survival(workdir, shape, n)
+        ours_disk = on_disk / n
+    else:
+        ours_disk = disk_per_step
+    frames = f" ({encoding} frames)" if encoding else " (uint8 frames)" if shape.images else ""
+    rows = [
         Row(
             group,
             "insert",
@@ -289,8 +345,8 @@ def bench_shape(shape: Shape, n: int, sample_repeats: int, workdir: Path, log: C
             n / peer_s,
             "tr/s",
             True,
-            f"ours: requests of {BATCH} steps, {IN_FLIGHT} in flight, group-committed, acked after fsync, + hot "
-            "tier; theirs: add() into a warm RAM ring",
+            f"ours: requests of {BATCH} steps, a window of {IN_FLIGHT} unacked, group-committed, acked after fsync, "
+            f"+ hot tier, turns of {TURN} steps; theirs: add() into a warm RAM ring",
         ),
         Row(
             group,
@@ -299,8 +355,8 @@ def bench_shape(shape: Shape, n: int, sample_repeats: int, workdir: Path, log: C
             median(peer_ms),
             "ms",
             False,
-            f"ours: hot-tier column gather (hit rate {hit['hits'] / max(1, hit['hits'] + hit['misses']):.0%}); "
-            "theirs: tensor index",
+            f"ours: hot-tier column gather{' + decode on a thread pool' if encoding else ''} (hit rate "
+            f"{hit['hits'] / max(1, hit['hits'] + hit['misses']):.0%}, misses read from LMDB); theirs: tensor index",
         ),
         Row(
             group,
@@ -309,10 +365,7 @@ def bench_shape(shape: Shape, n: int, sample_repeats: int, workdir: Path, log: C
             peer_bytes * 1000,
             "B",
             False,
-            "ours: hot-tier columns + index"
-            + (" (uint8 frames)" if shape.images else "")
-            + "; theirs: tensors"
-            + (" (images f32)" if shape.images else ""),
+            "ours: hot-tier columns + index" + frames + "; theirs: tensors" + (" (images f32)" if shape.images else ""),
         ),
         Row(
             group,
@@ -323,14 +376,19 @@ def bench_shape(shape: Shape, n: int, sample_repeats: int, workdir: Path, log: C
             False,
             "ours: LMDB pages on disk (durable); theirs: RAM tensors (lost on exit)",
         ),
-        Row(
-            group,
-            "after SIGKILL + restart",
-            f"{n + dups}/{n} after re-send; acked lost {lost}, duplicates {dups}",
-            f"0/{n} (RAM only)",
-            note=f"writer SIGKILLed mid-ingest after {acked} acked ({kept} on disk at restart); then all {n} re-sent",
-        ),
     ]
+    if crash:
+        rows.append(
+            Row(
+                group,
+                "after SIGKILL + restart",
+                f"{n + dups}/{n} after re-send; acked lost {lost}, duplicates {dups}",
+                f"0/{n} (RAM only)",
+                note=f"writer SIGKILLed mid-ingest after {acked} acked ({kept} on disk at restart); "
+                f"then all {n} re-sent",
+            )
+        )
+    return rows
 
 
 def bench_larger_than_hot(n: int, repeats: int, workdir: Path, log: Callable[..., None]) -> list[Row]:
@@ -384,5 +442,10 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
     rows: list[Row] = []
     for shape, n, repeats in sizes:
         rows += bench_shape(shape, n, repeats, workdir, log)
+    # camera configs for resident memory: JPEG frames kept encoded (camera-like images; noise does not compress),
+    # and raw frames with a hot tier a tenth of the buffer (the rest read from LMDB)
+    n_img, r_img = (100, 2) if quick else sizes[1][1:]
+    rows += bench_shape(CAMERA, n_img, r_img, workdir, log, encoding="jpeg", crash=False)
+    rows += bench_shape(IMAGES, n_img, r_img, workdir, log, hot_fraction=0.1, crash=False)
     rows += bench_larger_than_hot(2_000 if quick else 50_000, 3 if quick else 20, workdir, log)
     return rows

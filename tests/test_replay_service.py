@@ -351,7 +351,7 @@ def test_specs_come_from_control_and_survive_it_going_down(
     edge = _Edge(control_addr, spec("arm-0"))
     try:
         replay = make_service(spec_source=None, control_addr=control_addr, rpc_timeout_s=1.0)
-        insert(replay, episode("arm-0", "e", 4))
+        insert(replay, episode("arm-0", "e", 5)[:4])  # an open episode, ended after the restart
         acked, err = insert_failing(replay, [make_step("arm-7", "e", 0)])
         assert err.code() == grpc.StatusCode.INVALID_ARGUMENT and "unknown robot arm-7" in err.details()
         bad = _wrong_shape()
@@ -370,3 +370,25 @@ def test_specs_come_from_control_and_survive_it_going_down(
     acked, err = insert_failing(replay, [make_step("arm-0", "g", 0), make_step("arm-5", "e", 0)])
     assert err.code() == grpc.StatusCode.UNAVAILABLE and "arm-5" in err.details()
     assert acked == [0] and stats(replay).rejected == 0
+
+
+def test_a_restart_remembers_which_episodes_ended(make_service: Callable[..., ReplayService]) -> None:
+    """The episode guard is rebuilt from LMDB at open: a real stop + start of the service, then steps that
+    break an episode stored before the restart are refused, and nothing changes."""
+    first = make_service()
+    insert(first, episode("arm-0", "ended", 5) + episode("arm-0", "open", 9)[:3])
+    first.stop()
+    again = make_service()
+    before = stats(again)
+    assert before.steps == 8
+    for bad, why in (
+        (make_step("arm-0", "ended", 5), "after the episode's last step 4"),
+        (make_step("arm-0", "ended", 7, last=True), "after the episode's last step 4"),
+        (make_step("arm-0", "open", 1, last=True), "step 2 was seen"),
+    ):
+        acked, err = insert_failing(again, [bad])
+        assert acked == [] and err.code() == grpc.StatusCode.INVALID_ARGUMENT and why in err.details()
+    assert _sans_rejected(stats(again)) == _sans_rejected(before)
+    # what is legal still passes: a re-sent last step, and the open episode going on to its end
+    insert(again, [make_step("arm-0", "ended", 4, last=True), make_step("arm-0", "open", 3, last=True)])
+    assert stats(again).steps == 9

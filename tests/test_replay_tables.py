@@ -293,3 +293,56 @@ def test_a_robot_whose_layout_changes_gets_a_new_hot_group(store: ReplayStore) -
     first = store.sample(8, np.random.default_rng(0), draw=draw(8, tables={"online": 1}, sampler="recency", window=5))
     assert first["observation"]["state"].shape == (8, 9)  # the newest 5 are episode b
     assert store.cache_info()["misses"] == 0
+
+
+def test_prioritized_draws_are_proportional_to_the_sum_tree(store: ReplayStore) -> None:
+    """Draw frequencies follow p^alpha (chi-square-like bound); updates land in O(log n) sum-tree leaves."""
+    store.put_steps(episode("arm-0", "a", 40))
+    store.put_steps(episode("arm-1", "b", 24))  # two robots: two trees, shares by their totals
+    n = store.transitions
+    rng = np.random.default_rng(3)
+    pri = rng.uniform(0.0, 4.0, n)
+    pri[5] = 0.0  # never drawn
+    assert store.update_priorities(np.arange(n), pri) == n
+    for alpha in (1.0, 0.5):
+        k = 40_000
+        got = store.sample(k, np.random.default_rng(4), draw=draw(k, sampler="prioritized", alpha=alpha))["indices"]
+        counts = np.bincount(got, minlength=n)
+        expect = pri**alpha / (pri**alpha).sum() * k
+        assert counts[5] == 0
+        assert np.abs(counts - expect).max() < 5 * np.sqrt(expect.max()) + 5
+    # an update after the trees exist moves the draws: only tid 9 left with mass
+    store.update_priorities(np.arange(n), np.where(np.arange(n) == 9, 2.0, 0.0))
+    got = store.sample(500, np.random.default_rng(5), draw=draw(500, sampler="prioritized", alpha=0.5))["indices"]
+    assert set(got.tolist()) == {9}
+    # new transitions enter with the max priority seen (4.0 here) and are drawn
+    store.put_steps(episode("arm-0", "c", 10))
+    got = store.sample(2000, np.random.default_rng(6), draw=draw(2000, sampler="prioritized", alpha=1.0))["indices"]
+    assert set(got.tolist()) <= {9, *range(n, n + 10)} and len(set(got.tolist())) == 11
+    one = store.sample(256, np.random.default_rng(7), draw=draw(256, sampler="prioritized", robot_ids=["arm-1"]))
+    assert set(one["indices"].tolist()) <= set(range(40, 64))
+
+
+@pytest.mark.parametrize("encoding", ["jpeg", "png"])
+def test_the_hot_tier_keeps_encoded_frames_and_decodes_them_like_lmdb(tmp_path: Path, encoding: str) -> None:
+    """With image_encoding the hot tier holds the stored JPEG/PNG bytes (far less RAM than raw frames) and the
+    sampler decodes them: a hot batch equals the same batch read from LMDB (cache off), frame for frame."""
+    steps = _camera_episode(40)
+    raw = ReplayStore(tmp_path / "raw", 64)
+    hot = ReplayStore(tmp_path / "hot", 64, image_encoding={"*": encoding})
+    cold = ReplayStore(tmp_path / "cold", 64, cache_mb=0, image_encoding={"*": encoding})
+    try:
+        for s in (raw, hot, cold):
+            s.put_steps(steps)
+        assert hot.cache_info()["entries"] == 40
+        assert hot.cache_info()["bytes"] < raw.cache_info()["bytes"] / 3  # smooth camera-like frames compress
+        a = hot.sample(64, np.random.default_rng(0))
+        b = cold.sample(64, np.random.default_rng(0))
+        assert hot.cache_info()["hits"] == 64 and cold.cache_info()["misses"] == 64
+        np.testing.assert_array_equal(a["indices"], b["indices"])
+        for part in ("observation", "next_observation"):
+            for name in a[part]:
+                np.testing.assert_array_equal(a[part][name], b[part][name])
+    finally:
+        for s in (raw, hot, cold):
+            s.close()

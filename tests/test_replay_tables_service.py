@@ -124,3 +124,46 @@ def test_rate_limiter_min_size_and_samples_per_insert(make_service) -> None:
     assert err.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED and "rate limited" in err.value.details()
     insert(svc, episode("arm-0", "c", 2), first_seq=20)  # 12 inserted: 24 allowed
     stub(svc).Sample(replay_pb2.SampleRequest(batch_size=8), timeout=5)
+
+
+def test_one_off_requests_leave_no_feeders_or_state_behind() -> None:
+    """What made replay's RSS grow under the fuzz: every distinct Sample request started a feeder thread that
+    kept batches (up to 64 MiB each) for 10 s. Now only a repeated kind gets one, and only for small batches."""
+    from services.replay.prefetch import Prefetcher
+
+    pre = Prefetcher(2, 1.0, lambda: 0)
+    try:
+        for i in range(50):  # 50 different one-off requests: no thread
+            assert pre.get(f"kind-{i}".encode(), lambda i=i: i) == i
+        assert not pre._feeders
+        pre.get(b"big", lambda: 1, lambda _: False)
+        pre.get(b"big", lambda: 1, lambda _: False)  # repeated, but not worth keeping
+        assert not pre._feeders
+        pre.get(b"learner", lambda: 7)
+        pre.get(b"learner", lambda: 7)  # a learner's repeated request gets its feeder
+        assert list(pre._feeders) == [b"learner"]
+    finally:
+        pre.close()
+
+
+def test_tables_and_unknown_robots_are_bounded(service: ReplayService, monkeypatch) -> None:
+    """A client cannot grow replay's RAM with names: tables are capped (each costs index columns and a metric
+    series), and refused steps of unknown robots leave no per-robot entry behind."""
+    from services.replay import server as replay_server
+
+    monkeypatch.setattr(replay_server, "MAX_STORE_TABLES", 2)
+    for name in ("t1", "t2"):
+        insert_into(service, episode("arm-0", name, 3), name)
+    before = stats(service)
+    reqs = requests(episode("arm-0", "t3", 3))
+    for r in reqs:
+        r.table = "t3"
+    with pytest.raises(grpc.RpcError) as err:
+        list(stub(service).Insert(iter(reqs), timeout=10))
+    assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "at most 2" in err.value.details()
+    insert_into(service, episode("arm-0", "t1b", 3), "t1")  # an existing table still takes steps
+    assert stats(service).steps == before.steps + 3 and set(stats(service).tables) == {"t1", "t2"}
+    for i in range(20):
+        _acked, err = insert_failing(service, [make_step(f"ghost-{i}", "e", 0)])
+        assert err.code() == grpc.StatusCode.INVALID_ARGUMENT
+    assert not any(r.startswith("ghost") for r in service.servicer.specs._fetched_at)

@@ -1,8 +1,10 @@
 """Batches assembled ahead, off the gRPC threads, so a learner's Sample rarely waits for assembly.
 
 One feeder thread per kind of request (its serialized SampleRequest) keeps up to `depth` ready
-responses. A ready batch is served while no insert landed since it was built, or while it is
-younger than max_age_s; older ones are dropped. A feeder nobody asked for in IDLE_S stops.
+responses. A feeder starts on the second request of a kind (a learner repeats its request; a one-off
+one, as a fuzzer sends, never gets a thread that holds batches) and only for results `worth` keeping.
+A ready batch is served while no insert landed since it was built, or while it is younger than
+max_age_s; older ones are dropped. A feeder nobody asked for in IDLE_S stops.
 Prioritized draws from a feeder see priorities as of when the batch was built (a batch or two old).
 """
 
@@ -12,6 +14,7 @@ import logging
 import queue
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from typing import Any
 
@@ -20,6 +23,7 @@ from user.log import kv
 log = logging.getLogger(__name__)
 IDLE_S = 10.0
 MAX_FEEDERS = 16
+MAX_ASKED = 256  # request kinds remembered to notice a repeat
 RETRY_S = 0.05
 
 
@@ -59,10 +63,11 @@ class Prefetcher:
         self.max_age_s = max_age_s
         self.generation = generation
         self._feeders: dict[bytes, _Feeder] = {}
+        self._asked: OrderedDict[bytes, float] = OrderedDict()  # kind -> when first asked (bounded)
         self._lock = threading.Lock()
         self.served = self.built = 0
 
-    def get(self, key: bytes, build: Callable[[], Any]) -> Any:
+    def get(self, key: bytes, build: Callable[[], Any], worth: Callable[[Any], bool] = lambda _: True) -> Any:
         if self.depth <= 0:
             return build()
         with self._lock:
@@ -80,9 +85,21 @@ class Prefetcher:
                     return item
         item = build()  # raises what the caller maps to a status; a feeder starts only after a success
         self.built += 1
-        if feeder is None or not feeder.thread.is_alive():
+        if (feeder is None or not feeder.thread.is_alive()) and self._repeated(key) and worth(item):
             self._start(key, build)
         return item
+
+    def _repeated(self, key: bytes) -> bool:
+        """True when this kind was asked before, within IDLE_S."""
+        now = time.monotonic()
+        with self._lock:
+            first = self._asked.pop(key, None)
+            if first is not None and now - first <= IDLE_S:
+                return True
+            self._asked[key] = now
+            if len(self._asked) > MAX_ASKED:
+                self._asked.popitem(last=False)
+            return False
 
     def _start(self, key: bytes, build: Callable[[], Any]) -> None:
         with self._lock:

@@ -53,6 +53,8 @@ MAX_SAMPLE = 65536
 MAX_N_STEP = 1000
 MAX_FRAME_STACK = 64
 MAX_TABLES = 64
+MAX_STORE_TABLES = 256  # distinct tables one buffer holds: each costs index columns and a metric series
+PREFETCH_MAX_BYTES = 16 << 20  # larger batches are assembled per request, not kept ready in RAM
 TABLE_NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 SAMPLERS = {
     replay_pb2.SAMPLER_UNIFORM: "uniform",
@@ -163,8 +165,9 @@ class SpecBook:
         except Exception as exc:  # SpecUnavailable, or a broken source: never reject steps for it
             return self._fallback(robot_id, exc)
         with self._lock:
-            if spec is None:
+            if spec is None:  # unknown robots leave nothing behind (a client may send any number of ids)
                 self._cache.pop(robot_id, None)
+                self._fetched_at.pop(robot_id, None)
                 return None
             if self._cache.get(robot_id) != spec and self._store.get_spec(robot_id) != spec:
                 self._dirty[robot_id] = spec
@@ -269,6 +272,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         self.sampled = 0  # transitions handed out (the rate limiter's sample count)
         self.specs = SpecBook(spec_source, store)
         self.episodes = EpisodeGuard()
+        self.episodes.seed(store.episode_bounds())  # episodes that ended before a restart stay ended
         self.commit_max_steps = commit_max_steps
         self.commit_max_delay_s = commit_max_delay_s
         self.rejected = 0
@@ -401,6 +405,11 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             problem = self._check(step)
             if problem is None and req.table and not TABLE_NAME.match(req.table):
                 problem = "table", f"table {req.table[:80]!r} must be 1-64 characters of A-Z a-z 0-9 _ . -"
+            if problem is None and req.table and self.store.too_many_tables(req.table, MAX_STORE_TABLES):
+                problem = (
+                    "table",
+                    f"table {req.table!r} would be table {MAX_STORE_TABLES + 1}; at most {MAX_STORE_TABLES}",
+                )
         except SpecUnavailable as exc:
             log.warning("cannot validate step", extra=kv(seq=req.seq, robot_id=step.robot_id, error=str(exc)))
             return grpc.StatusCode.UNAVAILABLE, f"seq {req.seq}: {exc}"
@@ -487,7 +496,9 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             self._rate_limit(request, robot_ids, context)
             key = request.SerializeToString(deterministic=True)
             served = self.prefetch.served
-            batch, size = self.prefetch.get(key, lambda: self._assemble(draw, request.action_horizon))
+            batch, size = self.prefetch.get(
+                key, lambda: self._assemble(draw, request.action_horizon), lambda r: r[1] <= PREFETCH_MAX_BYTES
+            )
             if self.prefetch.served > served:
                 PREFETCH_SERVED.inc()
             transitions = self.store.transitions_for(robot_ids)

@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 import threading
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,14 +31,17 @@ from services.replay.disk import (
     SUCCESS,
     TERMINATED,
     TRUNCATED,
+    NotInOrder,
     ReplayError,
     ReplayFullError,
     StepDB,
     StoreClosedError,
     episode_prefix,
+    flags_of,
     next_key,
     robot_of,
     split_key,
+    step_key,
 )
 from services.replay.hot import HotGroup, Layout
 from services.replay.tables import INTERVENTIONS, Draw, EmptyBufferError, Index, Record
@@ -102,6 +105,8 @@ class Episode:
     success: bool = False
     interventions: int = 0
     tids: list[int] = field(default_factory=list)
+    top: int = -1  # highest step index stored
+    last: int = -1  # index of the step that ended it, -1 while open
 
 
 @dataclass(slots=True)
@@ -114,6 +119,8 @@ class _Pending:
     raws: list[bytes]
     future: Future[tuple[int, int]]
     nbytes: int = 0
+    keys: list[bytes] = field(default_factory=list)
+    scalars: list[tuple[float, int, int, int]] = field(default_factory=list)  # reward, flags, version, bytes
 
 
 @dataclass(slots=True)
@@ -122,13 +129,53 @@ class _Tail:
 
     group: int
     seq: int  # its observation's frame
-    action: np.ndarray
+    action: np.ndarray | None  # None while the hot tier is off
     reward: float
     terminated: bool
     truncated: bool
     intervention: bool
     policy_version: int
     final_seq: int = -1
+
+
+@dataclass(slots=True)
+class _Columns:
+    """Transitions completed from waiting steps, gathered before the group's own (see _transitions_columns)."""
+
+    keys: list[bytes] = field(default_factory=list)
+    robot: list[int] = field(default_factory=list)
+    tables: list[str] = field(default_factory=list)
+    flags: list[int] = field(default_factory=list)
+    reward: list[float] = field(default_factory=list)
+    version: list[int] = field(default_factory=list)
+    group: list[int] = field(default_factory=list)
+    obs: list[int] = field(default_factory=list)
+    nxt: list[int] = field(default_factory=list)
+    action: list[np.ndarray | None] = field(default_factory=list)
+
+
+def _stack_actions(parts: list[tuple[list[int], np.ndarray | None]], n: int) -> np.ndarray | None:
+    """Per-robot action arrays as one array in step order; None when a robot has none or layouts differ."""
+    if any(acts is None for _, acts in parts):
+        return None
+    if len(parts) == 1:
+        return parts[0][1]
+    first = parts[0][1]
+    if any(a.dtype != first.dtype or a.shape[1:] != first.shape[1:] for _, a in parts):  # type: ignore[union-attr]
+        return None
+    out = np.empty((n, *first.shape[1:]), first.dtype)  # type: ignore[union-attr]
+    for idx, acts in parts:
+        out[idx] = acts
+    return out
+
+
+def _rows(actions: list[np.ndarray | None], like: np.ndarray) -> np.ndarray:
+    """Waiting steps' actions as rows shaped like `like` (zeros where a step has none: not hot anyway)."""
+    out = np.zeros((len(actions), *like.shape[1:]), like.dtype)
+    for i, a in enumerate(actions):
+        if a is not None and a.shape == like.shape[1:]:
+            out[i] = a
+    return out
 
 
 class ReplayStore:
@@ -216,6 +263,9 @@ class ReplayStore:
                 firsts[prefix] = sc[3]
             firsts[prefix] = min(firsts[prefix], sc[3])
             ep.steps += 1
+            ep.top = max(ep.top, t)
+            if sc[1] & ENDS:
+                ep.last = t
             ep.nbytes += sc[4] + len(key)
             ep.success |= bool(sc[1] & SUCCESS)
             ep.interventions += bool(sc[1] & INTERVENTION)
@@ -271,7 +321,7 @@ class ReplayStore:
             for key in keys:  # observations once; a transition's next is its successor's observation
                 step = steps[key]
                 if layout_of(step) == group.layout:
-                    seq_of[key] = group.write_frame(arrays_of(step.observation))
+                    seq_of[key] = group.write_tensors(step.observation)
             rows_tids, obs_seqs, next_seqs, actions = [], [], [], []
             for tid, key in zip(tids, keys, strict=True):
                 if key not in seq_of:
@@ -282,7 +332,7 @@ class ReplayStore:
                     final = step.HasField("final_observation")
                     nxt = step.final_observation if final else steps[next_key(key)].observation
                     try:
-                        nxt_seq = group.write_frame(arrays_of(nxt))
+                        nxt_seq = group.write_tensors(nxt)
                     except (ValueError, KeyError):  # a successor of another layout
                         continue
                 rows_tids.append(tid)
@@ -340,8 +390,17 @@ class ReplayStore:
         gid = self._layout_ids.get(layout)
         if gid is None:
             gid = self._layout_ids[layout] = len(self._groups)
-            self._groups.append(HotGroup(layout, self.hot_bytes))
+            self._groups.append(HotGroup(layout, self.hot_bytes, self._encoded_features(layout)))
         return gid
+
+    def _encoded_features(self, layout: Layout) -> frozenset[str]:
+        """Camera features LMDB keeps as JPEG/PNG (replay.image_encoding): the hot tier keeps those bytes too."""
+        out = set()
+        for name, dtype, shape in layout[0]:
+            enc = self.image_encoding.get(name, self.image_encoding.get("*") if name.startswith("camera.") else 0)
+            if enc and dtype == np.uint8 and (len(shape) == 2 or (len(shape) == 3 and shape[2] in (1, 3))):
+                out.add(name)
+        return frozenset(out)
 
     def put_steps(
         self,
@@ -364,8 +423,15 @@ class ReplayStore:
         so one fsync covers many requests, and callers serialize the next steps while it syncs.
         """
         tables = [table] * len(steps) if isinstance(table, str) else list(table)
-        raws = [self._stored_form(s).SerializeToString() for s in steps]
-        item = _Pending(steps, tables, list(specs), raws, Future(), sum(map(len, raws)))
+        steps = [self._stored_form(s) for s in steps]  # the hot tier keeps encoded frames as stored
+        raws = [s.SerializeToString() for s in steps]
+        # keys and scalars here, in the caller's thread, while the writer may be waiting for an fsync
+        keys = [step_key(s.robot_id, s.episode_id, s.step_index) for s in steps]
+        scalars = [
+            (s.reward, flags_of(s) | (ENDS if s.HasField("final_observation") else 0), s.policy_version, len(raw))
+            for s, raw in zip(steps, raws, strict=True)
+        ]
+        item = _Pending(steps, tables, list(specs), raws, Future(), sum(map(len, raws)), keys, scalars)
         with self._queue_cond:
             if self._closing:
                 raise StoreClosedError(f"replay store {self.path} is closed")
@@ -428,9 +494,56 @@ class ReplayStore:
                     if not item.future.done():
                         item.future.set_exception(exc)
 
+    def _in_order(self, keys: list[bytes], scalars: list[tuple[float, int, int, int]]) -> bool:
+        """Every step is its episode's next index after what is stored (so new, its predecessor waiting,
+        its successor not stored): the usual stream, written and indexed without lookups (writer thread)."""
+        running: dict[bytes, int] = {}
+        closed = 1 << 62
+        for key, sc in zip(keys, scalars, strict=True):
+            prefix = key[:-8]
+            top = running.get(prefix)
+            if top is None:
+                ep = self._episodes.get(prefix)
+                top = -1 if ep is None else (ep.top if ep.last < 0 else closed)
+            t = int.from_bytes(key[-8:], "big")
+            if t != top + 1:
+                return False
+            running[prefix] = closed if sc[1] & ENDS else t
+        return True
+
+    def _commit_in_order(self, group: list[_Pending]) -> bool:
+        """The fast path of _commit_group; False (nothing written) when the group is not in order."""
+        keys = [k for item in group for k in item.keys]
+        scalars = [sc for item in group for sc in item.scalars]
+        if not self._in_order(keys, scalars):
+            return False
+        tables = [t for item in group for t in item.tables]
+        episode_tables = {k[:-8]: t for k, t in zip(keys, tables, strict=True) if t != ONLINE}
+        try:
+            self.db.put_in_order(
+                keys,
+                [r for item in group for r in item.raws],
+                scalars,
+                episode_tables,
+                [spec for item in group for spec in item.specs],
+            )
+        except NotInOrder:
+            return False
+        with self._lock:  # committed: only now may samples see these steps
+            self._index_in_order([s for item in group for s in item.steps], keys, scalars, tables)
+            self.inserted += len(keys)
+            self.generation += 1
+        self._evict_over_capacity()
+        COMMITS.observe(len(keys))
+        for item in group:
+            item.future.set_result((len(item.steps), 0))
+        return True
+
     def _commit_group(self, group: list[_Pending]) -> None:
         steps = [s for item in group for s in item.steps]
         with self._write_lock:
+            if self._commit_in_order(group):
+                return
             done = self.db.put_steps(
                 steps,
                 [t for item in group for t in item.tables],
@@ -458,6 +571,9 @@ class ReplayStore:
             if ep is None:
                 ep = self._episodes[prefix] = Episode(step.robot_id, table)
             ep.steps += 1
+            ep.top = max(ep.top, step.step_index)
+            if step.HasField("final_observation"):
+                ep.last = step.step_index
             ep.nbytes += nbytes + len(key)
             ep.success |= step.success
             ep.interventions += step.intervention
@@ -519,6 +635,291 @@ class ReplayStore:
         for key in sampleable:  # their transitions are indexed; a successor finds its frame in the ring
             self._tails.pop(key, None)
 
+    def _index_in_order(
+        self,
+        steps: list[step_pb2.Step],
+        keys: list[bytes],
+        scalars: list[tuple[float, int, int, int]],
+        tables: list[str],
+    ) -> None:
+        """Index a committed in-order group: episode counts, frames into the hot tier per robot in one copy,
+        then the transitions it completes (each step completes its predecessor's; a last step its own)."""
+        robots = self._count_in_order(steps, keys, scalars, tables)
+        n = len(steps)
+        gids, seqs, finals = np.full(n, -1, np.int64), np.full(n, -1, np.int64), np.full(n, -1, np.int64)
+        actions: list[np.ndarray | None] = [None] * n
+        full: np.ndarray | None = None  # every step's action in one array, when they share a layout
+        if self.hot_bytes > 0:
+            by_robot: dict[str, list[int]] = {}
+            for i, robot in enumerate(robots):
+                by_robot.setdefault(robot, []).append(i)
+            parts = [(idx, self._frames_in_order(r, idx, steps, scalars, gids, seqs, finals, actions))
+                     for r, idx in by_robot.items()]  # fmt: skip
+            full = _stack_actions(parts, n)
+            if full is None:
+                for idx, acts in parts:
+                    if acts is not None:
+                        for j, i in enumerate(idx):
+                            actions[i] = acts[j]
+                self._transitions_in_order(
+                    keys, scalars, robots, gids.tolist(), seqs.tolist(), finals.tolist(), actions
+                )
+                return
+        self._transitions_columns(keys, scalars, robots, gids, seqs, finals, full)
+
+    def _transitions_columns(
+        self,
+        keys: list[bytes],
+        scalars: list[tuple[float, int, int, int]],
+        robots: list[str],
+        gids: np.ndarray,
+        seqs: np.ndarray,
+        finals: np.ndarray,
+        full: np.ndarray | None,
+    ) -> None:
+        """_transitions_in_order as numpy columns: step j's transition is complete when j ends its episode
+        or j+1 is its successor in this group; an episode's first step here completes a waiting one."""
+        n = len(keys)
+        prefixes = [k[:-8] for k in keys]
+        t = np.fromiter((int.from_bytes(k[-8:], "big") for k in keys), np.int64, n)
+        flags = np.fromiter((sc[1] for sc in scalars), np.int64, n)
+        reward = np.fromiter((sc[0] for sc in scalars), np.float32, n)
+        version = np.fromiter((sc[2] for sc in scalars), np.int64, n)
+        same_next = np.zeros(n, np.bool_)
+        if n > 1:
+            same_next[:-1] = np.fromiter(map(bytes.__eq__, prefixes[1:], prefixes[:-1]), np.bool_, n - 1)
+        ends = (flags & ENDS) != 0
+        first = np.ones(n, np.bool_)
+        first[1:] = ~same_next[:-1]
+        cols = _Columns()
+        for i in np.flatnonzero(first & (t > 0)).tolist():  # completes a step of an earlier group
+            self._complete_waiting_column(cols, prefixes[i] + int(t[i] - 1).to_bytes(8, "big"), robots[i],
+                                          int(gids[i]), int(seqs[i]))  # fmt: skip
+        j = np.flatnonzero(ends | same_next)
+        nxt_gid = np.where(ends, gids, np.roll(gids, -1))[j]
+        nxt_seq = np.where(ends, finals, np.roll(seqs, -1))[j]
+        code_of = {r: self.index.code(r) for r in set(robots)}
+        table_of = {p: self._episodes[p].table for p in set(prefixes)}
+        jl = j.tolist()
+        rec_keys = cols.keys + [keys[x] for x in jl]
+        robot = np.concatenate(
+            [np.asarray(cols.robot, np.int32), np.fromiter((code_of[robots[x]] for x in jl), np.int32, len(jl))]
+        )
+        rec_tables = cols.tables + [table_of[prefixes[x]] for x in jl]
+        rec_flags = np.concatenate([np.asarray(cols.flags, np.int64), flags[j]])
+        group = np.concatenate([np.asarray(cols.group, np.int64), gids[j]])
+        obs = np.concatenate([np.asarray(cols.obs, np.int64), seqs[j]])
+        nxt = np.concatenate([np.asarray(cols.nxt, np.int64), np.where(nxt_gid == gids[j], nxt_seq, -1)])
+        hot = (group >= 0) & (obs >= 0) & (nxt >= 0)
+        hot_row = np.full(len(rec_keys), -1, np.int64)
+        tid0 = len(self.index.keys)
+        if hot.any() and full is not None:
+            acts = full[j] if not cols.keys else np.concatenate([_rows(cols.action, full), full[j]])
+            for gid in np.unique(group[hot]).tolist():
+                m = np.flatnonzero(hot & (group == gid))
+                hot_row[m] = self._groups[gid].add_many((tid0 + m).tolist(), obs[m], nxt[m], acts[m])
+        tids = self.index.add_columns(
+            rec_keys,
+            robot,
+            rec_tables,
+            np.concatenate([np.asarray(cols.reward, np.float32), reward[j]]),
+            (rec_flags & TERMINATED) != 0,
+            (rec_flags & TRUNCATED) != 0,
+            (rec_flags & INTERVENTION) != 0,
+            np.concatenate([np.asarray(cols.version, np.int64), version[j]]),
+            np.where(hot, group, -1).astype(np.int32),
+            hot_row,
+        )
+        ep, last = None, b""
+        for key, tid in zip(rec_keys, tids.tolist(), strict=True):
+            if key[:-8] != last:
+                last = key[:-8]
+                ep = self._episodes[last]
+            ep.tids.append(tid)  # type: ignore[union-attr]
+        for i in np.flatnonzero(~same_next & ~ends).tolist():  # wait for their successor (a later group)
+            f = int(flags[i])
+            act = None if full is None else full[i].copy()
+            tail = _Tail(int(gids[i]), int(seqs[i]), act, float(reward[i]), bool(f & TERMINATED),
+                         bool(f & TRUNCATED), bool(f & INTERVENTION), int(version[i]))  # fmt: skip
+            self._remember(keys[i], tail)
+
+    def _complete_waiting_column(self, cols: _Columns, prev: bytes, robot: str, gid: int, seq: int) -> None:
+        tail = self._tails.pop(prev, None)
+        cols.keys.append(prev)
+        cols.robot.append(self.index.code(robot))
+        cols.tables.append(self._episodes[prev[:-8]].table)
+        if tail is not None:
+            cols.flags.append(
+                TERMINATED * tail.terminated | TRUNCATED * tail.truncated | INTERVENTION * tail.intervention
+            )
+            cols.reward.append(tail.reward)
+            cols.version.append(tail.policy_version)
+            ok = tail.action is not None and tail.group >= 0 and tail.group == gid
+            cols.group.append(tail.group if ok else -1)
+            cols.obs.append(tail.seq if ok else -1)
+            cols.nxt.append(seq if ok else -1)
+            cols.action.append(tail.action if ok else None)
+            return
+        step = self._read([prev])[0]  # forgotten (MAX_OPEN_TAILS) or stored before a restart: scalars from LMDB
+        cols.flags.append(flags_of(step))
+        cols.reward.append(step.reward)
+        cols.version.append(step.policy_version)
+        cols.group.append(-1)
+        cols.obs.append(-1)
+        cols.nxt.append(-1)
+        cols.action.append(None)
+
+    def _count_in_order(
+        self,
+        steps: list[step_pb2.Step],
+        keys: list[bytes],
+        scalars: list[tuple[float, int, int, int]],
+        tables: list[str],
+    ) -> list[str]:
+        """Episode, step and byte counts; returns each step's robot."""
+        eps = self._episodes
+        robots: list[str] = []
+        per_robot: dict[str, int] = {}
+        last_prefix, ep = b"", None
+        for i, key in enumerate(keys):
+            prefix = key[:-8]
+            if prefix != last_prefix:
+                ep = eps.get(prefix)
+                if ep is None:
+                    ep = eps[prefix] = Episode(steps[i].robot_id, tables[i])
+                last_prefix = prefix
+            _, flags, _, nbytes = scalars[i]
+            t = int.from_bytes(key[-8:], "big")
+            ep.steps += 1  # type: ignore[union-attr]
+            ep.nbytes += nbytes + len(key)  # type: ignore[union-attr]
+            ep.top = t  # type: ignore[union-attr]
+            if flags & (ENDS | SUCCESS | INTERVENTION):
+                ep.last = t if flags & ENDS else ep.last  # type: ignore[union-attr]
+                ep.success |= bool(flags & SUCCESS)  # type: ignore[union-attr]
+                ep.interventions += bool(flags & INTERVENTION)  # type: ignore[union-attr]
+            robots.append(ep.robot)  # type: ignore[union-attr]
+            per_robot[ep.robot] = per_robot.get(ep.robot, 0) + 1  # type: ignore[union-attr]
+            self._bytes += nbytes + len(key)
+        self._n_steps += len(keys)
+        for robot, k in per_robot.items():
+            self._steps_per_robot[robot] = self._steps_per_robot.get(robot, 0) + k
+        return robots
+
+    def _frames_in_order(
+        self,
+        robot: str,
+        idx: list[int],
+        steps: list[step_pb2.Step],
+        scalars: list[tuple[float, int, int, int]],
+        gids: np.ndarray,
+        seqs: np.ndarray,
+        finals: np.ndarray,
+        actions: list[np.ndarray | None],
+    ) -> np.ndarray | None:
+        """One robot's observations into its hot group in one copy (one by one for a robot's first steps,
+        a new layout or encoded frames), its actions as one array, final observations after."""
+        gid = self._robot_group.get(robot)
+        if gid is None:  # a robot's first steps: the group of its layout (robots with one spec share one)
+            gid = self._robot_group[robot] = self._group(layout_of(steps[idx[0]]))
+        group = self._groups[gid]
+        got = group.write_many([steps[i].observation for i in idx])
+        acts = None if got is None else group.actions_of([steps[i].action for i in idx])
+        if got is None or acts is None:
+            for i in idx:
+                tail = self._tail(b"", steps[i], remember=False)
+                gids[i], seqs[i], finals[i], actions[i] = tail.group, tail.seq, tail.final_seq, tail.action
+            return None
+        gids[idx] = gid
+        seqs[idx] = got
+        for i in idx:
+            if scalars[i][1] & ENDS:
+                try:
+                    finals[i] = group.write_tensors(steps[i].final_observation)
+                except (ValueError, KeyError):
+                    finals[i] = -1
+        return acts
+
+    def _transitions_in_order(
+        self,
+        keys: list[bytes],
+        scalars: list[tuple[float, int, int, int]],
+        robots: list[str],
+        gids: list[int],
+        seqs: list[int],
+        finals: list[int],
+        actions: list[np.ndarray | None],
+    ) -> None:
+        records: list[Record] = []
+        hot: dict[int, tuple[list[int], list[int], list[int], list[np.ndarray]]] = {}
+
+        def add(
+            key: bytes, robot: str, sc: tuple[float, int, int, int], gid: int, seq: int, nxt: int, act: Any
+        ) -> None:
+            flags = sc[1]
+            ep = self._episodes[key[:-8]]
+            rec = Record(
+                key,
+                self.index.code(robot),
+                ep.table,
+                sc[0],
+                bool(flags & TERMINATED),
+                bool(flags & TRUNCATED),
+                bool(flags & INTERVENTION),
+                sc[2],
+            )
+            if gid >= 0 and seq >= 0 and nxt >= 0 and act is not None:
+                rec.group = gid
+                cols = hot.setdefault(gid, ([], [], [], []))
+                cols[0].append(len(records))
+                cols[1].append(seq)
+                cols[2].append(nxt)
+                cols[3].append(act)
+            records.append(rec)
+
+        n = len(keys)
+        for i, key in enumerate(keys):
+            prefix, t = key[:-8], int.from_bytes(key[-8:], "big")
+            if t > 0:
+                if i and keys[i - 1][:-8] == prefix:  # its predecessor came in this group
+                    j = i - 1
+                    add(
+                        keys[j],
+                        robots[j],
+                        scalars[j],
+                        gids[j],
+                        seqs[j],
+                        seqs[i] if gids[i] == gids[j] else -1,
+                        actions[j],
+                    )
+                else:
+                    self._complete_waiting(prefix + (t - 1).to_bytes(8, "big"), robots[i], gids[i], seqs[i], add)
+            flags = scalars[i][1]
+            if flags & ENDS:
+                add(key, robots[i], scalars[i], gids[i], seqs[i], finals[i], actions[i])
+            elif i == n - 1 or keys[i + 1][:-8] != prefix:  # waits for its successor (a later group)
+                r, _, v, _ = scalars[i]
+                tail = _Tail(gids[i], seqs[i], actions[i], r, bool(flags & TERMINATED), bool(flags & TRUNCATED),
+                             bool(flags & INTERVENTION), v)  # fmt: skip
+                self._remember(key, tail)
+        first = len(self.index.keys)
+        for gid, (ridx, obs, nxt, acts) in hot.items():
+            rows = self._groups[gid].add_many([first + i for i in ridx], obs, nxt, acts)
+            for i, row in zip(ridx, rows.tolist(), strict=True):
+                records[i].hot_row = row
+        for r, tid in zip(records, self.index.add_many(records), strict=True):
+            self._episodes[r.key[:-8]].tids.append(tid)
+
+    def _complete_waiting(self, prev: bytes, robot: str, gid: int, seq: int, add: Callable[..., None]) -> None:
+        """The transition of a step stored in an earlier group, completed by its successor's frame."""
+        tail = self._tails.pop(prev, None)
+        if tail is not None:
+            sc = (tail.reward, TERMINATED * tail.terminated | TRUNCATED * tail.truncated
+                  | INTERVENTION * tail.intervention, tail.policy_version, 0)  # fmt: skip
+            add(prev, robot, sc, tail.group, tail.seq, seq if gid == tail.group else -1, tail.action)
+            return
+        step = self._read([prev])[0]  # forgotten (MAX_OPEN_TAILS) or stored before a restart: scalars from LMDB
+        add(prev, robot, (step.reward, flags_of(step), step.policy_version, 0), -1, -1, -1, None)
+
     def _tails_many(self, items: list[tuple[bytes, step_pb2.Step]]) -> None:
         """_tail for many steps: per robot, observations copied into the hot tier in one go."""
         by_robot: dict[str, list[tuple[bytes, step_pb2.Step]]] = {}
@@ -540,7 +941,7 @@ class ReplayStore:
             self._tails.pop(next(iter(self._tails)))
         self._tails[key] = tail
 
-    def _tail(self, key: bytes, step: step_pb2.Step) -> None:
+    def _tail(self, key: bytes, step: step_pb2.Step, remember: bool = True) -> _Tail:
         """Copy a stored step's observation(s) into the hot tier; remember it until its transition completes."""
         gid = self._robot_group.get(step.robot_id)
         try:
@@ -552,7 +953,10 @@ class ReplayStore:
             gid = self._robot_group[step.robot_id] = self._group(layout_of(step))
             group = self._groups[gid]
             seq = group.write_tensors(step.observation)
-        self._remember(key, self._new_tail(gid, seq, group, step))
+        tail = self._new_tail(gid, seq, group, step)
+        if remember:
+            self._remember(key, tail)
+        return tail
 
     @staticmethod
     def _new_tail(gid: int, seq: int, group: Any, step: step_pb2.Step) -> _Tail:
@@ -639,6 +1043,11 @@ class ReplayStore:
             names = list(tables) or [""]
             return sum(self.index.count(t, robot_ids) for t in names)
 
+    def too_many_tables(self, table: str, limit: int) -> bool:
+        """Whether inserting into `table` would make more than `limit` tables."""
+        with self._lock:
+            return table not in self.index.tables and len(self.index.tables) >= limit
+
     def tables(self) -> list[str]:
         with self._lock:
             return sorted(self.index.tables)
@@ -722,8 +1131,7 @@ class ReplayStore:
         self.hits += n_hot
         self.misses += len(tids) - n_hot
         if hot is not None and n_hot == len(tids) and (same or ok_next.all()):
-            out["observation"] = hot.observations(rows, "obs")
-            out["next_observation"] = hot.observations(next_rows, "next")
+            out["observation"], out["next_observation"] = hot.observations_pair(rows, next_rows)
             action = hot.action[rows]
             out["action"] = action if action.dtype == np.float32 else action.astype(np.float32)
             return
@@ -850,6 +1258,16 @@ class ReplayStore:
                     r["success_rate"] = r["successes"] / r["episodes"] if r["episodes"] else 0.0
             if INTERVENTIONS in out:  # its episodes and bytes belong to the tables they were inserted into
                 out[INTERVENTIONS]["episodes"] = sum(e.interventions > 0 for e in self._episodes.values())
+            return out
+
+    def episode_bounds(self) -> list[tuple[str, str, int, int | None]]:
+        """(robot, episode, highest step index, last step index or None) of every stored episode, oldest first:
+        what the service's episode guard needs after a restart to refuse steps after an episode's end."""
+        with self._lock:
+            out = []
+            for prefix, ep in self._episodes.items():
+                episode_id = prefix[len(ep.robot.encode()) + 1 : -1].decode()
+                out.append((ep.robot, episode_id, ep.top, ep.last if ep.last >= 0 else None))
             return out
 
     def cache_info(self) -> dict[str, int]:

@@ -25,6 +25,87 @@ class EmptyBufferError(RuntimeError):
     """Nothing sampleable (yet, or for the tables/robots asked for)."""
 
 
+MAX_TREES = 64  # sum trees kept (one per table, robot and alpha asked for); more are rebuilt on demand
+
+
+class SumTree:
+    """Priorities^alpha of one table's transitions (leaf i = position i of its tid column) in a binary sum tree.
+
+    Appends and updates are O(log n) per leaf (vectorized over the leaves changed), a draw of k is
+    O(k log n): no scan of the table per sample.
+    """
+
+    def __init__(self, values: np.ndarray) -> None:
+        self.n = 0
+        self.cap = 1
+        self.tree = np.zeros(2, np.float64)
+        self.extend(values)
+
+    def _resize(self, need: int) -> None:
+        cap = self.cap
+        while cap < need:
+            cap *= 2
+        leaves = self.tree[self.cap : self.cap + self.n].copy()
+        self.cap = cap
+        self.tree = np.zeros(2 * cap, np.float64)
+        self.tree[cap : cap + self.n] = leaves
+        for lo in _levels(cap):  # every internal node once, bottom up
+            self.tree[lo : 2 * lo] = self.tree[2 * lo : 4 * lo : 2] + self.tree[2 * lo + 1 : 4 * lo : 2]
+
+    def extend(self, values: np.ndarray) -> None:
+        need = self.n + len(values)
+        if need > self.cap:
+            self._resize(need)
+        self.set(np.arange(self.n, need), values)
+        self.n = need
+
+    def set(self, positions: np.ndarray, values: np.ndarray) -> None:
+        if len(positions) == 0:
+            return
+        node = positions + self.cap
+        self.tree[node] = values
+        node = np.unique(node // 2)
+        while node[0] >= 1:
+            self.tree[node] = self.tree[2 * node] + self.tree[2 * node + 1]
+            if node[0] == 1:
+                break
+            node = np.unique(node // 2)
+
+    @property
+    def total(self) -> float:
+        return float(self.tree[1])
+
+    def leaves(self, positions: np.ndarray) -> np.ndarray:
+        return self.tree[positions + self.cap]
+
+    def find(self, values: np.ndarray) -> np.ndarray:
+        """Positions whose cumulative range holds each value in [0, total)."""
+        node = np.ones(len(values), np.int64)
+        v = values.astype(np.float64, copy=True)
+        while node[0] < self.cap:
+            left = self.tree[2 * node]
+            right = v >= left
+            v -= np.where(right, left, 0.0)
+            node = 2 * node + right
+        pos = np.minimum(node - self.cap, self.n - 1)
+        # rounding can land on an empty leaf: take the nearest non-empty one before it
+        bad = self.tree[pos + self.cap] <= 0
+        if bad.any():
+            nonzero = np.flatnonzero(self.tree[self.cap : self.cap + self.n] > 0)
+            at = np.searchsorted(nonzero, pos[bad], side="right") - 1
+            pos[bad] = nonzero[np.maximum(at, 0)]
+        return pos
+
+
+def _levels(cap: int) -> list[int]:
+    """First node of each internal level, bottom up (cap/2, cap/4, ..., 1)."""
+    out, lo = [], cap // 2
+    while lo >= 1:
+        out.append(lo)
+        lo //= 2
+    return out
+
+
 class Grow:
     """A growable 1-D numpy column."""
 
@@ -118,6 +199,7 @@ class Index:
         self.alive = Grow(np.bool_)
         self.priority = Grow(np.float32, 1.0)
         self.max_priority = 1.0
+        self._trees: dict[tuple[str, int, float], SumTree] = {}  # (table, robot code, alpha) -> tree
         self.robots: list[str] = []
         self.robot_code: dict[str, int] = {}
         self.tables: dict[str, dict[int, Grow]] = {}
@@ -169,12 +251,82 @@ class Index:
                 by_table.setdefault((INTERVENTIONS, r.robot), []).append(tid)
             if r.key[:1] != b"\0":  # attached buffers are sampled by their table name only
                 by_table.setdefault((ALL, r.robot), []).append(tid)
+        self._append_tables({k: np.asarray(v, np.int64) for k, v in by_table.items()})
+        return tids
+
+    def _append_tables(self, by_table: dict[tuple[str, int], np.ndarray]) -> None:
+        """New tids (ascending) onto their (table, robot) columns, and onto the sum trees built over them."""
         for (table, code), ids in by_table.items():
             grows = self.all if table == ALL else self.tables.setdefault(table, {})
             grow = grows.get(code)
             if grow is None:
                 grow = grows[code] = Grow(np.int64)
-            grow.extend(np.asarray(ids, np.int64))
+            grow.extend(ids)
+            for (t_name, t_code, alpha), tree in self._trees.items():
+                if t_name == table and t_code == code:
+                    tree.extend(np.full(len(ids), float(self.max_priority) ** alpha))
+
+    def add_columns(
+        self,
+        keys: list[bytes],
+        robot: np.ndarray,
+        tables: list[str],
+        reward: np.ndarray,
+        terminated: np.ndarray,
+        truncated: np.ndarray,
+        intervention: np.ndarray,
+        policy_version: np.ndarray,
+        group: np.ndarray,
+        hot_row: np.ndarray,
+    ) -> np.ndarray:
+        """add_many for transitions that arrived in order (none has a successor indexed yet), as columns:
+        a transition's predecessor is the one before it in the batch, else looked up once per episode."""
+        n = len(keys)
+        first = len(self.keys)
+        tids = np.arange(first, first + n, dtype=np.int64)
+        self.keys.extend(keys)
+        self.tid_of.update(zip(keys, range(first, first + n), strict=True))
+        self.robot.extend(robot)
+        self.group.extend(group)
+        self.hot_row.extend(hot_row)
+        self.reward.extend(reward)
+        self.terminated.extend(terminated)
+        self.truncated.extend(truncated)
+        self.intervention.extend(intervention)
+        self.policy_version.extend(policy_version)
+        self.next_tid.extend(np.full(n, -1, np.int64))
+        self.prev_tid.extend(np.full(n, -1, np.int64))
+        self.alive.extend(np.ones(n, np.bool_))
+        self.priority.extend(np.full(n, self.max_priority, np.float32))
+        prefixes = [k[:-8] for k in keys]
+        t = np.fromiter((int.from_bytes(k[-8:], "big") for k in keys), np.int64, n)
+        prev = np.full(n, -1, np.int64)
+        if n > 1:
+            adj = np.fromiter(map(bytes.__eq__, prefixes[1:], prefixes[:-1]), np.bool_, n - 1) & (t[1:] == t[:-1] + 1)
+            prev[1:][adj] = tids[:-1][adj]
+        for i in np.flatnonzero((prev < 0) & (t > 0)).tolist():
+            prev[i] = self.tid_of.get(prefixes[i] + int(t[i] - 1).to_bytes(8, "big"), -1)
+        has = prev >= 0
+        self.prev_tid.a[tids[has]] = prev[has]
+        self.next_tid.a[prev[has]] = tids[has]
+        names = set(tables)
+        table_of = np.asarray(tables) if len(names) > 1 else None
+        by_table: dict[tuple[str, int], np.ndarray] = {}
+        for code in np.unique(robot).tolist():
+            mine = robot == code
+            for name in names:
+                m = mine if table_of is None else mine & (table_of == name)
+                if m.any():
+                    by_table[(name, code)] = tids[m]
+            m = mine & intervention
+            if table_of is not None:
+                m &= table_of != INTERVENTIONS
+            if m.any() and INTERVENTIONS not in names:
+                by_table[(INTERVENTIONS, code)] = tids[m]
+            elif m.any():
+                by_table[(INTERVENTIONS, code)] = np.union1d(by_table.get((INTERVENTIONS, code), tids[:0]), tids[m])
+            by_table[(ALL, code)] = tids[mine]
+        self._append_tables(by_table)
         return tids
 
     def evict(self, tids: list[int]) -> None:
@@ -188,6 +340,7 @@ class Index:
         for grows in [*self.tables.values(), self.all]:
             for g in grows.values():
                 g.keep(self.alive.a[g.view()])
+        self._trees.clear()  # positions moved: rebuilt on the next prioritized draw
 
     # ------------------------------------------------------------------ counts
 
@@ -224,13 +377,16 @@ class Index:
         for table, k in shares.items():
             if k == 0:
                 continue
-            newest = req.window if req.sampler == "recency" else 0  # tids grow with arrival: a robot's newest are last
-            cands = self.candidates(table, req.robot_ids, newest)
-            if len(cands) == 0:
-                what = f"table {table!r}" if table else "the buffer"
-                robots = f" for robots {sorted(set(req.robot_ids))}" if req.robot_ids else ""
-                raise EmptyBufferError(f"no sampleable transitions in {what}{robots} yet")
-            t, w = self._draw_one(cands, k, req, rng)
+            if req.sampler == "prioritized":
+                if self.count(table, req.robot_ids) == 0:
+                    raise _empty(table, req.robot_ids)
+                t, w = self._draw_prioritized(table, k, req, rng)
+            else:
+                newest = req.window if req.sampler == "recency" else 0  # tids grow with arrival: newest are last
+                cands = self.candidates(table, req.robot_ids, newest)
+                if len(cands) == 0:
+                    raise _empty(table, req.robot_ids)
+                t, w = self._draw_one(cands, k, req, rng)
             tids.append(t)
             weights.append(w)
         tid = np.concatenate(tids) if len(tids) > 1 else tids[0]
@@ -242,16 +398,46 @@ class Index:
     ) -> tuple[np.ndarray, np.ndarray]:
         if req.sampler == "recency" and 0 < req.window < len(cands):
             cands = np.partition(cands, len(cands) - req.window)[-req.window :]
-        if req.sampler != "prioritized":
-            return cands[rng.integers(0, len(cands), size=k)], np.ones(k, np.float32)
-        p = self.priority.a[cands].astype(np.float64) ** req.alpha
-        cdf = np.cumsum(p)
-        total = cdf[-1]
-        if not total > 0:
-            return cands[rng.integers(0, len(cands), size=k)], np.ones(k, np.float32)
-        picks = np.minimum(np.searchsorted(cdf, rng.random(k) * total, side="right"), len(cands) - 1)
-        w = (len(cands) * p[picks] / total) ** (-req.beta)
-        return cands[picks], (w / w.max()).astype(np.float32)
+        return cands[rng.integers(0, len(cands), size=k)], np.ones(k, np.float32)
+
+    def _tree(self, table: str, code: int, alpha: float) -> SumTree:
+        key = (table, code, alpha)
+        tree = self._trees.get(key)
+        if tree is None:
+            if len(self._trees) >= MAX_TREES:
+                self._trees.pop(next(iter(self._trees)))
+            grows = self.all if table == ALL else self.tables.get(table, {})
+            tree = self._trees[key] = SumTree(self.priority.a[grows[code].view()].astype(np.float64) ** alpha)
+        return tree
+
+    def _draw_prioritized(
+        self, table: str, k: int, req: Draw, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """k draws proportional to priority^alpha over the table's robots: O(k log n) in sum trees."""
+        grows = self.all if table == ALL else self.tables.get(table, {})
+        codes = self._codes(req.robot_ids)
+        parts = [(c, g) for c, g in sorted(grows.items()) if g.n and (codes is None or c in codes)]
+        trees = [self._tree(table, c, req.alpha) for c, _ in parts]
+        n = sum(g.n for _, g in parts)
+        totals = np.array([t.total for t in trees], np.float64)
+        total = float(totals.sum())
+        if not total > 0:  # every priority 0: uniform
+            cands = np.concatenate([g.view() for _, g in parts])
+            return cands[rng.integers(0, n, size=k)], np.ones(k, np.float32)
+        u = rng.random(k) * total
+        edges = np.cumsum(totals)
+        which = np.minimum(np.searchsorted(edges, u, side="right"), len(trees) - 1)
+        tids = np.empty(k, np.int64)
+        p = np.empty(k, np.float64)
+        for i, ((_, g), tree) in enumerate(zip(parts, trees, strict=True)):
+            sel = which == i
+            if not sel.any():
+                continue
+            pos = tree.find(u[sel] - (edges[i] - totals[i]))
+            tids[sel] = g.view()[pos]
+            p[sel] = tree.leaves(pos)
+        w = (n * p / total) ** (-req.beta)
+        return tids, (w / w.max()).astype(np.float32)
 
     def _n_step(self, tids: np.ndarray, weights: np.ndarray, n: int, gamma: float) -> Drawn:
         if n <= 1:
@@ -297,9 +483,23 @@ class Index:
         ok = (tids >= 0) & (tids < len(self.keys))
         ok[ok] = self.alive.a[tids[ok]]
         self.priority.a[tids[ok]] = priorities[ok]
+        if self._trees and ok.any():
+            live, values = tids[ok], priorities[ok].astype(np.float64)
+            for (table, code, alpha), tree in self._trees.items():
+                grows = self.all if table == ALL else self.tables.get(table, {})
+                col = grows[code].view()
+                pos = np.minimum(np.searchsorted(col, live), len(col) - 1)  # columns hold tids in ascending order
+                mine = col[pos] == live
+                tree.set(pos[mine], values[mine] ** alpha)
         if ok.any():
             self.max_priority = max(self.max_priority, float(priorities[ok].max()))
         return int(ok.sum())
+
+
+def _empty(table: str, robot_ids: list[str]) -> EmptyBufferError:
+    what = f"table {table!r}" if table else "the buffer"
+    robots = f" for robots {sorted(set(robot_ids))}" if robot_ids else ""
+    return EmptyBufferError(f"no sampleable transitions in {what}{robots} yet")
 
 
 def _split(batch_size: int, ratios: dict[str, float]) -> dict[str, int]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
+from collections.abc import Iterable
 
 from user.spec import StepError, check_tensor_map, validate_step
 from user.v1 import step_pb2
@@ -21,13 +22,23 @@ class EpisodeGuard:
 
     A step after the episode's last step, a second different last step, or a last step below a step
     already seen is rejected. Re-sent steps (same index) pass, so a reconnecting edge is never refused.
-    Remembers the most recent `capacity` episodes (in RAM; after a restart the store's dedup still holds).
+    Remembers the most recent `capacity` episodes in RAM; the service seeds it from the store at open
+    (seed()), so a restart still knows which stored episodes ended.
     """
 
     def __init__(self, capacity: int = 100_000) -> None:
         self.capacity = capacity
         self._lock = threading.Lock()
         self._episodes: OrderedDict[tuple[str, str], tuple[int, int | None]] = OrderedDict()  # -> (max index, last)
+
+    def seed(self, bounds: Iterable[tuple[str, str, int, int | None]]) -> None:
+        """Remember stored episodes: (robot, episode, highest step index, last step index or None), oldest first."""
+        with self._lock:
+            for robot, episode, highest, last in bounds:
+                self._episodes[(robot, episode)] = (highest, last)
+                self._episodes.move_to_end((robot, episode))
+                if len(self._episodes) > self.capacity:
+                    self._episodes.popitem(last=False)
 
     def check(self, step: step_pb2.Step) -> None:
         """Raise StepError if `step` breaks its episode; otherwise remember it."""
