@@ -5,9 +5,10 @@ subscriber holding the new version as numpy/torch tensors, for
   ours:    WeightStore.publish -> WeightServicer.StreamWeights (acked) -> WeightSubscriber, pinned fp32 full
            sets, and pinned XOR deltas + zstd against the previous version (versions move as training does:
            Adam steps on the weights);
-  lerobot: their LearnerService.StreamParameters + transport.utils (state_to_bytes once, receive_bytes_in_chunks,
-           bytes_to_state_dict = torch.load of received bytes); one LearnerService per actor (their service
-           feeds one actor per parameters queue), all on one server built like their learner's;
+  lerobot: one lerobot learner per actor, as lerobot serves actors (see PeerFanout): each pushes its
+           own state_to_bytes through a torch.multiprocessing Queue to its LearnerService.StreamParameters,
+           the actor receives (receive_bytes_in_chunks -> its Queue) and decodes (bytes_to_state_dict);
+  ours, patch: error-bounded patches (lossy) against the state each subscriber holds;
   raw:     a bare gRPC server stream of the same fp32 bytes in 1 MiB chunks into a preallocated buffer
            (no manifest, no checksum, no auth): the floor for a full set.
 Plus the learner's updates/s with 0, 1 and 8 subscribers, and (bench.weights_link, in a private
@@ -146,26 +147,40 @@ class OursFanout:
 
 
 class PeerFanout:
-    """lerobot's LearnerService, one per actor (each has its own parameters queue), and their receivers."""
+    """n actors served the way lerobot 0.6.1 serves them: one learner (service + server) per actor.
+
+    One lerobot learner cannot feed several actors: its LearnerService hands each push from its one
+    parameters queue to whichever StreamParameters stream drains it first (get_last_item_from_queue),
+    and its server has MAX_WORKERS = 3 threads, one actor's three streams. So n actors mean n learners,
+    and each learner pushes its own weights as push_actor_policy_to_queue does: state_to_bytes
+    (torch.save) of its own state dict, then put on a torch.multiprocessing Queue, which its gRPC
+    thread drains. Each actor receives with receive_bytes_in_chunks into its own torch.multiprocessing
+    Queue, and its loop takes the latest item and decodes it (bytes_to_state_dict = torch.load), as
+    update_policy_parameters does. All in threads of one process (lerobot's default concurrency is
+    "threads"; ours runs in one process too); the n pushes start at once, like n learners publishing.
+    """
 
     def __init__(self, n: int) -> None:
         from lerobot.rl.learner_service import MAX_WORKERS, LearnerService
+        from lerobot.rl.queue import get_last_item_from_queue
         from lerobot.transport import services_pb2, services_pb2_grpc
         from lerobot.transport import utils as lt
+        from torch.multiprocessing import Queue as MpQueue
 
-        self.lt, self.pb = lt, services_pb2
+        self.lt, self.pb, self.latest = lt, services_pb2, get_last_item_from_queue
         self.shutdown = threading.Event()
-        self.queues: list[queue.Queue[bytes]] = []
+        self.queues: list[Any] = []
         self.servers, self.channels, self.calls, self.threads = [], [], [], []
         self.received: queue.Queue[tuple[float, dict[str, torch.Tensor]]] = queue.Queue()
+        self.pool = futures.ThreadPoolExecutor(max_workers=n, thread_name_prefix="peer-learner")
         for _ in range(n):
-            q: queue.Queue[bytes] = queue.Queue()
+            q = MpQueue()
             service = LearnerService(
                 shutdown_event=self.shutdown,
                 parameters_queue=q,
                 seconds_between_pushes=0.0,  # push as soon as a version is queued (their default waits 4 s)
-                transition_queue=queue.Queue(),
-                interaction_message_queue=queue.Queue(),
+                transition_queue=MpQueue(),
+                interaction_message_queue=MpQueue(),
                 queue_get_timeout=0.05,
             )
             server = grpc.server(
@@ -189,24 +204,29 @@ class PeerFanout:
             self.threads.append(thread)
 
     def _receive(self, call: Any) -> None:
-        blobs: queue.Queue[bytes] = queue.Queue()
+        from torch.multiprocessing import Queue as MpQueue
 
-        def decode() -> None:
-            while (data := blobs.get()) is not None:
-                self.received.put((time.perf_counter(), self.lt.bytes_to_state_dict(data)))  # torch.load
+        blobs = MpQueue()  # the actor's parameters queue
 
-        threading.Thread(target=decode, daemon=True).start()
+        def actor_loop() -> None:
+            while not self.shutdown.is_set():
+                data = self.latest(blobs, block=True, timeout=0.1)
+                if data is not None:
+                    self.received.put((time.perf_counter(), self.lt.bytes_to_state_dict(data)))  # torch.load
+
+        threading.Thread(target=actor_loop, daemon=True).start()
         try:
             self.lt.receive_bytes_in_chunks(call, blobs, self.shutdown, log_prefix="[bench]")
         except grpc.RpcError:
             pass  # cancelled at close()
-        blobs.put(None)  # type: ignore[arg-type]
+
+    def _push(self, q: Any, module: torch.nn.Module) -> None:
+        q.put(self.lt.state_to_bytes(module.state_dict()))  # this learner's push_actor_policy_to_queue
 
     def send(self, module: torch.nn.Module) -> tuple[float, dict[str, Any]]:
         start = time.perf_counter()
-        blob = self.lt.state_to_bytes(module.state_dict())  # once, as their learner does per push
-        for q in self.queues:
-            q.put(blob)
+        for f in [self.pool.submit(self._push, q, module) for q in self.queues]:
+            f.result()
         last, state = 0.0, None
         for _ in self.queues:
             arrived, state = self.received.get(timeout=RECEIVE_TIMEOUT_S)
@@ -223,6 +243,10 @@ class PeerFanout:
             c.close()
         for s in self.servers:
             s.stop(0.5).wait()
+        self.pool.shutdown()
+        for q in self.queues:
+            q.close()
+            q.cancel_join_thread()
 
 
 # --------------------------------------------------------------------------- raw stream
@@ -337,6 +361,7 @@ def bench_fanout(
     makers: dict[str, Callable[[], Any]] = {
         "fp32": lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_FP32),
         "delta": lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD),
+        "patch": lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD, allow_lossy=True),
         "raw": lambda: RawFanout(n),
         "lerobot": lambda: PeerFanout(n),
     }
@@ -352,8 +377,8 @@ def bench_fanout(
             for side, link in links.items():  # take turns, so background load hits all alike
                 seconds, received = link.send(module)
                 times[side].append(seconds)
-                if side == "delta":
-                    wire["delta"] = link.wire_bytes // n
+                if side in ("delta", "patch"):
+                    wire[side] = link.wire_bytes // n
                 if i == versions - 1 and side in ("fp32", "delta"):
                     _check_same(module, received)
     finally:
@@ -378,6 +403,17 @@ def bench_fanout(
             f"delta {wire.get('delta', 0) / 2**20:.1f} MiB of {raw_bytes / 2**20:.0f}",
             peer_name=RAW,
         ),
+        Row(
+            group,
+            f"{what}, error-bounded patch vs raw",
+            ms["patch"],
+            ms["raw"],
+            "ms",
+            False,
+            f"lossy (2^-10 x block RMS); {wire.get('patch', 0) / 2**20:.1f} MiB of {raw_bytes / 2**20:.0f}",
+            peer_name=RAW,
+        ),
+        Row(group, f"{what}, error-bounded patch vs lerobot", ms["patch"], ms["lerobot"], "ms", False, "lossy"),
     ]
 
 

@@ -561,3 +561,18 @@ def test_local_policy_swaps_between_actions_never_mid_forward() -> None:
     assert out[0] is not None and out[0][1] == 1  # the forward in flight finished on the weights it started with
     action, version = local.act("r", obs, deadline_s=60.0)
     assert version == 2 and not np.allclose(action, out[0][0])
+
+
+def test_buffer_pool_reuses_a_buffer_only_once_nothing_views_it() -> None:
+    from user.weight_codec import BufferPool
+
+    pool = BufferPool()
+    buf = pool.take(2 << 20)
+    owner = id(buf if buf.base is None else buf.base)  # no reference: holding one would keep it busy
+    tensor = buf[64:128].view(np.float32)  # a weight set's tensor still in use
+    pool.give(buf)
+    del buf
+    fresh = pool.take(2 << 20)
+    assert id(fresh.base) != owner  # still viewed: never handed out again while in use
+    del tensor
+    assert id(pool.take(2 << 20).base) == owner

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import sys
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -153,6 +154,34 @@ class WirePayload:
             and list(a.shape) == list(b.shape)
             for a, b in zip(tensors, self.tensors, strict=True)
         )
+
+
+class BufferPool:
+    """Reuses big numpy buffers nobody else references any more.
+
+    A fresh 100 MiB buffer spends ~0.5 s here in page faults (a reused one ~10-20 ms), more than the
+    transfer itself on loopback. A buffer given back is handed out again only once no array views it
+    (tensors of a weight set are views into its payload, so a set still in use keeps its buffer).
+    """
+
+    def __init__(self, keep: int = 4) -> None:
+        self.keep = keep
+        self._free: list[np.ndarray] = []
+
+    def take(self, nbytes: int) -> np.ndarray:
+        for i in range(len(self._free)):
+            # refs: the list and getrefcount's argument; every view of it would add one
+            if nbytes <= self._free[i].nbytes <= nbytes + (nbytes >> 2) + 4096 and sys.getrefcount(self._free[i]) <= 2:
+                return self._free.pop(i)[:nbytes]
+        return np.empty(nbytes, dtype=np.uint8)
+
+    def give(self, arr: np.ndarray) -> None:
+        """Offer arr's buffer for reuse (it is reused only once nothing views it)."""
+        base = arr if arr.base is None else arr.base
+        if not isinstance(base, np.ndarray) or base.nbytes < 1 << 20 or any(b is base for b in self._free):
+            return
+        self._free.append(base)
+        del self._free[: -self.keep]
 
 
 def _compress(data: np.ndarray) -> bytes:
@@ -307,11 +336,54 @@ def patch_body_bytes(tensors: Sequence[learner_pb2.TensorInfo]) -> int:
     return blocks * 4 + blocks * PATCH_BLOCK + sum(n for _, n in other)
 
 
-def _apply_steps(base: np.ndarray, steps: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """base + q * step per block, in float32: the one computation both sides run (bit-identical)."""
-    delta = q.reshape(len(steps), PATCH_BLOCK).astype(np.float32)
-    delta *= steps[:, None]
-    return base + delta.reshape(-1)[: base.size]
+PATCH_SLICE_BLOCKS = 256  # blocks per slice of work: 4 MiB of float32 scratch, reused
+
+
+def _apply_steps(base: np.ndarray, steps: np.ndarray, q: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """out = base + q * step per block, in float32: the one computation both sides run (bit-identical).
+
+    Sliced, with one small scratch buffer, so no big temporary is allocated (page faults)."""
+    n, step = base.size, PATCH_SLICE_BLOCKS * PATCH_BLOCK
+    scratch = np.empty(step, dtype=np.float32)
+    for lo in range(0, n, step):
+        hi = min(n, lo + step)
+        blocks = -(-(hi - lo) // PATCH_BLOCK)
+        tmp = scratch[: blocks * PATCH_BLOCK].reshape(blocks, PATCH_BLOCK)
+        b0 = lo // PATCH_BLOCK
+        np.multiply(
+            q[lo : lo + blocks * PATCH_BLOCK].reshape(blocks, PATCH_BLOCK), steps[b0 : b0 + blocks, None], out=tmp
+        )
+        np.add(base[lo:hi], tmp.reshape(-1)[: hi - lo], out=out[lo:hi])
+    return out
+
+
+def _quantize(new: np.ndarray, old: np.ndarray, steps: np.ndarray, q: np.ndarray) -> None:
+    """Fill steps (one per block) and q (int8, padded to whole blocks) for new - old, slice by slice."""
+    n, step = new.size, PATCH_SLICE_BLOCKS * PATCH_BLOCK
+    scratch = np.zeros(step, dtype=np.float32)
+    sq = np.zeros(step, dtype=np.float32)
+    for lo in range(0, n, step):
+        hi = min(n, lo + step)
+        blocks = -(-(hi - lo) // PATCH_BLOCK)
+        b0, size = lo // PATCH_BLOCK, blocks * PATCH_BLOCK
+        d = scratch[:size]
+        d[hi - lo :] = 0
+        np.subtract(new[lo:hi], old[lo:hi], out=d[: hi - lo])
+        w = sq[:size]
+        w[hi - lo :] = 0
+        np.square(new[lo:hi], out=w[: hi - lo])
+        d2 = d.reshape(blocks, PATCH_BLOCK)
+        rms = np.sqrt(w.reshape(blocks, PATCH_BLOCK).mean(axis=1, dtype=np.float64)).astype(np.float32)
+        peak = np.abs(d2).max(axis=1)
+        s = np.maximum(np.float32(2 * PATCH_REL_TOL) * rms, peak / np.float32(127))  # |error| <= step / 2
+        if not np.isfinite(s).all():
+            raise PatchError("non-finite weights or differences")
+        s[s == 0] = 1.0  # an unchanged all-zero block
+        steps[b0 : b0 + blocks] = s
+        d2 /= s[:, None]
+        np.rint(d, out=d)
+        np.clip(d, -127, 127, out=d)
+        q[lo : lo + size] = d
 
 
 def _assemble(
@@ -338,29 +410,17 @@ def encode_patch(full: PackedWeights, wire: WirePayload, base: WirePayload) -> t
         raise PatchError("a patch needs an older base of the same layout")
     f32, other = _f32_segments(wire.tensors)
     new, old = _gather_f32(wire.payload, f32), _gather_f32(base.payload, f32)
-    n = new.size
-    blocks = -(-n // PATCH_BLOCK)
-    diff = np.zeros(blocks * PATCH_BLOCK, dtype=np.float32)
-    np.subtract(new, old, out=diff[:n])
-    sq = np.zeros(blocks * PATCH_BLOCK, dtype=np.float32)
-    np.square(new, out=sq[:n])
-    rms = np.sqrt(sq.reshape(blocks, PATCH_BLOCK).mean(axis=1, dtype=np.float64)).astype(np.float32)
-    del sq
-    d2 = diff.reshape(blocks, PATCH_BLOCK)
-    peak = np.abs(d2).max(axis=1) if blocks else np.zeros(0, np.float32)
-    steps = np.maximum(np.float32(2 * PATCH_REL_TOL) * rms, peak / np.float32(127))  # |error| <= step / 2
-    if not np.isfinite(steps).all():
-        raise PatchError("non-finite weights or differences")
-    steps[steps == 0] = 1.0  # an unchanged all-zero block
-    d2 /= steps[:, None]
-    q = np.clip(np.rint(d2), -127, 127).astype(np.int8).reshape(-1)
-    del diff, d2
-    values = _apply_steps(old, steps, q)
+    blocks = -(-new.size // PATCH_BLOCK)
+    body = np.empty(patch_body_bytes(wire.tensors), dtype=np.uint8)  # steps | q | other tensors
+    steps = body[: blocks * 4].view("<f4")
+    q = body[blocks * 4 : blocks * 4 + blocks * PATCH_BLOCK].view(np.int8)
+    _quantize(new, old, steps, q)
+    values = _apply_steps(old, steps, q, np.empty(new.size, dtype=np.float32))
     rest = np.concatenate([wire.payload[o : o + nb] for o, nb in other]) if other else _EMPTY
     state_payload = _assemble(wire.payload, f32, values, other, rest)
     digest = _HASHERS[full.header.digest_kind][0](state_payload).digest()
     state = WirePayload(wire.version, wire.tensors, state_payload, digest)
-    body = np.concatenate([steps.view(np.uint8), q.view(np.uint8), rest])
+    body[blocks * 4 + blocks * PATCH_BLOCK :] = rest
     payload = _compress(body)
     src = full.header
     header = learner_pb2.WeightHeader(
@@ -382,7 +442,9 @@ def encode_patch(full: PackedWeights, wire: WirePayload, base: WirePayload) -> t
     return PackedWeights(header, payload), state
 
 
-def apply_patch(base: WirePayload, tensors: Sequence[learner_pb2.TensorInfo], body: np.ndarray) -> np.ndarray:
+def apply_patch(
+    base: WirePayload, tensors: Sequence[learner_pb2.TensorInfo], body: np.ndarray, pool: BufferPool | None = None
+) -> np.ndarray:
     """The payload a decoded patch body leads to from `base` (sizes checked by the caller)."""
     f32, other = _f32_segments(tensors)
     old = _gather_f32(base.payload, f32)
@@ -392,7 +454,10 @@ def apply_patch(base: WirePayload, tensors: Sequence[learner_pb2.TensorInfo], bo
     if not np.isfinite(steps).all():
         raise WireError("weight patch: non-finite step")
     rest = body[blocks * 4 + blocks * PATCH_BLOCK :]
-    return _assemble(base.payload, f32, _apply_steps(old, steps, q), other, rest)
+    if len(f32) == 1 and f32[0] == (0, base.payload.nbytes):  # all float32: straight into the payload
+        out = (pool.take(base.payload.nbytes) if pool else np.empty(base.payload.nbytes, np.uint8)).view("<f4")
+        return _apply_steps(old, steps, q, out).view(np.uint8)
+    return _assemble(base.payload, f32, _apply_steps(old, steps, q, np.empty(old.size, np.float32)), other, rest)
 
 
 def iter_weight_messages(
@@ -483,6 +548,7 @@ class WeightAssembler:
         self._buf = _EMPTY
         self._filled = 0
         self._hash: Any = None  # running digest of raw full payloads, updated as chunks arrive
+        self._pool = BufferPool()
 
     @property
     def in_progress(self) -> bool:
@@ -535,7 +601,7 @@ class WeightAssembler:
                 )
         # Preallocated (the header passed the size limit): one copy per chunk, no regrowth; numpy for
         # huge pages (see pack_weights).
-        self._buf, self._filled = np.empty(header.encoded_bytes, dtype=np.uint8), 0
+        self._buf, self._filled = self._pool.take(header.encoded_bytes), 0
         streaming = header.encoding == ENCODING_RAW and not header.base_version
         self._hash = _HASHERS[header.digest_kind][0]() if streaming else None
         return self._finish() if header.encoded_bytes == 0 else None
@@ -562,15 +628,19 @@ class WeightAssembler:
     def _finish(self) -> WeightSet:
         h = self._header
         assert h is not None
-        if h.weight_encoding == WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD:
+        patch = h.weight_encoding == WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD
+        if patch:
             assert self.held is not None  # checked on the header
             body = self._decode(h, self._buf, patch_body_bytes(h.tensors))
-            raw = apply_patch(self.held, h.tensors, body)
+            raw = apply_patch(self.held, h.tensors, body, self._pool)
+            self._pool.give(body)
         else:
             raw = self._decode(h, self._buf)  # the buffer is handed over, not copied: reset() starts a new one
-        if h.base_version and h.weight_encoding != WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD:
+        if h.encoding != ENCODING_RAW:
+            self._pool.give(self._buf)
+        if h.base_version and not patch:
             assert self.held is not None  # checked on the header
-            raw = np.bitwise_xor(raw, self.held.payload)
+            np.bitwise_xor(raw, self.held.payload, out=raw)  # raw is ours (received or decoded here)
         digest = self._hash.digest() if self._hash is not None else _HASHERS[h.digest_kind][0](raw).digest()
         if digest != h.digest:
             base = f" (delta against v{h.base_version})" if h.base_version else ""
@@ -587,6 +657,8 @@ class WeightAssembler:
             else:
                 arr = stored.astype(stored.dtype.newbyteorder("="), copy=True)
             tensors[info.name] = arr
+        if self.held is not None:
+            self._pool.give(self.held.payload)  # reused once the old set's tensors are gone
         self.held = WirePayload(int(h.version), tuple(h.tensors), raw, bytes(h.digest))
         out = WeightSet(
             int(h.version),
@@ -601,20 +673,22 @@ class WeightAssembler:
         self.reset()
         return out
 
-    @staticmethod
-    def _decode(h: learner_pb2.WeightHeader, data: np.ndarray, size: int = -1) -> np.ndarray:
-        """The decoded bytes: `size` of them (default: the header's total_bytes)."""
+    def _decode(self, h: learner_pb2.WeightHeader, data: np.ndarray, size: int = -1) -> np.ndarray:
+        """The decoded bytes: `size` of them (default: the header's total_bytes), in a reused buffer."""
         size = h.total_bytes if size < 0 else size
         if h.encoding == ENCODING_RAW:
             return data
         import zstandard
 
+        out = self._pool.take(size)  # writable, so tensors can be views
+        filled = 0
         try:
-            raw = zstandard.ZstdDecompressor().decompress(data, max_output_size=size)
+            with zstandard.ZstdDecompressor().stream_reader(data) as reader:
+                while filled < size and (got := reader.readinto(out[filled:])):
+                    filled += got
+                extra = reader.read(1)
         except zstandard.ZstdError as exc:
             raise WireError(f"weight v{h.version}: bad zstd payload: {exc}") from exc
-        if len(raw) != size:
-            raise WireError(f"weight v{h.version}: decoded {len(raw)} bytes, expected {size}")
-        out = np.empty(len(raw), dtype=np.uint8)  # writable, so tensors can be views
-        out[:] = np.frombuffer(raw, dtype=np.uint8)
+        if filled != size or extra:
+            raise WireError(f"weight v{h.version}: decoded {filled + len(extra)}+ bytes, expected {size}")
         return out
