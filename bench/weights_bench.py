@@ -92,16 +92,19 @@ class Trainer:
 class OursFanout:
     """A real learner gRPC server (auth on) with our servicer, and n WeightSubscribers (own channels)."""
 
-    def __init__(self, spec: learner_pb2.PolicySpec, n: int, encoding: int, allow_lossy: bool = False) -> None:
+    def __init__(
+        self, spec: learner_pb2.PolicySpec, n: int, encoding: int, allow_lossy: bool = False, remote: int = 0
+    ) -> None:
+        """remote: streams the server must also hold for subscribers in other processes."""
         self.spec, self.auth = spec, AuthConfig(token="bench-token")
         self.store = WeightStore(history=2)
-        servicer = WeightServicer(self.store)
+        self.servicer = servicer = WeightServicer(self.store)
         name = learner_pb2.DESCRIPTOR.services_by_name["Learner"].full_name
         self.server = rpc.start_server(
             "bench-learner",
             lambda s: learner_pb2_grpc.add_LearnerServicer_to_server(servicer, s),
             [name],
-            ServerConfig(host="127.0.0.1", port=0, metrics_port=0, max_workers=4 + 2 * n, grace_s=0.5),
+            ServerConfig(host="127.0.0.1", port=0, metrics_port=0, max_workers=4 + 2 * (n + remote), grace_s=0.5),
             self.auth,
             start_metrics=False,
         )
@@ -420,8 +423,48 @@ def bench_fanout(
 # --------------------------------------------------------------------------- learner updates/s
 
 
+def _subscribe_elsewhere(addr: str, token: str, n: int, stop: Any) -> None:
+    """n WeightSubscribers in this (spawned) process: edges and inference servers live elsewhere."""
+    subs = [WeightSubscriber(addr, AuthConfig(token=token), f"remote-{i}", lambda ws: None).start() for i in range(n)]
+    stop.wait()
+    for sub in subs:
+        sub.stop()
+
+
+class RemoteSubscribers:
+    """n subscribers in another process (sharing the same CPU cores, not the learner's GIL)."""
+
+    def __init__(self, addr: str, token: str, n: int) -> None:
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("spawn")
+        self.n, self.stop = n, ctx.Event()
+        self.proc = ctx.Process(target=_subscribe_elsewhere, args=(addr, token, n, self.stop), daemon=True)
+        if n:
+            self.proc.start()
+
+    def wait_ready(self, fan: OursFanout, timeout: float) -> bool:
+        """True once all n subscribers hold the first version (acked)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            status = fan.servicer.subscriber_status()
+            if len(status) == self.n and all(st.applied_version >= 1 for st in status):
+                return True
+            time.sleep(0.1)
+        return False
+
+    def close(self) -> None:
+        if self.n:
+            self.stop.set()
+            self.proc.join(10)
+            if self.proc.is_alive():
+                self.proc.kill()
+
+
 def bench_learner_rate(subscriber_counts: list[int], seconds: float, log: Callable[..., None]) -> list[Row]:
-    """Real SAC updates on the sim-arm shapes, publishing every publish_every updates into a served store."""
+    """Real SAC updates on the sim-arm shapes, publishing every publish_every updates into a served store,
+    with n acked subscribers in another process (where edges and inference servers are: not in the
+    learner's process, so they cost it CPU time, not its GIL)."""
     from cloud_learner.algorithm import ALGORITHMS, Batch, Feature, Layout
     from tests.helpers import random_sac_batch
 
@@ -438,26 +481,37 @@ def bench_learner_rate(subscriber_counts: list[int], seconds: float, log: Callab
         terminated=raw["terminated"],
         intervention=torch.zeros(lc.batch_size, dtype=torch.bool),
     )
-    rates: dict[int, float] = {}
+    samples: dict[int, list[float]] = {n: [] for n in subscriber_counts}
+    rounds = 3
+    for _ in range(rounds):  # interleaved, so changing background load hits every count alike
+        for n in subscriber_counts:
+            torch.manual_seed(0)
+            sac = ALGORITHMS.build("sac", {"hidden": list(lc.hidden)}, layout=layout, device=torch.device("cpu"))
+            spec, _ = sac.policy()
+            fan = OursFanout(spec, 0, WE.WEIGHT_ENCODING_ADAPTIVE, remote=n)
+            subs = RemoteSubscribers(fan.server.address(), fan.auth.token, n)
+            try:
+                fan.store.publish(1, spec, sac.policy()[1])
+                if n and not subs.wait_ready(fan, 120):
+                    raise RuntimeError(f"{n} subscriber processes did not connect")
+                for _ in range(20):  # warm-up: the first updates of a fresh SAC take ~100x longer
+                    sac.update(batch)
+                version, updates = 1, 0
+                start = time.perf_counter()
+                while time.perf_counter() - start < seconds / rounds:
+                    sac.update(batch)
+                    updates += 1
+                    if updates % lc.publish_every == 0:
+                        version += 1
+                        spec, tensors = sac.policy()
+                        fan.store.publish(version, spec, tensors, updates)
+                samples[n].append(updates / (time.perf_counter() - start))
+            finally:
+                subs.close()
+                fan.close()
+    rates = {n: median(v) for n, v in samples.items()}
     for n in subscriber_counts:
-        torch.manual_seed(0)
-        sac = ALGORITHMS.build("sac", {"hidden": list(lc.hidden)}, layout=layout, device=torch.device("cpu"))
-        spec, _ = sac.policy()
-        fan = OursFanout(spec, n, WE.WEIGHT_ENCODING_ADAPTIVE)
-        try:
-            version, updates = 0, 0
-            start = time.perf_counter()
-            while time.perf_counter() - start < seconds:
-                sac.update(batch)
-                updates += 1
-                if updates % lc.publish_every == 0:
-                    version += 1
-                    spec, tensors = sac.policy()
-                    fan.store.publish(version, spec, tensors, updates)
-            rates[n] = updates / (time.perf_counter() - start)
-        finally:
-            fan.close()
-        log(f"  learner with {n} subscribers: {rates[n]:.0f} updates/s")
+        log(f"  learner with {n} subscribers: {rates[n]:.0f} updates/s (rounds: {[round(x) for x in samples[n]]})")
     group = f"learner updates/s while publishing (SAC sim arm, publish every {lc.publish_every})"
     return [
         Row(group, f"updates/s with {n} subscribers", rates[n], rates[0], "1/s", True, "vs 0 subscribers", "no subs")

@@ -83,9 +83,10 @@ log = logging.getLogger(__name__)
 
 DEFAULT_FRESHNESS_S = 1.0
 DEFAULT_HISTORY = 4
-# A link that applied this many patches in a row gets an exact set next (its error is bounded per
-# patch anyway; the resync makes it bit-exact again, e.g. for evaluation at a known version).
-DEFAULT_KEYFRAME_EVERY = 16
+# A link that applied this many patches in a row gets an exact set next. The error is bounded per patch
+# anyway (each is taken against what the subscriber holds); the resync makes it bit-exact again, e.g.
+# for evaluation at a known version. At publish_every = 100 updates: one exact set per 3,200 updates.
+DEFAULT_KEYFRAME_EVERY = 32
 PATCH = WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD
 
 WEIGHTS_RECEIVED = prometheus_client.Counter("user_weights_received_total", "Weight versions received and applied")
