@@ -566,6 +566,8 @@ class WeightAssembler:
         self._header, self._buf, self._filled, self._hash = None, _EMPTY, 0, None
 
     def forget_base(self) -> None:
+        if self.held is not None:
+            self._pool.give(self.held.payload)  # reused once the set's tensors are gone
         self.held = None
 
     def feed(self, msg: learner_pb2.WeightMessage) -> WeightSet | None:
