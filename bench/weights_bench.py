@@ -247,8 +247,7 @@ class PeerFanout:
         for s in self.servers:
             s.stop(0.5).wait()
         self.pool.shutdown()
-        for q in self.queues:
-            q.close()
+        for q in self.queues:  # not closed: a stopped service's thread may still be in its get()
             q.cancel_join_thread()
 
 
