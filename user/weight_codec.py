@@ -404,8 +404,11 @@ def _assemble(
     return out
 
 
-def encode_patch(full: PackedWeights, wire: WirePayload, base: WirePayload) -> tuple[PackedWeights, WirePayload]:
-    """A patch taking `base` (the receiver's exact state) towards `wire`, and the state it leads to."""
+def encode_patch(
+    full: PackedWeights, wire: WirePayload, base: WirePayload, buf: np.ndarray | None = None
+) -> tuple[PackedWeights, WirePayload]:
+    """A patch taking `base` (the receiver's exact state) towards `wire`, and the state it leads to
+    (written into `buf`, uint8 of the payload's size, when given: a reused buffer faults no pages)."""
     if not base.same_layout(wire.tensors) or base.version >= wire.version:
         raise PatchError("a patch needs an older base of the same layout")
     f32, other = _f32_segments(wire.tensors)
@@ -415,7 +418,8 @@ def encode_patch(full: PackedWeights, wire: WirePayload, base: WirePayload) -> t
     steps = body[: blocks * 4].view("<f4")
     q = body[blocks * 4 : blocks * 4 + blocks * PATCH_BLOCK].view(np.int8)
     _quantize(new, old, steps, q)
-    values = _apply_steps(old, steps, q, np.empty(new.size, dtype=np.float32))
+    out = buf if buf is not None and buf.nbytes == new.nbytes else np.empty(new.nbytes, dtype=np.uint8)
+    values = _apply_steps(old, steps, q, out.view("<f4"))
     rest = np.concatenate([wire.payload[o : o + nb] for o, nb in other]) if other else _EMPTY
     state_payload = _assemble(wire.payload, f32, values, other, rest)
     digest = _HASHERS[full.header.digest_kind][0](state_payload).digest()

@@ -46,6 +46,7 @@ from user.weight_codec import (
     MAX_WEIGHT_BYTES,
     MIN_CHUNK_BYTES,
     WE,
+    BufferPool,
     PackedWeights,
     PatchError,
     WeightAssembler,
@@ -180,6 +181,8 @@ class WeightStore:
         # Exact payloads subscribers may hold, by (experiment, digest): fp32 wire payloads of published
         # versions and the states patches lead to. The bases of patches; they leave with their version.
         self._states: dict[tuple[str, bytes], tuple[WirePayload, bool]] = {}  # (state, made by a patch)
+        self._state_pool = BufferPool(keep=2)  # buffers of patched states that left: the next ones reuse them
+        self._pool_lock = threading.Lock()  # BufferPool is not thread-safe
         self._closed = False
 
     def publish(
@@ -215,7 +218,10 @@ class WeightStore:
                 del self._cache[key]
             gone = [k for k, st in self._states.items() if k[0] == experiment and (k[0], st[0].version) not in kept]
             for key in gone:
-                del self._states[key]
+                state, patched = self._states.pop(key)
+                if patched:
+                    with self._pool_lock:
+                        self._state_pool.give(state.payload)
 
     def _key(self, experiment: str) -> str:
         """Resolve "" to the first experiment published, and any name to "" when the publisher names none."""
@@ -356,7 +362,10 @@ class WeightStore:
                 held = self.state(base_digest, experiment)
                 if held is None:
                     raise KeyError(base_digest)
-                out, reached = encode_patch(full, self.wire(full, tpb.DTYPE_FLOAT32, prefixes), held)
+                wire = self.wire(full, tpb.DTYPE_FLOAT32, prefixes)
+                with self._pool_lock:
+                    buf = self._state_pool.take(wire.payload.nbytes)
+                out, reached = encode_patch(full, wire, held, buf)
                 self._keep_state(experiment, reached, patched=True)  # the base of this link's next patch
             else:
                 base = None
