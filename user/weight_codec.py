@@ -164,7 +164,8 @@ class BufferPool:
     (tensors of a weight set are views into its payload, so a set still in use keeps its buffer).
     """
 
-    def __init__(self, keep: int = 4) -> None:
+    def __init__(self, keep: int = 2) -> None:
+        """keep: spare buffers held at most (each as big as a payload: memory traded for page faults)."""
         self.keep = keep
         self._free: list[np.ndarray] = []
 
