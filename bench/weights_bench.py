@@ -481,7 +481,7 @@ def bench_learner_rate(subscriber_counts: list[int], seconds: float, log: Callab
         intervention=torch.zeros(lc.batch_size, dtype=torch.bool),
     )
     samples: dict[int, list[float]] = {n: [] for n in subscriber_counts}
-    rounds = 3
+    rounds = 3 if seconds >= 5 else 1  # --quick: one round (each spawns a subscriber process)
     for _ in range(rounds):  # interleaved, so changing background load hits every count alike
         for n in subscriber_counts:
             torch.manual_seed(0)
@@ -497,7 +497,7 @@ def bench_learner_rate(subscriber_counts: list[int], seconds: float, log: Callab
                     sac.update(batch)
                 version, updates = 1, 0
                 start = time.perf_counter()
-                while time.perf_counter() - start < seconds / rounds:
+                while time.perf_counter() - start < seconds / rounds or updates < 5:  # a rate > 0 under load
                     sac.update(batch)
                     updates += 1
                     if updates % lc.publish_every == 0:
