@@ -47,7 +47,8 @@ LEGEND = {
     "both fed the same transitions, taking turns.",
     "weights": "weights: ours user.weights (WeightStore/WeightServicer.StreamWeights -> WeightSubscriber, acked, "
     "token auth) vs lerobot's LearnerService.StreamParameters + transport.utils (state_to_bytes, "
-    "receive_bytes_in_chunks, bytes_to_state_dict; one service per actor) and a bare gRPC stream of the same bytes; "
+    "receive_bytes_in_chunks, bytes_to_state_dict, torch.multiprocessing queues; one lerobot learner per actor, "
+    "each serializing its own state, as lerobot serves actors) and a bare gRPC stream of the same bytes; "
     "real gRPC servers on 127.0.0.1 (the 20 Mbit/s rows: tc tbf in a private netns), versions alternate.",
     "inference": "inference: ours InferenceService (micro-batching) vs the same Act proto served one forward per "
     "request in the handler; each robot is a separate process, windows alternate.",

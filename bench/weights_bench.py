@@ -5,9 +5,10 @@ subscriber holding the new version as numpy/torch tensors, for
   ours:    WeightStore.publish -> WeightServicer.StreamWeights (acked) -> WeightSubscriber, pinned fp32 full
            sets, and pinned XOR deltas + zstd against the previous version (versions move as training does:
            Adam steps on the weights);
-  lerobot: their LearnerService.StreamParameters + transport.utils (state_to_bytes once, receive_bytes_in_chunks,
-           bytes_to_state_dict = torch.load of received bytes); one LearnerService per actor (their service
-           feeds one actor per parameters queue), all on one server built like their learner's;
+  lerobot: one lerobot learner per actor, as lerobot serves actors (see PeerFanout): each pushes its
+           own state_to_bytes through a torch.multiprocessing Queue to its LearnerService.StreamParameters,
+           the actor receives (receive_bytes_in_chunks -> its Queue) and decodes (bytes_to_state_dict);
+  ours, patch: error-bounded patches (lossy) against the state each subscriber holds;
   raw:     a bare gRPC server stream of the same fp32 bytes in 1 MiB chunks into a preallocated buffer
            (no manifest, no checksum, no auth): the floor for a full set.
 Plus the learner's updates/s with 0, 1 and 8 subscribers, and (bench.weights_link, in a private
@@ -91,16 +92,19 @@ class Trainer:
 class OursFanout:
     """A real learner gRPC server (auth on) with our servicer, and n WeightSubscribers (own channels)."""
 
-    def __init__(self, spec: learner_pb2.PolicySpec, n: int, encoding: int, allow_lossy: bool = False) -> None:
+    def __init__(
+        self, spec: learner_pb2.PolicySpec, n: int, encoding: int, allow_lossy: bool = False, remote: int = 0
+    ) -> None:
+        """remote: streams the server must also hold for subscribers in other processes."""
         self.spec, self.auth = spec, AuthConfig(token="bench-token")
         self.store = WeightStore(history=2)
-        servicer = WeightServicer(self.store)
+        self.servicer = servicer = WeightServicer(self.store)
         name = learner_pb2.DESCRIPTOR.services_by_name["Learner"].full_name
         self.server = rpc.start_server(
             "bench-learner",
             lambda s: learner_pb2_grpc.add_LearnerServicer_to_server(servicer, s),
             [name],
-            ServerConfig(host="127.0.0.1", port=0, metrics_port=0, max_workers=4 + 2 * n, grace_s=0.5),
+            ServerConfig(host="127.0.0.1", port=0, metrics_port=0, max_workers=4 + 2 * (n + remote), grace_s=0.5),
             self.auth,
             start_metrics=False,
         )
@@ -146,26 +150,40 @@ class OursFanout:
 
 
 class PeerFanout:
-    """lerobot's LearnerService, one per actor (each has its own parameters queue), and their receivers."""
+    """n actors served the way lerobot 0.6.1 serves them: one learner (service + server) per actor.
+
+    One lerobot learner cannot feed several actors: its LearnerService hands each push from its one
+    parameters queue to whichever StreamParameters stream drains it first (get_last_item_from_queue),
+    and its server has MAX_WORKERS = 3 threads, one actor's three streams. So n actors mean n learners,
+    and each learner pushes its own weights as push_actor_policy_to_queue does: state_to_bytes
+    (torch.save) of its own state dict, then put on a torch.multiprocessing Queue, which its gRPC
+    thread drains. Each actor receives with receive_bytes_in_chunks into its own torch.multiprocessing
+    Queue, and its loop takes the latest item and decodes it (bytes_to_state_dict = torch.load), as
+    update_policy_parameters does. All in threads of one process (lerobot's default concurrency is
+    "threads"; ours runs in one process too); the n pushes start at once, like n learners publishing.
+    """
 
     def __init__(self, n: int) -> None:
         from lerobot.rl.learner_service import MAX_WORKERS, LearnerService
+        from lerobot.rl.queue import get_last_item_from_queue
         from lerobot.transport import services_pb2, services_pb2_grpc
         from lerobot.transport import utils as lt
+        from torch.multiprocessing import Queue as MpQueue
 
-        self.lt, self.pb = lt, services_pb2
+        self.lt, self.pb, self.latest = lt, services_pb2, get_last_item_from_queue
         self.shutdown = threading.Event()
-        self.queues: list[queue.Queue[bytes]] = []
+        self.queues: list[Any] = []
         self.servers, self.channels, self.calls, self.threads = [], [], [], []
         self.received: queue.Queue[tuple[float, dict[str, torch.Tensor]]] = queue.Queue()
+        self.pool = futures.ThreadPoolExecutor(max_workers=n, thread_name_prefix="peer-learner")
         for _ in range(n):
-            q: queue.Queue[bytes] = queue.Queue()
+            q = MpQueue()
             service = LearnerService(
                 shutdown_event=self.shutdown,
                 parameters_queue=q,
                 seconds_between_pushes=0.0,  # push as soon as a version is queued (their default waits 4 s)
-                transition_queue=queue.Queue(),
-                interaction_message_queue=queue.Queue(),
+                transition_queue=MpQueue(),
+                interaction_message_queue=MpQueue(),
                 queue_get_timeout=0.05,
             )
             server = grpc.server(
@@ -189,24 +207,29 @@ class PeerFanout:
             self.threads.append(thread)
 
     def _receive(self, call: Any) -> None:
-        blobs: queue.Queue[bytes] = queue.Queue()
+        from torch.multiprocessing import Queue as MpQueue
 
-        def decode() -> None:
-            while (data := blobs.get()) is not None:
-                self.received.put((time.perf_counter(), self.lt.bytes_to_state_dict(data)))  # torch.load
+        blobs = MpQueue()  # the actor's parameters queue
 
-        threading.Thread(target=decode, daemon=True).start()
+        def actor_loop() -> None:
+            while not self.shutdown.is_set():
+                data = self.latest(blobs, block=True, timeout=0.1)
+                if data is not None:
+                    self.received.put((time.perf_counter(), self.lt.bytes_to_state_dict(data)))  # torch.load
+
+        threading.Thread(target=actor_loop, daemon=True).start()
         try:
             self.lt.receive_bytes_in_chunks(call, blobs, self.shutdown, log_prefix="[bench]")
         except grpc.RpcError:
             pass  # cancelled at close()
-        blobs.put(None)  # type: ignore[arg-type]
+
+    def _push(self, q: Any, module: torch.nn.Module) -> None:
+        q.put(self.lt.state_to_bytes(module.state_dict()))  # this learner's push_actor_policy_to_queue
 
     def send(self, module: torch.nn.Module) -> tuple[float, dict[str, Any]]:
         start = time.perf_counter()
-        blob = self.lt.state_to_bytes(module.state_dict())  # once, as their learner does per push
-        for q in self.queues:
-            q.put(blob)
+        for f in [self.pool.submit(self._push, q, module) for q in self.queues]:
+            f.result()
         last, state = 0.0, None
         for _ in self.queues:
             arrived, state = self.received.get(timeout=RECEIVE_TIMEOUT_S)
@@ -223,6 +246,9 @@ class PeerFanout:
             c.close()
         for s in self.servers:
             s.stop(0.5).wait()
+        self.pool.shutdown()
+        for q in self.queues:  # not closed: a stopped service's thread may still be in its get()
+            q.cancel_join_thread()
 
 
 # --------------------------------------------------------------------------- raw stream
@@ -337,6 +363,7 @@ def bench_fanout(
     makers: dict[str, Callable[[], Any]] = {
         "fp32": lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_FP32),
         "delta": lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD),
+        "patch": lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD, allow_lossy=True),
         "raw": lambda: RawFanout(n),
         "lerobot": lambda: PeerFanout(n),
     }
@@ -352,8 +379,8 @@ def bench_fanout(
             for side, link in links.items():  # take turns, so background load hits all alike
                 seconds, received = link.send(module)
                 times[side].append(seconds)
-                if side == "delta":
-                    wire["delta"] = link.wire_bytes // n
+                if side in ("delta", "patch"):
+                    wire[side] = link.wire_bytes // n
                 if i == versions - 1 and side in ("fp32", "delta"):
                     _check_same(module, received)
     finally:
@@ -378,14 +405,65 @@ def bench_fanout(
             f"delta {wire.get('delta', 0) / 2**20:.1f} MiB of {raw_bytes / 2**20:.0f}",
             peer_name=RAW,
         ),
+        Row(
+            group,
+            f"{what}, error-bounded patch vs raw",
+            ms["patch"],
+            ms["raw"],
+            "ms",
+            False,
+            f"lossy (2^-10 x block RMS); {wire.get('patch', 0) / 2**20:.1f} MiB of {raw_bytes / 2**20:.0f}",
+            peer_name=RAW,
+        ),
+        Row(group, f"{what}, error-bounded patch vs lerobot", ms["patch"], ms["lerobot"], "ms", False, "lossy"),
     ]
 
 
 # --------------------------------------------------------------------------- learner updates/s
 
 
+def _subscribe_elsewhere(addr: str, token: str, n: int, stop: Any) -> None:
+    """n WeightSubscribers in this (spawned) process: edges and inference servers live elsewhere."""
+    subs = [WeightSubscriber(addr, AuthConfig(token=token), f"remote-{i}", lambda ws: None).start() for i in range(n)]
+    stop.wait()
+    for sub in subs:
+        sub.stop()
+
+
+class RemoteSubscribers:
+    """n subscribers in another process (sharing the same CPU cores, not the learner's GIL)."""
+
+    def __init__(self, addr: str, token: str, n: int) -> None:
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("spawn")
+        self.n, self.stop = n, ctx.Event()
+        self.proc = ctx.Process(target=_subscribe_elsewhere, args=(addr, token, n, self.stop), daemon=True)
+        if n:
+            self.proc.start()
+
+    def wait_ready(self, fan: OursFanout, timeout: float) -> bool:
+        """True once all n subscribers hold the first version (acked)."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            status = fan.servicer.subscriber_status()
+            if len(status) == self.n and all(st.applied_version >= 1 for st in status):
+                return True
+            time.sleep(0.1)
+        return False
+
+    def close(self) -> None:
+        if self.n:
+            self.stop.set()
+            self.proc.join(10)
+            if self.proc.is_alive():
+                self.proc.kill()
+
+
 def bench_learner_rate(subscriber_counts: list[int], seconds: float, log: Callable[..., None]) -> list[Row]:
-    """Real SAC updates on the sim-arm shapes, publishing every publish_every updates into a served store."""
+    """Real SAC updates on the sim-arm shapes, publishing every publish_every updates into a served store,
+    with n acked subscribers in another process (where edges and inference servers are: not in the
+    learner's process, so they cost it CPU time, not its GIL)."""
     from cloud_learner.algorithm import ALGORITHMS, Batch, Feature, Layout
     from tests.helpers import random_sac_batch
 
@@ -402,26 +480,37 @@ def bench_learner_rate(subscriber_counts: list[int], seconds: float, log: Callab
         terminated=raw["terminated"],
         intervention=torch.zeros(lc.batch_size, dtype=torch.bool),
     )
-    rates: dict[int, float] = {}
+    samples: dict[int, list[float]] = {n: [] for n in subscriber_counts}
+    rounds = 3 if seconds >= 5 else 1  # --quick: one round (each spawns a subscriber process)
+    for _ in range(rounds):  # interleaved, so changing background load hits every count alike
+        for n in subscriber_counts:
+            torch.manual_seed(0)
+            sac = ALGORITHMS.build("sac", {"hidden": list(lc.hidden)}, layout=layout, device=torch.device("cpu"))
+            spec, _ = sac.policy()
+            fan = OursFanout(spec, 0, WE.WEIGHT_ENCODING_ADAPTIVE, remote=n)
+            subs = RemoteSubscribers(fan.server.address(), fan.auth.token, n)
+            try:
+                fan.store.publish(1, spec, sac.policy()[1])
+                if n and not subs.wait_ready(fan, 120):
+                    raise RuntimeError(f"{n} subscriber processes did not connect")
+                for _ in range(20):  # warm-up: the first updates of a fresh SAC take ~100x longer
+                    sac.update(batch)
+                version, updates = 1, 0
+                start = time.perf_counter()
+                while time.perf_counter() - start < seconds / rounds or updates < 5:  # a rate > 0 under load
+                    sac.update(batch)
+                    updates += 1
+                    if updates % lc.publish_every == 0:
+                        version += 1
+                        spec, tensors = sac.policy()
+                        fan.store.publish(version, spec, tensors, updates)
+                samples[n].append(updates / (time.perf_counter() - start))
+            finally:
+                subs.close()
+                fan.close()
+    rates = {n: median(v) for n, v in samples.items()}
     for n in subscriber_counts:
-        torch.manual_seed(0)
-        sac = ALGORITHMS.build("sac", {"hidden": list(lc.hidden)}, layout=layout, device=torch.device("cpu"))
-        spec, _ = sac.policy()
-        fan = OursFanout(spec, n, WE.WEIGHT_ENCODING_ADAPTIVE)
-        try:
-            version, updates = 0, 0
-            start = time.perf_counter()
-            while time.perf_counter() - start < seconds:
-                sac.update(batch)
-                updates += 1
-                if updates % lc.publish_every == 0:
-                    version += 1
-                    spec, tensors = sac.policy()
-                    fan.store.publish(version, spec, tensors, updates)
-            rates[n] = updates / (time.perf_counter() - start)
-        finally:
-            fan.close()
-        log(f"  learner with {n} subscribers: {rates[n]:.0f} updates/s")
+        log(f"  learner with {n} subscribers: {rates[n]:.0f} updates/s (rounds: {[round(x) for x in samples[n]]})")
     group = f"learner updates/s while publishing (SAC sim arm, publish every {lc.publish_every})"
     return [
         Row(group, f"updates/s with {n} subscribers", rates[n], rates[0], "1/s", True, "vs 0 subscribers", "no subs")

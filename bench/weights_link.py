@@ -58,6 +58,7 @@ def _child(quick: bool) -> None:
     from bench.weights_bench import OursFanout, Trainer, sized_config
     from user.policy import actor_from_config, build_policy, module_tensors, policy_spec_for
     from user.weight_codec import WE, encoding_name
+    from user.weights import DEFAULT_KEYFRAME_EVERY
 
     params = 0.25e6 if quick else 1e6
     versions = 2 if quick else 4
@@ -100,6 +101,16 @@ def _child(quick: bool) -> None:
             "ms",
             False,
             f"adaptive ({'/'.join(sorted(set(a['encs'])))}, {a['bytes'] / 2**20:.2f} MiB) vs fp32 resend",
+            "fp32 full resend",
+        ),
+        Row(
+            group,
+            f"time-to-fresh incl. one exact resync per {DEFAULT_KEYFRAME_EVERY} versions (mean)",
+            ((DEFAULT_KEYFRAME_EVERY - 1) * a["ms"] + f["ms"]) / DEFAULT_KEYFRAME_EVERY,
+            f["ms"],
+            "ms",
+            False,
+            "the resync costs about one fp32 resend (fp32+zstd)",
             "fp32 full resend",
         ),
         Row(

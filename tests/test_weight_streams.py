@@ -150,13 +150,108 @@ def test_adaptive_choice_follows_the_link() -> None:
     assert choose_encoding(store, link, store.latest())[0] == WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD  # unmeasured
     link.goodput_bps = 10e9  # faster than zstd: raw
     assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_FP32, 0)
-    link.goodput_bps = 1e3  # far too slow for lossless within 1 s: lossy delta
-    assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_BF16_ZSTD, 0)  # base is fp32
-    link.base_wire_dtype = tpb.DTYPE_BFLOAT16  # once the client holds a bf16 payload: bf16 deltas
-    assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_BF16_DELTA_ZSTD, 1)
-    link.base_wire_dtype = tpb.DTYPE_FLOAT32
+    link.goodput_bps = 1e3  # far too slow for lossless within 1 s, but the client's exact state is unknown
+    assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD, 1)
+    link.base_digest = store.wire(store.get(1), tpb.DTYPE_FLOAT32, ("",)).digest  # it holds v1 exactly: a patch
+    assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD, 1)
+    link.patches_in_row = 16  # the periodic exact resync
+    assert choose_encoding(store, link, store.latest(), keyframe_every=16)[0] != WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD
+    link.patches_in_row = 0
     link.allow_lossy = False
     assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD, 1)
+    link.base_patched = True  # its payload came from a patch: no XOR delta against v1's own payload
+    assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_FP32_ZSTD, 0)
+
+
+def _patch_bound(new: dict[str, np.ndarray], old: dict[str, np.ndarray]) -> np.ndarray:
+    """Per float32 element (in payload order) the error a patch from `old` to `new` may make."""
+    from user.weight_codec import PATCH_BLOCK, PATCH_REL_TOL
+
+    n = np.concatenate([v.ravel() for v in new.values() if v.dtype == np.float32]).astype(np.float64)
+    o = np.concatenate([v.ravel() for v in old.values() if v.dtype == np.float32]).astype(np.float64)
+    blocks = -(-n.size // PATCH_BLOCK)
+    pad = blocks * PATCH_BLOCK - n.size
+    nb, db = np.pad(n, (0, pad)).reshape(blocks, -1), np.pad(n - o, (0, pad)).reshape(blocks, -1)
+    step = np.maximum(2 * PATCH_REL_TOL * np.sqrt((nb * nb).mean(axis=1)), np.abs(db).max(axis=1) / 127)
+    rounding = np.spacing(np.abs(n).astype(np.float32)).astype(np.float64)  # of the float32 sum
+    return np.repeat(step / 2, PATCH_BLOCK)[: n.size] * (1 + 1e-5) + rounding
+
+
+def _f32(ts: dict[str, np.ndarray]) -> np.ndarray:
+    return np.concatenate([v.ravel() for v in ts.values() if v.dtype == np.float32])
+
+
+def test_patch_round_trip_stays_within_its_error_bound_and_does_not_accumulate() -> None:
+    from user.weight_codec import encode_patch
+
+    fp32, prefixes = tpb.DTYPE_FLOAT32, ("",)
+    t = tensors(0, n=1 << 14)
+    full = pack_weights(1, SPEC, t)
+    receiver = WeightAssembler()
+    decode(encode(full, WE.WEIGHT_ENCODING_FP32, wire_payload(full, fp32, prefixes)), receiver)
+    state = wire_payload(full, fp32, prefixes)
+    held = dict(t)
+    for v in range(2, 8):
+        t = trained(t, v, lr=1e-3)
+        full = pack_weights(v, SPEC, t)
+        patch, state = encode_patch(full, wire_payload(full, fp32, prefixes), state)
+        assert patch.header.base_digest == receiver.base_digest
+        got = decode(patch, receiver)  # the digest check passing = both sides hold the same bits
+        assert got.encoding == WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD and receiver.base_digest == state.digest
+        err = np.abs(_f32(got.tensors).astype(np.float64) - _f32(t))
+        assert (err <= _patch_bound(t, held)).all()  # bounded by this patch's steps: nothing carried over
+        assert np.array_equal(got.tensors["actor.steps"], t["actor.steps"])  # non-float tensors exact
+        assert err.max() > 0  # lossy indeed (a test that cannot fail is a defect)
+        held = got.tensors
+    assert patch.encoded_bytes < 0.3 * full.nbytes
+
+
+def test_patch_against_a_wrong_or_missing_base_and_corrupt_patches_are_rejected() -> None:
+    from user.weight_codec import encode_patch
+
+    fp32, prefixes = tpb.DTYPE_FLOAT32, ("",)
+    v1, v2 = tensors(0), trained(tensors(0), 1)
+    full1, full2 = pack_weights(1, SPEC, v1), pack_weights(2, SPEC, v2)
+    patch, _ = encode_patch(full2, wire_payload(full2, fp32, prefixes), wire_payload(full1, fp32, prefixes))
+    with pytest.raises(wire.WireError, match="this client holds none"):
+        decode(patch, WeightAssembler())
+    impostor = WeightAssembler()  # v1 by number, other bits: its digest is not the patch's base
+    decode(pack_weights(1, SPEC, tensors(7)), impostor)
+    with pytest.raises(wire.WireError, match="holds v1"):
+        decode(patch, impostor)
+    assert decode(pack_weights(2, SPEC, v2), impostor).version == 2  # carries on with a full set
+    for flip in (20, patch.encoded_bytes - 20):  # in the steps / the int8 body or zstd's frame
+        good = WeightAssembler()
+        decode(pack_weights(1, SPEC, v1), good)
+        data = bytearray(bytes(patch.payload))
+        data[flip] ^= 0x55
+        bad = type(patch)(patch.header, bytes(data))
+        with pytest.raises(wire.WireError):
+            decode(bad, good)
+        assert good.base_version == 1  # the held payload survives for the full-set fallback
+
+
+def test_patches_flow_with_periodic_exact_resyncs_and_fall_back_on_a_lost_base() -> None:
+    store = WeightStore()
+    srv = Server(store, WeightServicer(store, poll_s=0.1, keyframe_every=2))
+    sub, got = subscribe(srv, "edge-1", encoding=WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD, allow_lossy=True)
+    try:
+        t = tensors(0)
+        for v in range(1, 6):
+            store.publish(v, SPEC, t)
+            assert sub.wait_version(v, 30)
+            t = trained(t, v, lr=1e-3)
+        full, patch = WE.WEIGHT_ENCODING_FP32_ZSTD, WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD
+        assert [w.encoding for w in got] == [full, patch, patch, full, patch]  # keyframe after 2 patches
+        helpers.wait_for(lambda: srv.servicer.subscriber_status()[0].applied_version == 5, "ack of v5")
+        sub._assembler.forget_base()  # a client that lost its state: the patch is rejected, a full set follows
+        store.publish(6, SPEC, t)
+        assert sub.wait_version(6, 30)
+        assert sub.rejected == 1 and sub.connects == 1 and got[-1].encoding == full
+        assert all(np.array_equal(got[-1].tensors[k], t[k]) for k in t)
+    finally:
+        sub.stop()
+        srv.close()
 
 
 def test_one_encode_per_version_encoding_and_base() -> None:
@@ -466,3 +561,18 @@ def test_local_policy_swaps_between_actions_never_mid_forward() -> None:
     assert out[0] is not None and out[0][1] == 1  # the forward in flight finished on the weights it started with
     action, version = local.act("r", obs, deadline_s=60.0)
     assert version == 2 and not np.allclose(action, out[0][0])
+
+
+def test_buffer_pool_reuses_a_buffer_only_once_nothing_views_it() -> None:
+    from user.weight_codec import BufferPool
+
+    pool = BufferPool()
+    buf = pool.take(2 << 20)
+    owner = id(buf if buf.base is None else buf.base)  # no reference: holding one would keep it busy
+    tensor = buf[64:128].view(np.float32)  # a weight set's tensor still in use
+    pool.give(buf)
+    del buf
+    fresh = pool.take(2 << 20)
+    assert id(fresh.base) != owner  # still viewed: never handed out again while in use
+    del tensor
+    assert id(pool.take(2 << 20).base) == owner

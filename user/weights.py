@@ -46,11 +46,14 @@ from user.weight_codec import (
     MAX_WEIGHT_BYTES,
     MIN_CHUNK_BYTES,
     WE,
+    BufferPool,
     PackedWeights,
+    PatchError,
     WeightAssembler,
     WeightSet,
     WirePayload,
     encode,
+    encode_patch,
     encoding_name,
     iter_weight_messages,
     pack_weights,
@@ -81,6 +84,11 @@ log = logging.getLogger(__name__)
 
 DEFAULT_FRESHNESS_S = 1.0
 DEFAULT_HISTORY = 4
+# A link that applied this many patches in a row gets an exact set next. The error is bounded per patch
+# anyway (each is taken against what the subscriber holds); the resync makes it bit-exact again, e.g.
+# for evaluation at a known version. At publish_every = 100 updates: one exact set per 3,200 updates.
+DEFAULT_KEYFRAME_EVERY = 32
+PATCH = WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD
 
 WEIGHTS_RECEIVED = prometheus_client.Counter("user_weights_received_total", "Weight versions received and applied")
 WEIGHTS_BYTES = prometheus_client.Counter("user_weights_bytes_total", "Weight payload bytes received (as encoded)")
@@ -148,6 +156,7 @@ _PRIOR_RATIO = {  # measured on SAC actors mid-training (docs/notes/weights.md);
     WE.WEIGHT_ENCODING_FP16_DELTA_ZSTD: 0.25,
     WE.WEIGHT_ENCODING_BF16_ZSTD: 0.4,
     WE.WEIGHT_ENCODING_BF16_DELTA_ZSTD: 0.15,
+    PATCH: 0.13,
 }
 
 
@@ -169,6 +178,11 @@ class WeightStore:
         self._cache: dict[tuple[Any, ...], _Once] = {}
         self._cache_lock = threading.Lock()
         self._stats = {enc: _EncodingStats(r) for enc, r in _PRIOR_RATIO.items()}
+        # Exact payloads subscribers may hold, by (experiment, digest): fp32 wire payloads of published
+        # versions and the states patches lead to. The bases of patches; they leave with their version.
+        self._states: dict[tuple[str, bytes], tuple[WirePayload, bool]] = {}  # (state, made by a patch)
+        self._state_pool = BufferPool(keep=2)  # buffers of patched states that left: the next ones reuse them
+        self._pool_lock = threading.Lock()  # BufferPool is not thread-safe
         self._closed = False
 
     def publish(
@@ -202,6 +216,12 @@ class WeightStore:
         with self._cache_lock:  # encodings of versions that left the history go with them
             for key in [k for k in self._cache if k[0] == experiment and (k[0], k[1]) not in kept]:
                 del self._cache[key]
+            gone = [k for k, st in self._states.items() if k[0] == experiment and (k[0], st[0].version) not in kept]
+            for key in gone:
+                state, patched = self._states.pop(key)
+                if patched:
+                    with self._pool_lock:
+                        self._state_pool.give(state.payload)
 
     def _key(self, experiment: str) -> str:
         """Resolve "" to the first experiment published, and any name to "" when the publisher names none."""
@@ -287,25 +307,74 @@ class WeightStore:
 
     def wire(self, full: PackedWeights, wire_dtype: int, prefixes: tuple[str, ...]) -> WirePayload:
         key = (full.header.experiment, full.version, "wire", wire_dtype, prefixes)
-        return self._once(key, lambda: wire_payload(full, wire_dtype, prefixes))
+
+        def build() -> WirePayload:
+            out = wire_payload(full, wire_dtype, prefixes)
+            if wire_dtype == tpb.DTYPE_FLOAT32:
+                self._keep_state(full.header.experiment, out, patched=False)
+            return out
+
+        return self._once(key, build)
+
+    def _keep_state(self, experiment: str, state: WirePayload, patched: bool) -> None:
+        if self.get(state.version, experiment) is None:
+            return  # its version left the history (a later publish would drop it anyway)
+        with self._cache_lock:
+            self._states[(experiment, state.digest)] = (state, patched)
+
+    def state(self, digest: bytes, experiment: str = "") -> WirePayload | None:
+        """The exact fp32 payload with this digest, if a subscriber may hold it and it is still kept."""
+        found = self._state(digest, experiment)
+        return found[0] if found else None
+
+    def is_patched(self, digest: bytes, experiment: str = "") -> bool:
+        """Whether the payload with this digest was reached by a patch (not any version's own payload)."""
+        found = self._state(digest, experiment)
+        return bool(found and found[1])
+
+    def _state(self, digest: bytes, experiment: str) -> tuple[WirePayload, bool] | None:
+        if not digest:
+            return None
+        with self._cond:
+            experiment = self._key(experiment)
+        with self._cache_lock:
+            return self._states.get((experiment, digest))
 
     def encoded(
-        self, full: PackedWeights, encoding: int, prefixes: tuple[str, ...], base_version: int = 0
+        self,
+        full: PackedWeights,
+        encoding: int,
+        prefixes: tuple[str, ...],
+        base_version: int = 0,
+        base_digest: bytes = b"",
     ) -> PackedWeights:
-        """`full` in `encoding` (a delta against base_version if nonzero), built once and shared."""
+        """`full` in `encoding` (a delta against base_version if nonzero), built once and shared.
+
+        Patches name their base by digest (the exact state the subscriber holds): KeyError if it is no
+        longer kept, PatchError if a patch cannot carry this version."""
         experiment = full.header.experiment
-        key = (experiment, full.version, "enc", encoding, prefixes, base_version)
+        codec = CODECS[encoding]
+        key = (experiment, full.version, "enc", encoding, prefixes, base_digest if codec.patch else base_version)
 
         def build() -> PackedWeights:
             start = time.perf_counter()
-            codec = CODECS[encoding]
-            base = None
-            if base_version:
-                base_full = self.get(base_version, experiment)
-                if base_full is None:
-                    raise KeyError(base_version)
-                base = self.wire(base_full, codec.wire_dtype, prefixes)
-            out = encode(full, encoding, self.wire(full, codec.wire_dtype, prefixes), base)
+            if codec.patch:
+                held = self.state(base_digest, experiment)
+                if held is None:
+                    raise KeyError(base_digest)
+                wire = self.wire(full, tpb.DTYPE_FLOAT32, prefixes)
+                with self._pool_lock:
+                    buf = self._state_pool.take(wire.payload.nbytes)
+                out, reached = encode_patch(full, wire, held, buf)
+                self._keep_state(experiment, reached, patched=True)  # the base of this link's next patch
+            else:
+                base = None
+                if base_version:
+                    base_full = self.get(base_version, experiment)
+                    if base_full is None:
+                        raise KeyError(base_version)
+                    base = self.wire(base_full, codec.wire_dtype, prefixes)
+                out = encode(full, encoding, self.wire(full, codec.wire_dtype, prefixes), base)
             full_bytes = self.selected_bytes(full, prefixes)
             self._stats[encoding].observe(
                 out.encoded_bytes / max(1, full_bytes), full_bytes, time.perf_counter() - start
@@ -314,8 +383,8 @@ class WeightStore:
 
         return self._once(key, build)
 
-    def is_cached(self, full: PackedWeights, encoding: int, prefixes: tuple[str, ...], base_version: int) -> bool:
-        key = (full.header.experiment, full.version, "enc", encoding, prefixes, base_version)
+    def is_cached(self, full: PackedWeights, encoding: int, prefixes: tuple[str, ...], base: int | bytes) -> bool:
+        key = (full.header.experiment, full.version, "enc", encoding, prefixes, base)
         with self._cache_lock:
             return key in self._cache
 
@@ -324,7 +393,7 @@ class WeightStore:
         return sum(i.nbytes for i in selected(full.header.tensors, prefixes))
 
     def estimate_s(
-        self, full: PackedWeights, encoding: int, prefixes: tuple[str, ...], base: int, goodput: float
+        self, full: PackedWeights, encoding: int, prefixes: tuple[str, ...], base: int | bytes, goodput: float
     ) -> float:
         """Expected seconds to get `full` to a subscriber at `goodput` B/s in `encoding` (encode + transfer)."""
         full_bytes = self.selected_bytes(full, prefixes)
@@ -350,6 +419,9 @@ class Link:
     acked: bool
     base_version: int = 0  # the payload the client holds for deltas
     base_wire_dtype: int = tpb.DTYPE_FLOAT32
+    base_digest: bytes = b""  # its digest, as the client reports it
+    base_patched: bool = False  # that payload came from a patch: only a patch or a full set follows it
+    patches_in_row: int = 0
     applied_version: int = 0
     goodput_bps: float = 0.0  # effective: encoded bytes / (send start -> ack, less the client's apply time)
     rtt_s: float = 0.0
@@ -376,22 +448,32 @@ class Link:
 
 
 def choose_encoding(
-    store: WeightStore, link: Link, full: PackedWeights, prefixes: tuple[str, ...] | None = None
+    store: WeightStore,
+    link: Link,
+    full: PackedWeights,
+    prefixes: tuple[str, ...] | None = None,
+    keyframe_every: int = DEFAULT_KEYFRAME_EVERY,
 ) -> tuple[int, int]:
     """(encoding, base_version) for `full` on this link.
 
-    Pinned encodings are honoured (a delta falls back to its full set where the base is unknown).
-    Adaptive: until the link is measured, lossless zstd (delta where possible); then the lossless
-    encoding with the least expected encode + transfer time, and a lossy one (bf16: fp32's range, so
-    nothing saturates; ~8 bits of mantissa, action error measured in the bench) only where the
-    subscriber allows it and the lossless one would miss the freshness target.
+    Pinned encodings are honoured (a delta falls back to its full set where the base is unknown; a
+    patch also does every keyframe_every patches: the exact resync). Adaptive: until the link is
+    measured, lossless zstd (delta where possible); then the lossless encoding with the least expected
+    encode + transfer time, and a patch (error-bounded, ~13 % of the fp32 bytes mid-training; action
+    error measured in the bench) only where the subscriber allows lossy weights, the lossless one would
+    miss the freshness target and the patch's base (the exact state the subscriber holds) is kept.
     """
 
     def base_for(encoding: int) -> int:
         codec = CODECS[encoding]
+        if codec.patch:
+            held = store.state(link.base_digest, link.experiment)
+            ok = held is not None and held.version == link.base_version < full.version
+            return link.base_version if ok and link.patches_in_row < keyframe_every else 0
         ok = (
             codec.delta
             and link.base_version
+            and not link.base_patched  # the client holds a patched state, not this version's payload
             and link.base_wire_dtype == codec.wire_dtype
             and store.get(link.base_version, link.experiment) is not None
         )
@@ -411,13 +493,14 @@ def choose_encoding(
         return lossless[0]
 
     def cost(choice: tuple[int, int]) -> float:
-        return store.estimate_s(full, choice[0], selection, choice[1], link.goodput_bps)
+        base: int | bytes = link.base_digest if CODECS[choice[0]].patch else choice[1]
+        return store.estimate_s(full, choice[0], selection, base, link.goodput_bps)
 
     best = min(lossless, key=cost)
     if link.allow_lossy and cost(best) > link.freshness_s:
-        lossy = resolve(WE.WEIGHT_ENCODING_BF16_DELTA_ZSTD)
-        if cost(lossy) < cost(best):
-            return lossy
+        patch = resolve(PATCH)
+        if patch[0] == PATCH and cost(patch) < cost(best):
+            return patch
     return best
 
 
@@ -430,11 +513,13 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         default_chunk_bytes: int = DEFAULT_CHUNK_BYTES,
         poll_s: float = 1.0,
         freshness_s: float = DEFAULT_FRESHNESS_S,
+        keyframe_every: int = DEFAULT_KEYFRAME_EVERY,
     ) -> None:
         self.store = store
         self.default_chunk_bytes = default_chunk_bytes
         self.poll_s = poll_s
         self.freshness_s = freshness_s
+        self.keyframe_every = keyframe_every
         self._lock = threading.Lock()
         self._links: dict[int, Link] = {}
 
@@ -510,6 +595,8 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
             freshness_s=request.freshness_target_ms / 1e3 if request.freshness_target_ms else self.freshness_s,
             acked=acked,
             base_version=request.base_version if acked else 0,
+            base_digest=request.base_digest if acked else b"",
+            base_patched=acked and self.store.is_patched(request.base_digest, experiment),
             published_version=lambda: self.store.version_of(experiment),
         )
         return link, chunk_bytes
@@ -563,10 +650,10 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
 
     def _encode(self, link: Link, full: PackedWeights) -> PackedWeights:
         prefixes = link.prefixes or (full.header.policy.tensor_prefix,)  # none asked: what the policy needs
-        encoding, base = choose_encoding(self.store, link, full, prefixes)
+        encoding, base = choose_encoding(self.store, link, full, prefixes, self.keyframe_every)
         try:
-            return self.store.encoded(full, encoding, prefixes, base)
-        except KeyError:  # the base left the history meanwhile: full set
+            return self.store.encoded(full, encoding, prefixes, base, link.base_digest)
+        except (KeyError, PatchError):  # the base left the history meanwhile, or no patch fits: full set
             full_encoding = FULL_OF.get(encoding, encoding)
             return self.store.encoded(full, full_encoding, prefixes, 0)
 
@@ -597,7 +684,7 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         """Update the link from an ack; False if the version was rejected (resend)."""
         if ack.rejected:
             link.rejects_in_row += 1
-            link.base_version = 0  # the client dropped its base: a full set next
+            link.base_version, link.base_digest = 0, b""  # the client dropped its base: a full set next
             log.warning(
                 "subscriber rejected a weight version; resending",
                 extra=kv(client_id=link.client_id, version=packed.version, error=ack.error),
@@ -605,7 +692,11 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
             return False
         link.rejects_in_row = 0
         link.base_version = ack.base_version
-        link.base_wire_dtype = CODECS[packed.header.weight_encoding or WE.WEIGHT_ENCODING_FP32].wire_dtype
+        link.base_digest = ack.base_digest
+        codec = CODECS[packed.header.weight_encoding or WE.WEIGHT_ENCODING_FP32]
+        link.base_wire_dtype = codec.wire_dtype
+        link.base_patched = codec.patch
+        link.patches_in_row = link.patches_in_row + 1 if codec.patch else 0
         net_s = max(1e-6, elapsed_s - ack.apply_ns / 1e9)
         sample = packed.encoded_bytes / net_s
         link.goodput_bps = sample if link.goodput_bps <= 0 else 0.5 * link.goodput_bps + 0.5 * sample
@@ -708,6 +799,7 @@ class WeightSubscriber:
             prefixes=self.prefixes,
             allow_lossy=self.allow_lossy,
             base_version=self._assembler.base_version,
+            base_digest=self._assembler.base_digest,
             encoding=self.encoding,
             freshness_target_ms=int(self.freshness_target_s * 1e3),
         )
@@ -755,6 +847,7 @@ class WeightSubscriber:
                             version=weights.version,
                             applied=applied,
                             base_version=self._assembler.base_version,
+                            base_digest=self._assembler.base_digest,
                             transfer_ns=done_ns - first_ns,
                             received_bytes=received,
                             apply_ns=time.perf_counter_ns() - done_ns,
