@@ -132,7 +132,8 @@ class InferenceConfig(_ServerSection):
     max_wait_ms: float = Field(default=2.0, ge=0, description="longest a request waits for others to batch with")
     device: str = DEVICE
     weights_lossy: bool = Field(
-        default=False, description="accept bf16 weights when the link is too slow for lossless ones to stay fresh"
+        default=False,
+        description="accept lossy weights (error-bounded patches, bf16) when lossless ones cannot stay fresh",
     )
 
 
@@ -264,7 +265,8 @@ class EdgeConfig(Strict):
         default=False, description="fsync every spooled step (survives power loss); off: synced each second"
     )
     weights_lossy: bool = Field(
-        default=False, description="local policy: accept bf16 weights when the link is too slow for lossless"
+        default=False,
+        description="local policy: accept lossy weights (error-bounded patches, bf16) when the link is too slow",
     )
 
     @model_validator(mode="after")
