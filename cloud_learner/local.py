@@ -172,6 +172,8 @@ def train_local(
     online = buffer.table("online")
     curve = Curve()
     start, cpu_start = time.perf_counter(), time.process_time()
+    if pretrain_updates and not any(t.size for t in buffer.tables.values()):
+        raise ValueError("pretrain_updates needs a pre-filled buffer (e.g. a demos table)")
     for _ in range(pretrain_updates):
         algorithm.update(buffer.sample(algorithm.batch_request(), rng, algorithm.device))
     policy = build_policy(*algorithm.policy(), version=algorithm.updates)
