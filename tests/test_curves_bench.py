@@ -51,7 +51,7 @@ def test_expert_steps_are_stored_as_interventions() -> None:
 
 def test_evaluation_episodes_act_alone_and_helped_episodes_do_not_count() -> None:
     robot = make_robot("sim_reach_arm", "t", seed=0)
-    algorithm = make_algorithm("sac", {"hidden": [16], "batch_size": 8}, robot.spec)
+    algorithm = make_algorithm("rlpd", {"hidden": [16], "batch_size": 8, "num_critics": 2, "utd": 1}, robot.spec)
     expert = lambda obs, ep_step: np.zeros(3, np.float32) if ep_step >= 40 else None  # noqa: E731
     buffer = Buffer()
     record_episodes(robot, lambda obs, ep_step: np.zeros(3, np.float32), 1, buffer.table("demos"))
