@@ -275,7 +275,7 @@ class SAC(Algorithm):
             return self.p.bc_weight
         return self.p.bc_weight * max(0.0, 1.0 - self.updates / self.p.bc_decay_updates)
 
-    def update_actor(self, features: torch.Tensor, batch: Batch) -> dict[str, float]:
+    def update_actor(self, features: torch.Tensor, batch: Batch | None = None) -> dict[str, float]:
         """Maximize Q minus the entropy cost of fresh samples (plus a BC term on rows a human or script
         chose, when bc_weight > 0: SAC+BC / IBRL-style use of demos); then tune alpha toward the target entropy."""
         alpha = self.log_alpha.detach().exp()
@@ -284,7 +284,7 @@ class SAC(Algorithm):
         q_pi = q.min(dim=0).values if self.p.actor_q == "min" else q.mean(dim=0)
         actor_loss = (alpha * log_prob - q_pi).mean()
         bc_weight, bc_loss = self.bc_weight(), torch.zeros(())
-        if bc_weight > 0 and batch.intervention is not None:
+        if bc_weight > 0 and batch is not None:
             human = batch.intervention.float()
             per_row = (mean_action - batch.action).pow(2).mean(dim=-1)
             bc_loss = (per_row * human).sum() / human.sum().clamp(min=1.0)
