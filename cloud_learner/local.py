@@ -118,6 +118,11 @@ class Curve:
     success: list[bool] = field(default_factory=list)
     episode_return: list[float] = field(default_factory=list)
     interventions: list[int] = field(default_factory=list)
+    evaluation: list[bool] = field(default_factory=list)  # acted with the mean action, no expert
+
+    def autonomous_success(self) -> list[bool]:
+        """Successes of the episodes nobody intervened in: what the policy does on its own."""
+        return [s for s, n in zip(self.success, self.interventions, strict=True) if n == 0]
 
     def to_json(self) -> dict[str, list]:
         return {k: list(v) for k, v in self.__dict__.items()}
@@ -144,13 +149,18 @@ def train_local(
     policy_every: int = 1,
     on_episode: Callable[[Curve], None] | None = None,
     max_seconds: float | None = None,
+    pretrain_updates: int = 0,
+    eval_every: int = 0,
 ) -> dict[str, Any]:
     """Collect with the published stochastic policy and update after every step.
 
     Uniform random actions for the first `random_steps` (default `min_transitions`) steps; updates
     start once the online table holds `min_transitions` rows, `updates_per_step` per env step.
     Episodes are truncated at spec.max_episode_steps, as the edge agent does. `buffer` may arrive
-    pre-filled (e.g. a "demos" table). Stops early after `max_seconds` of wall time.
+    pre-filled (e.g. a "demos" table); `pretrain_updates` updates run on it before the first step
+    (the offline phase: critic and, with a BC term, actor warm-start on the demos). Every
+    `eval_every`-th episode (0: none) acts with the mean action and no expert: an evaluation episode,
+    flagged in the curve (its transitions are still stored). Stops early after `max_seconds` of wall time.
     """
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
@@ -161,21 +171,26 @@ def train_local(
     buffer = buffer or Buffer()
     online = buffer.table("online")
     curve = Curve()
-    policy = build_policy(*algorithm.policy(), version=0)
     start, cpu_start = time.perf_counter(), time.process_time()
+    if pretrain_updates and not any(t.size for t in buffer.tables.values()):
+        raise ValueError("pretrain_updates needs a pre-filled buffer (e.g. a demos table)")
+    for _ in range(pretrain_updates):
+        algorithm.update(buffer.sample(algorithm.batch_request(), rng, algorithm.device))
+    policy = build_policy(*algorithm.policy(), version=algorithm.updates)
+    evaluating = False
 
     obs = robot.reset(seed=seed)
     if task is not None:
         task.reset(obs)
     ep_return, ep_len, ep_interventions, credit, step = 0.0, 0, 0, 0.0, -1
     for step in range(env_steps):
-        override = expert(obs, ep_len) if expert is not None else None
+        override = expert(obs, ep_len) if expert is not None and not evaluating else None
         if override is not None:
             action = np.asarray(override, np.float32)
-        elif step < random_steps:
+        elif step < random_steps and not evaluating:
             action = rng.uniform(low, high).astype(np.float32)
         else:
-            action = policy.act({k: v[None] for k, v in obs.features.items()})[0]
+            action = policy.act({k: v[None] for k, v in obs.features.items()}, deterministic=evaluating)[0]
         applied = robot.act(action)
         next_obs = robot.observe()
         reward, terminated, success = _judge(task, obs, applied, next_obs)
@@ -193,6 +208,8 @@ def train_local(
             curve.success.append(success)
             curve.episode_return.append(ep_return)
             curve.interventions.append(ep_interventions)
+            curve.evaluation.append(evaluating)
+            evaluating = eval_every > 0 and (len(curve.success) + 1) % eval_every == 0
             if on_episode is not None:
                 on_episode(curve)
             obs = robot.reset()

@@ -615,6 +615,12 @@ def build_judges_and_teleops(cfg: StackConfig, robots: list[Robot]) -> tuple[dic
             teleops[spec.robot_id] = TELEOPERATORS.build(
                 rc.teleop.kind, rc.teleop.params, where=f"{where}.teleop.params", spec=spec
             )
+        attach = getattr(tasks[spec.robot_id], "attach_teleop", None)  # a task judged from the teleop's events
+        if attach is not None:
+            try:
+                attach(teleops.get(spec.robot_id))
+            except ValueError as exc:
+                raise ValueError(f"{where}.task: {exc}") from None
     return tasks, teleops
 
 

@@ -40,6 +40,11 @@ class Teleoperator(ABC):
     def poll(self, observation: Observation) -> np.ndarray | None:
         """The human's action for this tick, shaped like the robot's action space, or None to let the policy act."""
 
+    def events(self) -> list[str]:
+        """Label events the human gave since the last call: "success", "failure" or "rerecord" (a
+        device's success/failure buttons; the human_label task reads them). Default: none."""
+        return []
+
     def disconnect(self) -> None:  # noqa: B027 - optional hook
         """Close the device."""
 

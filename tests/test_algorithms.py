@@ -250,3 +250,59 @@ def test_local_buffer_mixes_tables_by_share() -> None:
     # An empty offline table gives its share to the online one instead of failing.
     only_online = Buffer({"online": buffer.tables["online"], "demos": Table()})
     assert float(only_online.sample(request, np.random.default_rng(0), torch.device("cpu")).reward.sum()) == 0.0
+
+
+def test_utd_minibatches_each_mix_the_tables() -> None:
+    """A sampler returns demos then online rows; every critic step must still see both (RLPD's 50/50)."""
+    from cloud_learner.algorithms.sac import split
+
+    batch = _batch(0, 16, pixels=False)
+    batch.intervention = torch.arange(16) < 8  # rows 0-7 "demos", 8-15 "online", as a sampler lays them out
+    parts = split(batch, 4)
+    assert [len(p) for p in parts] == [4, 4, 4, 4]
+    assert all(int(p.intervention.sum()) == 2 for p in parts)
+    assert sorted(float(x) for p in parts for x in p.reward) == sorted(float(x) for x in batch.reward)
+
+
+def test_bc_term_pulls_the_rlpd_actor_to_human_actions_and_decays() -> None:
+    target = torch.tensor([0.5, -1.0])
+
+    def trained(bc_weight: float) -> float:
+        algo = _algorithm("rlpd", pixels=False, bc_weight=bc_weight, actor_lr=3e-3, init_alpha=0.01)
+        for i in range(150):
+            batch = _request_batch(algo, i, pixels=False)
+            batch.action[batch.intervention] = target
+            algo.update(batch)
+        probe = _batch(999, 64, pixels=False)
+        with torch.no_grad():
+            mean = algo.actor(probe.observation)[2]
+        return float((mean - target).pow(2).mean())
+
+    assert trained(5.0) < 0.25 * trained(0.0)
+    algo = _algorithm("rlpd", pixels=False, bc_weight=2.0, bc_decay_updates=10)
+    assert algo.bc_weight() == 2.0
+    algo.updates = 5
+    assert algo.bc_weight() == pytest.approx(1.0)
+    algo.updates = 20
+    assert algo.bc_weight() == 0.0
+    scalars = algo.update(_request_batch(algo, 0, pixels=False))
+    assert scalars["bc_loss"] == 0.0  # decayed away: no BC term
+
+
+def test_state_normalization_is_published_and_checked() -> None:
+    mean, std = [1.0, 2.0, 3.0, 4.0, 5.0], [0.5, 1.0, 2.0, 1.0, 0.1]
+    algo = _algorithm("sac", pixels=False, state_mean={"state": mean}, state_std={"state": std})
+    spec, tensors = algo.policy()
+    policy = build_policy(spec, tensors, version=1)
+    obs = _obs(torch.Generator().manual_seed(0), 3, pixels=False)
+    with torch.no_grad():
+        expected = algo.actor(obs)[2].numpy()
+        raw = algo.actor.head(obs["state"])[2].numpy()  # the head without the standardization
+    np.testing.assert_allclose(policy.act({"state": obs["state"].numpy()}, deterministic=True), expected, atol=1e-5)
+    assert not np.allclose(expected, raw, atol=1e-3)
+    with pytest.raises(ValueError, match="state_std"):
+        _algorithm("sac", pixels=False, state_std={"state": [1.0, 2.0]})
+    with pytest.raises(ValueError, match="state_std must be > 0"):
+        _algorithm("sac", pixels=False, state_std={"state": [1.0, 0.0, 1.0, 1.0, 1.0]})
+    with pytest.raises(ValueError, match="state-only"):
+        _algorithm("sac", pixels=True, state_mean={"state": mean})

@@ -22,7 +22,7 @@ def _one_thread() -> None:
 
 def test_quick_reach_curve_is_written(tmp_path: Path) -> None:
     rows = curves_bench.run(quick=True, workdir=tmp_path, log=lambda *a: None, only=["reach"])
-    assert {r.metric for r in rows} >= {"success, last 20 episodes", "first 90% rolling success"}
+    assert {r.metric for r in rows} >= {"success without intervention, last 20", "first 90% rolling success"}
     assert all(r.higher_is_better is None for r in rows)  # facts, no ratio against a 0 % peer
     doc = json.loads((tmp_path / "curves" / "reach_sac_state.json").read_text())
     assert doc["target"] == 0.9 and len(doc["env_steps"]) == len(doc["success"]) == len(doc["wall_s"]) > 0
@@ -47,6 +47,28 @@ def test_expert_steps_are_stored_as_interventions() -> None:
     assert flags.sum() == interventions.size
     np.testing.assert_allclose(np.stack(interventions.rows["action"])[:, 0], 1.0)
     assert out["curve"].interventions[0] == 25 and out["updates"] == 111
+
+
+def test_evaluation_episodes_act_alone_and_helped_episodes_do_not_count() -> None:
+    robot = make_robot("sim_reach_arm", "t", seed=0)
+    algorithm = make_algorithm("rlpd", {"hidden": [16], "batch_size": 8, "num_critics": 2, "utd": 1}, robot.spec)
+    expert = lambda obs, ep_step: np.zeros(3, np.float32) if ep_step >= 40 else None  # noqa: E731
+    buffer = Buffer()
+    record_episodes(robot, lambda obs, ep_step: np.zeros(3, np.float32), 1, buffer.table("demos"))
+    out = train_local(
+        robot, algorithm, 300, min_transitions=10, expert=expert, eval_every=2, pretrain_updates=3, buffer=buffer
+    )
+    robot.close()
+    curve = out["curve"]
+    assert curve.evaluation[:4] == [False, True, False, True]
+    assert all(n == 0 for n, e in zip(curve.interventions, curve.evaluation, strict=True) if e)  # no expert
+    assert out["updates"] == 3 + 300 - 10 + 1
+    # Helped episodes count as failures of nobody and as successes of nobody: only unhelped ones count.
+    curve.success = [True, False, True, True, True, False]
+    curve.interventions = [5, 0, 5, 0, 5, 0]
+    rolling = curves_bench.rolling_success(curve)
+    assert np.isnan(rolling[0]) and list(rolling[1:]) == pytest.approx([0.0, 0.0, 0.5, 0.5, 1 / 3])
+    assert list(curves_bench.rolling_success(curve, autonomous=False))[-1] == pytest.approx(4 / 6)
 
 
 @pytest.mark.skipif("gym_hil_panda" not in known_robot_kinds(), reason="gym-hil not installed")

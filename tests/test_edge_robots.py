@@ -3,6 +3,7 @@ device ABCs (scripted subclasses registered through lerobot's config choice regi
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -279,6 +280,7 @@ class ScriptedPad(LeTeleoperator):
     def __init__(self, config: ScriptedPadConfig) -> None:
         super().__init__(config)
         self.script: list[tuple[bool, dict[str, float]]] = []
+        self.buttons: list[TeleopEvents] = []  # label buttons pressed, read (and cleared) by the next events call
         self._connected = False
         self._intervening = False
 
@@ -312,7 +314,12 @@ class ScriptedPad(LeTeleoperator):
         return action
 
     def get_teleop_events(self) -> dict[Any, Any]:
-        return {TeleopEvents.IS_INTERVENTION: self._intervening, TeleopEvents.SUCCESS: False}
+        events: dict[Any, Any] = {TeleopEvents.IS_INTERVENTION: self._intervening, TeleopEvents.SUCCESS: False}
+        events |= dict.fromkeys(self.buttons, True)
+        if TeleopEvents.FAILURE in self.buttons or TeleopEvents.RERECORD_EPISODE in self.buttons:
+            events[TeleopEvents.TERMINATE_EPISODE] = True  # as lerobot's gamepad reports them
+        self.buttons = []
+        return events
 
     def send_feedback(self, feedback: dict[str, Any]) -> None:
         pass
@@ -376,3 +383,52 @@ def test_cameras_render_from_the_loop_thread_after_the_main_thread() -> None:
     worker.join(30)
     robot.close()
     assert len(frames) == 2 and np.array_equal(frames[0], frames[1]) and frames[0].std() > 5
+
+
+def test_human_label_task_labels_episodes_from_the_teleop_buttons(tmp_path: Path) -> None:
+    """A success button on a lerobot teleoperator ends the episode as a success (human_label, source: teleop)."""
+    from edge_agent.agent import build_judges_and_teleops
+    from edge_agent.robot import Observation
+    from edge_agent.task import Outcome
+    from user.config import load_config
+
+    pad_config = {"type": "user_test_scripted_pad", "config": {"calibration_dir": str(tmp_path)}}
+    robot_entry = {
+        "id": "arm-0",
+        "kind": "sim_reach_arm",
+        "task": {"kind": "human_label", "params": {"source": "teleop", "success_reward": 2.0}},
+        "teleop": {"kind": "lerobot", "params": pad_config},
+    }
+    config = Path(__file__).resolve().parents[1] / "configs" / "demo.yaml"
+    robot = make_robot("sim_reach_arm", "arm-0")
+    cfg = load_config(config, [f"edge.robots=[{json.dumps(robot_entry)}]"])
+    tasks, teleops = build_judges_and_teleops(cfg, [robot])
+    task, teleop = tasks["arm-0"], teleops["arm-0"]
+    pad = teleop.device  # type: ignore[attr-defined]
+    teleop.connect()
+    obs = Observation(features={})
+    idle = {"delta_x": 0.0, "delta_y": 0.0, "delta_z": 0.0, "gripper": 1.0}
+
+    def tick(*buttons: TeleopEvents) -> Outcome:
+        """One control tick as the edge loop runs it: poll the teleop, act, then the task judges."""
+        pad.script.append((False, idle))
+        pad.buttons = list(buttons)
+        teleop.poll(obs)
+        return task.evaluate(obs, np.zeros(3), obs)
+
+    task.reset(obs)
+    assert tick() == Outcome(reward=0.0)
+    assert tick(TeleopEvents.SUCCESS) == Outcome(reward=2.0, terminated=True, success=True)
+    task.reset(obs)
+    assert tick(TeleopEvents.FAILURE) == Outcome(reward=0.0, terminated=True, success=False)
+    assert tick(TeleopEvents.RERECORD_EPISODE) == Outcome(reward=0.0, terminated=True, success=False)
+    teleop.disconnect()
+    robot.close()
+
+    # source: teleop without a teleop on that robot fails at start, naming the robot's entry.
+    no_teleop = {k: v for k, v in robot_entry.items() if k != "teleop"}
+    cfg = load_config(config, [f"edge.robots=[{json.dumps(no_teleop)}]"])
+    robot = make_robot("sim_reach_arm", "arm-0")
+    with pytest.raises(ValueError, match=r"edge\.robots\[0\]\.task: .*needs a teleop"):
+        build_judges_and_teleops(cfg, [robot])
+    robot.close()

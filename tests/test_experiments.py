@@ -298,3 +298,36 @@ def test_console_shows_one_row_per_robot_and_per_experiment(tmp_path: Path) -> N
     assert mon.success_rate(2, "reach") == 1.0 and mon.success_rate(2, "pick") is None
     write_report(tmp_path, mon.ordered(), {"name": "t", "target_success": 0.9, "time_to_target_s": None}, window=2)
     assert (tmp_path / "report.png").exists()
+
+
+def test_stop_rule_counts_only_episodes_without_interventions(tmp_path: Path) -> None:
+    """An expert's rescue is not the policy's success: the stop rule and the report count unhelped episodes."""
+    import json
+
+    from rich.console import Console
+
+    from user.config import load_config
+    from user.up import Episode, Monitor, Snapshot, _render, _summary, write_report
+
+    cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "demo.yaml")
+    mon = object.__new__(Monitor)
+    # 6 episodes the teleoperator drove (all succeed), 4 the policy did alone (1 succeeds).
+    helped = [Episode("arm-0", f"h{i}", 2 * i, True, 1.0, 20, 2, "reach", intervention_steps=5) for i in range(6)]
+    alone = [Episode("arm-0", f"a{i}", 2 * i + 1, i == 3, 0.0, 20, 2, "reach") for i in range(4)]
+    mon.episodes = {(e.robot_id, e.episode_id): e for e in helped + alone}
+    assert mon.success_rate(4, "reach") == pytest.approx(0.25)
+    assert mon.success_rate(4, "reach", autonomous=False) == 1.0  # h3, a3, h4, h5
+    assert mon.success_rate(5, "reach") is None  # only 4 unhelped episodes so far
+    assert mon.success_rate(10, "reach", autonomous=False) == pytest.approx(0.7)
+    robots = [control_pb2.RobotInfo(spec=ARM, online=True, experiment="reach")]
+    status = learner_pb2.LearnerStatus(experiments=[learner_pb2.ExperimentStatus(name="reach", algorithm="sac")])
+    console = Console(width=200, record=True)
+    console.print(_render(Snapshot(5.0, robots, status, None), mon, cfg, 600))
+    assert "25 % (4) [70 % all]" in console.export_text()
+    summary = _summary(cfg, "budget exhausted", None, None, mon.ordered(), {}, 10.0)
+    assert summary["final_success_rate_autonomous"] == pytest.approx(0.25)
+    assert summary["episodes_with_interventions"] == 6
+    write_report(tmp_path, mon.ordered(), {**summary, "target_success": 0.9}, window=4)
+    doc = json.loads((tmp_path / "metrics.json").read_text())
+    assert doc["rolling_success_autonomous"][0] is None  # the first episode was helped: no unhelped one yet
+    assert doc["rolling_success_autonomous"][-1] == pytest.approx(0.25)

@@ -341,9 +341,16 @@ class Monitor:
     def ordered(self) -> list[Episode]:
         return sorted(self.episodes.values(), key=lambda e: (e.t, e.robot_id, e.episode_id))
 
-    def success_rate(self, window: int, experiment: str | None = None) -> float | None:
-        """Over the last `window` episodes (of `experiment`'s robots when given); None until there are that many."""
-        eps = [e for e in self.ordered() if experiment is None or e.experiment == experiment][-window:]
+    def success_rate(self, window: int, experiment: str | None = None, autonomous: bool = True) -> float | None:
+        """Over the last `window` episodes (of `experiment`'s robots when given); None until there are that many.
+
+        `autonomous` (the stop rule's count) leaves out episodes a teleoperator drove any step of: an
+        expert's rescue is not the policy's success. False counts every episode (shown beside it)."""
+        eps = [
+            e
+            for e in self.ordered()
+            if (experiment is None or e.experiment == experiment) and not (autonomous and e.intervention_steps)
+        ][-window:]
         if len(eps) < window:
             return None
         return sum(e.success for e in eps) / len(eps)
@@ -366,8 +373,9 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
     window = cfg.up.window_episodes
     robots = Table(
         title=f"USER · {cfg.up.name} · {snap.t:5.0f}s / {budget_s:.0f}s",
-        caption=f"success: each robot's last {window} episodes (the stop rule counts experiment "
-        f"{target_experiment(cfg)}'s) · stale = learner version - acting version · p99 = control-loop period (ms)"
+        caption=f"success: each robot's last {window} episodes without human help (all episodes in brackets;"
+        f" the stop rule counts experiment {target_experiment(cfg)}'s unhelped ones)"
+        " · stale = learner version - acting version · p99 = control-loop period (ms)"
         " · spool = steps on the edge awaiting replay's ack (FULL: at its cap)",
         expand=True,
     )
@@ -390,8 +398,8 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
     for info in sorted(snap.robots, key=lambda i: (i.experiment, i.spec.robot_id)):
         st = info.status
         rid = info.spec.robot_id
-        mine = [e for e in mon.ordered() if e.robot_id == rid][-window:]
-        rate = f"{100 * sum(e.success for e in mine) / len(mine):.0f} % ({len(mine)})" if mine else "-"
+        mine = [e for e in mon.ordered() if e.robot_id == rid]
+        rate = _rate_cell([e for e in mine if not e.intervention_steps][-window:], mine[-window:])
         state = control_pb2.RobotState.Name(st.state).removeprefix("ROBOT_STATE_").lower() if info.online else "offline"
         robots.add_row(
             rid,
@@ -422,7 +430,7 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
     ):
         learner.add_column(col, justify="left" if col in ("experiment", "algo", "state", "scalars") else "right")
     for exp in snap.learner.experiments if snap.learner else []:
-        rate = mon.success_rate(window, exp.name)
+        rate, rate_all = mon.success_rate(window, exp.name), mon.success_rate(window, exp.name, autonomous=False)
         learner.add_row(
             exp.name,
             exp.algorithm,
@@ -433,9 +441,22 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
             _sync_cell(snap.learner, exp.name),
             str(exp.buffer_transitions),
             _scalars_text(exp.scalars),
-            "-" if rate is None else f"{100 * rate:.0f} %",
+            ("-" if rate is None else f"{100 * rate:.0f} %")
+            + ("" if rate_all is None or rate_all == rate else f" ({100 * rate_all:.0f} %)"),
         )
     return Group(robots, learner)
+
+
+def _rate_cell(autonomous: list[Episode], every: list[Episode]) -> str:
+    """ "80 % (20)" over unhelped episodes, with the rate over all episodes in brackets when they differ."""
+    if not every:
+        return "-"
+    cell = "-"
+    if autonomous:
+        cell = f"{100 * sum(e.success for e in autonomous) / len(autonomous):.0f} % ({len(autonomous)})"
+    if len(autonomous) != len(every):
+        cell += f" [{100 * sum(e.success for e in every) / len(every):.0f} % all]"
+    return cell
 
 
 def _sync_cell(lr: learner_pb2.LearnerStatus, experiment: str) -> str:
@@ -450,10 +471,8 @@ def _sync_cell(lr: learner_pb2.LearnerStatus, experiment: str) -> str:
 def write_report(run_dir: Path, episodes: list[Episode], summary: dict[str, Any], window: int) -> None:
     """metrics.json and report.png (rolling success rate and return against wall time)."""
     run_dir.mkdir(parents=True, exist_ok=True)
-    rolling = []
-    for i in range(len(episodes)):
-        recent = episodes[max(0, i + 1 - window) : i + 1]
-        rolling.append(sum(e.success for e in recent) / len(recent))
+    rolling = _rolling(episodes, window)
+    rolling_autonomous = _rolling(episodes, window, autonomous=True)
     doc = {
         **summary,
         "episodes": [
@@ -470,6 +489,8 @@ def write_report(run_dir: Path, episodes: list[Episode], summary: dict[str, Any]
             for e in episodes
         ],
         "rolling_success": [round(r, 4) for r in rolling],
+        # per episode: success over the last `window` episodes nobody intervened in (None before the first)
+        "rolling_success_autonomous": [None if r is None else round(r, 4) for r in rolling_autonomous],
     }
     tmp = run_dir / "metrics.json.tmp"
     tmp.write_text(json.dumps(doc, indent=1))
@@ -483,10 +504,18 @@ def write_report(run_dir: Path, episodes: list[Episode], summary: dict[str, Any]
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
     for name in sorted({e.experiment for e in episodes}):
         mine = [e for e in episodes if e.experiment == name]
-        curve = [
-            sum(x.success for x in mine[max(0, i + 1 - window) : i + 1]) / min(i + 1, window) for i in range(len(mine))
-        ]
-        ax1.plot([e.t for e in mine], [100 * r for r in curve], label=name or "no experiment")
+        auto = _rolling(mine, window, autonomous=True)
+        line = ax1.plot(
+            [e.t for e in mine], [None if r is None else 100 * r for r in auto], label=f"{name or 'run'} (no help)"
+        )
+        if any(e.intervention_steps for e in mine):  # every episode, helped ones too: dashed, same colour
+            ax1.plot(
+                [e.t for e in mine],
+                [100 * r for r in _rolling(mine, window)],
+                linestyle="--",
+                color=line[0].get_color(),
+                label=f"{name or 'run'} (all episodes)",
+            )
     if episodes:
         ax1.legend(loc="lower right")
     ax1.axhline(100 * summary.get("target_success", 0.9), color="grey", linestyle="--", linewidth=1)
@@ -506,6 +535,18 @@ def write_report(run_dir: Path, episodes: list[Episode], summary: dict[str, Any]
     fig.tight_layout()
     fig.savefig(run_dir / "report.png", dpi=100)
     plt.close(fig)
+
+
+def _rolling(episodes: list[Episode], window: int, autonomous: bool = False) -> list[float | None]:
+    """Per episode, the success rate over the last `window` episodes up to it (only those nobody
+    intervened in when `autonomous`; None while there are none)."""
+    out: list[float | None] = []
+    recent: list[bool] = []
+    for e in episodes:
+        if not (autonomous and e.intervention_steps):
+            recent = [*recent[-(window - 1) :], e.success] if window > 1 else [e.success]
+        out.append(sum(recent) / len(recent) if recent else None)
+    return out
 
 
 def run_up(cfg: StackConfig, config_path: str | None, overrides: list[str], fresh: bool = False) -> int:
@@ -585,6 +626,7 @@ def _summary(
     wall_s: float,
 ) -> dict[str, Any]:
     window = episodes[-cfg.up.window_episodes :]
+    unhelped = [e for e in episodes if not e.intervention_steps][-cfg.up.window_episodes :]
     robots = {}
     if final:
         for info in final.robots:
@@ -608,6 +650,10 @@ def _summary(
         "wall_s": round(wall_s, 1),
         "episodes_total": len(episodes),
         "final_success_rate": round(sum(e.success for e in window) / len(window), 3) if window else None,
+        "final_success_rate_autonomous": round(sum(e.success for e in unhelped) / len(unhelped), 3)
+        if unhelped
+        else None,
+        "episodes_with_interventions": sum(1 for e in episodes if e.intervention_steps),
         "edge_mode": cfg.edge.mode,
         "policy_source": cfg.edge.policy_source,
         "robots": robots,
@@ -629,6 +675,10 @@ def _summary(
                     "scalars": {k: round(v, 4) for k, v in sorted(e.scalars.items())},
                     "final_success_rate": _rate(
                         [x for x in episodes if x.experiment == e.name], cfg.up.window_episodes
+                    ),
+                    "final_success_rate_autonomous": _rate(
+                        [x for x in episodes if x.experiment == e.name and not x.intervention_steps],
+                        cfg.up.window_episodes,
                     ),
                 }
                 for e in learner.experiments
@@ -655,6 +705,13 @@ def _print_summary(console, summary: dict[str, Any], run_dir: Path) -> None:
     table.add_row("episodes", str(summary["episodes_total"]))
     if summary["final_success_rate"] is not None:
         table.add_row("success, last episodes", f"{100 * summary['final_success_rate']:.0f} %")
+    if summary.get("episodes_with_interventions"):
+        auto = summary["final_success_rate_autonomous"]
+        table.add_row(
+            "success without human help",
+            ("-" if auto is None else f"{100 * auto:.0f} %")
+            + f" ({summary['episodes_with_interventions']} episodes had interventions)",
+        )
     if summary["learner"]:
         table.add_row("learner updates", str(summary["learner"]["updates"]))
         for name, exp in summary["learner"]["experiments"].items():

@@ -46,6 +46,12 @@ class EncoderParams(PluginParams):
     strides: list[int] = Field(default=[2, 2, 2], description="conv strides per camera encoder layer")
     latent_dim: int = Field(default=50, ge=1, description="per-camera latent size")
     image_pad: int = Field(default=4, ge=0, description="DrQ random shift in pixels; 0 turns augmentation off")
+    state_mean: dict[str, list[float]] = Field(
+        default={}, description="per state feature, values subtracted before the networks (state-only policies)"
+    )
+    state_std: dict[str, list[float]] = Field(
+        default={}, description="per state feature, divisors after state_mean (e.g. from the demos' statistics)"
+    )
 
 
 class SACParams(EncoderParams):
@@ -65,6 +71,12 @@ class SACParams(EncoderParams):
     utd: int = Field(default=1, ge=1, description="critic steps per actor step (update-to-data ratio)")
     tables: dict[str, float] = Field(default={"online": 1.0}, description="replay table -> share of each batch")
     n_step: int = Field(default=1, ge=1, description="n-step returns, summed by the replay service")
+    bc_weight: float = Field(
+        default=0.0, ge=0, description="weight of a BC term (MSE to the human action) on intervention/demo rows"
+    )
+    bc_decay_updates: int = Field(
+        default=0, ge=0, description="the BC weight decays linearly to 0 over this many updates (0: constant)"
+    )
 
 
 # --- networks -----------------------------------------------------------------------------------
@@ -115,8 +127,19 @@ def make_encoder(layout: Layout, p: EncoderParams) -> nn.Module:
     image_keys = [k for k in layout.image_keys() if k in wanted]
     if not image_keys and not state_keys:
         raise ValueError(f"no float or image features to learn from in {sorted(wanted)}")
+    for name, stats in (("state_mean", p.state_mean), ("state_std", p.state_std)):
+        bad = {k: len(v) for k, v in stats.items() if k not in state_keys or len(v) != state_dims[state_keys.index(k)]}
+        if bad:
+            sizes = dict(zip(state_keys, state_dims, strict=True))
+            raise ValueError(f"{name}: {bad} are not state features of the right size ({sizes})")
     if not image_keys:
-        return StateEncoder(state_keys, state_dims)
+        if not p.state_mean and not p.state_std:
+            return StateEncoder(state_keys, state_dims)
+        mean = [x for k, d in zip(state_keys, state_dims, strict=True) for x in p.state_mean.get(k, [0.0] * d)]
+        std = [x for k, d in zip(state_keys, state_dims, strict=True) for x in p.state_std.get(k, [1.0] * d)]
+        return StateEncoder(state_keys, state_dims, mean, std)
+    if p.state_mean or p.state_std:
+        raise ValueError("state_mean/state_std apply to state-only policies (no cameras in features)")
     shapes = [list(layout.observation[k].shape) for k in image_keys]
     return ConvEncoder(image_keys, shapes, state_keys, state_dims, p.channels, p.strides, p.latent_dim)
 
@@ -128,21 +151,22 @@ def augment(obs: Mapping[str, torch.Tensor], encoder: nn.Module, pad: int) -> di
 
 
 def split(batch: Batch, parts: int) -> list[Batch]:
-    """Cut a batch into `parts` minibatches along the rows (the UTD loop's critic steps)."""
+    """Deal a batch into `parts` minibatches, row i to minibatch i % parts (the UTD loop's critic steps).
+
+    Dealt, not cut in blocks: a sampler returns each table's rows together (demos, then online), and
+    blocks would give RLPD pure-demo and pure-online steps instead of a 50/50 mix in every step."""
     if parts == 1:
         return [batch]
-    size = math.ceil(len(batch) / parts)
+    parts = min(parts, len(batch))
 
     def cut(x: Any, i: int) -> Any:
         if x is None:
             return None
         if isinstance(x, Mapping):
-            return {k: v[i : i + size] for k, v in x.items()}
-        return x[i : i + size]
+            return {k: v[i::parts] for k, v in x.items()}
+        return x[i::parts]
 
-    return [
-        Batch(**{f: cut(getattr(batch, f), i) for f in Batch.__dataclass_fields__}) for i in range(0, len(batch), size)
-    ]
+    return [Batch(**{f: cut(getattr(batch, f), i) for f in Batch.__dataclass_fields__}) for i in range(parts)]
 
 
 def publish(
@@ -158,6 +182,8 @@ def publish(
         "action_low": [float(x) for x in np.asarray(layout.action_low).reshape(-1)],
         "action_high": [float(x) for x in np.asarray(layout.action_high).reshape(-1)],
     }
+    if isinstance(enc, StateEncoder) and (enc.mean is not None or enc.std is not None):
+        config |= {"state_mean": enc.mean, "state_std": enc.std}
     if isinstance(enc, ConvEncoder):
         config |= {
             "image_keys": enc.image_keys,
@@ -243,13 +269,26 @@ class SAC(Algorithm):
                 target_param.lerp_(param, self.p.tau)
         return features.detach(), {"critic_loss": float(critic_loss.detach()), "q": float(q.detach().mean())}
 
-    def update_actor(self, features: torch.Tensor) -> dict[str, float]:
-        """Maximize Q minus the entropy cost of fresh samples; then tune alpha toward the target entropy."""
+    def bc_weight(self) -> float:
+        """The BC term's weight now: bc_weight, decaying linearly to 0 over bc_decay_updates updates."""
+        if self.p.bc_decay_updates == 0:
+            return self.p.bc_weight
+        return self.p.bc_weight * max(0.0, 1.0 - self.updates / self.p.bc_decay_updates)
+
+    def update_actor(self, features: torch.Tensor, batch: Batch | None = None) -> dict[str, float]:
+        """Maximize Q minus the entropy cost of fresh samples (plus a BC term on rows a human or script
+        chose, when bc_weight > 0: SAC+BC / IBRL-style use of demos); then tune alpha toward the target entropy."""
         alpha = self.log_alpha.detach().exp()
-        action, log_prob, _ = self.actor.head(features)
+        action, log_prob, mean_action = self.actor.head(features)
         q = self.critic(features, action)
         q_pi = q.min(dim=0).values if self.p.actor_q == "min" else q.mean(dim=0)
         actor_loss = (alpha * log_prob - q_pi).mean()
+        bc_weight, bc_loss = self.bc_weight(), torch.zeros(())
+        if bc_weight > 0 and batch is not None:
+            human = batch.intervention.float()
+            per_row = (mean_action - batch.action).pow(2).mean(dim=-1)
+            bc_loss = (per_row * human).sum() / human.sum().clamp(min=1.0)
+            actor_loss = actor_loss + bc_weight * bc_loss
         self.actor_optimizer.zero_grad(set_to_none=True)
         actor_loss.backward()  # also leaves grads on the critic; its optimizer clears them before its step
         self.actor_optimizer.step()
@@ -261,6 +300,7 @@ class SAC(Algorithm):
         self.alpha_optimizer.step()
         return {
             "actor_loss": float(actor_loss.detach()),
+            "bc_loss": float(bc_loss.detach()),
             "alpha_loss": float(alpha_loss.detach()),
             "alpha": self.alpha,
             "entropy": float(-log_prob.detach().mean()),
@@ -269,8 +309,9 @@ class SAC(Algorithm):
     def update(self, batch: Batch) -> dict[str, float]:
         for minibatch in split(batch, self.p.utd):
             features, critic_info = self.update_critic(minibatch)
+        info = {**critic_info, **self.update_actor(features, minibatch)}
         self.updates += 1
-        return {**critic_info, **self.update_actor(features)}
+        return info
 
     # --- what the learner publishes and checkpoints ---------------------------------------------
 

@@ -2,20 +2,24 @@
 
 Reward is sparse: `success_reward` on the step the success key arrives (which ends the episode),
 `failure_reward` on a failure key (which ends it too), 0 otherwise; `add_env_reward` adds the
-robot's own reward on every step. Keys come from a `KeySource`: by default a pynput keyboard
-listener (what lerobot's keyboard teleoperator uses); tests and other front ends inject their own.
+robot's own reward on every step. Keys come from a `KeySource`: by default (`source: keyboard`) a
+pynput keyboard listener; with `source: teleop`, the robot's teleoperator's label events (lerobot's
+TeleopEvents: SUCCESS -> success, FAILURE/TERMINATE_EPISODE -> failure, RERECORD_EPISODE -> failure:
+the episode ends unlabelled as a success), so the s/q/r keys of lerobot's keyboard teleop or a
+gamepad's success/failure buttons label episodes; tests and other front ends inject their own.
 """
 
 from __future__ import annotations
 
 import threading
-from typing import Protocol
+from typing import Literal, Protocol
 
 import numpy as np
 from pydantic import Field
 
 from edge_agent.robot import Observation
 from edge_agent.task import TASKS, Outcome, Task
+from edge_agent.teleop import Teleoperator
 from user.registry import PluginParams
 from user.v1 import robot_pb2
 
@@ -66,6 +70,20 @@ class PynputKeys(QueueKeys):
         self._listener.stop()
 
 
+class TeleopLabels:
+    """A teleoperator's label events as keys: "success" -> the success key, "failure"/"rerecord" -> the failure key."""
+
+    def __init__(self, teleop: Teleoperator, success_key: str, failure_key: str) -> None:
+        self.teleop = teleop
+        self.keys = {"success": success_key, "failure": failure_key, "rerecord": failure_key}
+
+    def drain(self) -> list[str]:
+        return [self.keys[e] for e in self.teleop.events() if e in self.keys]
+
+    def close(self) -> None:
+        pass  # the edge agent disconnects the teleoperator
+
+
 @TASKS.register("human_label")
 class HumanLabelTask(Task):
     """A human presses a key to mark success (or failure); sparse reward."""
@@ -76,15 +94,28 @@ class HumanLabelTask(Task):
         success_reward: float = 1.0
         failure_reward: float = 0.0
         add_env_reward: bool = Field(default=False, description="also add the robot's own reward each step")
+        source: Literal["keyboard", "teleop"] = Field(
+            default="keyboard", description="keyboard: pynput keys; teleop: the robot's teleoperator's events"
+        )
 
     params: Params
 
     def __init__(self, params: Params, spec: robot_pb2.RobotSpec, keys: KeySource | None = None) -> None:
         super().__init__(params, spec)
-        try:
-            self.keys: KeySource = keys if keys is not None else PynputKeys()
-        except Exception as exc:  # no display, no input device
-            raise RuntimeError(f"human_label task: no keyboard available ({exc}); inject a key source") from exc
+        self.keys: KeySource = keys if keys is not None else QueueKeys()
+        if keys is None and params.source == "keyboard":
+            try:
+                self.keys = PynputKeys()
+            except Exception as exc:  # no display, no input device
+                raise RuntimeError(f"human_label task: no keyboard available ({exc}); inject a key source") from exc
+
+    def attach_teleop(self, teleop: Teleoperator | None) -> None:
+        """The edge agent hands over the robot's teleoperator; `source: teleop` labels from its events."""
+        if self.params.source != "teleop":
+            return
+        if teleop is None:
+            raise ValueError("human_label task with source: teleop needs a teleop on the same robot")
+        self.keys = TeleopLabels(teleop, self.params.success_key, self.params.failure_key)
 
     def reset(self, observation: Observation) -> None:
         self.keys.drain()  # a key pressed between episodes labels nothing

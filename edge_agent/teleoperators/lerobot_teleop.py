@@ -9,12 +9,15 @@ end-effector teleoperators send the gripper as 0 close / 1 stay / 2 open: `gripp
 that into -1..1 with +1 closing (gym-hil's Panda), `absolute` into a 0 closed / 1 open target that
 keeps its value on "stay" (SO-101). The human takes over while the device says so: lerobot's
 `get_teleop_events()` IS_INTERVENTION (keyboard: a movement key held; gamepad: the intervention
-button) or, for devices without events (leader arms), whenever `intervention: always`.
+button) or, for devices without events (leader arms), whenever `intervention: always`. The same
+call's SUCCESS / FAILURE / TERMINATE_EPISODE / RERECORD_EPISODE (keyboard: s, q, r; gamepad: its
+buttons) become label events (`events()`) for the human_label task with `source: teleop`.
 """
 
 from __future__ import annotations
 
 import importlib.util
+import threading
 from typing import Any, Literal
 
 import numpy as np
@@ -69,6 +72,8 @@ class LerobotTeleop(Teleoperator):
         if len(self.names) != int(np.prod(spec.action.shape)):
             raise ValueError("lerobot teleop: the robot's action space must name every action")
         self._grasp = 1.0  # absolute gripper target until the human moves it: open
+        self._labels: list[str] = []
+        self._lock = threading.Lock()  # events() may be read from another thread than poll()
 
     def connect(self) -> None:
         if not self.device.is_connected:
@@ -94,14 +99,29 @@ class LerobotTeleop(Teleoperator):
         return self._grasp
 
     def _intervening(self) -> bool:
-        if self.params.intervention == "always":
-            return True
-        events = getattr(self.device, "get_teleop_events", None)
-        if events is None:
-            return False
+        """Read the device's events once per tick (reading drains them): keep its labels, say if it intervenes."""
+        read = getattr(self.device, "get_teleop_events", None)
+        if read is None:
+            return self.params.intervention == "always"
         from lerobot.teleoperators import TeleopEvents
 
-        return bool(events().get(TeleopEvents.IS_INTERVENTION, False))
+        events = read()
+        label = None
+        if events.get(TeleopEvents.SUCCESS):
+            label = "success"
+        elif events.get(TeleopEvents.RERECORD_EPISODE):
+            label = "rerecord"
+        elif events.get(TeleopEvents.FAILURE) or events.get(TeleopEvents.TERMINATE_EPISODE):
+            label = "failure"
+        if label is not None:
+            with self._lock:
+                self._labels.append(label)
+        return self.params.intervention == "always" or bool(events.get(TeleopEvents.IS_INTERVENTION, False))
+
+    def events(self) -> list[str]:
+        with self._lock:
+            labels, self._labels = self._labels, []
+        return labels
 
     def poll(self, observation: Observation) -> np.ndarray | None:
         action = dict(self.device.get_action())  # first: lerobot's keyboard drains its key queue here

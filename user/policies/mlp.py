@@ -40,20 +40,43 @@ def mlp(in_dim: int, hidden: Sequence[int], out_dim: int, layer_norm: bool = Fal
 
 
 class StateEncoder(nn.Module):
-    """Concatenate the float features `keys` (each flattened after the batch dim); no weights."""
+    """Concatenate the float features `keys` (each flattened after the batch dim); no weights.
 
-    def __init__(self, keys: Sequence[str], dims: Sequence[int]) -> None:
+    `mean`/`std` (one float per concatenated value, fixed, part of the published config) standardize
+    the state: raw robot state mixes metres, radians and velocities, and a few-cm cube-to-gripper
+    offset drowns in it unscaled."""
+
+    def __init__(
+        self,
+        keys: Sequence[str],
+        dims: Sequence[int],
+        mean: Sequence[float] | None = None,
+        std: Sequence[float] | None = None,
+    ) -> None:
         super().__init__()
         if len(keys) != len(dims):
             raise ValueError(f"state_keys {list(keys)} and state_dims {list(dims)} differ in length")
         self.keys, self.dims = list(keys), [int(d) for d in dims]
         self.out_dim = sum(self.dims)
+        self.mean = None if mean is None else [float(x) for x in mean]
+        self.std = None if std is None else [float(x) for x in std]
+        for name, values in (("state_mean", self.mean), ("state_std", self.std)):
+            if values is not None and len(values) != self.out_dim:
+                raise ValueError(f"{name} has {len(values)} values, the state has {self.out_dim}")
+        if self.std is not None and min(self.std) <= 0:
+            raise ValueError("state_std must be > 0")
+        # Plain attributes, not buffers: the published tensors stay the weights alone.
+        self._shift = torch.tensor(self.mean or [0.0] * self.out_dim)
+        self._scale = 1.0 / torch.tensor(self.std or [1.0] * self.out_dim)
 
     def forward(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
         parts = [obs[k].reshape(obs[k].shape[0], -1).float() for k in self.keys]
         if not parts:
             raise ValueError("StateEncoder has no state keys")
-        return torch.cat(parts, dim=-1)
+        x = torch.cat(parts, dim=-1)
+        if self.mean is None and self.std is None:
+            return x
+        return (x - self._shift.to(x.device)) * self._scale.to(x.device)
 
 
 class GaussianActor(nn.Module):
@@ -171,7 +194,9 @@ class MlpPolicy(ActorPolicy):
 
     @classmethod
     def build_actor(cls, config: Mapping[str, Any]) -> GaussianActor:
-        encoder = StateEncoder(config["state_keys"], config["state_dims"])
+        encoder = StateEncoder(
+            config["state_keys"], config["state_dims"], config.get("state_mean"), config.get("state_std")
+        )
         return GaussianActor(encoder, config["hidden"], config["action_low"], config["action_high"])
 
 
