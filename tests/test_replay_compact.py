@@ -25,9 +25,15 @@ LENGTH, DIM = 10, 2000  # ~8 KB a step: ~12 episodes fit in 1 MiB
 
 
 def fill(put: Callable[[list], object], episodes: int, first: int = 0) -> None:
-    """Episodes e of LENGTH steps (policy_version e), terminated when e is even, truncated when odd."""
+    """Episodes e of LENGTH steps (policy_version e), terminated when e is even, truncated when odd; every
+    third one arrives in two halves, the second half first (the out-of-order indexing path)."""
     for e in range(first, first + episodes):
-        put(episode("arm-0", f"e{e:04d}", LENGTH, terminated=e % 2 == 0, dim=DIM, policy_version=e))
+        steps = episode("arm-0", f"e{e:04d}", LENGTH, terminated=e % 2 == 0, dim=DIM, policy_version=e)
+        if e % 3 == 2:
+            put(steps[LENGTH // 2 :])
+            put(steps[: LENGTH // 2])
+        else:
+            put(steps)
 
 
 def index_rows(store: ReplayStore) -> list[int]:
@@ -67,7 +73,9 @@ def test_compaction_keeps_the_index_proportional_to_what_is_stored(tmp_path: Pat
         batch = store.sample(2000, np.random.default_rng(0), draw=Draw(2000, n_step=3, gamma=0.5))
         assert set(batch["policy_version"].tolist()) == survivors  # the oldest left, whole
         check_n_step(batch, 0.5, 3)
-        assert store.cache_info()["misses"] == misses  # hot rows still validate against renumbered rows
+        # hot rows still validate against renumbered rows (only out-of-order completions may be cold)
+        cold = int((batch["policy_version"] % 3 == 2).sum())
+        assert store.cache_info()["misses"] - misses <= cold < 1000
         stacked = store.sample(256, np.random.default_rng(1), draw=Draw(256, frame_stack=3))
         t = stacked["observation"]["state"][:, :, 0]
         np.testing.assert_array_equal(t, np.maximum(t[:, 2:] + np.array([-2, -1, 0]), 0))

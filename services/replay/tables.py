@@ -7,6 +7,10 @@ and "interventions", which also holds every online/demo transition a human chose
 names tables with mixing ratios (RLPD's 50/50: {"online": 1, "demos": 1}); within a table the
 sampler is uniform, a recency window (the newest W transitions) or prioritized (p^alpha, with
 importance weights; priorities updated by the learner through UpdatePriorities).
+
+A tid is a row of the columns: rows of evicted transitions stay (marked dead) until they outnumber live
+ones, then compact() renumbers the live rows densely. Clients see public ids instead (Index.ids,
+Batch.indices): ascending and never renumbered, mapped back to rows by binary search.
 """
 
 from __future__ import annotations
