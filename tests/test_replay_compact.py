@@ -125,26 +125,26 @@ def test_chunks_and_priorities_over_grpc_after_compaction(make_service: Callable
         nonlocal seq
         reqs = [replay_pb2.InsertRequest(seq=seq + i, step=s) for i, s in enumerate(steps)]
         seq += len(steps)
-        assert [s for ack in stub(service).Insert(iter(reqs), timeout=10) for s in ack.seqs] == [r.seq for r in reqs]
+        assert [s for ack in stub(service).Insert(iter(reqs), timeout=60) for s in ack.seqs] == [r.seq for r in reqs]
 
     fill(put, 60)
     assert service.store.compactions > 0
     assert len(service.store.index.keys) <= 2 * service.store.transitions
     req = replay_pb2.SampleRequest(batch_size=256, action_horizon=4)
-    batch = stub(service).Sample(req, timeout=5).batch
+    batch = stub(service).Sample(req, timeout=60).batch
     assert check_chunks(batch, 4, lambda version, t: LENGTH - 1) > 0
     chosen = int(wire.from_tensor(batch.indices)[0])
     idx = service.store.index
     ids = idx.ids.view()[idx.alive.view()]  # every live transition: all but `chosen` get priority 0
     pri = np.where(ids == chosen, 50.0, 0.0).tolist()
     updated = stub(service).UpdatePriorities(
-        replay_pb2.UpdatePrioritiesRequest(indices=ids.tolist(), priorities=pri), timeout=5
+        replay_pb2.UpdatePrioritiesRequest(indices=ids.tolist(), priorities=pri), timeout=60
     )
     assert updated.updated == len(ids)
     draw = replay_pb2.SampleRequest(
         batch_size=64, sampler=replay_pb2.SAMPLER_PRIORITIZED, priority_alpha=1.0, action_horizon=2
     )
     for _ in range(2):  # the second may come from the prefetcher
-        got = stub(service).Sample(draw, timeout=5).batch
+        got = stub(service).Sample(draw, timeout=60).batch
         assert set(wire.from_tensor(got.indices).tolist()) == {chosen}
         check_chunks(got, 2, lambda version, t: LENGTH - 1)
