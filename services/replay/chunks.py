@@ -85,7 +85,9 @@ def add_action_chunks(store: ReplayStore, arrays: dict[str, Any], horizon: int) 
     first = arrays["action"]
     with store._lock:
         store._check_open()
-        ids, mask = chunk_tids(store.index, np.asarray(arrays["indices"], np.int64), horizon)
+        rows, ok = store.index.rows_of(np.asarray(arrays["indices"], np.int64))
+        ids, mask = chunk_tids(store.index, rows, horizon)
+        mask[~ok, 1:] = False  # evicted since the sample: its first action only (padded)
         real = mask[:, 1:]
         uniq, inverse = np.unique(ids[:, 1:][real], return_inverse=True)
         actions = gather_actions(store, uniq, first)[inverse] if len(uniq) else None

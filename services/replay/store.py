@@ -224,6 +224,7 @@ class ReplayStore:
         self._steps_per_robot: dict[str, int] = {}
         self._bytes = 0
         self._evicted_episodes = 0
+        self.compactions = 0  # index compactions (dropping evicted rows)
         self.hits = self.misses = 0
         self.generation = 0  # bumps when a commit or an eviction changes what can be sampled
         self.inserted = 0  # steps stored by this process (the rate limiter's insert count)
@@ -1004,12 +1005,28 @@ class ReplayStore:
                     del self._steps_per_robot[ep.robot]
                 self._bytes -= ep.nbytes
             self.index.evict(tids)
+            if self.index.wants_compaction():
+                self._compact_index()
             gone = set(victims)
             for key in [k for k in self._tails if k[:-8] in gone]:  # their steps left LMDB: nothing waits
                 del self._tails[key]
             self._evicted_episodes += len(victims)
             self.generation += 1
         log.info("evicted episodes", extra=kv(episodes=len(victims), bytes=freed))
+
+    def _compact_index(self) -> None:
+        """Drop evicted rows from the index, so it stays proportional to what is stored (a months-long run
+        evicts far more than it keeps), and renumber every holder of rows (caller holds the lock; generation
+        bumps with the eviction, and public ids (Batch.indices) do not change)."""
+        remap = self.index.compact()
+        for group in self._groups:  # rows whose transition was dropped never validate again
+            held = group.t_tid >= 0
+            group.t_tid[held] = remap[group.t_tid[held]]
+        for eps in [self._episodes, *self._attached_episodes.values()]:
+            for ep in eps.values():
+                if ep.tids:
+                    ep.tids = remap[ep.tids].tolist()
+        self.compactions += 1
 
     def put_spec(self, spec: robot_pb2.RobotSpec) -> None:
         with self._write_lock:
@@ -1075,7 +1092,7 @@ class ReplayStore:
                 "truncated": drawn.truncated,
                 "intervention": idx.intervention.a[tids],
                 "policy_version": idx.policy_version.a[tids],
-                "indices": tids,
+                "indices": idx.ids.a[tids],  # public ids: rows are renumbered when the index compacts
                 "weights": drawn.weights,
                 "n_steps": drawn.n_steps,
             }

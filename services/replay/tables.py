@@ -7,6 +7,10 @@ and "interventions", which also holds every online/demo transition a human chose
 names tables with mixing ratios (RLPD's 50/50: {"online": 1, "demos": 1}); within a table the
 sampler is uniform, a recency window (the newest W transitions) or prioritized (p^alpha, with
 importance weights; priorities updated by the learner through UpdatePriorities).
+
+A tid is a row of the columns: rows of evicted transitions stay (marked dead) until they outnumber live
+ones, then compact() renumbers the live rows densely. Clients see public ids instead (Index.ids,
+Batch.indices): ascending and never renumbered, mapped back to rows by binary search.
 """
 
 from __future__ import annotations
@@ -136,6 +140,12 @@ class Grow:
         self.a[: len(kept)] = kept
         self.n = len(kept)
 
+    def replace(self, values: np.ndarray) -> None:
+        """Hold exactly `values` in a right-sized array (room for a quarter more), so capacity can shrink."""
+        self.a = np.full(max(1024, len(values) + len(values) // 4), self.fill, self.a.dtype)
+        self.a[: len(values)] = values
+        self.n = len(values)
+
 
 @dataclass(slots=True)
 class Record:
@@ -198,6 +208,10 @@ class Index:
         self.prev_tid = Grow(np.int64, -1)
         self.alive = Grow(np.bool_)
         self.priority = Grow(np.float32, 1.0)
+        self.ids = Grow(np.int64)  # each row's public id (Batch.indices): ascending, never reused or renumbered
+        self.next_id = 0
+        self.dead = 0  # rows of evicted transitions, until compact() drops them
+        self.compact_min = 4096  # fewer dead rows are not worth a compaction
         self.max_priority = 1.0
         self._trees: dict[tuple[str, int, float], SumTree] = {}  # (table, robot code, alpha) -> tree
         self.robots: list[str] = []
@@ -234,6 +248,7 @@ class Index:
         self.prev_tid.extend(np.full(len(records), -1, np.int64))
         self.alive.extend(np.ones(len(records), np.bool_))
         self.priority.extend(np.full(len(records), self.max_priority, np.float32))
+        self._new_ids(len(records))
         by_table: dict[tuple[str, int], list[int]] = {}
         for tid, r in zip(tids, records, strict=True):
             # link the episode's neighbours for n-step returns (in any arrival order)
@@ -253,6 +268,20 @@ class Index:
                 by_table.setdefault((ALL, r.robot), []).append(tid)
         self._append_tables({k: np.asarray(v, np.int64) for k, v in by_table.items()})
         return tids
+
+    def _new_ids(self, n: int) -> None:
+        self.ids.extend(np.arange(self.next_id, self.next_id + n, dtype=np.int64))
+        self.next_id += n
+
+    def rows_of(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows of public ids, and which ids are still indexed (evicted or unknown ones are not)."""
+        col = self.ids.view()
+        if len(col) == 0:
+            return np.zeros(len(ids), np.int64), np.zeros(len(ids), np.bool_)
+        rows = np.minimum(np.searchsorted(col, ids), len(col) - 1)
+        ok = col[rows] == ids
+        ok[ok] = self.alive.a[rows[ok]]
+        return rows, ok
 
     def _append_tables(self, by_table: dict[tuple[str, int], np.ndarray]) -> None:
         """New tids (ascending) onto their (table, robot) columns, and onto the sum trees built over them."""
@@ -298,6 +327,7 @@ class Index:
         self.prev_tid.extend(np.full(n, -1, np.int64))
         self.alive.extend(np.ones(n, np.bool_))
         self.priority.extend(np.full(n, self.max_priority, np.float32))
+        self._new_ids(n)
         prefixes = [k[:-8] for k in keys]
         t = np.fromiter((int.from_bytes(k[-8:], "big") for k in keys), np.int64, n)
         prev = np.full(n, -1, np.int64)
@@ -333,6 +363,7 @@ class Index:
         if not tids:
             return
         dead = np.asarray(tids, np.int64)
+        self.dead += int(self.alive.a[dead].sum())
         self.alive.a[dead] = False
         for t in tids:
             self.tid_of.pop(self.keys[t], None)
@@ -341,6 +372,32 @@ class Index:
             for g in grows.values():
                 g.keep(self.alive.a[g.view()])
         self._trees.clear()  # positions moved: rebuilt on the next prioritized draw
+
+    def wants_compaction(self) -> bool:
+        """Once evicted rows outnumber live ones (and are many), compact() pays for itself."""
+        return self.dead >= self.compact_min and 2 * self.dead > len(self.keys)
+
+    def compact(self) -> np.ndarray:
+        """Drop evicted rows: live rows are renumbered densely in order (public ids stay); returns old row -> new
+        row (-1 for dropped), for every other holder of rows to remap. O(rows), vectorized but for keys."""
+        n = len(self.keys)
+        live = np.flatnonzero(self.alive.view())
+        remap = np.full(n, -1, np.int64)
+        remap[live] = np.arange(len(live), dtype=np.int64)
+        for col in (self.robot, self.group, self.hot_row, self.reward, self.terminated, self.truncated,
+                    self.intervention, self.policy_version, self.alive, self.priority, self.ids):  # fmt: skip
+            col.replace(col.view()[live])
+        for col in (self.next_tid, self.prev_tid):  # links to evicted rows become -1
+            old = col.view()[live]
+            col.replace(np.where(old >= 0, remap[np.maximum(old, 0)], -1))
+        self.keys = [self.keys[t] for t in live.tolist()]
+        self.tid_of = dict(zip(self.keys, range(len(self.keys)), strict=True))  # a fresh dict: pops never shrink one
+        for grows in [*self.tables.values(), self.all]:
+            for g in grows.values():
+                g.replace(remap[g.view()])  # tables hold live rows only (evict dropped the rest)
+        self._trees.clear()
+        self.dead = 0
+        return remap
 
     # ------------------------------------------------------------------ counts
 
@@ -478,10 +535,10 @@ class Index:
             cur = np.where(ok, prev, cur)
         return cur
 
-    def update_priorities(self, tids: np.ndarray, priorities: np.ndarray) -> int:
-        """Set priorities of live transitions; returns how many were updated (evicted ones are skipped)."""
-        ok = (tids >= 0) & (tids < len(self.keys))
-        ok[ok] = self.alive.a[tids[ok]]
+    def update_priorities(self, ids: np.ndarray, priorities: np.ndarray) -> int:
+        """Set priorities of live transitions by public id; returns how many were updated (evicted ones are
+        skipped)."""
+        tids, ok = self.rows_of(ids)
         self.priority.a[tids[ok]] = priorities[ok]
         if self._trees and ok.any():
             live, values = tids[ok], priorities[ok].astype(np.float64)
