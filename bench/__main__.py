@@ -94,6 +94,9 @@ def _parser() -> argparse.ArgumentParser:
     load.add_argument("--duration", type=float, help="measured window, seconds (default 600; --quick 10)")
     load.add_argument("--edges", type=int, help="simulated robots, 8 per edge process (default 64; --quick 4)")
     load.add_argument("--hz", type=float, help="control rate of every robot (default 10)")
+    load.add_argument(
+        "--set", dest="overrides", action="append", default=[], help="stack config override, e.g. replay.capacity_mb=64"
+    )
     return p
 
 
@@ -168,7 +171,11 @@ def main(argv: list[str] | None = None) -> int:
             console.log(f"bench {name} ...")
             try:
                 module = importlib.import_module(BENCHES[name])
-                extra = {"duration_s": args.duration, "robots": args.edges, "hz": args.hz} if name == "load" else {}
+                extra = (
+                    {"duration_s": args.duration, "robots": args.edges, "hz": args.hz, "overrides": args.overrides}
+                    if name == "load"
+                    else {}
+                )
                 rows += module.run(quick=args.quick, workdir=workdir / name, log=console.log, **extra)
             except Exception:
                 failed.append(name)

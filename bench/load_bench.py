@@ -362,7 +362,7 @@ class LoadRun:
             loadavg_start=load_start,
             loadavg_end=load_end,
             exit_codes=codes,
-            options={k: v for k, v in vars(opts).items() if k != "overrides"},
+            options=vars(opts),
         )
         return result
 
@@ -381,7 +381,9 @@ class LoadRun:
         held = by_label(d, "user_edge_held_steps_total", "robot_id")
         rates = {rid: n / window for (rid,), n in steps.items()}
         collected = {rid: int(n) for (rid,), n in by_label(final, "user_edge_env_steps_total", "robot_id").items()}
-        stored = {rid: int(stats.steps_per_robot.get(rid, 0)) for rid in collected}
+        # with replay.capacity_mb, whole episodes leave by design: stored + evicted is what replay took
+        evicted = {rid: int(stats.evicted_steps_per_robot.get(rid, 0)) for rid in collected}
+        stored = {rid: int(stats.steps_per_robot.get(rid, 0)) + evicted[rid] for rid in collected}
         lost = {rid: collected[rid] - stored[rid] for rid in collected}
         client = by_label(d, "user_grpc_client_errors_total", "method", "code")
         client_errors = {f"{m} {c}": int(v) for (m, c), v in client.items() if v}
@@ -428,6 +430,7 @@ class LoadRun:
             "acked": int(total(final, "user_edge_steps_acked_total")),
             "unacked": int(total(final, "user_edge_steps_unacked")),
             "stored": sum(stored.values()),
+            "evicted": sum(evicted.values()),
             "replay_steps": int(stats.steps),
             "lost": sum(lost.values()),
             "lost_per_robot": lost,
@@ -452,6 +455,8 @@ def rows(result: dict[str, Any]) -> list[Row]:
     opts = result["options"]
     agents = math.ceil(opts["robots"] / opts["robots_per_agent"])
     group = f"load {opts['robots']} robots ({agents} edge processes) {opts['hz']:g} Hz {opts['duration_s']:.0f} s"
+    if opts.get("overrides"):
+        group += ", " + ", ".join(opts["overrides"])
     rates = list(result["rate_hz"].values()) or [0.0]
     la0, la1 = result["loadavg_start"][0], result["loadavg_end"][0]
     ms = 1e3
@@ -473,7 +478,8 @@ def rows(result: dict[str, Any]) -> list[Row]:
         fact("gRPC errors seen by edges", _fmt_counts(result["client_errors"]), note="by method and code, in window"),
         fact("non-OK codes answered by services", _fmt_counts(result["server_errors"])),
         fact("steps lost (collected - stored)", f"{result['lost']} of {result['collected']}",
-             note=f"acked {result['acked']}, unacked {result['unacked']}, stored {result['stored']}"),
+             note=f"acked {result['acked']}, unacked {result['unacked']}, stored {result['stored']}"
+             f" (of which evicted by capacity {result.get('evicted', 0)})"),
         fact("re-sends deduplicated", str(result["deduplicated"]), note="replay keys steps: none stored twice"),
         fact("learner weight versions published", str(result["learner"]["versions"]),
              note=f"{result['learner']['updates']} updates in window"),
@@ -509,8 +515,9 @@ def run(
     duration_s: float | None = None,
     robots: int | None = None,
     hz: float | None = None,
+    overrides: list[str] | None = None,
 ) -> list[Row]:
-    opts = LoadOptions()
+    opts = LoadOptions(overrides=list(overrides or []))
     if quick:
         opts.duration_s, opts.robots, opts.robots_per_agent = 10.0, 4, 2
     opts.duration_s = duration_s if duration_s is not None else opts.duration_s

@@ -129,6 +129,10 @@ def test_chunks_and_priorities_over_grpc_after_compaction(make_service: Callable
 
     fill(put, 60)
     assert service.store.compactions > 0
+    stats = stub(service).Stats(replay_pb2.StatsRequest(), timeout=60)
+    evicted = sum(stats.evicted_steps_per_robot.values())
+    assert evicted > 0  # capacity evicted whole episodes, and Stats accounts for every acked step
+    assert sum(stats.steps_per_robot.values()) + evicted == seq
     assert len(service.store.index.keys) <= 2 * service.store.transitions
     req = replay_pb2.SampleRequest(batch_size=256, action_horizon=4)
     batch = stub(service).Sample(req, timeout=60).batch

@@ -344,10 +344,13 @@ class Registry:
     def _store_status_locked(self, rec: RobotRecord, status: control_pb2.RobotStatus) -> None:
         known = {ep.episode_id for ep in rec.episodes}
         fresh = []
-        for ep in status.new_episodes:
-            if ep.episode_id in known:  # re-sent after a broken stream: count it once
+        for sent in status.new_episodes:
+            if sent.episode_id in known:  # re-sent after a broken stream: count it once
                 continue
-            known.add(ep.episode_id)
+            known.add(sent.episode_id)
+            # A copy: a kept sub-message pins its whole Heartbeat (one protobuf arena), ~5 kB per kept episode.
+            ep = control_pb2.EpisodeSummary()
+            ep.CopyFrom(sent)
             ep.robot_id = rec.spec.robot_id  # an edge reports only its own robots' episodes
             rec.episodes.append(ep)
             fresh.append(ep)

@@ -585,6 +585,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             episodes=st["episodes"],
             bytes_on_disk=st["bytes_on_disk"],
             steps_per_robot=st["steps_per_robot"],
+            evicted_steps_per_robot=st["evicted_steps_per_robot"],
             duplicates=st["duplicates"],
             rejected=self.rejected,
             tables={name: _table_stats(t) for name, t in tables.items()},

@@ -224,6 +224,7 @@ class ReplayStore:
         self._steps_per_robot: dict[str, int] = {}
         self._bytes = 0
         self._evicted_episodes = 0
+        self._evicted_steps_per_robot: dict[str, int] = {}  # since open: stored + evicted = everything acked
         self.compactions = 0  # index compactions (dropping evicted rows)
         self.hits = self.misses = 0
         self.generation = 0  # bumps when a commit or an eviction changes what can be sampled
@@ -1004,6 +1005,7 @@ class ReplayStore:
                 else:
                     del self._steps_per_robot[ep.robot]
                 self._bytes -= ep.nbytes
+                self._evicted_steps_per_robot[ep.robot] = self._evicted_steps_per_robot.get(ep.robot, 0) + ep.steps
             self.index.evict(tids)
             if self.index.wants_compaction():
                 self._compact_index()
@@ -1241,6 +1243,7 @@ class ReplayStore:
                 "episodes": len(self._episodes),
                 "bytes_on_disk": on_disk,
                 "steps_per_robot": per_robot,
+                "evicted_steps_per_robot": dict(self._evicted_steps_per_robot),
                 "duplicates": self.db.duplicates,
             }
 
