@@ -5,6 +5,7 @@ Real ReplayStore on LMDB in tmp dirs, and the real replay gRPC service on 127.0.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable
 from pathlib import Path
 
@@ -152,3 +153,30 @@ def test_chunks_and_priorities_over_grpc_after_compaction(make_service: Callable
         got = stub(service).Sample(draw, timeout=60).batch
         assert set(wire.from_tensor(got.indices).tolist()) == {chosen}
         check_chunks(got, 2, lambda version, t: LENGTH - 1)
+
+
+def test_samples_never_read_steps_that_eviction_removed(tmp_path: Path) -> None:
+    """Eviction leaves the index before LMDB: a sample drawing while a writer evicts never finds a step gone
+    (it did: ReplayError, seen as UNKNOWN by the learner in the 64-robot load test)."""
+    store = ReplayStore(tmp_path / "replay", 64, capacity_mb=1, cache_mb=0)  # cache off: every read goes to LMDB
+    store.index.compact_min = 16
+    fill(store.put_steps, 2)
+    done = threading.Event()
+
+    def writer() -> None:
+        fill(store.put_steps, 300, first=2)
+        done.set()
+
+    thread = threading.Thread(target=writer, daemon=True)
+    thread.start()
+    rng = np.random.default_rng(0)
+    samples = 0
+    try:
+        while not done.is_set() or samples < 100:
+            store.sample(64, rng, draw=Draw(64, n_step=3, gamma=0.5))  # raised ReplayError before the fix
+            samples += 1
+        thread.join()
+        assert store.stats()["evicted_steps_per_robot"]["arm-0"] > 0
+    finally:
+        done.wait()
+        store.close()

@@ -30,6 +30,7 @@ import numpy as np
 import prometheus_client
 
 from services.replay.chunks import add_action_chunks, horizon_problem
+from services.replay.disk import ReplayError
 from services.replay.prefetch import Prefetcher
 from services.replay.store import (
     EmptyBufferError,
@@ -507,6 +508,9 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(exc))
         except StoreClosedError:
             context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down")
+        except ReplayError as exc:  # e.g. a step evicted while the batch was assembled: asking again works
+            log.warning("sample aborted", extra=kv(error=str(exc)))
+            context.abort(grpc.StatusCode.ABORTED, f"sample raced a change of the buffer, retry: {exc}")
         if size > MAX_BATCH_BYTES:
             per = max(1, size // request.batch_size)
             context.abort(

@@ -992,7 +992,8 @@ class ReplayStore:
                 freed += ep.nbytes
         if not victims:
             return
-        self.db.delete_episodes(victims)
+        # Out of the index first, then out of LMDB: a sample (which holds the lock from draw to read) never draws
+        # a step whose bytes are already gone.
         with self._lock:
             tids: list[int] = []
             for prefix in victims:
@@ -1014,6 +1015,7 @@ class ReplayStore:
                 del self._tails[key]
             self._evicted_episodes += len(victims)
             self.generation += 1
+        self.db.delete_episodes(victims)
         log.info("evicted episodes", extra=kv(episodes=len(victims), bytes=freed))
 
     def _compact_index(self) -> None:
