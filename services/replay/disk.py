@@ -25,8 +25,9 @@ import logging
 import struct
 import threading
 import time
-from collections.abc import Container, Iterable, Iterator
+from collections.abc import Callable, Container, Iterable, Iterator
 from pathlib import Path
+from typing import TypeVar
 
 import lmdb
 
@@ -34,6 +35,7 @@ from user.log import kv
 from user.v1 import robot_pb2, step_pb2
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 FORMAT = b"1"
 _INDEX = struct.Struct(">Q")
@@ -245,9 +247,13 @@ class StepDB:
         specs = list(specs)
         tables = [table] * len(steps) if isinstance(table, str) else table
         raws = raws if raws is not None else [s.SerializeToString() for s in steps]
+        return self._growing(lambda: self._put_txn(steps, tables, specs, raws, known_waiting))
+
+    def _growing(self, write: Callable[[], T]) -> T:
+        """Run a write transaction, growing the map and retrying while LMDB says it is full (up to max_map_mb)."""
         while True:
             try:
-                return self._put_txn(steps, tables, specs, raws, known_waiting)
+                return write()
             except lmdb.MapFullError:
                 if not self._grow():
                     raise ReplayFullError(
@@ -269,15 +275,7 @@ class StepDB:
         scalars: (reward, flags incl. ENDS, policy_version, value bytes) per step. Raises NotInOrder (and
         writes nothing) if a key was stored after all.
         """
-        while True:
-            try:
-                return self._put_in_order_txn(keys, raws, scalars, episode_tables, specs)
-            except lmdb.MapFullError:
-                if not self._grow():
-                    raise ReplayFullError(
-                        f"replay store {self.path} is full (map {self.map_bytes >> 20} MiB = max_map_mb); "
-                        "raise replay.max_map_mb or lower replay.capacity_mb"
-                    ) from None
+        return self._growing(lambda: self._put_in_order_txn(keys, raws, scalars, episode_tables, specs))
 
     def _put_in_order_txn(
         self,
