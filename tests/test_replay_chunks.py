@@ -92,12 +92,12 @@ def test_flow_bc_trains_on_chunks_through_a_real_learner_and_replay(
 
     service = make_service()
     insert_into(service, episode("arm-0", "demo", 10), "demos")  # observation t, action 0.1 t
-    params = {"horizon": 4, "hidden": 64, "batch_size": 32, "lr": 3e-3, "tables": {"demos": 1.0}}
+    params = {"horizon": 4, "hidden": 64, "batch_size": 32, "lr": 1e-3, "tables": {"demos": 1.0}}
     cfg = service_cfg(tmp_path, experiments=[{"name": "a", "algorithm": {"kind": "flow_bc", "params": params}}])
     run = ExperimentRun(Learner(cfg, WeightStore()), 0, cfg.experiments[0], [spec()])
     assert run._request(32, ["arm-0"], run.algo.batch_request()).action_horizon == 4
     stub_ = stub(service)
-    for _ in range(300):
+    for _ in range(600):
         item = run.sample_once(stub_)
         assert item is not None
         run.update(item.batch, publish=False)
@@ -110,4 +110,7 @@ def test_flow_bc_trains_on_chunks_through_a_real_learner_and_replay(
     want = 0.1 * (t[:, None] + np.arange(4))
     err_chunk = np.abs(chunk[..., 0] - want).mean()
     err_first_only = np.abs(np.repeat(want[:, :1], 4, 1) - want).mean()  # 0.15: a one-action policy held
-    assert err_chunk < 0.5 * err_first_only  # ~0.035 seen
+    span = (chunk[:, -1, 0] - chunk[:, 0, 0]).mean()  # demonstrated 0.3; a held action gives 0
+    # 8 runs at lr 1e-3 x 600: err_chunk 0.039-0.071, span 0.27-0.39 (lr 3e-3 x 300 was noisier, 0.026-0.089).
+    assert err_chunk < 0.75 * err_first_only
+    assert 0.15 < span < 0.6
