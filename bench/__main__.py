@@ -31,13 +31,15 @@ BENCHES = {
     "learning": "bench.learning_bench",
     "inference_vla": "bench.inference_vla_bench",
     "hg_dagger": "bench.hg_dagger_bench",
+    "hgdagger_stack": "bench.hgdagger_stack_bench",
     "spool": "bench.spool_bench",
     "edge": "bench.edge_bench",
     "curves": "bench.curves_bench",
     "load": "bench.load_bench",
 }
 SLOW = {"learning"}  # whole stacks as processes: minutes, not part of the --quick smoke run unless named
-OPT_IN = {"load"}  # run only when named in --only: 10 minutes of one stack under load
+# run only when named in --only: 10 minutes of one stack under load; two HG-DAgger stacks (~10 minutes)
+OPT_IN = {"load", "hgdagger_stack"}
 
 
 DEFAULT_OUT = Path("runs/bench")
@@ -59,6 +61,10 @@ LEGEND = {
     "sending a 64x64 image, state and an instruction; windows alternate.",
     "hg_dagger": "hg_dagger: flow_vla on lang_reach_arm (real MuJoCo, scripted expert), in one process with in-memory "
     "tables: HG-DAgger (demos + interventions) vs BC given the same expert steps as more demos; async vs sync learner.",
+    "hgdagger_stack": "hgdagger_stack: configs/hgdagger.yaml as processes (control, replay, learner, inference, "
+    "lang_reach_arm edges with the scripted expert as teleoperator, flow_vla chunks via Inference.Act); flow_bc "
+    "pretrained on demos, then corrected online from interventions; before/after on fixed evaluation episodes through "
+    "the inference service, interventions off; learner.mode=async (ours) vs sync on the same config, same window.",
     "spool": "spool: ours edge_agent.spool.LmdbSpool (steps on disk until replay acks) vs the same edge agent with "
     "edge.spool_dir null (RAM outbox); real edge processes, kill -9 during a replay outage, restart; lost = "
     "collected - stored.",
