@@ -82,6 +82,7 @@ class ChunkExecutor:
         self._lock = threading.Lock()
         self._chunks: list[_Chunk] = []  # oldest first
         self._in_flight = False
+        self._episode = 0  # reset() bumps it: a fetch asked before then is dropped when it lands
         self.ticks = 0
         self.holds = 0
         self.received = 0
@@ -99,25 +100,32 @@ class ChunkExecutor:
             ask = not self._in_flight and left <= self.prefetch
             if ask:
                 self._in_flight = True
+            episode = self._episode
         if ask and newest is None:
-            self._request(observation, tick, now, "sync")  # nothing to run on meanwhile: ask and wait
+            self._request(observation, tick, now, "sync", episode)  # nothing to run on meanwhile: ask and wait
         elif ask:
-            self.runner(lambda: self._request(observation, tick, now, "async"))
+            self.runner(lambda: self._request(observation, tick, now, "async", episode))
         return self._blend(tick, now)
 
     def reset(self) -> None:
-        """New episode: forget the old chunks (a fetch in flight still lands, aligned to its tick)."""
+        """New episode: forget the old chunks, and a fetch in flight (planned from the old episode's
+        observation, it is dropped when it lands); the new episode's first tick asks afresh."""
         with self._lock:
             self._chunks.clear()
+            self._episode += 1
+            self._in_flight = False
 
     # ------------------------------------------------------------------ internals
 
-    def _request(self, observation: dict[str, np.ndarray], tick: int, observed_at: float, mode: str) -> None:
+    def _request(
+        self, observation: dict[str, np.ndarray], tick: int, observed_at: float, mode: str, episode: int
+    ) -> None:
         try:
             answer = self.fetch(observation)
         finally:
             with self._lock:
-                self._in_flight = False
+                if self._episode == episode:  # else a request of the new episode may be in flight
+                    self._in_flight = False
         if answer is None:
             return
         actions, version = answer
@@ -129,7 +137,8 @@ class ChunkExecutor:
         with self._lock:
             self.last_latency_s = latency
             self.received += 1
-            self._chunks.append(_Chunk(tick, arr, int(version), observed_at))
+            if self._episode == episode:
+                self._chunks.append(_Chunk(tick, arr, int(version), observed_at))
 
     def _drop_used(self, tick: int, now: float) -> None:
         self._chunks = [

@@ -124,3 +124,25 @@ def test_no_answer_holds_and_single_actions_work_per_tick() -> None:
 def test_bad_params_are_refused() -> None:
     with pytest.raises(ValueError):
         ChunkExecutor(lambda o: None, prefetch=-1)
+
+
+def test_reset_drops_old_chunks_and_the_fetch_in_flight() -> None:
+    """A new episode starts on a chunk asked with its own observation: neither the old chunk's rows nor
+    a prefetch asked during the old episode (landing after the reset) act in it."""
+    ex, clock, runner, asked = make(prefetch=2, decay=0.0)
+    for i in range(4):  # tick 3 sends the background request for the next chunk; the network holds it
+        ex.tick(obs(i))
+        clock.t += 0.05
+    assert len(runner.jobs) == 1
+    ex.reset()
+    action, _ = ex.tick(obs(10))  # nothing left: a synchronous request with the new episode's observation
+    assert asked[-1]["state"][0] == 10.0 and action[0] == 100.0
+    runner.finish_all()  # the old episode's prefetch lands now (chunk 200, planned from tick 3)
+    assert asked[-1]["state"][0] == 3.0
+    clock.t += 0.05
+    action, _ = ex.tick(obs(11))
+    np.testing.assert_allclose(action, [101.0] * A)  # not blended with the stale chunk (202)
+    for i in (12, 13):  # the new chunk (ticks 4-8) has 2 rows left at tick 7
+        clock.t += 0.05
+        ex.tick(obs(i))
+    assert len(runner.jobs) == 1  # the in-flight flag was the new episode's to clear: prefetch works again

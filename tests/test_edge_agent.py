@@ -21,7 +21,7 @@ import torch
 
 from edge_agent.agent import EdgeAgent, RobotLoop, TickScheduler, apply_command
 from edge_agent.control_client import ControlClient
-from edge_agent.policy_source import RemotePolicy
+from edge_agent.policy_source import PolicySource, RemotePolicy, _Chunked
 from edge_agent.replay_client import ReplaySender
 from edge_agent.robot import make_robot
 from services.control.server import ControlService
@@ -237,6 +237,51 @@ def test_loop_episodes_steps_and_final_observation(inference: InferenceService) 
     assert [e.episode_id for e in status.new_episodes] == [eps[0].episode_id for eps in finished]
     assert all(e.length == len(eps) for e, eps in zip(status.new_episodes, finished, strict=True))
     assert list(loop.status().new_episodes) == []  # drained
+
+
+class ChunkSource(PolicySource):
+    """Chunks of 8 actions through the edge's ChunkExecutor; remembers each request's state and each reset."""
+
+    def __init__(self) -> None:
+        self.asked: list[np.ndarray] = []
+        self.resets: list[str] = []
+        self.chunks = _Chunked(self._fetch)
+
+    def _fetch(self, robot_id: str, observation: dict[str, np.ndarray], deadline_s: float) -> tuple[np.ndarray, int]:
+        self.asked.append(observation["state"].copy())
+        return np.full((8, 3), 0.01 * len(self.asked), np.float32), 1
+
+    def act(
+        self, robot_id: str, observation: dict[str, np.ndarray], deadline_s: float
+    ) -> tuple[np.ndarray, int] | None:
+        return self.chunks.act(robot_id, observation, deadline_s)
+
+    def reset(self, robot_id: str) -> None:
+        self.resets.append(robot_id)
+        self.chunks.reset(robot_id)
+
+    @property
+    def version(self) -> int:
+        return 1
+
+
+def test_each_episode_starts_on_a_chunk_asked_with_its_own_observation() -> None:
+    """Episodes of 3 ticks, chunks of 8: without RobotLoop resetting the policy at an episode's start, the
+    next episode would run on rows planned from the last one's observation."""
+    robot = make_robot("sim_reach_arm", "arm-0", {"control_rate_hz": 20, "max_episode_steps": 3}, seed=4)
+    source, sink = ChunkSource(), ListSink()
+    loop = RobotLoop(robot, source, sink, mode="fast", action_deadline_s=5.0)
+    loop.start()
+    try:
+        wait_for(lambda: loop.status(drain=False).episodes >= 4)
+    finally:
+        loop.stop()
+        robot.close()
+    firsts = [s for s in sink.snapshot() if s.step_index == 0]
+    assert len(firsts) >= 4 and source.resets[: len(firsts)] == ["arm-0"] * len(firsts)
+    for k, step in enumerate(firsts):  # request k was made at episode k's first tick, with its observation
+        np.testing.assert_array_equal(source.asked[k], wire.from_tensor(step.observation.tensors["state"]))
+        assert not step.held
 
 
 # --------------------------------------------------------------------------- replay sender
