@@ -271,6 +271,8 @@ def stack_run(
         u1, s1, _ = stubs.counts()
         elapsed = time.monotonic() - t0
         stubs.control.StopExperiment(control_pb2.StopExperimentRequest(name=EXPERIMENT), timeout=10)
+        _wait("learner stopped", lambda: stubs.experiment().state == "stopped", 60)
+        time.sleep(2.0)  # sync mode publishes the round it was in after the stop
         exp = stubs.experiment()
         if exp.sample_errors:
             raise RuntimeError(f"learner sample errors: {exp.sample_errors}: {exp.error}")
