@@ -24,6 +24,7 @@ updates/s over the window are the async/sync ratios (RLinf-USER: 5.7x for pi0 + 
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -159,7 +160,16 @@ class Outcome:
     expert_steps: int = 0
     env_steps: int = 0
     updates: int = 0
+    learner_cpu_s: float = 0.0  # the learner process's CPU seconds over the window (load-independent)
+    window_s: float = 0.0
+    load: tuple[float, float] = (0.0, 0.0)  # 1-minute load average at the window's start and end
     versions: dict[str, Any] = field(default_factory=dict)
+
+
+def _cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a process so far (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 class _Stubs:
@@ -262,6 +272,7 @@ def stack_run(
             log(f"hgdagger_stack {mode}: before {out.before:.2f} (versions {sorted(seen)})")
         insert_demos(stubs.replay, demos)
         u0, s0, h0 = stubs.counts()
+        c0, load0 = _cpu_s(stack.child("learner").proc.pid), os.getloadavg()[0]
         stubs.control.StartExperiment(control_pb2.StartExperimentRequest(name=EXPERIMENT), timeout=10)
         t0 = time.monotonic()
         while time.monotonic() - t0 < window_s:
@@ -270,6 +281,8 @@ def stack_run(
                 raise RuntimeError(f"children died: {[c.name for c in stack.dead_children()]}")
         u1, s1, _ = stubs.counts()
         elapsed = time.monotonic() - t0
+        out.learner_cpu_s, out.window_s = _cpu_s(stack.child("learner").proc.pid) - c0, elapsed
+        out.load = (round(load0, 1), round(os.getloadavg()[0], 1))
         stubs.control.StopExperiment(control_pb2.StopExperimentRequest(name=EXPERIMENT), timeout=10)
         _wait("learner stopped", lambda: stubs.experiment().state == "stopped", 60)
         time.sleep(2.0)  # sync mode publishes the round it was in after the stop
@@ -319,8 +332,6 @@ def _rate(success: float | None, n: int) -> str:
 
 
 def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Row]:
-    import os
-
     from user.config import load_config
 
     n_demos, updates, window_s, n_eval = (4, 30, 20.0, 4) if quick else (60, 1500, 150.0, 40)
@@ -373,7 +384,7 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
             peer.env_steps_per_s,
             "/s",
             True,
-            f"env steps {ours.env_steps} vs {peer.env_steps}",
+            f"env steps {ours.env_steps} vs {peer.env_steps}; load {ours.load} vs {peer.load}",
             PEER,
         ),
         Row(
@@ -383,7 +394,8 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
             peer.updates_per_s,
             "/s",
             True,
-            f"updates {ours.updates} vs {peer.updates}",
+            f"updates {ours.updates} vs {peer.updates}; learner CPU {ours.learner_cpu_s:.0f} vs "
+            f"{peer.learner_cpu_s:.0f} s in {ours.window_s:.0f} / {peer.window_s:.0f} s",
             PEER,
         ),
     ]
