@@ -129,14 +129,14 @@ def save(doc: dict[str, Any], out: Path) -> None:
     for row, name in enumerate(ARMS):
         curve = doc["arms"][name]
         rolling = [np.nan if r is None else r for r in curve["rolling_success_unhelped"]]
-        helped = np.cumsum([n > 0 for n in curve["intervention_steps"]])
+        helped = np.asarray([n > 0 for n in curve["intervention_steps"]], float)
+        share = [helped[max(0, i - WINDOW + 1) : i + 1].mean() for i in range(len(helped))]
         for ax, x, label in (
             (axes[row][0], curve["env_steps"], "env steps"),
             (axes[row][1], np.asarray(curve["wall_s"]) / 60, "wall time (min)"),
         ):
             ax.plot(x, rolling, label=f"success without help (last {WINDOW})")
-            share = helped / np.maximum(1, np.arange(1, len(helped) + 1))
-            ax.plot(x, share, color="tab:gray", linestyle=":", label="share of episodes helped")
+            ax.plot(x, share, color="tab:gray", linestyle=":", label=f"share of the last {WINDOW} episodes helped")
             ax.axhline(TARGET, color="gray", linestyle="--", label=f"{TARGET:.0%}")
             ax.set_xlabel(label)
             ax.set_ylim(-0.02, 1.02)
