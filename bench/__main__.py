@@ -36,10 +36,11 @@ BENCHES = {
     "edge": "bench.edge_bench",
     "curves": "bench.curves_bench",
     "load": "bench.load_bench",
+    "two_arms": "bench.two_arms_bench",
 }
 SLOW = {"learning"}  # whole stacks as processes: minutes, not part of the --quick smoke run unless named
-# run only when named in --only: 10 minutes of one stack under load; two HG-DAgger stacks (~10 minutes)
-OPT_IN = {"load", "hgdagger_stack"}
+# run only when named in --only: 10-20 minutes of whole stacks each (load; two HG-DAgger stacks; two arms at once)
+OPT_IN = {"load", "hgdagger_stack", "two_arms"}
 
 
 DEFAULT_OUT = Path("runs/bench")
@@ -74,6 +75,10 @@ LEGEND = {
     "curves": "curves: success curves of the in-process trainer (cloud_learner.local) vs a uniform random policy "
     "on the same robot: reach (SAC, state; target 90% in 5 min) and gym-hil Panda pick-cube (RLPD + scripted demos and "
     "interventions, state; target 80% in 30 min); curves in runs/bench/curves/*.json|png.",
+    "two_arms": "two_arms: SO-101 and Panda pick-cube training at once on one stack (processes, one edge agent per "
+    "robot at its control rate), two experiments each with its own RLPD instance and replay table, from state, "
+    "scripted expert taking over stalled episodes; success without help per arm vs a uniform random policy; curves in "
+    "runs/bench/two_arms/so101_panda.json|png.",
     "load": "load: one stack as processes on 127.0.0.1 (control, replay, learner training SAC, inference; token auth) "
     "and state-only sim arms in edge agent processes of 8 robots (the real `userctl edge`: registration, heartbeats, "
     "Inference.Act within 40 ms, LMDB spool -> Replay.Insert); window after warm-up; latencies from the edges' "

@@ -245,12 +245,21 @@ def panda_pick_expert(state: np.ndarray) -> np.ndarray:
 
 class ScriptedInterventions:
     """Takes over an episode the policy has not finished by `after_steps`, in a share of episodes that
-    decays linearly from `start_share` to 0 over `decay_steps` env steps (as a human helps less)."""
+    decays linearly from `start_share` to 0 over `decay_steps` env steps (as a human helps less).
+    `act(obs, first)` is the expert; `first` marks the first step of a takeover (a stateful expert resets)."""
 
-    def __init__(self, start_share: float, after_steps: int, decay_steps: int, seed: int) -> None:
+    def __init__(
+        self,
+        start_share: float,
+        after_steps: int,
+        decay_steps: int,
+        seed: int,
+        act: Callable[[Observation, bool], np.ndarray] | None = None,
+    ) -> None:
         self.start_share, self.after_steps, self.decay_steps = start_share, after_steps, decay_steps
         self.rng = np.random.default_rng(seed)
         self.total_steps, self.helping = 0, False
+        self.act = act or (lambda obs, _first: panda_pick_expert(obs.features["state"]))
 
     def __call__(self, obs: Observation, ep_step: int) -> np.ndarray | None:
         self.total_steps += 1
@@ -258,29 +267,55 @@ class ScriptedInterventions:
             share = self.start_share * max(0.0, 1.0 - self.total_steps / self.decay_steps)
             self.helping = bool(self.rng.random() < share)
         if self.helping and ep_step >= self.after_steps:
-            return panda_pick_expert(obs.features["state"])
+            return self.act(obs, ep_step == self.after_steps)
         return None
 
 
-def panda(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None], pixels: bool = False) -> list[Row]:
-    """From state (target 80 %), or from the front and wrist cameras only (target: success rising, 20 %)."""
-    robot_params: dict[str, Any] = {"reward_type": "sparse", **({"cameras": True} if pixels else {})}
+def so101_expert(robot: Robot) -> Callable[[Observation, bool], np.ndarray]:
+    """lerobot-env-so101's scripted pick controller (edge_agent's scripted_expert), reset when it starts."""
+    from edge_agent.teleoperators.scripted_expert import SO101PickExpert
+
+    expert = SO101PickExpert(robot.spec)
+
+    def act(obs: Observation, first: bool) -> np.ndarray:
+        if first:
+            expert.reset()
+        return expert.action(obs)
+
+    return act
+
+
+DEMOS = {"panda": 20, "so101": 50}  # scripted demo episodes per arm
+ARMS = {  # arm -> (robot kind, display name, camera param)
+    "panda": ("gym_hil_panda", "gym-hil Panda", "cameras"),
+    "so101": ("so101", "SO-101 (lerobot-env-so101)", "camera"),
+}
+
+
+def pick(
+    arm: str, quick: bool, minutes: float, out_dir: Path, log: Callable[..., None], pixels: bool = False
+) -> list[Row]:
+    """From state (target 80 %), or from the cameras only (target: success rising, 20 %)."""
+    kind, arm_name, camera_param = ARMS[arm]
+    robot_params: dict[str, Any] = {"reward_type": "sparse", **({camera_param: True} if pixels else {})}
     try:
-        robot = make_robot("gym_hil_panda", "bench-panda", params=robot_params, seed=0)
-    except ValueError as exc:  # gym-hil missing: the kind is not registered
-        log(f"panda skipped: {exc}")
+        robot = make_robot(kind, f"bench-{arm}", params=robot_params, seed=0)
+    except (ValueError, ImportError) as exc:  # gym-hil / lerobot-env-so101 missing: the kind is not registered
+        log(f"{arm} skipped: {exc}")
         return []
     cameras = [f.name for f in robot.spec.observation if f.is_image]
     if pixels and not cameras:
-        log("panda from pixels skipped: this gym_hil_panda robot has no cameras")
+        log(f"{arm} from pixels skipped: this {kind} robot has no cameras")
         robot.close()
         return []
     seed, target = 0, 0.2 if pixels else 0.8
-    source = "from the front + wrist cameras" if pixels else "from state"
+    source = f"from the {' + '.join(c.removeprefix('camera.') for c in cameras)} cameras" if pixels else "from state"
+    act = so101_expert(robot) if arm == "so101" else (lambda o, _first: panda_pick_expert(o.features["state"]))
     demos = Buffer().table("demos")
-    demo_success = record_episodes(
-        robot, lambda o, _: panda_pick_expert(o.features["state"]), 1 if quick else 20, demos, seed=1000
-    )
+    # SO-101's controller is phased (holds, timeouts), so its actions are not a function of the state alone:
+    # BC on 20 of its demos acts 3/10, on 50 6/10 (deterministic); Panda's 20 give 10/10.
+    n_demos = 1 if quick else DEMOS[arm]
+    demo_success = record_episodes(robot, lambda o, s: act(o, s == 0), n_demos, demos, seed=1000)
     buffer = Buffer({"online": Table(), "demos": demos})
     # SERL's starting temperature: with a 0/1 reward, RLPD's 1.0 keeps the policy near random for thousands of steps.
     # The BC term on demo/intervention rows (SAC+BC, IBRL-style) keeps the actor on the demonstrated grasp while
@@ -305,8 +340,8 @@ def panda(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None], 
         }
     algorithm = make_algorithm("rlpd", params, robot.spec)
     env_steps = 30 if quick else 1_000_000
-    expert = ScriptedInterventions(start_share=0.5, after_steps=30, decay_steps=20_000, seed=seed)
-    name = f"panda_pick_rlpd_{'pixels' if pixels else 'state'}"
+    expert = ScriptedInterventions(start_share=0.5, after_steps=30, decay_steps=20_000, seed=seed, act=act)
+    name = f"{arm}_pick_rlpd_{'pixels' if pixels else 'state'}"
 
     def progress(curve: Curve) -> None:  # a long run on a shared machine: keep the curve so far on disk
         if len(curve.success) % 10 == 0:
@@ -335,7 +370,7 @@ def panda(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None], 
     )
     peer = random_success(robot, min(out["env_steps"], 2000), seed)  # the random baseline is cheap: no updates
     robot.close()
-    title = f"gym-hil Panda pick-cube {source}, RLPD + {len(demo_success)} scripted demos + scripted interventions"
+    title = f"{arm_name} pick-cube {source}, RLPD + {len(demo_success)} scripted demos + scripted interventions"
     meta = {
         "title": title,
         "algorithm": "rlpd",
@@ -345,8 +380,8 @@ def panda(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None], 
         "load_average_at_end": os.getloadavg(),
     }
     save_curve(name, out["curve"], target, meta, out_dir)
-    log(f"panda: {len(out['curve'].success)} episodes, demos {np.mean(demo_success):.2f} successful")
-    rows = rows_for("panda pick-cube", f"{source}, RLPD + demos + interventions", out, target, minutes, peer, quick)
+    log(f"{arm}: {len(out['curve'].success)} episodes, demos {np.mean(demo_success):.2f} successful")
+    rows = rows_for(f"{arm} pick-cube", f"{source}, RLPD + demos + interventions", out, target, minutes, peer, quick)
     rows.append(
         Row(
             rows[0].group,
@@ -360,11 +395,24 @@ def panda(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None], 
     return rows
 
 
+def panda(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None]) -> list[Row]:
+    return pick("panda", quick, minutes, out_dir, log)
+
+
 def panda_pixels(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None]) -> list[Row]:
-    return panda(quick, minutes, out_dir, log, pixels=True)
+    return pick("panda", quick, minutes, out_dir, log, pixels=True)
 
 
-EXPERIMENTS = {"reach": (reach, 5.0), "panda": (panda, 30.0), "panda_pixels": (panda_pixels, 30.0)}
+def so101(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None]) -> list[Row]:
+    return pick("so101", quick, minutes, out_dir, log)
+
+
+EXPERIMENTS = {
+    "reach": (reach, 5.0),
+    "panda": (panda, 30.0),
+    "panda_pixels": (panda_pixels, 30.0),
+    "so101": (so101, 30.0),
+}
 
 
 def run(
@@ -392,6 +440,7 @@ def main() -> None:
     parser.add_argument("--reach-minutes", type=float, default=5.0)
     parser.add_argument("--panda-minutes", type=float, default=30.0)
     parser.add_argument("--panda-pixels-minutes", type=float, default=30.0)
+    parser.add_argument("--so101-minutes", type=float, default=30.0)
     parser.add_argument("--workdir", default="runs/bench")
     args = parser.parse_args()
     os.environ.setdefault("MUJOCO_GL", "egl")
@@ -399,7 +448,12 @@ def main() -> None:
         args.quick,
         Path(args.workdir),
         only=[n.strip() for n in args.only.split(",") if n.strip()],
-        minutes={"reach": args.reach_minutes, "panda": args.panda_minutes, "panda_pixels": args.panda_pixels_minutes},
+        minutes={
+            "reach": args.reach_minutes,
+            "panda": args.panda_minutes,
+            "panda_pixels": args.panda_pixels_minutes,
+            "so101": args.so101_minutes,
+        },
     )
     for row in rows:
         print(f"{row.group} | {row.metric} | {row.ours} | {row.peer} | {row.note}")

@@ -306,3 +306,51 @@ def test_state_normalization_is_published_and_checked() -> None:
         _algorithm("sac", pixels=False, state_std={"state": [1.0, 0.0, 1.0, 1.0, 1.0]})
     with pytest.raises(ValueError, match="state-only"):
         _algorithm("sac", pixels=True, state_mean={"state": mean})
+
+
+def _padded_batch(seed: int, n: int, real_dims: int, junk: float) -> Batch:
+    """A shared-embodiment batch: 4-d actions, the first `real_dims` real, `junk` in the padded rest."""
+    g = torch.Generator().manual_seed(seed)
+    action = torch.rand(n, 4, generator=g) * 2 - 1
+    mask = torch.zeros(n, 4, dtype=torch.bool)
+    mask[:, :real_dims] = True
+    return Batch(
+        observation={"state": torch.randn(n, STATE_DIM, generator=g)},
+        action=torch.where(mask, action, torch.full_like(action, junk)),
+        reward=torch.randn(n, generator=g),
+        next_observation={"state": torch.randn(n, STATE_DIM, generator=g)},
+        terminated=torch.zeros(n),
+        intervention=torch.ones(n, dtype=torch.bool),
+        embodiment=torch.zeros(n, dtype=torch.int64),
+        action_mask=mask,
+    )
+
+
+def _padded_sac(**extra: object) -> SAC:
+    torch.manual_seed(0)
+    layout = Layout({"state": Feature((STATE_DIM,), "float32")}, -np.ones(4, np.float32), np.ones(4, np.float32))
+    params = {**TINY, "bc_weight": 1.0, **extra}
+    return ALGORITHMS.build("sac", params, layout=layout, device=torch.device("cpu"))
+
+
+def test_sac_honours_the_action_mask_of_a_padded_layout() -> None:
+    """Padded action dims (a 2-d arm in a 4-d shared layout) take no part in SAC: what a sampler left
+    there does not reach the critic, and the actor's outputs for them get no gradient from the
+    log-prob, the critic or the BC term, so their weights stay as initialised."""
+    a, b = _padded_sac(), _padded_sac()
+    torch.manual_seed(1)
+    info_a = a.update(_padded_batch(0, 16, real_dims=2, junk=0.0))
+    torch.manual_seed(1)
+    info_b = b.update(_padded_batch(0, 16, real_dims=2, junk=0.9))
+    assert info_a["critic_loss"] == info_b["critic_loss"] and info_a["q"] == info_b["q"]
+    for pa, pb in zip(a.critic.parameters(), b.critic.parameters(), strict=True):
+        assert torch.equal(pa, pb)
+
+    sac = _padded_sac()
+    last = sac.actor.head.net[-1]  # outputs: 4 means, then 4 log-stds
+    before = last.weight.detach().clone()
+    for step in range(5):
+        sac.update(_padded_batch(step, 16, real_dims=2, junk=0.5))
+    padded_rows = [2, 3, 6, 7]
+    assert torch.equal(last.weight.detach()[padded_rows], before[padded_rows])
+    assert not torch.equal(last.weight.detach()[[0, 1, 4, 5]], before[[0, 1, 4, 5]])

@@ -80,3 +80,27 @@ def test_scripted_pick_expert_succeeds_and_records_demos() -> None:
     assert sum(successes) >= 2
     assert demos.size > 0 and all(np.array(demos.rows["intervention"]))
     assert float(np.sum(demos.rows["reward"])) == sum(successes)  # sparse: 1 only on the lifting step
+
+
+def test_so101_expert_records_demos_and_takes_over_mid_episode() -> None:
+    """The SO-101 curve's expert (lerobot-env-so101's phased controller): demos from reset succeed, and a
+    takeover after 30 random steps starts the controller over (ScriptedInterventions passes `first`)."""
+    if "so101" not in known_robot_kinds():
+        pytest.skip("lerobot-env-so101 not installed")
+    robot = make_robot("so101", "t", params={"reward_type": "sparse"}, seed=0)
+    act = curves_bench.so101_expert(robot)
+    demos = Buffer().table("demos")
+    successes = record_episodes(robot, lambda o, s: act(o, s == 0), 2, demos, seed=1000)
+    assert sum(successes) >= 1 and float(np.sum(demos.rows["reward"])) == sum(successes)
+    helper = curves_bench.ScriptedInterventions(start_share=1.0, after_steps=30, decay_steps=10**6, seed=0, act=act)
+    rng = np.random.default_rng(0)
+    obs, helped = robot.reset(seed=7), 0
+    for step in range(int(robot.spec.max_episode_steps)):
+        action = helper(obs, step)
+        helped += action is not None
+        robot.act(rng.uniform([-1.0, -1.0, -1.0, 0.0], 1.0).astype(np.float32) if action is None else action)
+        obs = robot.observe()
+        if obs.terminated:
+            break
+    robot.close()
+    assert helped > 0 and obs.success

@@ -60,15 +60,22 @@ class SquashedGaussianActor(nn.Module):
         log_std = LOG_STD_MIN + 0.5 * (LOG_STD_MAX - LOG_STD_MIN) * (torch.tanh(log_std) + 1.0)
         return mean, log_std
 
-    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(sampled action, its log-prob (B,), deterministic action), all in [low, high]."""
+    def forward(
+        self, obs: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(sampled action, its log-prob (B,), deterministic action), all in [low, high].
+
+        `mask` (B, action_dim) bool, for a layout padded across embodiments: only the true dims count
+        in the log-prob (a padded dim is never executed, so its entropy is not the policy's)."""
         mean, log_std = self.distribution(obs)
         std = log_std.exp()
         pre = mean + std * torch.randn_like(mean)  # reparameterized sample
         squashed = torch.tanh(pre)
-        normal_logp = (-0.5 * ((pre - mean) / std) ** 2 - log_std - 0.5 * np.log(2 * np.pi)).sum(-1)
         # Change of variables for tanh and the affine rescale; 1e-6 guards log(0) at saturation.
-        log_prob = normal_logp - torch.log(self.action_scale * (1 - squashed.pow(2)) + 1e-6).sum(-1)
+        per_dim = (-0.5 * ((pre - mean) / std) ** 2 - log_std - 0.5 * np.log(2 * np.pi)) - torch.log(
+            self.action_scale * (1 - squashed.pow(2)) + 1e-6
+        )
+        log_prob = (per_dim if mask is None else per_dim * mask).sum(-1)
         action = squashed * self.action_scale + self.action_bias
         mean_action = torch.tanh(mean) * self.action_scale + self.action_bias
         return action, log_prob, mean_action

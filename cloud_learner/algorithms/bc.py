@@ -51,7 +51,8 @@ class BC(Algorithm):
         features = self.actor.encoder(augment(batch.observation, self.actor.encoder, self.p.image_pad))
         if self.p.loss == "mse":
             _, _, mean_action = self.actor.head(features)
-            per_row = (mean_action - batch.action).pow(2).mean(dim=-1)
+            error, mask = (mean_action - batch.action).pow(2), batch.action_mask
+            per_row = error.mean(dim=-1) if mask is None else (error * mask).sum(-1) / mask.sum(-1).clamp(min=1)
         else:
             per_row = -log_prob_of(self.actor.head, features, batch.action)
         weight = batch.intervention.float() if self.p.only_interventions else torch.ones_like(per_row)

@@ -144,6 +144,12 @@ def make_encoder(layout: Layout, p: EncoderParams) -> nn.Module:
     return ConvEncoder(image_keys, shapes, state_keys, state_dims, p.channels, p.strides, p.latent_dim)
 
 
+def masked(action: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """Padded action dims (a shared multi-embodiment layout) zeroed: the critic sees only real dims,
+    whatever the actor sampled there or a sampler stored."""
+    return action if mask is None else action * mask
+
+
 def augment(obs: Mapping[str, torch.Tensor], encoder: nn.Module, pad: int) -> dict[str, torch.Tensor]:
     """Random-shift the images the encoder reads (no-op when pad is 0 or it reads no cameras)."""
     images = set(getattr(encoder, "image_keys", [])) if pad > 0 else set()
@@ -243,8 +249,8 @@ class SAC(Algorithm):
         """r + discount * (min over a random subset of target heads - alpha * log pi), unless terminated.
 
         Only termination stops bootstrapping; a truncated episode still has a future."""
-        next_action, next_log_prob, _ = self.actor.head(self.encoder(next_obs))
-        target_q = self.critic_target(self.critic_target.encoder(next_obs), next_action)
+        next_action, next_log_prob, _ = self.actor.head(self.encoder(next_obs), batch.action_mask)
+        target_q = self.critic_target(self.critic_target.encoder(next_obs), masked(next_action, batch.action_mask))
         subset = torch.randperm(self.p.num_critics, device=self.device)[: self.p.target_subset]
         next_v = target_q[subset].min(dim=0).values - self.log_alpha.exp() * next_log_prob
         discount = batch.discount if batch.discount is not None else self.p.gamma
@@ -259,7 +265,7 @@ class SAC(Algorithm):
         )
         target = self.td_target(batch, next_obs)
         features = self.encoder(obs)
-        q = self.critic(features, batch.action)
+        q = self.critic(features, masked(batch.action, batch.action_mask))
         critic_loss = (q - target).pow(2).mean(dim=1).sum()  # each head regresses on the same target
         self.critic_optimizer.zero_grad(set_to_none=True)
         critic_loss.backward()
@@ -279,22 +285,28 @@ class SAC(Algorithm):
         """Maximize Q minus the entropy cost of fresh samples (plus a BC term on rows a human or script
         chose, when bc_weight > 0: SAC+BC / IBRL-style use of demos); then tune alpha toward the target entropy."""
         alpha = self.log_alpha.detach().exp()
-        action, log_prob, mean_action = self.actor.head(features)
-        q = self.critic(features, action)
+        mask = batch.action_mask if batch is not None else None
+        action, log_prob, mean_action = self.actor.head(features, mask)
+        q = self.critic(features, masked(action, mask))
         q_pi = q.min(dim=0).values if self.p.actor_q == "min" else q.mean(dim=0)
         actor_loss = (alpha * log_prob - q_pi).mean()
         bc_weight, bc_loss = self.bc_weight(), torch.zeros(())
         if bc_weight > 0 and batch is not None:
             human = batch.intervention.float()
-            per_row = (mean_action - batch.action).pow(2).mean(dim=-1)
+            error = (mean_action - batch.action).pow(2)
+            per_row = error.mean(dim=-1) if mask is None else (error * mask).sum(-1) / mask.sum(-1).clamp(min=1)
             bc_loss = (per_row * human).sum() / human.sum().clamp(min=1.0)
             actor_loss = actor_loss + bc_weight * bc_loss
         self.actor_optimizer.zero_grad(set_to_none=True)
         actor_loss.backward()  # also leaves grads on the critic; its optimizer clears them before its step
         self.actor_optimizer.step()
 
-        # Raise alpha when the entropy is below target, lower it when above.
-        alpha_loss = -(self.log_alpha * (log_prob.detach() + self.target_entropy)).mean()
+        # Raise alpha when the entropy is below target, lower it when above. With padded actions each
+        # row's target counts its embodiment's real dims only.
+        target_entropy = self.target_entropy
+        if mask is not None:
+            target_entropy = -self.p.target_entropy_scale * mask.sum(-1).float()
+        alpha_loss = -(self.log_alpha * (log_prob.detach() + target_entropy)).mean()
         self.alpha_optimizer.zero_grad(set_to_none=True)
         alpha_loss.backward()
         self.alpha_optimizer.step()

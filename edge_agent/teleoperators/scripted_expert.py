@@ -163,6 +163,7 @@ class ScriptedExpert(Teleoperator):
                 return None
             self._driving_left = self.params.max_takeover_steps
             self.takeovers += 1
+            self.expert.reset()  # a phased expert (SO-101's controller) starts over from where the policy left
         self._driving_left -= 1
         if self._driving_left == 0:  # hand back, and judge the policy afresh from here
             self._best, self._stalled = progress, 0
