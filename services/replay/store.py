@@ -71,7 +71,10 @@ COMMITS = prometheus_client.Histogram(
     "user_replay_group_commit_steps",
     "Steps per LMDB transaction after merging queued requests (group commit)",
     buckets=(1, 4, 16, 64, 256, 1024, 4096),
-)  # steps waiting for their successor, kept to place transitions in the hot tier
+)
+COMPACTIONS = prometheus_client.Counter(
+    "user_replay_index_compactions_total", "Index compactions (evicted rows dropped, live rows renumbered)"
+)
 
 
 class LayoutError(ReplayError):
@@ -1031,6 +1034,7 @@ class ReplayStore:
                 if ep.tids:
                     ep.tids = remap[ep.tids].tolist()
         self.compactions += 1
+        COMPACTIONS.inc()
 
     def put_spec(self, spec: robot_pb2.RobotSpec) -> None:
         with self._write_lock:
