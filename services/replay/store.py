@@ -44,6 +44,7 @@ from services.replay.disk import (
     step_key,
 )
 from services.replay.hot import HotGroup, Layout
+from services.replay.rawstep import Span, StepSpans, Unexpected, step_spans
 from services.replay.tables import INTERVENTIONS, Draw, EmptyBufferError, Index, Record
 from user import wire
 from user.log import kv
@@ -86,6 +87,14 @@ def tensor_array(tensor: tpb.Tensor) -> np.ndarray:
     if tensor.encoding == tpb.ENCODING_RAW:
         return np.frombuffer(tensor.data, dtype=wire.dtype_from_proto(tensor.dtype)).reshape(tuple(tensor.shape))
     return wire.from_tensor(tensor)
+
+
+def _np_dtype(code: int) -> np.dtype | None:
+    """numpy dtype of a stored tensor's bytes; None for a code this build does not know."""
+    try:
+        return wire.dtype_from_proto(code)
+    except wire.WireError:
+        return None
 
 
 def arrays_of(tmap: tpb.TensorMap) -> dict[str, np.ndarray]:
@@ -1176,6 +1185,15 @@ class ReplayStore:
         cold_obs, cold_next = np.flatnonzero(~ok_obs), np.flatnonzero(~ok_next)
         keys = [idx.keys[t] for t in tids[cold_obs].tolist()]
         last_keys = [idx.keys[t] for t in last[cold_next].tolist()]
+        n = len(tids)
+        if not self._attached:  # fast: frames copied straight from the LMDB pages into the batch
+            layout = hot.layout if hot is not None else layout_of(self._read([(keys or last_keys)[0]])[0])
+            obs, next_obs, action = self._columns(layout, n, hot, tids, last, ok_obs, ok_next)
+            if self._read_cold_raw(layout, keys, last_keys, cold_obs, cold_next, obs, next_obs, action):
+                out["observation"] = obs
+                out["next_observation"] = next_obs
+                out["action"] = action.astype(np.float32, copy=False)
+                return
         uniq = sorted(set(keys) | set(last_keys) | {next_key(k) for k in last_keys})
         raws = dict(zip(uniq, self._get_many(uniq), strict=True))
         steps: dict[bytes, step_pb2.Step] = {}
@@ -1201,19 +1219,8 @@ class ReplayStore:
                     f"sampled transitions have different observation layouts ({keys[0][:-8]!r} vs "
                     f"{keys[i][:-8]!r}); sample robots with different specs separately (robot_ids)"
                 )
-        features, (act_dtype, act_shape) = layout
-        n = len(tids)
-        obs = {f: np.empty((n, *sh), dt) for f, dt, sh in features}
-        next_obs = {f: np.empty((n, *sh), dt) for f, dt, sh in features}
-        action = np.empty((n, *act_shape), act_dtype)
-        if hot is not None and ok_obs.any():
-            rows = idx.hot_row.a[tids[ok_obs]]
-            for f, col in hot.observations(rows, "obs").items():
-                obs[f][ok_obs] = col
-            action[ok_obs] = hot.action[rows]
-        if hot is not None and ok_next.any():
-            for f, col in hot.observations(idx.hot_row.a[last[ok_next]], "next").items():
-                next_obs[f][ok_next] = col
+        features = layout[0]
+        obs, next_obs, action = self._columns(layout, n, hot, tids, last, ok_obs, ok_next)
         try:
             for i, s in zip(cold_obs.tolist(), cur, strict=True):
                 for f, _, _ in features:
@@ -1227,6 +1234,97 @@ class ReplayStore:
         out["observation"] = obs
         out["next_observation"] = next_obs
         out["action"] = action.astype(np.float32, copy=False)
+
+    def _columns(
+        self,
+        layout: Layout,
+        n: int,
+        hot: HotGroup | None,
+        tids: np.ndarray,
+        last: np.ndarray,
+        ok_obs: np.ndarray,
+        ok_next: np.ndarray,
+    ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], np.ndarray]:
+        """Batch columns of `layout` with the hot rows gathered from RAM (the cold rows are left to fill)."""
+        features, (act_dtype, act_shape) = layout
+        obs = {f: np.empty((n, *sh), dt) for f, dt, sh in features}
+        next_obs = {f: np.empty((n, *sh), dt) for f, dt, sh in features}
+        action = np.empty((n, *act_shape), act_dtype)
+        idx = self.index
+        if hot is not None and ok_obs.any():
+            rows = idx.hot_row.a[tids[ok_obs]]
+            for f, col in hot.observations(rows, "obs").items():
+                obs[f][ok_obs] = col
+            action[ok_obs] = hot.action[rows]
+        if hot is not None and ok_next.any():
+            for f, col in hot.observations(idx.hot_row.a[last[ok_next]], "next").items():
+                next_obs[f][ok_next] = col
+        return obs, next_obs, action
+
+    def _read_cold_raw(
+        self,
+        layout: Layout,
+        keys: list[bytes],
+        last_keys: list[bytes],
+        cold_obs: np.ndarray,
+        cold_next: np.ndarray,
+        obs: dict[str, np.ndarray],
+        next_obs: dict[str, np.ndarray],
+        action: np.ndarray,
+    ) -> bool:
+        """Cold rows read in key order in one read transaction, each raw tensor copied once from its LMDB page
+        into its column (rawstep.py finds it; no Step objects). False when a step is not all raw tensors of
+        `layout` (encoded frames, another layout): the caller parses them with protobuf (caller holds the lock)."""
+        features, (act_dtype, act_shape) = layout
+        want = [(f, dt, sh, int(np.prod(sh)), int(np.prod(sh)) * dt.itemsize) for f, dt, sh in features]
+        act_count = int(np.prod(act_shape))
+        spans: dict[bytes, tuple[memoryview, StepSpans]] = {}
+        with self.db.env.begin(db=self.db.steps, buffers=True) as txn:
+
+            def get(key: bytes) -> tuple[memoryview, StepSpans]:
+                got = spans.get(key)
+                if got is None:
+                    buf = txn.get(key)
+                    if buf is None:
+                        raise ReplayError(f"index points at a missing step {key!r}")
+                    got = spans[key] = (buf, step_spans(buf))
+                return got
+
+            def put(cols: dict[str, np.ndarray], i: int, buf: memoryview, tmap: dict[str, Span]) -> bool:
+                if len(tmap) != len(want):
+                    return False
+                for f, dt, sh, count, size in want:
+                    sp = tmap.get(f)
+                    if sp is None or sp.encoding or sp.shape != sh or sp.size != size or _np_dtype(sp.dtype) != dt:
+                        return False
+                    cols[f][i] = np.frombuffer(buf, dt, count, sp.offset).reshape(sh)
+                return True
+
+            try:
+                for key in sorted(set(keys) | set(last_keys)):  # B-tree order: neighbouring pages
+                    get(key)
+                for i, key in zip(cold_obs.tolist(), keys, strict=True):
+                    buf, sp = get(key)
+                    act = sp.action
+                    if act is None or act.encoding or act.shape != act_shape or _np_dtype(act.dtype) != act_dtype:
+                        return False
+                    if act.size != act_count * act_dtype.itemsize or not put(obs, i, buf, sp.observation):
+                        return False
+                    action[i] = np.frombuffer(buf, act_dtype, act_count, act.offset).reshape(act_shape)
+                for i, key in zip(cold_next.tolist(), last_keys, strict=True):
+                    buf, sp = get(key)
+                    if sp.final is None:
+                        buf, nxt = get(next_key(key))
+                        tmap = nxt.observation
+                    else:
+                        tmap = sp.final
+                    if not put(next_obs, i, buf, tmap):
+                        return False
+            except (Unexpected, IndexError, ValueError):
+                return False
+            finally:
+                spans.clear()  # the pages' buffers are only valid inside the transaction
+        return True
 
     def update_priorities(self, tids: np.ndarray, priorities: np.ndarray) -> int:
         with self._lock:
