@@ -1027,7 +1027,7 @@ class ReplayStore:
                 del self._tails[key]
             self._evicted_episodes += len(victims)
             self.generation += 1
-        self.db.delete_episodes(victims)
+        self.db.delete_episodes_later(victims)  # with the next commit: no transaction (fsync) of its own
         log.info("evicted episodes", extra=kv(episodes=len(victims), bytes=freed))
 
     def _compact_index(self) -> None:
