@@ -18,6 +18,7 @@ from collections import deque
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -437,7 +438,8 @@ class ReplayStore:
         so one fsync covers many requests, and callers serialize the next steps while it syncs.
         """
         tables = [table] * len(steps) if isinstance(table, str) else list(table)
-        steps = [self._stored_form(s) for s in steps]  # the hot tier keeps encoded frames as stored
+        if self.image_encoding:
+            steps = [self._stored_form(s) for s in steps]  # the hot tier keeps encoded frames as stored
         raws = [s.SerializeToString() for s in steps]
         # keys and scalars here, in the caller's thread, while the writer may be waiting for an fsync
         keys = [step_key(s.robot_id, s.episode_id, s.step_index) for s in steps]
@@ -744,12 +746,11 @@ class ReplayStore:
             np.where(hot, group, -1).astype(np.int32),
             hot_row,
         )
-        ep, last = None, b""
-        for key, tid in zip(rec_keys, tids.tolist(), strict=True):
-            if key[:-8] != last:
-                last = key[:-8]
-                ep = self._episodes[last]
-            ep.tids.append(tid)  # type: ignore[union-attr]
+        rec_prefixes = [k[:-8] for k in rec_keys]
+        starts = [i for i in range(len(rec_prefixes)) if i == 0 or rec_prefixes[i] != rec_prefixes[i - 1]]
+        tid_list = tids.tolist()
+        for a, b in pairwise([*starts, len(rec_prefixes)]):  # one extend per episode run
+            self._episodes[rec_prefixes[a]].tids.extend(tid_list[a:b])
         for i in np.flatnonzero(~same_next & ~ends).tolist():  # wait for their successor (a later group)
             f = int(flags[i])
             act = None if full is None else full[i].copy()
