@@ -44,7 +44,7 @@ from services.replay.disk import (
     split_key,
     step_key,
 )
-from services.replay.hot import HotGroup, Layout
+from services.replay.hot import HotGroup, Layout, frame_nbytes
 from services.replay.rawstep import Span, StepSpans, Unexpected, step_spans
 from services.replay.tables import INTERVENTIONS, Draw, EmptyBufferError, Index, Record
 from user import wire
@@ -68,6 +68,7 @@ DEFAULT_HOT_MB = 256
 MAX_OPEN_TAILS = 100_000
 ENCODINGS = {"raw": 0, "jpeg": tpb.ENCODING_JPEG, "png": tpb.ENCODING_PNG}
 MAX_GROUP_STEPS = 4096  # most steps the writer merges into one transaction
+RAW_READ_MIN_BYTES = 4096  # observations this large are read from LMDB pages without protobuf (see _fill_mixed)
 MAX_GROUP_BYTES = 16 << 20  # and most bytes: LMDB keeps a transaction's dirty pages in RAM until commit
 COMMITS = prometheus_client.Histogram(
     "user_replay_group_commit_steps",
@@ -1187,8 +1188,12 @@ class ReplayStore:
         keys = [idx.keys[t] for t in tids[cold_obs].tolist()]
         last_keys = [idx.keys[t] for t in last[cold_next].tolist()]
         n = len(tids)
-        if not self._attached:  # fast: frames copied straight from the LMDB pages into the batch
-            layout = hot.layout if hot is not None else layout_of(self._read([(keys or last_keys)[0]])[0])
+        layout = hot.layout if hot is not None else None
+        if layout is None and not self._attached:
+            layout = layout_of(self._read([(keys or last_keys)[0]])[0])
+        # large frames (cameras): copied straight from the LMDB pages into the batch; small steps parse
+        # faster with protobuf (C) than rawstep walks them (Python)
+        if layout is not None and not self._attached and frame_nbytes(layout) >= RAW_READ_MIN_BYTES:
             obs, next_obs, action = self._columns(layout, n, hot, tids, last, ok_obs, ok_next)
             if self._read_cold_raw(layout, keys, last_keys, cold_obs, cold_next, obs, next_obs, action):
                 out["observation"] = obs
