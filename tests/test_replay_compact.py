@@ -5,17 +5,22 @@ Real ReplayStore on LMDB in tmp dirs, and the real replay gRPC service on 127.0.
 
 from __future__ import annotations
 
+import re
 import threading
+import urllib.request
 from collections.abc import Callable
 from pathlib import Path
 
+import grpc
 import numpy as np
+import pytest
 
+from services.replay.disk import episode_prefix
 from services.replay.server import ReplayService
 from services.replay.store import ReplayStore
 from services.replay.tables import Draw
 from tests.test_replay_chunks import check_chunks
-from tests.test_replay_service import make_service, specs, stub
+from tests.test_replay_service import _cfg, make_service, specs, stub
 from tests.test_replay_store import episode, spec
 from user import wire
 from user.v1 import replay_pb2
@@ -180,3 +185,38 @@ def test_samples_never_read_steps_that_eviction_removed(tmp_path: Path) -> None:
     finally:
         done.wait()
         store.close()
+
+
+def scrape(service: ReplayService, name: str) -> float:
+    """A counter's value as the service's /metrics serves it."""
+    url = f"http://127.0.0.1:{service.running.metrics_port}/metrics"  # type: ignore[union-attr]
+    body = urllib.request.urlopen(url, timeout=10).read().decode()
+    found = re.search(rf"^{name} (\S+)$", body, re.MULTILINE)
+    assert found is not None, f"/metrics lacks {name}"
+    return float(found.group(1))
+
+
+def test_metrics_count_compactions_and_aborted_samples(tmp_path: Path) -> None:
+    """/metrics counts index compactions and Samples answered ABORTED because the buffer changed under them."""
+    cfg = _cfg(tmp_path / "replay", capacity_mb=1, cache_mb=0)  # cache off: a sample reads LMDB
+    service = ReplayService(cfg, spec_source=lambda robot: spec(robot, obs_dim=DIM)).start()
+    try:
+        compactions, aborted = (
+            scrape(service, f"user_replay_{m}_total") for m in ("index_compactions", "sample_aborted")
+        )
+        service.store.index.compact_min = 16
+        fill(service.store.put_steps, 60)
+        assert service.store.compactions > 0
+        assert scrape(service, "user_replay_index_compactions_total") - compactions == service.store.compactions
+        # What the eviction race leaves behind: the index still lists an episode LMDB no longer has
+        # (the old eviction order). Its steps are gone from LMDB only; a sample drawing them is ABORTED.
+        newest = service.store.sample(1, np.random.default_rng(0), draw=Draw(1, sampler="recency", window=1))
+        version = int(newest["policy_version"][0])
+        assert service.store.db.delete_episodes([episode_prefix("arm-0", f"e{version:04d}")]) == LENGTH
+        req = replay_pb2.SampleRequest(batch_size=1, sampler=replay_pb2.SAMPLER_RECENCY, recency_window=1)
+        with pytest.raises(grpc.RpcError) as err:
+            stub(service).Sample(req, timeout=60)
+        assert err.value.code() == grpc.StatusCode.ABORTED
+        assert scrape(service, "user_replay_sample_aborted_total") - aborted == 1
+    finally:
+        service.stop()

@@ -89,6 +89,15 @@ def flags_of(step: step_pb2.Step) -> int:
     )
 
 
+def _delete_range(cur: lmdb.Cursor, prefix: bytes) -> int:
+    """Delete every key starting with prefix; returns how many."""
+    n = 0
+    if cur.set_range(prefix):
+        while cur.key().startswith(prefix) and cur.delete():  # delete() moves on to the next key
+            n += 1
+    return n
+
+
 class NotInOrder(ReplayError):
     """put_in_order met a step already stored: the caller falls back to put_steps (nothing was written)."""
 
@@ -157,6 +166,7 @@ class StepDB:
         self.specs = self._open_optional(b"specs", create)
         self.meta = self._open_optional(b"meta", create)
         self.duplicates = 0
+        self._doomed: list[bytes] = []  # evicted episodes, deleted by the next write transaction (or close)
         self.arrival = 0  # the store sets it past the newest arrival it scanned
         self._sync_interval_s = sync_interval_s
         self._last_sync = time.monotonic()
@@ -288,6 +298,7 @@ class StepDB:
         first = self.arrival
         pack = SCALARS.pack
         with self.env.begin(write=True) as txn:
+            doomed = self._delete_doomed(txn)
             _, added = txn.cursor(db=self.steps).putmulti(zip(keys, raws, strict=True), overwrite=False)
             if added != len(keys):
                 raise NotInOrder(f"{len(keys) - added} of {len(keys)} steps were stored already")
@@ -300,6 +311,7 @@ class StepDB:
                 txn.put(prefix, table.encode(), db=self.episodes, overwrite=False)
             for spec in specs:
                 txn.put(spec.robot_id.encode(), spec.SerializeToString(), db=self.specs)
+        del self._doomed[:doomed]
         self.arrival = first + len(keys)
         return first
 
@@ -326,6 +338,7 @@ class StepDB:
         seen: set[bytes] = set()
         waiting: set[bytes] = set()  # stored in this transaction, not ending an episode
         with self.env.begin(write=True) as txn:
+            doomed = self._delete_doomed(txn)
             for step, table, raw in zip(steps, tables, raws, strict=True):
                 rid, eid, t = step.robot_id, step.episode_id, step.step_index
                 key = step_key(rid, eid, t)
@@ -363,27 +376,36 @@ class StepDB:
                 txn.put(spec.robot_id.encode(), spec.SerializeToString(), db=self.specs)
             if out.duplicates:
                 txn.put(b"duplicates", _U64.pack(self.duplicates + out.duplicates), db=self.meta)
+        del self._doomed[:doomed]
         self.duplicates += out.duplicates
         return out
 
     def delete_episodes(self, prefixes: list[bytes]) -> int:
-        """Delete whole episodes (eviction) in one transaction; returns the steps deleted."""
-        deleted = 0
+        """Delete whole episodes now, in one transaction; returns the steps deleted."""
         with self.env.begin(write=True) as txn:
-            cur = txn.cursor(db=self.steps)
-            for prefix in prefixes:
-                keys = []
-                if cur.set_range(prefix):
-                    for key in cur.iternext(keys=True, values=False):
-                        if not key.startswith(prefix):
-                            break
-                        keys.append(bytes(key))
-                for key in keys:
-                    txn.delete(key, db=self.steps)
-                    txn.delete(key, db=self.ends)
-                    txn.delete(key, db=self.scalars)
-                txn.delete(prefix, db=self.episodes)
-                deleted += len(keys)
+            return self._delete(txn, prefixes)
+
+    def delete_episodes_later(self, prefixes: list[bytes]) -> None:
+        """Delete whole episodes (eviction) in the next write transaction, before its puts: no commit (and
+        fsync) of its own. Until then they stay in LMDB (a crash meanwhile keeps them; a reopened store
+        evicts them again). Callers have taken them out of every index already."""
+        self._doomed.extend(prefixes)
+
+    def _delete_doomed(self, txn: lmdb.Transaction) -> int:
+        """Delete the episodes evicted so far inside `txn`; returns how many the caller drops once it commits."""
+        if self._doomed:
+            self._delete(txn, self._doomed)
+        return len(self._doomed)
+
+    def _delete(self, txn: lmdb.Transaction, prefixes: list[bytes]) -> int:
+        """Prefixes in key order, each table with one cursor that deletes as it walks (no lookup per key)."""
+        deleted = 0
+        steps, scalars, ends = (txn.cursor(db=db) for db in (self.steps, self.scalars, self.ends))
+        for prefix in sorted(prefixes):
+            deleted += _delete_range(steps, prefix)
+            _delete_range(scalars, prefix)
+            _delete_range(ends, prefix)
+            txn.delete(prefix, db=self.episodes)
         return deleted
 
     def put_spec(self, spec: robot_pb2.RobotSpec) -> None:
@@ -409,6 +431,9 @@ class StepDB:
 
     def close(self) -> None:
         self._stop.set()
+        if self._doomed and not self.readonly:
+            self.delete_episodes(self._doomed)
+            self._doomed.clear()
         if not self.readonly:
             self.env.sync(True)
         self.env.close()

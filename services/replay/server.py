@@ -98,6 +98,9 @@ HOT_HIT_RATE = prometheus_client.Gauge("user_replay_hot_hit_rate", "Sampled tran
 TABLE_TRANSITIONS = prometheus_client.Gauge("user_replay_table_transitions", "Transitions per table", ["table"])
 PREFETCH_SERVED = prometheus_client.Counter("user_replay_prefetch_served_total", "Samples served from a ready batch")
 RATE_LIMITED = prometheus_client.Counter("user_replay_rate_limited_total", "Samples refused by the rate limiter")
+SAMPLE_ABORTED = prometheus_client.Counter(
+    "user_replay_sample_aborted_total", "Samples answered ABORTED: they raced a change of the buffer (e.g. an eviction)"
+)
 
 
 class SpecUnavailable(Exception):
@@ -510,6 +513,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down")
         except ReplayError as exc:  # e.g. a step evicted while the batch was assembled: asking again works
             log.warning("sample aborted", extra=kv(error=str(exc)))
+            SAMPLE_ABORTED.inc()
             context.abort(grpc.StatusCode.ABORTED, f"sample raced a change of the buffer, retry: {exc}")
         if size > MAX_BATCH_BYTES:
             per = max(1, size // request.batch_size)

@@ -18,6 +18,7 @@ from collections import deque
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
+from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -43,7 +44,8 @@ from services.replay.disk import (
     split_key,
     step_key,
 )
-from services.replay.hot import HotGroup, Layout
+from services.replay.hot import HotGroup, Layout, frame_nbytes
+from services.replay.rawstep import Span, StepSpans, Unexpected, step_spans
 from services.replay.tables import INTERVENTIONS, Draw, EmptyBufferError, Index, Record
 from user import wire
 from user.log import kv
@@ -66,12 +68,16 @@ DEFAULT_HOT_MB = 256
 MAX_OPEN_TAILS = 100_000
 ENCODINGS = {"raw": 0, "jpeg": tpb.ENCODING_JPEG, "png": tpb.ENCODING_PNG}
 MAX_GROUP_STEPS = 4096  # most steps the writer merges into one transaction
+RAW_READ_MIN_BYTES = 4096  # observations this large are read from LMDB pages without protobuf (see _fill_mixed)
 MAX_GROUP_BYTES = 16 << 20  # and most bytes: LMDB keeps a transaction's dirty pages in RAM until commit
 COMMITS = prometheus_client.Histogram(
     "user_replay_group_commit_steps",
     "Steps per LMDB transaction after merging queued requests (group commit)",
     buckets=(1, 4, 16, 64, 256, 1024, 4096),
-)  # steps waiting for their successor, kept to place transitions in the hot tier
+)
+COMPACTIONS = prometheus_client.Counter(
+    "user_replay_index_compactions_total", "Index compactions (evicted rows dropped, live rows renumbered)"
+)
 
 
 class LayoutError(ReplayError):
@@ -83,6 +89,14 @@ def tensor_array(tensor: tpb.Tensor) -> np.ndarray:
     if tensor.encoding == tpb.ENCODING_RAW:
         return np.frombuffer(tensor.data, dtype=wire.dtype_from_proto(tensor.dtype)).reshape(tuple(tensor.shape))
     return wire.from_tensor(tensor)
+
+
+def _np_dtype(code: int) -> np.dtype | None:
+    """numpy dtype of a stored tensor's bytes; None for a code this build does not know."""
+    try:
+        return wire.dtype_from_proto(code)
+    except wire.WireError:
+        return None
 
 
 def arrays_of(tmap: tpb.TensorMap) -> dict[str, np.ndarray]:
@@ -425,7 +439,8 @@ class ReplayStore:
         so one fsync covers many requests, and callers serialize the next steps while it syncs.
         """
         tables = [table] * len(steps) if isinstance(table, str) else list(table)
-        steps = [self._stored_form(s) for s in steps]  # the hot tier keeps encoded frames as stored
+        if self.image_encoding:
+            steps = [self._stored_form(s) for s in steps]  # the hot tier keeps encoded frames as stored
         raws = [s.SerializeToString() for s in steps]
         # keys and scalars here, in the caller's thread, while the writer may be waiting for an fsync
         keys = [step_key(s.robot_id, s.episode_id, s.step_index) for s in steps]
@@ -732,12 +747,11 @@ class ReplayStore:
             np.where(hot, group, -1).astype(np.int32),
             hot_row,
         )
-        ep, last = None, b""
-        for key, tid in zip(rec_keys, tids.tolist(), strict=True):
-            if key[:-8] != last:
-                last = key[:-8]
-                ep = self._episodes[last]
-            ep.tids.append(tid)  # type: ignore[union-attr]
+        rec_prefixes = [k[:-8] for k in rec_keys]
+        starts = [i for i in range(len(rec_prefixes)) if i == 0 or rec_prefixes[i] != rec_prefixes[i - 1]]
+        tid_list = tids.tolist()
+        for a, b in pairwise([*starts, len(rec_prefixes)]):  # one extend per episode run
+            self._episodes[rec_prefixes[a]].tids.extend(tid_list[a:b])
         for i in np.flatnonzero(~same_next & ~ends).tolist():  # wait for their successor (a later group)
             f = int(flags[i])
             act = None if full is None else full[i].copy()
@@ -1015,7 +1029,7 @@ class ReplayStore:
                 del self._tails[key]
             self._evicted_episodes += len(victims)
             self.generation += 1
-        self.db.delete_episodes(victims)
+        self.db.delete_episodes_later(victims)  # with the next commit: no transaction (fsync) of its own
         log.info("evicted episodes", extra=kv(episodes=len(victims), bytes=freed))
 
     def _compact_index(self) -> None:
@@ -1031,6 +1045,7 @@ class ReplayStore:
                 if ep.tids:
                     ep.tids = remap[ep.tids].tolist()
         self.compactions += 1
+        COMPACTIONS.inc()
 
     def put_spec(self, spec: robot_pb2.RobotSpec) -> None:
         with self._write_lock:
@@ -1172,6 +1187,19 @@ class ReplayStore:
         cold_obs, cold_next = np.flatnonzero(~ok_obs), np.flatnonzero(~ok_next)
         keys = [idx.keys[t] for t in tids[cold_obs].tolist()]
         last_keys = [idx.keys[t] for t in last[cold_next].tolist()]
+        n = len(tids)
+        layout = hot.layout if hot is not None else None
+        if layout is None and not self._attached:
+            layout = layout_of(self._read([(keys or last_keys)[0]])[0])
+        # large frames (cameras): copied straight from the LMDB pages into the batch; small steps parse
+        # faster with protobuf (C) than rawstep walks them (Python)
+        if layout is not None and not self._attached and frame_nbytes(layout) >= RAW_READ_MIN_BYTES:
+            obs, next_obs, action = self._columns(layout, n, hot, tids, last, ok_obs, ok_next)
+            if self._read_cold_raw(layout, keys, last_keys, cold_obs, cold_next, obs, next_obs, action):
+                out["observation"] = obs
+                out["next_observation"] = next_obs
+                out["action"] = action.astype(np.float32, copy=False)
+                return
         uniq = sorted(set(keys) | set(last_keys) | {next_key(k) for k in last_keys})
         raws = dict(zip(uniq, self._get_many(uniq), strict=True))
         steps: dict[bytes, step_pb2.Step] = {}
@@ -1197,19 +1225,8 @@ class ReplayStore:
                     f"sampled transitions have different observation layouts ({keys[0][:-8]!r} vs "
                     f"{keys[i][:-8]!r}); sample robots with different specs separately (robot_ids)"
                 )
-        features, (act_dtype, act_shape) = layout
-        n = len(tids)
-        obs = {f: np.empty((n, *sh), dt) for f, dt, sh in features}
-        next_obs = {f: np.empty((n, *sh), dt) for f, dt, sh in features}
-        action = np.empty((n, *act_shape), act_dtype)
-        if hot is not None and ok_obs.any():
-            rows = idx.hot_row.a[tids[ok_obs]]
-            for f, col in hot.observations(rows, "obs").items():
-                obs[f][ok_obs] = col
-            action[ok_obs] = hot.action[rows]
-        if hot is not None and ok_next.any():
-            for f, col in hot.observations(idx.hot_row.a[last[ok_next]], "next").items():
-                next_obs[f][ok_next] = col
+        features = layout[0]
+        obs, next_obs, action = self._columns(layout, n, hot, tids, last, ok_obs, ok_next)
         try:
             for i, s in zip(cold_obs.tolist(), cur, strict=True):
                 for f, _, _ in features:
@@ -1223,6 +1240,97 @@ class ReplayStore:
         out["observation"] = obs
         out["next_observation"] = next_obs
         out["action"] = action.astype(np.float32, copy=False)
+
+    def _columns(
+        self,
+        layout: Layout,
+        n: int,
+        hot: HotGroup | None,
+        tids: np.ndarray,
+        last: np.ndarray,
+        ok_obs: np.ndarray,
+        ok_next: np.ndarray,
+    ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], np.ndarray]:
+        """Batch columns of `layout` with the hot rows gathered from RAM (the cold rows are left to fill)."""
+        features, (act_dtype, act_shape) = layout
+        obs = {f: np.empty((n, *sh), dt) for f, dt, sh in features}
+        next_obs = {f: np.empty((n, *sh), dt) for f, dt, sh in features}
+        action = np.empty((n, *act_shape), act_dtype)
+        idx = self.index
+        if hot is not None and ok_obs.any():
+            rows = idx.hot_row.a[tids[ok_obs]]
+            for f, col in hot.observations(rows, "obs").items():
+                obs[f][ok_obs] = col
+            action[ok_obs] = hot.action[rows]
+        if hot is not None and ok_next.any():
+            for f, col in hot.observations(idx.hot_row.a[last[ok_next]], "next").items():
+                next_obs[f][ok_next] = col
+        return obs, next_obs, action
+
+    def _read_cold_raw(
+        self,
+        layout: Layout,
+        keys: list[bytes],
+        last_keys: list[bytes],
+        cold_obs: np.ndarray,
+        cold_next: np.ndarray,
+        obs: dict[str, np.ndarray],
+        next_obs: dict[str, np.ndarray],
+        action: np.ndarray,
+    ) -> bool:
+        """Cold rows read in key order in one read transaction, each raw tensor copied once from its LMDB page
+        into its column (rawstep.py finds it; no Step objects). False when a step is not all raw tensors of
+        `layout` (encoded frames, another layout): the caller parses them with protobuf (caller holds the lock)."""
+        features, (act_dtype, act_shape) = layout
+        want = [(f, dt, sh, int(np.prod(sh)), int(np.prod(sh)) * dt.itemsize) for f, dt, sh in features]
+        act_count = int(np.prod(act_shape))
+        spans: dict[bytes, tuple[memoryview, StepSpans]] = {}
+        with self.db.env.begin(db=self.db.steps, buffers=True) as txn:
+
+            def get(key: bytes) -> tuple[memoryview, StepSpans]:
+                got = spans.get(key)
+                if got is None:
+                    buf = txn.get(key)
+                    if buf is None:
+                        raise ReplayError(f"index points at a missing step {key!r}")
+                    got = spans[key] = (buf, step_spans(buf))
+                return got
+
+            def put(cols: dict[str, np.ndarray], i: int, buf: memoryview, tmap: dict[str, Span]) -> bool:
+                if len(tmap) != len(want):
+                    return False
+                for f, dt, sh, count, size in want:
+                    sp = tmap.get(f)
+                    if sp is None or sp.encoding or sp.shape != sh or sp.size != size or _np_dtype(sp.dtype) != dt:
+                        return False
+                    cols[f][i] = np.frombuffer(buf, dt, count, sp.offset).reshape(sh)
+                return True
+
+            try:
+                for key in sorted(set(keys) | set(last_keys)):  # B-tree order: neighbouring pages
+                    get(key)
+                for i, key in zip(cold_obs.tolist(), keys, strict=True):
+                    buf, sp = get(key)
+                    act = sp.action
+                    if act is None or act.encoding or act.shape != act_shape or _np_dtype(act.dtype) != act_dtype:
+                        return False
+                    if act.size != act_count * act_dtype.itemsize or not put(obs, i, buf, sp.observation):
+                        return False
+                    action[i] = np.frombuffer(buf, act_dtype, act_count, act.offset).reshape(act_shape)
+                for i, key in zip(cold_next.tolist(), last_keys, strict=True):
+                    buf, sp = get(key)
+                    if sp.final is None:
+                        buf, nxt = get(next_key(key))
+                        tmap = nxt.observation
+                    else:
+                        tmap = sp.final
+                    if not put(next_obs, i, buf, tmap):
+                        return False
+            except (Unexpected, IndexError, ValueError):
+                return False
+            finally:
+                spans.clear()  # the pages' buffers are only valid inside the transaction
+        return True
 
     def update_priorities(self, tids: np.ndarray, priorities: np.ndarray) -> int:
         with self._lock:
