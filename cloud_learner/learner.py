@@ -423,11 +423,14 @@ class ExperimentRun:
         if req.action_horizon > 1:  # replay assembles each row's next H actions (action-chunking policies)
             request.action_horizon = req.action_horizon
         if "tables" in replay_pb2.SampleRequest.DESCRIPTOR.fields_by_name:  # replay with tables (RLPD's shares)
-            # The algorithm's default ("online" only) means the experiment's own table; for "online" that is
-            # no tables at all (uniform over every transition, as before tables existed).
+            # An algorithm's "online" share (its default, or RLPD's half) is the experiment's own table, the one
+            # its robots fill; "online" alone is no tables at all (uniform over every transition).
             tables = dict(req.tables)
+            if "online" in tables and self.exp.table != "online":
+                share = tables.pop("online")
+                tables[self.exp.table] = tables.get(self.exp.table, 0.0) + share
             if tables == {"online": 1.0}:
-                tables = {} if self.exp.table == "online" else {self.exp.table: 1.0}
+                tables = {}
             try:
                 request.tables.update(tables)  # type: ignore[attr-defined]
             except (AttributeError, TypeError, ValueError) as exc:

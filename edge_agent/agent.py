@@ -77,7 +77,7 @@ PAUSED_POLL_S = 0.05  # fast mode: how often a paused loop re-checks
 class StepSink(Protocol):
     """Where finished steps go (ReplaySender); send() must not block."""
 
-    def send(self, step: step_pb2.Step) -> int: ...
+    def send(self, step: step_pb2.Step, table: str = "") -> int: ...
 
     @property
     def unacked(self) -> int: ...
@@ -150,6 +150,7 @@ class RobotLoop:
         self._paused = threading.Event()
         self._lease_hold = threading.Event()  # control: no running experiment for this robot (see set_lease)
         self.lease = control_pb2.RobotLease(robot_id=self.robot_id)
+        self._table = ""  # replay table of the running episode ("" = "online")
         self._reset_requested = threading.Event()
         self._lock = threading.Lock()  # guards the stats below against status() from the control thread
         self._thread: threading.Thread | None = None
@@ -355,7 +356,9 @@ class RobotLoop:
         )
         if done:
             step.final_observation.CopyFrom(wire.to_tensor_map(nxt.features))
-        self.sink.send(step)
+        if self.step_index == 0:  # the lease's table at its first step holds the whole episode
+            self._table = self.lease.table
+        self.sink.send(step, self._table)
         self._count(outcome, version, held, human)
         if held and self.mode == "fast":
             # Unthrottled holding would flood replay with still frames: a held tick lasts a deadline.

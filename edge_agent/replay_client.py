@@ -89,9 +89,10 @@ class ReplaySender:
         if not self._thread.is_alive():
             self._thread.start()
 
-    def send(self, step: step_pb2.Step) -> int:
-        """Keep the step in the outbox (a local commit for a spool) and return its seq; never waits on the network."""
-        seq = self.outbox.put(step)
+    def send(self, step: step_pb2.Step, table: str = "") -> int:
+        """Keep the step in the outbox (a local commit for a spool) and return its seq; never waits on the network.
+        `table`: the replay table of the step's episode ("" = "online")."""
+        seq = self.outbox.put(step, table)
         with self._put_lock:  # robot threads send at once
             self._put_at[seq] = time.monotonic()
             if len(self._put_at) > _ACK_TIMES_KEPT:  # steps the outbox dropped never ack: forget the oldest

@@ -8,7 +8,8 @@ Two kinds behind one small interface:
   and replay stores each step once because it keys steps by (robot, episode, step). Layout: table
   `steps` maps seq (8-byte big-endian, so key order is send order) to the serialized Step; table
   `meta` holds next_seq (never reused, even after every step was acked), the byte total and the
-  dropped count, each updated in the same transaction as the steps. Without `fsync` a commit
+  dropped count, each updated in the same transaction as the steps; table `tables` maps the seq of a
+  step bound for a replay table other than the default to that table's name. Without `fsync` a commit
   survives the death of the process (the kernel holds the pages) and is flushed to the device
   every second; with it, every commit is flushed (power loss too, ~2 ms a step on these disks).
 - `MemoryOutbox`: the same in RAM, bounded by a step count (today's behaviour; lost on a crash).
@@ -65,8 +66,9 @@ class Outbox(ABC):
     dropped: int
 
     @abstractmethod
-    def put(self, step: step_pb2.Step) -> int:
-        """Keep the step (durably, for a spool) and return its seq; never blocks on the network."""
+    def put(self, step: step_pb2.Step, table: str = "") -> int:
+        """Keep the step and its replay table (durably, for a spool) and return its seq; never blocks on the
+        network. "" is replay's default table ("online")."""
 
     @abstractmethod
     def read(self, after_seq: int, limit: int) -> list[replay_pb2.InsertRequest]:
@@ -120,8 +122,8 @@ class MemoryOutbox(Outbox):
         self._bytes = 0
         self._next_seq = 1
 
-    def put(self, step: step_pb2.Step) -> int:
-        req = replay_pb2.InsertRequest(step=step)
+    def put(self, step: step_pb2.Step, table: str = "") -> int:
+        req = replay_pb2.InsertRequest(step=step, table=table)
         size = req.step.ByteSize()
         with self._lock:
             seq = req.seq = self._next_seq
@@ -210,10 +212,11 @@ class LmdbSpool(Outbox):
         self._disk_error = False
         self._last_drop_log = -float("inf")
         self._env = lmdb.open(
-            str(self.path), map_size=2 * max_bytes + _MAP_HEADROOM, max_dbs=2, sync=fsync, metasync=fsync
+            str(self.path), map_size=2 * max_bytes + _MAP_HEADROOM, max_dbs=3, sync=fsync, metasync=fsync
         )
         self._steps = self._env.open_db(b"steps")
         self._meta = self._env.open_db(b"meta")
+        self._tables = self._env.open_db(b"tables")  # seq -> replay table, only for steps not in the default
         with self._env.begin() as txn:
             self._next_seq = self._meta_int(txn, b"next_seq", 1)
             self._bytes = self._meta_int(txn, b"bytes", 0)
@@ -246,16 +249,16 @@ class LmdbSpool(Outbox):
         raw = txn.get(name, db=self._meta)
         return int.from_bytes(raw, "big") if raw is not None else default
 
-    def put(self, step: step_pb2.Step) -> int:
+    def put(self, step: step_pb2.Step, table: str = "") -> int:
         data = step.SerializeToString()
         with self._lock:
             was_full = self.full
             seq = self._next_seq
             try:
-                dropped = self._write(seq, data)
+                dropped = self._write(seq, data, table)
                 self._disk_error = False
             except lmdb.Error as exc:  # the disk filled before the cap
-                dropped = self._disk_full(seq, data, exc)
+                dropped = self._disk_full(seq, data, table, exc)
             self._next_seq += 1
             self._last_size = len(data)
         if self.policy == "pause" and self.full and not was_full:
@@ -272,7 +275,7 @@ class LmdbSpool(Outbox):
         self._publish_metrics()
         return seq
 
-    def _disk_full(self, seq: int, data: bytes, exc: lmdb.Error) -> int:
+    def _disk_full(self, seq: int, data: bytes, table: str, exc: lmdb.Error) -> int:
         """Caller holds the lock. The disk filled before the cap: the cap drops to the bytes held now.
         drop_oldest frees the oldest 1 % in a transaction of its own and retries; pause loses this one
         step (counted) and reports full, so the robots hold until acks free space."""
@@ -284,7 +287,7 @@ class LmdbSpool(Outbox):
         if self.policy == "drop_oldest":
             try:
                 freed = self._drop_oldest(max(1, self._count // 100))
-                return freed + self._write(seq, data)
+                return freed + self._write(seq, data, table)
             except lmdb.Error:
                 pass
         self.dropped += 1
@@ -295,6 +298,7 @@ class LmdbSpool(Outbox):
             cursor, nbytes, dropped = txn.cursor(self._steps), self._bytes, 0
             while dropped < n and cursor.first():
                 nbytes -= len(cursor.value())
+                txn.delete(cursor.key(), db=self._tables)
                 cursor.delete()
                 dropped += 1
             txn.put(b"bytes", _key(nbytes), db=self._meta)
@@ -303,7 +307,7 @@ class LmdbSpool(Outbox):
         self.dropped += dropped
         return dropped
 
-    def _write(self, seq: int, data: bytes) -> int:
+    def _write(self, seq: int, data: bytes, table: str = "") -> int:
         """Caller holds the lock. One transaction: make room (drop_oldest), put, update meta."""
         for attempt in range(4):
             try:
@@ -313,9 +317,12 @@ class LmdbSpool(Outbox):
                         cursor = txn.cursor(self._steps)
                         while count and nbytes + len(data) > self.max_bytes and cursor.first():
                             nbytes -= len(cursor.value())
+                            txn.delete(cursor.key(), db=self._tables)
                             cursor.delete()
                             count, dropped = count - 1, dropped + 1
                     txn.put(_key(seq), data, db=self._steps)
+                    if table:  # most steps go to the default table: nothing kept for them
+                        txn.put(_key(seq), table.encode(), db=self._tables)
                     nbytes, count = nbytes + len(data), count + 1
                     txn.put(b"next_seq", _key(seq + 1), db=self._meta)
                     txn.put(b"bytes", _key(nbytes), db=self._meta)
@@ -339,7 +346,8 @@ class LmdbSpool(Outbox):
             if not cursor.set_range(_key(after_seq + 1)):
                 return out
             for key, value in cursor:
-                req = replay_pb2.InsertRequest(seq=int.from_bytes(key, "big"))
+                table = txn.get(key, db=self._tables)
+                req = replay_pb2.InsertRequest(seq=int.from_bytes(key, "big"), table=table.decode() if table else "")
                 req.step.ParseFromString(value)
                 out.append(req)
                 if len(out) >= limit:
@@ -354,6 +362,7 @@ class LmdbSpool(Outbox):
                     nbytes = self._bytes
                     for seq in seqs:
                         value = txn.pop(_key(seq), db=self._steps)
+                        txn.delete(_key(seq), db=self._tables)
                         if value is not None:
                             nbytes -= len(value)
                             n += 1

@@ -42,7 +42,7 @@ def team_spec(robot_id: str, team: str) -> robot_pb2.RobotSpec:
 def experiments(max_alpha: int = 0) -> list[ExperimentConfig]:
     return [
         ExperimentConfig(name="alpha", robots=RobotSelector(labels={"team": "a"}), max_robots=max_alpha),
-        ExperimentConfig(name="beta", robots=RobotSelector(labels={"team": "b"})),
+        ExperimentConfig(name="beta", robots=RobotSelector(labels={"team": "b"}), table="lab_b"),
     ]
 
 
@@ -184,6 +184,7 @@ def test_a_killed_and_restarted_control_keeps_experiments_leases_episodes_and_co
             ("alpha", False),
             ("beta", False),
         )
+        assert (pc1.leases["arm-0"].table, pc2.leases["arm-2"].table) == ("", "lab_b")  # the experiment's table
         assert [(r.spec.robot_id, r.lease) for r in s.ListRobots(control_pb2.ListRobotsRequest()).robots] == [
             ("arm-0", "alpha"),
             ("arm-1", "alpha"),

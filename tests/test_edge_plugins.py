@@ -134,7 +134,7 @@ class ListSink:
         self.steps: list[step_pb2.Step] = []
         self._lock = threading.Lock()
 
-    def send(self, step: step_pb2.Step) -> int:
+    def send(self, step: step_pb2.Step, table: str = "") -> int:
         with self._lock:
             self.steps.append(step)
             return len(self.steps)

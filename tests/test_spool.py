@@ -69,6 +69,32 @@ def test_spool_keeps_steps_across_reopen_and_never_reuses_a_seq(tmp_path: Path) 
     spool.close()
 
 
+def test_each_steps_replay_table_is_kept_across_reopen_ack_and_drop(tmp_path: Path) -> None:
+    steps = sim_steps(6)
+    spool = LmdbSpool(tmp_path / "spool", max_bytes=1 << 20)
+    for step, table in zip(steps, ["", "lab", "lab", "", "demos", "lab"], strict=True):
+        spool.put(step, table)
+    spool.ack([2])
+    spool.close()
+    spool = LmdbSpool(tmp_path / "spool", max_bytes=1 << 20)
+    assert [(r.seq, r.table) for r in spool.read(0, 100)] == [(1, ""), (3, "lab"), (4, ""), (5, "demos"), (6, "lab")]
+    spool.ack([1, 3, 4, 5, 6])
+    with spool._env.begin() as txn:  # nothing left behind for acked steps
+        assert txn.stat(spool._tables)["entries"] == 0
+    spool.close()
+    size = steps[0].ByteSize()
+    dropping = LmdbSpool(tmp_path / "drop", max_bytes=2 * size + size // 2, policy="drop_oldest")
+    for step in steps:
+        dropping.put(step, "lab")
+    assert [(r.seq, r.table) for r in dropping.read(0, 100)] == [(5, "lab"), (6, "lab")]
+    with dropping._env.begin() as txn:
+        assert txn.stat(dropping._tables)["entries"] == 2
+    dropping.close()
+    box = MemoryOutbox()
+    box.put(steps[0], "lab")
+    assert box.read(0, 1)[0].table == "lab"
+
+
 def test_a_spool_has_one_owner_at_a_time(tmp_path: Path) -> None:
     spool = LmdbSpool(tmp_path / "spool", max_bytes=1 << 20)
     with pytest.raises(SpoolInUse):
@@ -179,6 +205,31 @@ def test_full_spool_with_pause_policy_holds_the_robot_until_replay_acks(tmp_path
         robot.close()
         if replay is not None:
             replay.stop()
+
+
+def test_a_robots_steps_reach_the_replay_table_of_its_lease(tmp_path: Path) -> None:
+    """Control's lease names the experiment's table; the loop sends each episode there, through the spool."""
+    cfg = stack_cfg(tmp_path)
+    replay = start_replay(cfg)
+    sender = ReplaySender(replay.address, AUTH, outbox=LmdbSpool(tmp_path / "spool", 1 << 24))
+    robot = make_robot("sim_reach_arm", "arm-0", {"max_episode_steps": 10}, seed=1)
+    policy = RemotePolicy(f"127.0.0.1:{free_port()}", AUTH)  # no policy: held steps, still steps
+    loop = RobotLoop(robot, policy, sender, mode="fast", action_deadline_s=0.002)
+    loop.set_lease(control_pb2.RobotLease(robot_id="arm-0", experiment="lab-exp", table="lab"))
+    loop.start()
+    try:
+        wait_for(lambda: loop.status(drain=False).env_steps >= 30, limit_s=120)
+        loop.stop()
+        assert sender.flush(30)
+        stats = replay_stats(replay.address)
+        assert stats.tables["lab"].steps == loop.env_steps and stats.tables["lab"].episodes >= 3
+        assert stats.tables["online"].steps == 0 if "online" in stats.tables else True
+    finally:
+        loop.stop()
+        sender.close()
+        policy.close()
+        robot.close()
+        replay.stop()
 
 
 # --------------------------------------------------------------------------- kill -9 of the edge

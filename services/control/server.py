@@ -449,7 +449,8 @@ class Registry:
             for i, rec in enumerate(recs):
                 rid = rec.spec.robot_id
                 if i < cap:
-                    out[rid] = control_pb2.RobotLease(robot_id=rid, experiment=name)
+                    table = "" if exp.config.table == "online" else exp.config.table  # "" is replay's default
+                    out[rid] = control_pb2.RobotLease(robot_id=rid, experiment=name, table=table)
                 else:
                     out[rid] = control_pb2.RobotLease(
                         robot_id=rid, hold=True, reason=f"experiment {name} at max_robots={cap}"
