@@ -182,7 +182,8 @@ def _patch_bound(new: dict[str, np.ndarray], old: dict[str, np.ndarray]) -> np.n
     nb, db = np.pad(n, (0, pad)).reshape(blocks, -1), np.pad(n - o, (0, pad)).reshape(blocks, -1)
     step = np.maximum(2 * PATCH_REL_TOL * np.sqrt((nb * nb).mean(axis=1)), np.abs(db).max(axis=1) / 127)
     rounding = np.spacing(np.abs(n).astype(np.float32)).astype(np.float64)  # of the float32 sum
-    return np.repeat(step / 2, PATCH_BLOCK)[: n.size] * (1 + 1e-5) + rounding
+    # 1e-4: the sender accumulates the RMS in float32
+    return np.repeat(step / 2, PATCH_BLOCK)[: n.size] * (1 + 1e-4) + rounding
 
 
 def _f32(ts: dict[str, np.ndarray]) -> np.ndarray:

@@ -360,43 +360,52 @@ def patch_body_bytes(tensors: Sequence[learner_pb2.TensorInfo]) -> int:
 PATCH_SLICE_BLOCKS = 64  # blocks per slice of work: 1 MiB of float32 scratch, reused (stays in cache)
 
 
-def _apply_steps(base: np.ndarray, steps: np.ndarray, q: np.ndarray, out: np.ndarray) -> np.ndarray:
-    """out = base + q * step per block, in float32: the one computation both sides run (bit-identical).
+def _apply_slice(
+    base: np.ndarray, steps: np.ndarray, q: np.ndarray, out: np.ndarray, lo: int, hi: int, scratch: np.ndarray
+) -> None:
+    """out[lo:hi] = base + q * step of its blocks, in float32: the one computation both sides run, so
+    sender and receiver hold the same bits. The int8 -> float32 cast is exact, so cast-then-multiply
+    gives the bits of a mixed-type multiply. lo is a multiple of PATCH_BLOCK."""
+    blocks = -(-(hi - lo) // PATCH_BLOCK)
+    tmp = scratch[: blocks * PATCH_BLOCK].reshape(blocks, PATCH_BLOCK)
+    b0 = lo // PATCH_BLOCK
+    tmp[...] = q[lo : lo + blocks * PATCH_BLOCK].reshape(blocks, PATCH_BLOCK)
+    tmp *= steps[b0 : b0 + blocks, None]
+    np.add(base[lo:hi], tmp.reshape(-1)[: hi - lo], out=out[lo:hi])
 
-    Sliced, with one small scratch buffer, so no big temporary is allocated (page faults); the int8 ->
-    float32 cast is exact, so cast-then-multiply gives the same bits as a mixed-type multiply."""
+
+def _apply_steps(base: np.ndarray, steps: np.ndarray, q: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """out = base + q * step per block (the receiver's side), slice by slice with one small scratch
+    buffer, so no big temporary is allocated (page faults)."""
     n, step = base.size, PATCH_SLICE_BLOCKS * PATCH_BLOCK
     scratch = np.empty(step, dtype=np.float32)
     for lo in range(0, n, step):
-        hi = min(n, lo + step)
-        blocks = -(-(hi - lo) // PATCH_BLOCK)
-        tmp = scratch[: blocks * PATCH_BLOCK].reshape(blocks, PATCH_BLOCK)
-        b0 = lo // PATCH_BLOCK
-        tmp[...] = q[lo : lo + blocks * PATCH_BLOCK].reshape(blocks, PATCH_BLOCK)
-        tmp *= steps[b0 : b0 + blocks, None]
-        np.add(base[lo:hi], tmp.reshape(-1)[: hi - lo], out=out[lo:hi])
+        _apply_slice(base, steps, q, out, lo, min(n, lo + step), scratch)
     return out
 
 
-def _quantize(new: np.ndarray, old: np.ndarray, steps: np.ndarray, q: np.ndarray) -> None:
-    """Fill steps (one per block) and q (int8, padded to whole blocks) for new - old, slice by slice.
+def _quantize(new: np.ndarray, old: np.ndarray, steps: np.ndarray, q: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """Fill steps (one per block) and q (int8, padded to whole blocks) for new - old, and out with the
+    state the receiver will compute (_apply_slice), slice by slice while the slice is in cache.
 
-    Only the sender runs this (steps travel), so its arithmetic need not match the receiver's: sums of
+    Only the sender quantizes (steps travel), so its arithmetic need not match the receiver's: sums of
     squares accumulate in float32 (einsum), and q needs no clipping: step >= max|diff| / 127 keeps
     |diff / step| <= 127 (plus rounding), which rint keeps at 127."""
     n, step = new.size, PATCH_SLICE_BLOCKS * PATCH_BLOCK
     d = np.zeros(step, dtype=np.float32)
-    w = np.zeros(step, dtype=np.float32)
+    scratch = np.empty(step, dtype=np.float32)
     for lo in range(0, n, step):
         hi = min(n, lo + step)
         blocks = -(-(hi - lo) // PATCH_BLOCK)
         b0, size = lo // PATCH_BLOCK, blocks * PATCH_BLOCK
         if hi - lo < size:  # the last, partial block: zero padding (the receiver ignores it)
             d[hi - lo : size] = 0
-            w[hi - lo : size] = 0
+            w = np.zeros(size, dtype=np.float32)
+            w[: hi - lo] = new[lo:hi]
+        else:
+            w = new[lo:hi]
         np.subtract(new[lo:hi], old[lo:hi], out=d[: hi - lo])
-        w[: hi - lo] = new[lo:hi]
-        d2, w2 = d[:size].reshape(blocks, PATCH_BLOCK), w[:size].reshape(blocks, PATCH_BLOCK)
+        d2, w2 = d[:size].reshape(blocks, PATCH_BLOCK), w.reshape(blocks, PATCH_BLOCK)
         rms = np.sqrt(np.einsum("ij,ij->i", w2, w2) / np.float32(PATCH_BLOCK))
         peak = np.maximum(d2.max(axis=1), -d2.min(axis=1))
         s = np.maximum(np.float32(2 * PATCH_REL_TOL) * rms, peak / np.float32(127))  # |error| <= step / 2
@@ -405,8 +414,9 @@ def _quantize(new: np.ndarray, old: np.ndarray, steps: np.ndarray, q: np.ndarray
         s[s == 0] = 1.0  # an unchanged all-zero block
         steps[b0 : b0 + blocks] = s
         d2 /= s[:, None]
-        np.rint(d2, out=d2)
-        q[lo : lo + size] = d[:size]
+        np.rint(d2, out=q[lo : lo + size].reshape(blocks, PATCH_BLOCK), casting="unsafe")  # into int8
+        _apply_slice(old, steps, q, out, lo, hi, scratch)
+    return out
 
 
 def _write_state(
@@ -447,10 +457,9 @@ def encode_patch(
     body = np.empty(patch_body_bytes(wire.tensors), dtype=np.uint8)  # steps | q | other tensors
     steps = body[: blocks * 4].view("<f4")
     q = body[blocks * 4 : blocks * 4 + blocks * PATCH_BLOCK].view(np.int8)
-    _quantize(new, old, steps, q)
     size = wire.payload.nbytes
     out = buf if buf is not None and buf.nbytes == size else np.empty(size, dtype=np.uint8)
-    values = _apply_steps(old, steps, q, _state_values(out, f32, new.size))
+    values = _quantize(new, old, steps, q, _state_values(out, f32, new.size))
     rest = body[blocks * 4 + blocks * PATCH_BLOCK :]
     pos = 0
     for o, nb in other:  # non-float tensors travel raw
