@@ -445,16 +445,23 @@ def _state_values(out: np.ndarray, f32: list[tuple[int, int]], size: int) -> np.
 
 
 def encode_patch(
-    full: PackedWeights, wire: WirePayload, base: WirePayload, buf: np.ndarray | None = None
+    full: PackedWeights,
+    wire: WirePayload,
+    base: WirePayload,
+    buf: np.ndarray | None = None,
+    body_buf: np.ndarray | None = None,
 ) -> tuple[PackedWeights, WirePayload]:
     """A patch taking `base` (the receiver's exact state) towards `wire`, and the state it leads to
-    (written into `buf`, uint8 of the payload's size, when given: a reused buffer faults no pages)."""
+    (written into `buf`, uint8 of the payload's size, when given: a reused buffer faults no pages).
+    body_buf: a reused buffer of at least patch_body_bytes for the uncompressed body."""
     if not base.same_layout(wire.tensors) or base.version >= wire.version:
         raise PatchError("a patch needs an older base of the same layout")
     f32, other = _f32_segments(wire.tensors)
     new, old = _gather_f32(wire.payload, f32), _gather_f32(base.payload, f32)
     blocks = -(-new.size // PATCH_BLOCK)
-    body = np.empty(patch_body_bytes(wire.tensors), dtype=np.uint8)  # steps | q | other tensors
+    body_bytes = patch_body_bytes(wire.tensors)  # steps | q | other tensors
+    reuse = body_buf is not None and body_buf.nbytes >= body_bytes
+    body = body_buf[:body_bytes] if reuse else np.empty(body_bytes, dtype=np.uint8)
     steps = body[: blocks * 4].view("<f4")
     q = body[blocks * 4 : blocks * 4 + blocks * PATCH_BLOCK].view(np.int8)
     size = wire.payload.nbytes
@@ -688,7 +695,8 @@ class WeightAssembler:
         self._buf = _EMPTY
         self._filled = 0
         self._hash: Any = None  # running digest of raw full payloads, updated as chunks arrive
-        self._pool = BufferPool()
+        # receive, decoded patch body and payload buffers cycle through here: keep one spare of each
+        self._pool = BufferPool(keep=3)
         self.chunk_bytes = 0  # data bytes of the last chunk fed (0 for a header or a skipped chunk)
 
     @property

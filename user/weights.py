@@ -60,6 +60,7 @@ from user.weight_codec import (
     iter_weight_messages,
     pack_weights,
     parse_weight_message,
+    patch_body_bytes,
     selected,
     serialize_weight_message,
     wire_payload,
@@ -190,6 +191,7 @@ class WeightStore:
         # 100 MiB buffer costs up to ~0.4 s of page faults on these machines, more than streaming it.
         self._payload_pool = BufferPool(keep=2)
         self._pool_lock = threading.Lock()  # BufferPool is not thread-safe
+        self._body_pool = BufferPool(keep=2)  # uncompressed patch bodies, reused by the next patches
         self._closed = False
 
     def publish(
@@ -381,7 +383,10 @@ class WeightStore:
                 wire = self.wire(full, tpb.DTYPE_FLOAT32, prefixes)
                 with self._pool_lock:
                     buf = self._state_pool.take(wire.payload.nbytes)
-                out, reached = encode_patch(full, wire, held, buf)
+                    body = self._body_pool.take(patch_body_bytes(wire.tensors))
+                out, reached = encode_patch(full, wire, held, buf, body)
+                with self._pool_lock:  # the uncompressed body: the next patch encode reuses it
+                    self._body_pool.give(body)
                 self._keep_state(experiment, reached, patched=True)  # the base of this link's next patch
             else:
                 base = None
