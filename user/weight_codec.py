@@ -285,15 +285,24 @@ def _info_kwargs(info: learner_pb2.TensorInfo, offset: int, wire_dtype: int) -> 
     return dict(name=info.name, dtype=info.dtype, shape=list(info.shape), offset=offset, nbytes=nbytes, wire_dtype=wd)
 
 
-def encode(full: PackedWeights, encoding: int, wire: WirePayload, base: WirePayload | None = None) -> PackedWeights:
-    """One encoded version for every subscriber that wants (encoding, base): delta if base is given."""
+def encode(
+    full: PackedWeights,
+    encoding: int,
+    wire: WirePayload,
+    base: WirePayload | None = None,
+    xor_buf: np.ndarray | None = None,
+) -> PackedWeights:
+    """One encoded version for every subscriber that wants (encoding, base): delta if base is given.
+
+    xor_buf: a reused uint8 buffer of the payload's size for the XOR (freed pages cost more than the XOR)."""
     codec = CODECS[encoding]
     src = full.header
     data = wire.payload
     if base is not None:
         if not codec.delta or not base.same_layout(wire.tensors):
             raise ValueError("a delta needs a delta encoding and a base of the same layout")
-        data = np.bitwise_xor(data, base.payload)
+        out = xor_buf if xor_buf is not None and xor_buf.nbytes == data.nbytes and codec.zstd else None
+        data = np.bitwise_xor(data, base.payload, out=out)  # compressed below: the buffer is free again
     elif codec.delta:
         raise ValueError("a delta encoding needs a base")
     payload: bytes | np.ndarray = _compress(data) if codec.zstd else data

@@ -191,7 +191,7 @@ class WeightStore:
         # 100 MiB buffer costs up to ~0.4 s of page faults on these machines, more than streaming it.
         self._payload_pool = BufferPool(keep=2)
         self._pool_lock = threading.Lock()  # BufferPool is not thread-safe
-        self._body_pool = BufferPool(keep=2)  # uncompressed patch bodies, reused by the next patches
+        self._body_pool = BufferPool(keep=2)  # uncompressed patch bodies and XORs, reused by the next ones
         self._closed = False
 
     def publish(
@@ -395,7 +395,13 @@ class WeightStore:
                     if base_full is None:
                         raise KeyError(base_version)
                     base = self.wire(base_full, codec.wire_dtype, prefixes)
-                out = encode(full, encoding, self.wire(full, codec.wire_dtype, prefixes), base)
+                wire = self.wire(full, codec.wire_dtype, prefixes)
+                with self._pool_lock:
+                    scratch = self._body_pool.take(wire.payload.nbytes) if base is not None else None
+                out = encode(full, encoding, wire, base, scratch)
+                if scratch is not None:
+                    with self._pool_lock:  # XOR scratch: compressed already, the next delta reuses it
+                        self._body_pool.give(scratch)
             full_bytes = self.selected_bytes(full, prefixes)
             self._stats[encoding].observe(
                 out.encoded_bytes / max(1, full_bytes), full_bytes, time.perf_counter() - start
