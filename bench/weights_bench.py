@@ -34,9 +34,9 @@ from bench import Row, median
 from user import rpc
 from user.config import AuthConfig, LearnerConfig, ServerConfig
 from user.policy import actor_from_config, module_tensors, policy_spec_for
-from user.v1 import learner_pb2, learner_pb2_grpc
+from user.v1 import learner_pb2
 from user.weight_codec import WE
-from user.weights import WeightServicer, WeightSet, WeightStore, WeightSubscriber
+from user.weights import WeightServicer, WeightSet, WeightStore, WeightSubscriber, add_learner_servicer
 
 RECEIVE_TIMEOUT_S = 300.0
 CHUNK = 1 << 20
@@ -103,7 +103,7 @@ class OursFanout:
         name = learner_pb2.DESCRIPTOR.services_by_name["Learner"].full_name
         self.server = rpc.start_server(
             "bench-learner",
-            lambda s: learner_pb2_grpc.add_LearnerServicer_to_server(servicer, s),
+            lambda s: add_learner_servicer(servicer, s),
             [name],
             ServerConfig(host="127.0.0.1", port=0, metrics_port=0, max_workers=4 + 2 * (n + remote), grace_s=0.5),
             self.auth,

@@ -18,8 +18,8 @@ from user.config import ConfigError, StackConfig
 from user.log import kv
 from user.policy import check_device
 from user.registry import PluginError
-from user.v1 import learner_pb2, learner_pb2_grpc
-from user.weights import WeightServicer, WeightStore
+from user.v1 import learner_pb2
+from user.weights import WeightServicer, WeightStore, add_learner_servicer
 from user.worker import report_worker
 
 log = logging.getLogger(__name__)
@@ -92,7 +92,7 @@ class LearnerService(rpc.GrpcService):
         torch.set_num_threads(self.cfg.learner.torch_threads)
         self.running = rpc.start_server(
             "learner",
-            lambda server: learner_pb2_grpc.add_LearnerServicer_to_server(self.servicer, server),
+            lambda server: add_learner_servicer(self.servicer, server),
             [SERVICE_NAME],
             self.cfg.learner.server,
             self.cfg.auth,

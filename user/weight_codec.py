@@ -185,10 +185,14 @@ class BufferPool:
         del self._free[: -self.keep]
 
 
+ZSTD_THREADS_FROM = 4 << 20  # bigger inputs are compressed by zstd's worker threads (one per core)
+
+
 def _compress(data: np.ndarray) -> bytes:
     import zstandard
 
-    return zstandard.ZstdCompressor(level=ZSTD_LEVEL).compress(data)
+    threads = -1 if data.nbytes >= ZSTD_THREADS_FROM else 0  # -1: as many as cores; the GIL is released
+    return zstandard.ZstdCompressor(level=ZSTD_LEVEL, threads=threads).compress(data)
 
 
 # --------------------------------------------------------------------------- pack / encode
@@ -202,8 +206,11 @@ def pack_weights(
     encoding: int = ENCODING_RAW,
     digest: int = DEFAULT_DIGEST,
     experiment: str = "",
+    alloc: Callable[[int], np.ndarray] | None = None,
 ) -> PackedWeights:
-    """The full-precision set as published: every tensor, raw (or zstd), with its digest."""
+    """The full-precision set as published: every tensor, raw (or zstd), with its digest.
+
+    alloc(nbytes) -> 1-D uint8 buffer for the raw payload (e.g. a BufferPool's take: no fresh pages)."""
     if version <= 0:
         raise ValueError("weight versions start at 1")
     if encoding not in (ENCODING_RAW, ENCODING_ZSTD):
@@ -230,7 +237,7 @@ def pack_weights(
         offset += arr.nbytes
     # One copy of each tensor straight into a numpy buffer: numpy maps big buffers with huge pages,
     # where a fresh 40 MB bytes/bytearray spends ~20 ms in page faults (tobytes + join paid it twice).
-    raw_payload = np.empty(offset, dtype=np.uint8)
+    raw_payload = alloc(offset) if alloc is not None and encoding == ENCODING_RAW else np.empty(offset, np.uint8)
     for info, arr in zip(header.tensors, arrays, strict=True):
         raw_payload[info.offset : info.offset + info.nbytes].view(arr.dtype)[...] = arr.reshape(-1)
     header.total_bytes = offset
@@ -278,15 +285,24 @@ def _info_kwargs(info: learner_pb2.TensorInfo, offset: int, wire_dtype: int) -> 
     return dict(name=info.name, dtype=info.dtype, shape=list(info.shape), offset=offset, nbytes=nbytes, wire_dtype=wd)
 
 
-def encode(full: PackedWeights, encoding: int, wire: WirePayload, base: WirePayload | None = None) -> PackedWeights:
-    """One encoded version for every subscriber that wants (encoding, base): delta if base is given."""
+def encode(
+    full: PackedWeights,
+    encoding: int,
+    wire: WirePayload,
+    base: WirePayload | None = None,
+    xor_buf: np.ndarray | None = None,
+) -> PackedWeights:
+    """One encoded version for every subscriber that wants (encoding, base): delta if base is given.
+
+    xor_buf: a reused uint8 buffer of the payload's size for the XOR (freed pages cost more than the XOR)."""
     codec = CODECS[encoding]
     src = full.header
     data = wire.payload
     if base is not None:
         if not codec.delta or not base.same_layout(wire.tensors):
             raise ValueError("a delta needs a delta encoding and a base of the same layout")
-        data = np.bitwise_xor(data, base.payload)
+        out = xor_buf if xor_buf is not None and xor_buf.nbytes == data.nbytes and codec.zstd else None
+        data = np.bitwise_xor(data, base.payload, out=out)  # compressed below: the buffer is free again
     elif codec.delta:
         raise ValueError("a delta encoding needs a base")
     payload: bytes | np.ndarray = _compress(data) if codec.zstd else data
@@ -321,10 +337,23 @@ def _f32_segments(tensors: Sequence[learner_pb2.TensorInfo]) -> tuple[list[tuple
     return f32, other
 
 
+def _f32_run(segments: list[tuple[int, int]]) -> tuple[int, int] | None:
+    """(offset, nbytes) of the float32 segments when they lie back to back (the usual layout), else None."""
+    if not segments:
+        return None
+    start = end = segments[0][0]
+    for o, n in segments:
+        if o != end:
+            return None
+        end += n
+    return start, end - start
+
+
 def _gather_f32(payload: np.ndarray, segments: list[tuple[int, int]]) -> np.ndarray:
-    """The float32 elements of `payload`, concatenated (a view when they fill it)."""
-    if len(segments) == 1 and segments[0] == (0, payload.nbytes):
-        return payload.view("<f4")
+    """The float32 elements of `payload`, concatenated: a view when they lie back to back (no copy)."""
+    run = _f32_run(segments)
+    if run is not None:
+        return payload[run[0] : run[0] + run[1]].view("<f4")
     if not segments:
         return np.empty(0, dtype="<f4")
     return np.concatenate([payload[o : o + n].view("<f4") for o, n in segments])
@@ -337,67 +366,78 @@ def patch_body_bytes(tensors: Sequence[learner_pb2.TensorInfo]) -> int:
     return blocks * 4 + blocks * PATCH_BLOCK + sum(n for _, n in other)
 
 
-PATCH_SLICE_BLOCKS = 256  # blocks per slice of work: 4 MiB of float32 scratch, reused
+PATCH_SLICE_BLOCKS = 64  # blocks per slice of work: 1 MiB of float32 scratch, reused (stays in cache)
+
+
+def _apply_slice(
+    base: np.ndarray, steps: np.ndarray, q: np.ndarray, out: np.ndarray, lo: int, hi: int, scratch: np.ndarray
+) -> None:
+    """out[lo:hi] = base + q * step of its blocks, in float32: the one computation both sides run, so
+    sender and receiver hold the same bits. The int8 -> float32 cast is exact, so cast-then-multiply
+    gives the bits of a mixed-type multiply. lo is a multiple of PATCH_BLOCK."""
+    blocks = -(-(hi - lo) // PATCH_BLOCK)
+    tmp = scratch[: blocks * PATCH_BLOCK].reshape(blocks, PATCH_BLOCK)
+    b0 = lo // PATCH_BLOCK
+    tmp[...] = q[lo : lo + blocks * PATCH_BLOCK].reshape(blocks, PATCH_BLOCK)
+    tmp *= steps[b0 : b0 + blocks, None]
+    np.add(base[lo:hi], tmp.reshape(-1)[: hi - lo], out=out[lo:hi])
 
 
 def _apply_steps(base: np.ndarray, steps: np.ndarray, q: np.ndarray, out: np.ndarray) -> np.ndarray:
-    """out = base + q * step per block, in float32: the one computation both sides run (bit-identical).
-
-    Sliced, with one small scratch buffer, so no big temporary is allocated (page faults)."""
+    """out = base + q * step per block (the receiver's side), slice by slice with one small scratch
+    buffer, so no big temporary is allocated (page faults)."""
     n, step = base.size, PATCH_SLICE_BLOCKS * PATCH_BLOCK
+    scratch = np.empty(step, dtype=np.float32)
+    for lo in range(0, n, step):
+        _apply_slice(base, steps, q, out, lo, min(n, lo + step), scratch)
+    return out
+
+
+def _quantize(new: np.ndarray, old: np.ndarray, steps: np.ndarray, q: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """Fill steps (one per block) and q (int8, padded to whole blocks) for new - old, and out with the
+    state the receiver will compute (_apply_slice), slice by slice while the slice is in cache.
+
+    Only the sender quantizes (steps travel), so its arithmetic need not match the receiver's: sums of
+    squares accumulate in float32 (einsum), and q needs no clipping: step >= max|diff| / 127 keeps
+    |diff / step| <= 127 (plus rounding), which rint keeps at 127."""
+    n, step = new.size, PATCH_SLICE_BLOCKS * PATCH_BLOCK
+    d = np.zeros(step, dtype=np.float32)
     scratch = np.empty(step, dtype=np.float32)
     for lo in range(0, n, step):
         hi = min(n, lo + step)
         blocks = -(-(hi - lo) // PATCH_BLOCK)
-        tmp = scratch[: blocks * PATCH_BLOCK].reshape(blocks, PATCH_BLOCK)
-        b0 = lo // PATCH_BLOCK
-        np.multiply(
-            q[lo : lo + blocks * PATCH_BLOCK].reshape(blocks, PATCH_BLOCK), steps[b0 : b0 + blocks, None], out=tmp
-        )
-        np.add(base[lo:hi], tmp.reshape(-1)[: hi - lo], out=out[lo:hi])
-    return out
-
-
-def _quantize(new: np.ndarray, old: np.ndarray, steps: np.ndarray, q: np.ndarray) -> None:
-    """Fill steps (one per block) and q (int8, padded to whole blocks) for new - old, slice by slice."""
-    n, step = new.size, PATCH_SLICE_BLOCKS * PATCH_BLOCK
-    scratch = np.zeros(step, dtype=np.float32)
-    sq = np.zeros(step, dtype=np.float32)
-    for lo in range(0, n, step):
-        hi = min(n, lo + step)
-        blocks = -(-(hi - lo) // PATCH_BLOCK)
         b0, size = lo // PATCH_BLOCK, blocks * PATCH_BLOCK
-        d = scratch[:size]
-        d[hi - lo :] = 0
+        if hi - lo < size:  # the last, partial block: zero padding (the receiver ignores it)
+            d[hi - lo : size] = 0
+            w = np.zeros(size, dtype=np.float32)
+            w[: hi - lo] = new[lo:hi]
+        else:
+            w = new[lo:hi]
         np.subtract(new[lo:hi], old[lo:hi], out=d[: hi - lo])
-        w = sq[:size]
-        w[hi - lo :] = 0
-        np.square(new[lo:hi], out=w[: hi - lo])
-        d2 = d.reshape(blocks, PATCH_BLOCK)
-        rms = np.sqrt(w.reshape(blocks, PATCH_BLOCK).mean(axis=1, dtype=np.float64)).astype(np.float32)
-        peak = np.abs(d2).max(axis=1)
+        d2, w2 = d[:size].reshape(blocks, PATCH_BLOCK), w.reshape(blocks, PATCH_BLOCK)
+        rms = np.sqrt(np.einsum("ij,ij->i", w2, w2) / np.float32(PATCH_BLOCK))
+        peak = np.maximum(d2.max(axis=1), -d2.min(axis=1))
         s = np.maximum(np.float32(2 * PATCH_REL_TOL) * rms, peak / np.float32(127))  # |error| <= step / 2
         if not np.isfinite(s).all():
             raise PatchError("non-finite weights or differences")
         s[s == 0] = 1.0  # an unchanged all-zero block
         steps[b0 : b0 + blocks] = s
         d2 /= s[:, None]
-        np.rint(d, out=d)
-        np.clip(d, -127, 127, out=d)
-        q[lo : lo + size] = d
+        np.rint(d2, out=q[lo : lo + size].reshape(blocks, PATCH_BLOCK), casting="unsafe")  # into int8
+        _apply_slice(old, steps, q, out, lo, hi, scratch)
+    return out
 
 
-def _assemble(
-    like: np.ndarray, f32: list[tuple[int, int]], values: np.ndarray, other: list[tuple[int, int]], rest: np.ndarray
+def _write_state(
+    out: np.ndarray, f32: list[tuple[int, int]], values: np.ndarray, other: list[tuple[int, int]], rest: np.ndarray
 ) -> np.ndarray:
-    """A payload of like's size with the float32 segments from `values` and the others from `rest`."""
-    if len(f32) == 1 and f32[0] == (0, like.nbytes):
-        return values.view(np.uint8)
-    out = np.empty(like.nbytes, dtype=np.uint8)
-    pos = 0
-    for o, n in f32:
-        out[o : o + n] = values[pos // 4 : (pos + n) // 4].view(np.uint8)
-        pos += n
+    """Fill payload `out` with the float32 segments from `values` (unless _state_values put them there
+    already) and the other tensors from `rest`."""
+    if _f32_run(f32) is None:
+        pos = 0
+        for o, n in f32:
+            out[o : o + n] = values[pos // 4 : (pos + n) // 4].view(np.uint8)
+            pos += n
     pos = 0
     for o, n in other:
         out[o : o + n] = rest[pos : pos + n]
@@ -405,27 +445,45 @@ def _assemble(
     return out
 
 
+def _state_values(out: np.ndarray, f32: list[tuple[int, int]], size: int) -> np.ndarray:
+    """Where the new float32 values go: straight into the payload `out` when they lie back to back."""
+    run = _f32_run(f32)
+    if run is not None:
+        return out[run[0] : run[0] + run[1]].view("<f4")
+    return np.empty(size, dtype=np.float32)
+
+
 def encode_patch(
-    full: PackedWeights, wire: WirePayload, base: WirePayload, buf: np.ndarray | None = None
+    full: PackedWeights,
+    wire: WirePayload,
+    base: WirePayload,
+    buf: np.ndarray | None = None,
+    body_buf: np.ndarray | None = None,
 ) -> tuple[PackedWeights, WirePayload]:
     """A patch taking `base` (the receiver's exact state) towards `wire`, and the state it leads to
-    (written into `buf`, uint8 of the payload's size, when given: a reused buffer faults no pages)."""
+    (written into `buf`, uint8 of the payload's size, when given: a reused buffer faults no pages).
+    body_buf: a reused buffer of at least patch_body_bytes for the uncompressed body."""
     if not base.same_layout(wire.tensors) or base.version >= wire.version:
         raise PatchError("a patch needs an older base of the same layout")
     f32, other = _f32_segments(wire.tensors)
     new, old = _gather_f32(wire.payload, f32), _gather_f32(base.payload, f32)
     blocks = -(-new.size // PATCH_BLOCK)
-    body = np.empty(patch_body_bytes(wire.tensors), dtype=np.uint8)  # steps | q | other tensors
+    body_bytes = patch_body_bytes(wire.tensors)  # steps | q | other tensors
+    reuse = body_buf is not None and body_buf.nbytes >= body_bytes
+    body = body_buf[:body_bytes] if reuse else np.empty(body_bytes, dtype=np.uint8)
     steps = body[: blocks * 4].view("<f4")
     q = body[blocks * 4 : blocks * 4 + blocks * PATCH_BLOCK].view(np.int8)
-    _quantize(new, old, steps, q)
-    out = buf if buf is not None and buf.nbytes == new.nbytes else np.empty(new.nbytes, dtype=np.uint8)
-    values = _apply_steps(old, steps, q, out.view("<f4"))
-    rest = np.concatenate([wire.payload[o : o + nb] for o, nb in other]) if other else _EMPTY
-    state_payload = _assemble(wire.payload, f32, values, other, rest)
+    size = wire.payload.nbytes
+    out = buf if buf is not None and buf.nbytes == size else np.empty(size, dtype=np.uint8)
+    values = _quantize(new, old, steps, q, _state_values(out, f32, new.size))
+    rest = body[blocks * 4 + blocks * PATCH_BLOCK :]
+    pos = 0
+    for o, nb in other:  # non-float tensors travel raw
+        rest[pos : pos + nb] = wire.payload[o : o + nb]
+        pos += nb
+    state_payload = _write_state(out, f32, values, other, rest)
     digest = _HASHERS[full.header.digest_kind][0](state_payload).digest()
     state = WirePayload(wire.version, wire.tensors, state_payload, digest)
-    body[blocks * 4 + blocks * PATCH_BLOCK :] = rest
     payload = _compress(body)
     src = full.header
     header = learner_pb2.WeightHeader(
@@ -459,10 +517,10 @@ def apply_patch(
     if not np.isfinite(steps).all():
         raise WireError("weight patch: non-finite step")
     rest = body[blocks * 4 + blocks * PATCH_BLOCK :]
-    if len(f32) == 1 and f32[0] == (0, base.payload.nbytes):  # all float32: straight into the payload
-        out = (pool.take(base.payload.nbytes) if pool else np.empty(base.payload.nbytes, np.uint8)).view("<f4")
-        return _apply_steps(old, steps, q, out).view(np.uint8)
-    return _assemble(base.payload, f32, _apply_steps(old, steps, q, np.empty(old.size, np.float32)), other, rest)
+    size = base.payload.nbytes
+    out = pool.take(size) if pool else np.empty(size, np.uint8)  # a reused buffer: no fresh pages
+    values = _apply_steps(old, steps, q, _state_values(out, f32, old.size))
+    return _write_state(out, f32, values, other, rest)
 
 
 def iter_weight_messages(
@@ -484,6 +542,99 @@ def iter_weight_messages(
         if len(packed._chunk_cache) < 4:
             packed._chunk_cache[max_chunk_bytes] = msgs
     yield from msgs
+
+
+# --------------------------------------------------------------------------- chunk frames
+# A chunk message serialized by hand, straight from the payload: protobuf (upb) would copy each chunk
+# into a message, again to serialize it per subscriber, and the receiver's parse and every read of
+# .data copy it again (~30 us per MiB each, under the GIL). The bytes are exactly the protobuf
+# encoding of WeightMessage{chunk: WeightChunk{version = 1, offset = 2, data = 3}} (proto/user/v1/
+# learner.proto), so any protobuf peer reads them; the parser below takes that one shape and hands
+# anything else to protobuf.
+
+_CHUNK_TAG = b"\x12"  # WeightMessage.chunk: field 2, length-delimited
+
+
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while n > 0x7F:
+        out.append(n & 0x7F | 0x80)
+        n >>= 7
+    out.append(n)
+    return bytes(out)
+
+
+def chunk_frame(version: int, offset: int, data: memoryview) -> bytes:
+    """The serialized WeightMessage of one chunk (as SerializeToString writes it: zero fields omitted)."""
+    head = (b"\x08" + _varint(version) if version else b"") + (b"\x10" + _varint(offset) if offset else b"")
+    head += (b"\x1a" + _varint(len(data))) if len(data) else b""
+    return b"".join((_CHUNK_TAG, _varint(len(head) + len(data)), head, data))
+
+
+def iter_weight_frames(packed: PackedWeights, max_chunk_bytes: int = DEFAULT_CHUNK_BYTES) -> Iterator[bytes]:
+    """iter_weight_messages, serialized: one copy per chunk straight from the payload, nothing cached."""
+    if max_chunk_bytes <= 0:
+        raise ValueError("max_chunk_bytes must be positive")
+    yield learner_pb2.WeightMessage(header=packed.header).SerializeToString()
+    view = memoryview(packed.payload).cast("B")
+    for start in range(0, len(view), max_chunk_bytes):
+        yield chunk_frame(packed.version, start, view[start : start + max_chunk_bytes])
+
+
+def serialize_weight_message(msg: learner_pb2.WeightMessage | bytes) -> bytes:
+    """Response serializer of the weight streams: frames pass as they are, messages are serialized."""
+    return msg if isinstance(msg, bytes) else msg.SerializeToString()
+
+
+@dataclass(frozen=True, slots=True)
+class RawChunk:
+    """A WeightChunk read without protobuf's copies: data is a view into the received message."""
+
+    version: int
+    offset: int
+    data: memoryview
+
+
+def _read_varint(buf: bytes, pos: int) -> tuple[int, int]:
+    value = shift = 0
+    while True:
+        if pos >= len(buf) or shift > 63:
+            raise IndexError("truncated varint")
+        b = buf[pos]
+        pos += 1
+        value |= (b & 0x7F) << shift
+        if b < 0x80:
+            return value, pos
+        shift += 7
+
+
+def parse_weight_message(buf: bytes) -> learner_pb2.WeightMessage | RawChunk:
+    """Response deserializer of the weight streams: a lone chunk as a RawChunk (no copy of its data),
+    anything else (a header, unknown or repeated fields) by protobuf."""
+    try:
+        if buf[:1] == _CHUNK_TAG:
+            size, pos = _read_varint(buf, 1)
+            if pos + size == len(buf):
+                version = offset = 0
+                data = memoryview(b"")
+                while pos < len(buf):
+                    tag, pos = _read_varint(buf, pos)
+                    if tag == 0x08:
+                        version, pos = _read_varint(buf, pos)
+                    elif tag == 0x10:
+                        offset, pos = _read_varint(buf, pos)
+                    elif tag == 0x1A:
+                        n, pos = _read_varint(buf, pos)
+                        if pos + n > len(buf):
+                            raise IndexError("truncated bytes field")
+                        data, pos = memoryview(buf)[pos : pos + n], pos + n
+                    else:
+                        break  # another field: protobuf's parse below decides
+                else:
+                    return RawChunk(version & (2**64 - 1), offset & (2**64 - 1), data)
+    except IndexError:
+        pass  # malformed: protobuf's parse raises the proper error
+    return learner_pb2.WeightMessage.FromString(buf)
 
 
 # --------------------------------------------------------------------------- reassembly
@@ -553,7 +704,9 @@ class WeightAssembler:
         self._buf = _EMPTY
         self._filled = 0
         self._hash: Any = None  # running digest of raw full payloads, updated as chunks arrive
-        self._pool = BufferPool()
+        # receive, decoded patch body and payload buffers cycle through here: keep one spare of each
+        self._pool = BufferPool(keep=3)
+        self.chunk_bytes = 0  # data bytes of the last chunk fed (0 for a header or a skipped chunk)
 
     @property
     def in_progress(self) -> bool:
@@ -575,15 +728,18 @@ class WeightAssembler:
             self._pool.give(self.held.payload)  # reused once the set's tensors are gone
         self.held = None
 
-    def feed(self, msg: learner_pb2.WeightMessage) -> WeightSet | None:
-        kind = msg.WhichOneof("msg")
-        if kind == "chunk" and self._header is None and msg.chunk.version == self._skip_version != 0:
+    def feed(self, msg: learner_pb2.WeightMessage | RawChunk) -> WeightSet | None:
+        self.chunk_bytes = 0
+        raw = isinstance(msg, RawChunk)
+        kind = "chunk" if raw else msg.WhichOneof("msg")
+        chunk = msg if raw else msg.chunk
+        if kind == "chunk" and self._header is None and chunk.version == self._skip_version != 0:
             return None  # the rest of a version already rejected
         try:
             if kind == "header":
                 return self._on_header(msg.header)
             if kind == "chunk":
-                return self._on_chunk(msg.chunk)
+                return self._on_chunk(chunk)
             raise WireError("empty weight message")
         except WireError:
             if self._header is not None:
@@ -613,13 +769,14 @@ class WeightAssembler:
         self._hash = _HASHERS[header.digest_kind][0]() if streaming else None
         return self._finish() if header.encoded_bytes == 0 else None
 
-    def _on_chunk(self, chunk: learner_pb2.WeightChunk) -> WeightSet | None:
+    def _on_chunk(self, chunk: learner_pb2.WeightChunk | RawChunk) -> WeightSet | None:
         h = self._header
         if h is None:
             raise WireError("weight chunk without a header")
         if chunk.version != h.version:
             raise WireError(f"weight chunk of v{chunk.version} inside v{h.version}")
-        start, data = self._filled, chunk.data
+        start, data = self._filled, chunk.data  # read once: each read copies the bytes (upb)
+        self.chunk_bytes = len(data)
         if chunk.offset != start:
             raise WireError(f"weight chunk at offset {chunk.offset}, expected {start}")
         if not data:

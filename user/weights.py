@@ -49,15 +49,20 @@ from user.weight_codec import (
     BufferPool,
     PackedWeights,
     PatchError,
+    RawChunk,
     WeightAssembler,
     WeightSet,
     WirePayload,
     encode,
     encode_patch,
     encoding_name,
+    iter_weight_frames,
     iter_weight_messages,
     pack_weights,
+    parse_weight_message,
+    patch_body_bytes,
     selected,
+    serialize_weight_message,
     wire_payload,
 )
 from user.wire import WireError
@@ -182,7 +187,11 @@ class WeightStore:
         # versions and the states patches lead to. The bases of patches; they leave with their version.
         self._states: dict[tuple[str, bytes], tuple[WirePayload, bool]] = {}  # (state, made by a patch)
         self._state_pool = BufferPool(keep=2)  # buffers of patched states that left: the next ones reuse them
+        # Published payloads that left the history: the next publish packs into one of them. A fresh
+        # 100 MiB buffer costs up to ~0.4 s of page faults on these machines, more than streaming it.
+        self._payload_pool = BufferPool(keep=2)
         self._pool_lock = threading.Lock()  # BufferPool is not thread-safe
+        self._body_pool = BufferPool(keep=2)  # uncompressed patch bodies and XORs, reused by the next ones
         self._closed = False
 
     def publish(
@@ -194,7 +203,9 @@ class WeightStore:
         *,
         experiment: str = "",
     ) -> PackedWeights:
-        packed = pack_weights(version, policy, tensors, learner_updates, experiment=experiment)  # outside the lock
+        packed = pack_weights(  # outside the lock
+            version, policy, tensors, learner_updates, experiment=experiment, alloc=self._take_payload_buffer
+        )
         self.publish_packed(packed)
         return packed
 
@@ -210,7 +221,10 @@ class WeightStore:
                 raise ValueError(f"weight version {packed.version} is not newer than {next(reversed(versions))}")
             versions[packed.version] = packed
             while len(versions) > self.history:
-                versions.popitem(last=False)
+                _, gone_packed = versions.popitem(last=False)
+                if isinstance(gone_packed.payload, np.ndarray):
+                    with self._pool_lock:  # reused by a later publish once nothing views it
+                        self._payload_pool.give(gone_packed.payload)
             kept = {(experiment, v) for v in versions}
             self._cond.notify_all()
         with self._cache_lock:  # encodings of versions that left the history go with them
@@ -222,6 +236,10 @@ class WeightStore:
                 if patched:
                     with self._pool_lock:
                         self._state_pool.give(state.payload)
+
+    def _take_payload_buffer(self, nbytes: int) -> np.ndarray:
+        with self._pool_lock:
+            return self._payload_pool.take(nbytes)
 
     def _key(self, experiment: str) -> str:
         """Resolve "" to the first experiment published, and any name to "" when the publisher names none."""
@@ -365,7 +383,10 @@ class WeightStore:
                 wire = self.wire(full, tpb.DTYPE_FLOAT32, prefixes)
                 with self._pool_lock:
                     buf = self._state_pool.take(wire.payload.nbytes)
-                out, reached = encode_patch(full, wire, held, buf)
+                    body = self._body_pool.take(patch_body_bytes(wire.tensors))
+                out, reached = encode_patch(full, wire, held, buf, body)
+                with self._pool_lock:  # the uncompressed body: the next patch encode reuses it
+                    self._body_pool.give(body)
                 self._keep_state(experiment, reached, patched=True)  # the base of this link's next patch
             else:
                 base = None
@@ -374,7 +395,13 @@ class WeightStore:
                     if base_full is None:
                         raise KeyError(base_version)
                     base = self.wire(base_full, codec.wire_dtype, prefixes)
-                out = encode(full, encoding, self.wire(full, codec.wire_dtype, prefixes), base)
+                wire = self.wire(full, codec.wire_dtype, prefixes)
+                with self._pool_lock:
+                    scratch = self._body_pool.take(wire.payload.nbytes) if base is not None else None
+                out = encode(full, encoding, wire, base, scratch)
+                if scratch is not None:
+                    with self._pool_lock:  # XOR scratch: compressed already, the next delta reuses it
+                        self._body_pool.give(scratch)
             full_bytes = self.selected_bytes(full, prefixes)
             self._stats[encoding].observe(
                 out.encoded_bytes / max(1, full_bytes), full_bytes, time.perf_counter() - start
@@ -522,6 +549,7 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         self.keyframe_every = keyframe_every
         self._lock = threading.Lock()
         self._links: dict[int, Link] = {}
+        self.frames = False  # set by add_learner_servicer: responses may be serialized chunk frames
 
     @property
     def subscribers(self) -> int:
@@ -625,7 +653,7 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
                     continue
                 packed = self._encode(link, full)
                 start = time.perf_counter()
-                yield from iter_weight_messages(packed, chunk_bytes)
+                yield from (iter_weight_frames if self.frames else iter_weight_messages)(packed, chunk_bytes)
                 self._count_sent(link, packed)
                 if acks is None:
                     have = link.applied_version = packed.version
@@ -708,6 +736,55 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
             SUB_SYNC.labels(link.client_id).set(link.sync_latency_s)
         SUB_GOODPUT.labels(link.client_id).set(link.goodput_bps)
         return True
+
+
+class _WeightFrames(grpc.GenericRpcHandler):
+    """The generated generic handler, with the weight streams' serializer swapped (see _with_frames)."""
+
+    def __init__(self, inner: grpc.GenericRpcHandler) -> None:
+        self.inner = inner
+
+    def service(self, handler_call_details: grpc.HandlerCallDetails) -> grpc.RpcMethodHandler | None:
+        return _with_frames(handler_call_details.method, self.inner.service(handler_call_details))
+
+
+STREAM_WEIGHTS = "/user.v1.Learner/StreamWeights"
+_FRAMED = {STREAM_WEIGHTS, "/user.v1.Learner/SubscribeWeights"}
+
+
+def _with_frames(method: str, handler: grpc.RpcMethodHandler | None) -> grpc.RpcMethodHandler | None:
+    if handler is None or method not in _FRAMED:
+        return handler
+    if handler.stream_stream:
+        return grpc.stream_stream_rpc_method_handler(
+            handler.stream_stream, handler.request_deserializer, serialize_weight_message
+        )
+    return grpc.unary_stream_rpc_method_handler(
+        handler.unary_stream, handler.request_deserializer, serialize_weight_message
+    )
+
+
+class _FramedRegistration:
+    """What add_LearnerServicer_to_server sees as the server: it passes the handlers on with the
+    weight streams' response serializer accepting frames (bytes already serialized)."""
+
+    def __init__(self, server: grpc.Server) -> None:
+        self.server = server
+
+    def add_generic_rpc_handlers(self, handlers: Sequence[grpc.GenericRpcHandler]) -> None:
+        self.server.add_generic_rpc_handlers(tuple(_WeightFrames(h) for h in handlers))
+
+    def add_registered_method_handlers(self, service: str, handlers: dict[str, grpc.RpcMethodHandler]) -> None:
+        framed = {name: _with_frames(f"/{service}/{name}", h) for name, h in handlers.items()}
+        self.server.add_registered_method_handlers(service, framed)
+
+
+def add_learner_servicer(servicer: learner_pb2_grpc.LearnerServicer, server: grpc.Server) -> None:
+    """learner_pb2_grpc.add_LearnerServicer_to_server, with weight chunks streamed as frames serialized
+    straight from the payload (one copy per chunk, as a bare bytes stream makes; no protobuf copies)."""
+    learner_pb2_grpc.add_LearnerServicer_to_server(servicer, _FramedRegistration(server))
+    if isinstance(servicer, WeightServicer):
+        servicer.frames = True
 
 
 # --------------------------------------------------------------------------- client side
@@ -815,25 +892,30 @@ class WeightSubscriber:
                 yield item
 
         with rpc.make_channel(self.addr, self.auth) as channel:
-            stub = learner_pb2_grpc.LearnerStub(channel)
-            self._call = call = stub.StreamWeights(requests())
+            # The stub's StreamWeights, with a deserializer that reads chunks without protobuf's copies.
+            stream = channel.stream_stream(
+                STREAM_WEIGHTS,
+                request_serializer=learner_pb2.WeightAck.SerializeToString,
+                response_deserializer=parse_weight_message,
+            )
+            self._call = call = stream(requests())
             self.connects += 1
             if self._stop.is_set():  # stop() may have run before the call existed
                 call.cancel()
             first_ns, received, version = 0, 0, 0
             try:
                 for msg in call:
-                    if msg.HasField("header"):
+                    if not isinstance(msg, RawChunk) and msg.HasField("header"):
                         first_ns, received, version = time.perf_counter_ns(), 0, msg.header.version
-                    else:
-                        received += len(msg.chunk.data)
-                        WEIGHTS_BYTES.inc(len(msg.chunk.data))
                     done_ns = time.perf_counter_ns()
                     try:
                         weights = self._assembler.feed(msg)
                     except WireError as exc:
-                        self._reject(outbox, version or msg.chunk.version, exc)
+                        self._reject(outbox, version or (msg if isinstance(msg, RawChunk) else msg.chunk).version, exc)
                         continue
+                    finally:  # counted by the assembler: each read of chunk.data copies it (upb)
+                        received += self._assembler.chunk_bytes
+                        WEIGHTS_BYTES.inc(self._assembler.chunk_bytes)
                     if weights is None:
                         continue
                     applied = self._apply(weights)
