@@ -1,22 +1,32 @@
 """VLA inference for many robots: our InferenceService (dynamic batching, batched preprocessing)
-vs a one-request-at-a-time server of the same flow_vla model.
+vs a one-request-at-a-time server of the same flow_vla model, and (one robot, tiny SmolVLA) vs
+lerobot's own async-inference PolicyServer (bench/inference_lerobot_peer.py).
 
 The peer serves the same Inference.Act proto on the same gRPC setup but runs preprocess + forward
 for one request at a time under a lock, the way openpi's websocket policy server and lerobot's
 async-inference policy server serve a policy (one observation in, one chunk out, in turn). Each
-robot is a separate process sending a 64x64 camera image, its state and an instruction, and
-calling Act in a loop (closed loop: the next request after the answer); a robot cycles through
-a few observations made before the window, so the robots' own CPU is the gRPC client and nothing
-else. Windows alternate ours/peer so background load hits both alike. Both servers run in this
-process with one torch thread (as `services.inference.server.run` sets it; on 2 cores a second
-intra-op thread only fights the robots and the gRPC threads).
+robot is a separate process sending its camera images, its state and an instruction; a robot
+cycles through a few observations made before the window, so the robots' own CPU is the gRPC
+client and nothing else. Windows alternate ours/peer so background load hits both alike. Both
+servers run in this process with one torch thread (as `services.inference.server.run` sets it; on
+2 cores a second intra-op thread only fights the robots and the gRPC threads).
 
-Besides throughput and latency, the CPU spent per Act call is measured: the serving process's
-(time.process_time over the window: gRPC, handler, batcher, model) and the robots' (each robot
-process's own). On a machine where the robots share the cores with the server, throughput is
-capped near cores / (robot CPU + server CPU per call) whatever the batching does, so these rows
-say how far batching can move the ratio there. The targets of issue #9 are printed as rows: at 16
-robots >= 4x the peer's throughput, with p99 <= 2x our single-robot p99.
+Two model sizes (PROFILES): the issue's toy (0.16M params, one 64x64 camera, forward ~1 ms: the
+per-call gRPC/Python path dominates) and a VLA-sized one (13.9M params, two 128x128 cameras, chunks
+of 16x7 in 10 flow steps: the forward dominates, and at batch 1 it is bound by reading the action
+expert's weights, which a batch shares, as a real VLA's is).
+
+Two ways of driving: closed loop (each robot sends its next request when the answer is in: the
+server's saturation throughput, where latency is queueing by construction) and paced (each robot
+asks at a fixed rate, as a robot executing chunks at its control rate does, from a random phase:
+does each side keep up, and what are p50/p99 against its own single-robot latency?).
+
+Besides throughput and latency, the CPU spent per Act call is measured for the closed loop: the
+serving process's (time.process_time over the window: gRPC, handler, batcher, model) and the
+robots' (each robot process's own). On a machine where the robots share the cores with the server,
+throughput is capped near cores / (robot CPU + server CPU per call) whatever the batching does. The
+targets of issue #9 are printed as rows: at 16 robots >= 4x the peer's throughput, with p99 <= 2x
+our single-robot p99.
 """
 
 from __future__ import annotations
@@ -161,8 +171,8 @@ def _robot(task: RobotTask) -> tuple[list[float], list[int], list[list[int]], li
 
     Paced (period_s > 0): call k is due at a random phase + k periods, as a robot asking for its next
     chunk at a fixed control rate; a call due while the previous one is still out goes as soon as it
-    returns (a robot that falls behind does not skip requests), so a server that cannot keep up serves
-    fewer calls than offered and its latencies grow."""
+    returns (a robot that falls behind does not skip requests) until the window ends, so a server that
+    cannot keep up serves fewer calls than offered and its latencies grow."""
     latencies, batches, stages, errors = [], [], [], []
     requests = _requests(task)
     with rpc.make_channel(task.addr, AuthConfig(token=TOKEN)) as channel:
@@ -177,7 +187,7 @@ def _robot(task: RobotTask) -> tuple[list[float], list[int], list[list[int]], li
         i = 0
         while True:
             due = task.start_at + phase + i * task.period_s if task.period_s else time.time()
-            if due >= task.end_at:
+            if due >= task.end_at or time.time() >= task.end_at:  # a robot that fell behind stops at the end too
                 break
             time.sleep(max(0.0, due - time.time()))
             req = requests[i % len(requests)]
