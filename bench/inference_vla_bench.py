@@ -442,10 +442,14 @@ def run_profile(pool: Any, profile: Profile, cfg: StackConfig, quick: bool, log:
 
 
 def lerobot_peer_rows(pool: Any, cfg: StackConfig, workdir: Path, quick: bool, log: Callable[..., None]) -> list[Row]:
+    group = "inference SmolVLA (tiny, local folder), 1 robot, lerobot's own protocol"
+    if (
+        quick
+    ):  # its server process imports lerobot + transformers: minutes on a busy machine, too long for the smoke run
+        return [Row(group, "lerobot async_inference PolicyServer", "not run in --quick", "", "", None)]
     try:
         import lerobot.async_inference.policy_server  # noqa: F401 - is lerobot's server here at all?
     except ImportError as exc:
-        group = "inference SmolVLA (tiny, local folder), 1 robot, lerobot's own protocol"
         return [Row(group, "lerobot async_inference PolicyServer", "not run", f"cannot import: {exc}", "", None)]
     from bench import inference_lerobot_peer
 
