@@ -58,8 +58,10 @@ LEGEND = {
     "learning": "learning: the whole stack as processes, learner.mode=async (ours) vs learner.mode=sync (collect, "
     "pause robots, train, publish in turn) on the same config; env steps/s and updates/s over the same window.",
     "inference_vla": "inference_vla: ours InferenceService (dynamic batching, batched preprocess) vs the same flow_vla "
-    "model served one request at a time (openpi / lerobot policy-server style); robots are separate processes "
-    "sending a 64x64 image, state and an instruction; windows alternate.",
+    "model served one request at a time (openpi / lerobot policy-server style), at two sizes (0.16M toy, 13.9M with "
+    "two 128x128 cameras); robots are separate processes, closed loop or paced at a chunk's control rate; windows "
+    "alternate. Tiny SmolVLA from a local folder, 1 robot: ours vs lerobot's async-inference PolicyServer (offline, "
+    "loopback, its own pickle protocol).",
     "hg_dagger": "hg_dagger: flow_vla on lang_reach_arm (real MuJoCo, scripted expert), in one process with in-memory "
     "tables: HG-DAgger (demos + interventions) vs BC given the same expert steps as more demos; async vs sync learner.",
     "hgdagger_stack": "hgdagger_stack: configs/hgdagger.yaml as processes (control, replay, learner, inference, "

@@ -12,9 +12,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
+# The suite's 300 s default is shorter than the run's own 600 s liveness bound below: the whole --quick bench
+# took 332-478 s on the shared 2-core machine at load 6-25.
+@pytest.mark.timeout(660)
 def test_bench_quick(tmp_path: Path) -> None:
     out = tmp_path / "bench.json"
     md = tmp_path / "bench.md"
