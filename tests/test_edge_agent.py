@@ -637,3 +637,11 @@ def test_gym_hil_panda_robot() -> None:
         assert np.isfinite(robot.observe().features["state"]).all()
     finally:
         robot.close()
+    proprio = make_robot("gym_hil_panda", "panda-1", {"block_in_state": False}, seed=0)
+    try:  # proprioception only: the same joints, gripper and TCP, no cube position
+        state = proprio.reset().features["state"]
+        assert state.shape == (18,) and list(proprio.spec.observation[0].shape) == [18]
+        np.testing.assert_allclose(state, first[:18])
+        assert "block_pos" in proprio.observe().info  # still there for scripted experts
+    finally:
+        proprio.close()

@@ -2,11 +2,14 @@
 
 From state, the float observation features are concatenated in sorted key order. From pixels, each
 camera has a small CNN (user.policies.cnn) shared by the actor and the critics: critic gradients train
-it, the actor sees its features detached (DrQ, SERL), and every sampled image is randomly shifted by
-up to `image_pad` pixels (DrQ augmentation). The critic is an ensemble of `num_critics` Q heads; the
-TD target takes the min over a random subset of `target_subset` target heads, so plain SAC (2 and 2)
-and RLPD (10 and 2, see rlpd.py) share this file. `utd` critic steps run per actor step on a batch
-of utd * batch_size rows, split in utd minibatches.
+it, the actor sees its features detached (DrQ, SERL), and every sampled image is first downsampled to
+`image_size` (when set) and then randomly shifted by up to `image_pad` pixels (DrQ augmentation).
+Each critic step runs the convs twice, not three times: once with gradients on the observations, once
+(target encoder, no gradients) on the next observations, whose features serve both the next action
+and the target heads; the actor step reuses the critic step's features. The critic is an ensemble of
+`num_critics` Q heads; the TD target takes the min over a random subset of `target_subset` target
+heads, so plain SAC (2 and 2) and RLPD (10 and 2, see rlpd.py) share this file. `utd` critic steps
+run per actor step on a batch of utd * batch_size rows, split in utd minibatches.
 
 The actor is user.policies' GaussianActor, published as policy kind "mlp" or "cnn", so the inference
 service and the edges rebuild it from spec + tensors (no pickle).
@@ -46,8 +49,11 @@ class EncoderParams(PluginParams):
     strides: list[int] = Field(default=[2, 2, 2], description="conv strides per camera encoder layer")
     latent_dim: int = Field(default=50, ge=1, description="per-camera latent size")
     image_pad: int = Field(default=4, ge=0, description="DrQ random shift in pixels; 0 turns augmentation off")
+    image_size: int = Field(
+        default=0, ge=0, description="cameras are area-downsampled to this square size before the convs (0: native)"
+    )
     state_mean: dict[str, list[float]] = Field(
-        default={}, description="per state feature, values subtracted before the networks (state-only policies)"
+        default={}, description="per state feature, values subtracted before the networks (cameras or not)"
     )
     state_std: dict[str, list[float]] = Field(
         default={}, description="per state feature, divisors after state_mean (e.g. from the demos' statistics)"
@@ -132,16 +138,15 @@ def make_encoder(layout: Layout, p: EncoderParams) -> nn.Module:
         if bad:
             sizes = dict(zip(state_keys, state_dims, strict=True))
             raise ValueError(f"{name}: {bad} are not state features of the right size ({sizes})")
-    if not image_keys:
-        if not p.state_mean and not p.state_std:
-            return StateEncoder(state_keys, state_dims)
+    mean, std = None, None
+    if p.state_mean or p.state_std:
         mean = [x for k, d in zip(state_keys, state_dims, strict=True) for x in p.state_mean.get(k, [0.0] * d)]
         std = [x for k, d in zip(state_keys, state_dims, strict=True) for x in p.state_std.get(k, [1.0] * d)]
+    if not image_keys:
         return StateEncoder(state_keys, state_dims, mean, std)
-    if p.state_mean or p.state_std:
-        raise ValueError("state_mean/state_std apply to state-only policies (no cameras in features)")
     shapes = [list(layout.observation[k].shape) for k in image_keys]
-    return ConvEncoder(image_keys, shapes, state_keys, state_dims, p.channels, p.strides, p.latent_dim)
+    args = (p.channels, p.strides, p.latent_dim, p.image_size, mean, std)
+    return ConvEncoder(image_keys, shapes, state_keys, state_dims, *args)
 
 
 def masked(action: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
@@ -151,7 +156,10 @@ def masked(action: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
 
 
 def augment(obs: Mapping[str, torch.Tensor], encoder: nn.Module, pad: int) -> dict[str, torch.Tensor]:
-    """Random-shift the images the encoder reads (no-op when pad is 0 or it reads no cameras)."""
+    """The images the encoder reads downsampled to its input size, then randomly shifted (DrQ; no shift
+    when pad is 0); state features unchanged."""
+    prepare = getattr(encoder, "prepare", None)
+    obs = prepare(obs) if prepare is not None else dict(obs)
     images = set(getattr(encoder, "image_keys", [])) if pad > 0 else set()
     return {k: random_shift(v, pad) if k in images else v for k, v in obs.items()}
 
@@ -188,8 +196,8 @@ def publish(
         "action_low": [float(x) for x in np.asarray(layout.action_low).reshape(-1)],
         "action_high": [float(x) for x in np.asarray(layout.action_high).reshape(-1)],
     }
-    if isinstance(enc, StateEncoder) and (enc.mean is not None or enc.std is not None):
-        config |= {"state_mean": enc.mean, "state_std": enc.std}
+    if state is not None and (state.mean is not None or state.std is not None):
+        config |= {"state_mean": state.mean, "state_std": state.std}
     if isinstance(enc, ConvEncoder):
         config |= {
             "image_keys": enc.image_keys,
@@ -198,6 +206,8 @@ def publish(
             "strides": list(p.strides),
             "latent_dim": p.latent_dim,
         }
+        if enc.image_size:
+            config["image_size"] = enc.image_size
     return policy_spec(CNN_KIND if isinstance(enc, ConvEncoder) else MLP_KIND, config), module_tensors(actor)
 
 
@@ -248,9 +258,12 @@ class SAC(Algorithm):
     def td_target(self, batch: Batch, next_obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
         """r + discount * (min over a random subset of target heads - alpha * log pi), unless terminated.
 
-        Only termination stops bootstrapping; a truncated episode still has a future."""
-        next_action, next_log_prob, _ = self.actor.head(self.encoder(next_obs), batch.action_mask)
-        target_q = self.critic_target(self.critic_target.encoder(next_obs), masked(next_action, batch.action_mask))
+        Only termination stops bootstrapping; a truncated episode still has a future. The target
+        encoder's features of the next observations serve both the next action and the target heads
+        (one conv pass instead of two; the target encoder trails the online one by Polyak averaging)."""
+        next_features = self.critic_target.encoder(next_obs)
+        next_action, next_log_prob, _ = self.actor.head(next_features, batch.action_mask)
+        target_q = self.critic_target(next_features, masked(next_action, batch.action_mask))
         subset = torch.randperm(self.p.num_critics, device=self.device)[: self.p.target_subset]
         next_v = target_q[subset].min(dim=0).values - self.log_alpha.exp() * next_log_prob
         discount = batch.discount if batch.discount is not None else self.p.gamma

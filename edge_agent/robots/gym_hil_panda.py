@@ -1,7 +1,8 @@
 """gym-hil's simulated Franka Panda (PandaPickCubeBase-v0) behind the Robot interface.
 
 Features: "state" = agent_pos (joint positions and velocities, gripper, TCP position) followed by the
-cube position, and with `cameras: true` two 128x128 uint8 images, "camera.front" and "camera.wrist"
+cube position (left out with `block_in_state: false`: proprioception only, for policies that must find
+the cube in the camera images), and with `cameras: true` two 128x128 uint8 images, "camera.front" and "camera.wrist"
 (rendered headless with EGL from any thread, shadows and multisampling off: ~10x faster than
 gym-hil's own image_obs renderer at this size). The 7-d action
 in [-1, 1] is (dx, dy, dz, rx, ry, rz, grip): the position part is scaled to ee_step_m metres per
@@ -52,6 +53,9 @@ class GymHilPanda(Robot):
         random_block_position: bool = True
         cameras: bool = Field(default=False, description="add the 128x128 front and wrist images")
         camera_size: int = Field(default=128, ge=16, le=512)
+        block_in_state: bool = Field(
+            default=True, description="append the cube position (privileged) to state; false: proprioception only"
+        )
 
     def __init__(self, params: Params, robot_id: str, seed: int = 0) -> None:
         self.robot_id = robot_id
@@ -115,8 +119,10 @@ class GymHilPanda(Robot):
     # --- state -------------------------------------------------------------------------------------
 
     def _state(self) -> np.ndarray:
-        data = self._base.data
-        return np.concatenate([self._base.get_robot_state(), data.sensor("block_pos").data]).astype(np.float32)
+        robot = self._base.get_robot_state()
+        if not self.params.block_in_state:
+            return robot.astype(np.float32)
+        return np.concatenate([robot, self._base.data.sensor("block_pos").data]).astype(np.float32)
 
     def _privileged(self) -> dict[str, np.ndarray | float]:
         data = self._base.data

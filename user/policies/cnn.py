@@ -1,13 +1,18 @@
 """CNN + state Gaussian policy (policy kind "cnn"): one small conv encoder per camera.
 
-Each camera image (uint8 (B, H, W, C), or float 0..255 after augmentation) goes through its own
-conv stack -> linear -> LayerNorm -> tanh (the DrQ / SERL encoder shape); the latents and the float
-state features are concatenated and fed to the same squashed-Gaussian head as the MLP policy. The
-algorithms share this encoder between actor and critics (critic gradients train it). Config JSON:
+Each camera image (uint8 (B, H, W, C), or float 0..255 after augmentation) is first area-downsampled
+to `image_size` x `image_size` when that is set (0: native size; a 128x128 camera at 64 costs about a
+quarter of the conv work), then goes through its own conv stack -> linear -> LayerNorm -> tanh (the
+DrQ / SERL encoder shape); the latents and the float state features (standardized with `state_mean` /
+`state_std` when given) are concatenated and fed to the same squashed-Gaussian head as the MLP policy.
+The algorithms share this encoder between actor and critics (critic gradients train it). Config JSON:
 
-    {"image_keys": ["camera.front"], "image_shapes": [[64, 64, 3]], "channels": [16, 32, 32],
-     "strides": [2, 2, 2], "latent_dim": 50, "state_keys": ["state"], "state_dims": [15],
-     "hidden": [256, 256], "action_low": [...], "action_high": [...]}
+    {"image_keys": ["camera.front"], "image_shapes": [[128, 128, 3]], "image_size": 64,
+     "channels": [16, 32, 32], "strides": [2, 2, 2], "latent_dim": 50, "state_keys": ["state"],
+     "state_dims": [15], "state_mean": [...], "state_std": [...], "hidden": [256, 256],
+     "action_low": [...], "action_high": [...]}
+
+(`image_size`, `state_mean` and `state_std` are optional: specs published without them still load.)
 
 Pretrained frozen encoders are not offered: torchvision's weights come from a model hub that cannot be
 reached here, and no installed package ships vision weights locally.
@@ -32,14 +37,38 @@ def module_name(key: str) -> str:
     return key.replace(".", "_")
 
 
-class CameraEncoder(nn.Module):
-    """(B, H, W, C) pixels in 0..255 -> (B, latent_dim) in [-1, 1]."""
+def downsample(image: torch.Tensor, size: int) -> torch.Tensor:
+    """(B, H, W, C) pixels -> (B, size, size, C) float pixels, area-averaged (integer factors: mean pooling);
+    unchanged (not even copied) when already that size or `size` is 0."""
+    b, h, w, c = image.shape
+    if size <= 0 or (h == size and w == size):
+        return image
+    if h % size == 0 and w % size == 0:  # mean over f x f blocks: a reshape, no strided pooling kernel
+        return image.float().reshape(b, size, h // size, size, w // size, c).mean(dim=(2, 4))
+    x = nn.functional.interpolate(image.float().permute(0, 3, 1, 2).contiguous(), size=(size, size), mode="area")
+    return x.permute(0, 2, 3, 1)
 
-    def __init__(self, shape: Sequence[int], channels: Sequence[int], strides: Sequence[int], latent_dim: int) -> None:
+
+class CameraEncoder(nn.Module):
+    """(B, H, W, C) pixels in 0..255 -> (B, latent_dim) in [-1, 1]; `image_size` > 0 downsamples first."""
+
+    def __init__(
+        self,
+        shape: Sequence[int],
+        channels: Sequence[int],
+        strides: Sequence[int],
+        latent_dim: int,
+        image_size: int = 0,
+    ) -> None:
         super().__init__()
         height, width, in_channels = (int(s) for s in shape)
         if len(channels) != len(strides) or not channels:
             raise ValueError(f"channels {list(channels)} and strides {list(strides)} must be non-empty, same length")
+        if image_size < 0:
+            raise ValueError(f"image_size must be >= 0, got {image_size}")
+        self.image_size = int(image_size)
+        if self.image_size:
+            height = width = self.image_size
         layers: list[nn.Module] = []
         for out_channels, stride in zip(channels, strides, strict=True):
             layers += [nn.Conv2d(in_channels, int(out_channels), 3, stride=int(stride)), nn.ReLU()]
@@ -50,7 +79,7 @@ class CameraEncoder(nn.Module):
         self.project = nn.Sequential(nn.Linear(flat, int(latent_dim)), nn.LayerNorm(int(latent_dim)), nn.Tanh())
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
-        x = image.float().permute(0, 3, 1, 2) / 255.0  # uint8 stays uint8 until here
+        x = downsample(image, self.image_size).float().permute(0, 3, 1, 2) / 255.0  # uint8 stays uint8 until here
         return self.project(self.convs(x - 0.5))
 
 
@@ -66,16 +95,26 @@ class ConvEncoder(nn.Module):
         channels: Sequence[int] = (16, 32, 32),
         strides: Sequence[int] = (2, 2, 2),
         latent_dim: int = 50,
+        image_size: int = 0,
+        state_mean: Sequence[float] | None = None,
+        state_std: Sequence[float] | None = None,
     ) -> None:
         super().__init__()
         if not image_keys or len(image_keys) != len(image_shapes):
             raise ValueError(f"image_keys {list(image_keys)} and image_shapes must be non-empty, same length")
-        self.image_keys = list(image_keys)
+        if (state_mean is not None or state_std is not None) and not state_keys:
+            raise ValueError("state_mean/state_std given but the encoder reads no state")
+        self.image_keys, self.image_size = list(image_keys), int(image_size)
         pairs = zip(image_keys, image_shapes, strict=True)
-        encoders = {module_name(k): CameraEncoder(s, channels, strides, latent_dim) for k, s in pairs}
+        encoders = {module_name(k): CameraEncoder(s, channels, strides, latent_dim, image_size) for k, s in pairs}
         self.cameras = nn.ModuleDict(encoders)
-        self.state = StateEncoder(state_keys, state_dims) if state_keys else None
+        self.state = StateEncoder(state_keys, state_dims, state_mean, state_std) if state_keys else None
         self.out_dim = int(latent_dim) * len(self.image_keys) + (self.state.out_dim if self.state else 0)
+
+    def prepare(self, obs: Mapping[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """The images downsampled to what the convs read (others unchanged): done once per batch, before
+        the DrQ shift, so augmentation and the convs run on the small frames."""
+        return {k: downsample(v, self.image_size) if k in self.image_keys else v for k, v in obs.items()}
 
     def forward(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
         parts = [self.cameras[module_name(k)](obs[k]) for k in self.image_keys]
@@ -93,6 +132,9 @@ def encoder_from_config(config: Mapping[str, Any]) -> ConvEncoder:
         config["channels"],
         config["strides"],
         int(config["latent_dim"]),
+        int(config.get("image_size", 0)),
+        config.get("state_mean"),
+        config.get("state_std"),
     )
 
 
@@ -100,12 +142,10 @@ def random_shift(image: torch.Tensor, pad: int) -> torch.Tensor:
     """DrQ augmentation: replicate-pad (B, H, W, C) pixels by `pad` and crop back at a random offset per image."""
     b, h, w, _ = image.shape
     padded = nn.functional.pad(image.float().permute(0, 3, 1, 2), (pad, pad, pad, pad), mode="replicate")
-    padded = padded.permute(0, 2, 3, 1)
-    dy = torch.randint(0, 2 * pad + 1, (b, 1, 1), device=image.device)
-    dx = torch.randint(0, 2 * pad + 1, (b, 1, 1), device=image.device)
-    rows = torch.arange(h, device=image.device).view(1, h, 1) + dy
-    cols = torch.arange(w, device=image.device).view(1, 1, w) + dx
-    return padded[torch.arange(b, device=image.device).view(b, 1, 1), rows, cols]
+    offsets = torch.randint(0, 2 * pad + 1, (b, 2)).tolist()
+    # One slice per image: cheaper on CPU than a gather over (B, H, W) index tensors.
+    crops = [padded[i, :, dy : dy + h, dx : dx + w] for i, (dy, dx) in enumerate(offsets)]
+    return torch.stack(crops).permute(0, 2, 3, 1)
 
 
 @register_policy(KIND)
