@@ -104,7 +104,6 @@ class Episode:
     nbytes: int = 0
     success: bool = False
     interventions: int = 0
-    tids: list[int] = field(default_factory=list)
     top: int = -1  # highest step index stored
     last: int = -1  # index of the step that ended it, -1 while open
 
@@ -298,23 +297,22 @@ class ReplayStore:
                     sc[2],
                 )
             )
-        for r, tid in zip(records, self.index.add_many(records), strict=True):
-            episodes[r.key[len(mark) : -8]].tids.append(tid)
+        self.index.add_many(records)  # (rows of each episode: the index keeps them)
         return episodes
 
     def _warm(self) -> None:
         """After a restart, read the newest transitions back into the hot tier (what online RL samples most)."""
-        n = len(self.index.keys)
+        n = self.index.n_rows
         if self.hot_bytes <= 0 or n == 0:
             return
-        newest = self._read([self.index.keys[n - 1]])[0]
+        newest = self._read([self.index.key(n - 1)])[0]
         gid = self._robot_group[newest.robot_id] = self._group(layout_of(newest))
         group = self._groups[gid]
         first = max(0, n - int(group.capacity * 0.85))
         warmed = 0
         for start in range(first, n, 1024):
             tids = [t for t in range(start, min(n, start + 1024)) if self.index.alive.a[t]]
-            keys = [self.index.keys[t] for t in tids]
+            keys = self.index.keys_of(tids)
             steps = dict(zip(keys, self._read(keys), strict=True))
             missing = [next_key(k) for k, s in steps.items() if not s.HasField("final_observation")]
             missing = [k for k in missing if k not in steps]
@@ -621,7 +619,7 @@ class ReplayStore:
                         step.policy_version,
                     )
                 )
-        first = len(self.index.keys)
+        first = self.index.n_rows
         for gid, items in hot.items():
             rows = self._groups[gid].add_many(
                 [first + i for i, _, _, _ in items],
@@ -631,9 +629,7 @@ class ReplayStore:
             )
             for (i, _, _, _), row in zip(items, rows.tolist(), strict=True):
                 records[i].hot_row = row
-        tids = self.index.add_many(records)
-        for r, tid in zip(records, tids, strict=True):
-            self._episodes[r.key[:-8]].tids.append(tid)
+        self.index.add_many(records)
         for key in sampleable:  # their transitions are indexed; a successor finds its frame in the ring
             self._tails.pop(key, None)
 
@@ -714,13 +710,13 @@ class ReplayStore:
         nxt = np.concatenate([np.asarray(cols.nxt, np.int64), np.where(nxt_gid == gids[j], nxt_seq, -1)])
         hot = (group >= 0) & (obs >= 0) & (nxt >= 0)
         hot_row = np.full(len(rec_keys), -1, np.int64)
-        tid0 = len(self.index.keys)
+        tid0 = self.index.n_rows
         if hot.any() and full is not None:
             acts = full[j] if not cols.keys else np.concatenate([_rows(cols.action, full), full[j]])
             for gid in np.unique(group[hot]).tolist():
                 m = np.flatnonzero(hot & (group == gid))
                 hot_row[m] = self._groups[gid].add_many((tid0 + m).tolist(), obs[m], nxt[m], acts[m])
-        tids = self.index.add_columns(
+        self.index.add_columns(
             rec_keys,
             robot,
             rec_tables,
@@ -732,12 +728,6 @@ class ReplayStore:
             np.where(hot, group, -1).astype(np.int32),
             hot_row,
         )
-        ep, last = None, b""
-        for key, tid in zip(rec_keys, tids.tolist(), strict=True):
-            if key[:-8] != last:
-                last = key[:-8]
-                ep = self._episodes[last]
-            ep.tids.append(tid)  # type: ignore[union-attr]
         for i in np.flatnonzero(~same_next & ~ends).tolist():  # wait for their successor (a later group)
             f = int(flags[i])
             act = None if full is None else full[i].copy()
@@ -903,13 +893,12 @@ class ReplayStore:
                 tail = _Tail(gids[i], seqs[i], actions[i], r, bool(flags & TERMINATED), bool(flags & TRUNCATED),
                              bool(flags & INTERVENTION), v)  # fmt: skip
                 self._remember(key, tail)
-        first = len(self.index.keys)
+        first = self.index.n_rows
         for gid, (ridx, obs, nxt, acts) in hot.items():
             rows = self._groups[gid].add_many([first + i for i in ridx], obs, nxt, acts)
             for i, row in zip(ridx, rows.tolist(), strict=True):
                 records[i].hot_row = row
-        for r, tid in zip(records, self.index.add_many(records), strict=True):
-            self._episodes[r.key[:-8]].tids.append(tid)
+        self.index.add_many(records)
 
     def _complete_waiting(self, prev: bytes, robot: str, gid: int, seq: int, add: Callable[..., None]) -> None:
         """The transition of a step stored in an earlier group, completed by its successor's frame."""
@@ -995,10 +984,8 @@ class ReplayStore:
         # Out of the index first, then out of LMDB: a sample (which holds the lock from draw to read) never draws
         # a step whose bytes are already gone.
         with self._lock:
-            tids: list[int] = []
             for prefix in victims:
                 ep = self._episodes.pop(prefix)
-                tids += ep.tids
                 self._n_steps -= ep.steps
                 left = self._steps_per_robot[ep.robot] - ep.steps
                 if left:
@@ -1007,7 +994,7 @@ class ReplayStore:
                     del self._steps_per_robot[ep.robot]
                 self._bytes -= ep.nbytes
                 self._evicted_steps_per_robot[ep.robot] = self._evicted_steps_per_robot.get(ep.robot, 0) + ep.steps
-            self.index.evict(tids)
+            self.index.evict_episodes(victims)
             if self.index.wants_compaction():
                 self._compact_index()
             gone = set(victims)
@@ -1026,10 +1013,6 @@ class ReplayStore:
         for group in self._groups:  # rows whose transition was dropped never validate again
             held = group.t_tid >= 0
             group.t_tid[held] = remap[group.t_tid[held]]
-        for eps in [self._episodes, *self._attached_episodes.values()]:
-            for ep in eps.values():
-                if ep.tids:
-                    ep.tids = remap[ep.tids].tolist()
         self.compactions += 1
 
     def put_spec(self, spec: robot_pb2.RobotSpec) -> None:
@@ -1170,8 +1153,8 @@ class ReplayStore:
         """Hot rows gathered from RAM, the rest read from LMDB into the same columns (caller holds the lock)."""
         idx = self.index
         cold_obs, cold_next = np.flatnonzero(~ok_obs), np.flatnonzero(~ok_next)
-        keys = [idx.keys[t] for t in tids[cold_obs].tolist()]
-        last_keys = [idx.keys[t] for t in last[cold_next].tolist()]
+        keys = idx.keys_of(tids[cold_obs])
+        last_keys = idx.keys_of(last[cold_next])
         uniq = sorted(set(keys) | set(last_keys) | {next_key(k) for k in last_keys})
         raws = dict(zip(uniq, self._get_many(uniq), strict=True))
         steps: dict[bytes, step_pb2.Step] = {}
