@@ -70,6 +70,10 @@ def test_compaction_keeps_the_index_proportional_to_what_is_stored(tmp_path: Pat
         assert store.compactions > 0
         assert store.index.n_rows == store.index.alive.n == live + store.index.dead
         assert len(store.index.alive.a) <= max(1024, 4 * live)  # capacity shrank with the rows
+        # the hot tier is at most twice capacity_mb (not cache_mb's 256 MB of evicted transitions)
+        assert store.hot_bytes == 2 << 20 and store.cache_info()["bytes"] <= (2 << 20) * 9 // 8  # (frame ring slack)
+        rows = store.index.episode_rows
+        assert sum(map(len, rows)) == live == len(store.index.slot_of) * LENGTH  # whole episodes, live rows only
         survivors = set(range(150 - store.stats()["episodes"], 150))
         misses = store.cache_info()["misses"]
         batch = store.sample(2000, np.random.default_rng(0), draw=Draw(2000, n_step=3, gamma=0.5))

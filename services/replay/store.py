@@ -195,8 +195,13 @@ class ReplayStore:
         self.path = Path(path)
         # observation feature -> how its uint8 images are stored in LMDB ("raw", "jpeg", "png"); "*" = every camera
         self.image_encoding = {k: ENCODINGS[v] for k, v in (image_encoding or {}).items() if ENCODINGS[v]}
-        self.hot_bytes = int(cache_mb) << 20
         self.capacity_bytes = int(capacity_mb) << 20  # 0 = no limit but the map
+        # the hot tier never needs more rows than are stored: with a capacity, at most twice its bytes (a hot row
+        # is about a stored step's size or less), so a small bounded buffer does not fill a 256 MB ring of
+        # evicted transitions
+        self.hot_bytes = int(cache_mb) << 20
+        if self.capacity_bytes:
+            self.hot_bytes = min(self.hot_bytes, 2 * self.capacity_bytes)
         self._write_lock = threading.Lock()  # one writer; also guards close()
         self._queue: deque[_Pending] = deque()
         self._queue_cond = threading.Condition()
