@@ -505,6 +505,11 @@ def rows(result: dict[str, Any]) -> list[Row]:
             hot0, hot1 = result["replay_hot_mb"]
             note += f"; RAM tier (cache) {hot0:.1f} -> {hot1:.1f} MB"
         out.append(Row(group, f"RSS {name}, end", r["end_mb"], r["start_mb"], "MB", False, note, PEER))
+        # after warm-up: the slope of anonymous memory (LMDB's map is file-backed) over the window's second half
+        out.append(
+            Row(group, f"RSS {name}, anonymous slope 2nd half", r["anon_slope_mb_per_min"], "", "MB/min", None,
+                f"resident {r['slope_mb_per_min']:+.2f} MB/min; flat = within noise of 0", PEER)
+        )  # fmt: skip
     return out
 
 
