@@ -410,6 +410,7 @@ class LoadRun:
                 "anon_start_mb": float(anon[0]),
                 "anon_end_mb": float(anon[-1]),
                 "anon_slope_mb_per_min": slope(anon),
+                "series": [[round(float(t), 1), round(float(m), 1), round(float(a), 1)] for t, m, a in series],  # s, MB
             }
         return {
             "window_s": window,
@@ -490,7 +491,7 @@ def rows(result: dict[str, Any]) -> list[Row]:
         procs.append(
             (
                 f"{len(edges)} edges (sum)",
-                {key: sum(r[key] for r in edges) for key in edges[0]},
+                {key: sum(r[key] for r in edges) for key in edges[0] if key != "series"},
             )
         )
     for name, r in procs:

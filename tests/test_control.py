@@ -174,6 +174,11 @@ def test_register_heartbeat_list_get(make_service: Callable[..., ControlService]
         )
         info = stub.GetRobot(control_pb2.GetRobotRequest(robot_id="arm-0"), timeout=5)
         assert [e.episode_id for e in info.recent_episodes] == ["ep3", "ep4", "ep5"]
+        listed = stub.ListRobots(control_pb2.ListRobotsRequest(), timeout=5).robots
+        assert [len(r.recent_episodes) for r in listed] == [3, 0]
+        lean = stub.ListRobots(control_pb2.ListRobotsRequest(without_episodes=True), timeout=5).robots
+        assert [(r.spec.robot_id, len(r.recent_episodes)) for r in lean] == [("arm-0", 0), ("arm-1", 0)]
+        assert lean[0].status.env_steps == 260 and lean[0].spec == listed[0].spec  # the rest is the same
 
         with pytest.raises(grpc.RpcError) as err:
             stub.GetRobot(control_pb2.GetRobotRequest(robot_id="nope"), timeout=5)

@@ -604,13 +604,13 @@ class Registry:
             rec = self._robots.get(robot_id)
             return self._info_locked(rec) if rec else None
 
-    def list(self, include_offline: bool) -> list[control_pb2.RobotInfo]:
+    def list(self, include_offline: bool, episodes: bool = True) -> list[control_pb2.RobotInfo]:
         with self._lock:
             recs = [self._robots[k] for k in sorted(self._robots)]
-            return [self._info_locked(r) for r in recs if include_offline or r.online]
+            return [self._info_locked(r, episodes) for r in recs if include_offline or r.online]
 
     @staticmethod
-    def _info_locked(rec: RobotRecord) -> control_pb2.RobotInfo:
+    def _info_locked(rec: RobotRecord, episodes: bool = True) -> control_pb2.RobotInfo:
         lease = rec.lease if rec.online and rec.lease is not None else control_pb2.RobotLease()
         return control_pb2.RobotInfo(
             lease=lease.experiment,
@@ -623,7 +623,7 @@ class Registry:
             last_heartbeat_ns=rec.last_heartbeat_ns,
             lease_expires_ns=rec.lease_expires_ns,
             status=rec.status,
-            recent_episodes=rec.episodes.messages(),
+            recent_episodes=rec.episodes.messages() if episodes else (),
         )
 
     def route(self, command: control_pb2.Command) -> tuple[bool, list[str]]:
@@ -849,7 +849,7 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
     def ListRobots(
         self, request: control_pb2.ListRobotsRequest, context: grpc.ServicerContext
     ) -> control_pb2.ListRobotsResponse:
-        robots = [self._tag(info) for info in self.registry.list(request.include_offline)]
+        robots = [self._tag(info) for info in self.registry.list(request.include_offline, not request.without_episodes)]
         return control_pb2.ListRobotsResponse(robots=robots)
 
     def GetRobot(self, request: control_pb2.GetRobotRequest, context: grpc.ServicerContext) -> control_pb2.RobotInfo:

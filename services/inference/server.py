@@ -177,7 +177,7 @@ class Router:
             channel = self._channel
         try:
             resp = control_pb2_grpc.ControlStub(channel).ListRobots(
-                control_pb2.ListRobotsRequest(include_offline=True), timeout=2.0
+                control_pb2.ListRobotsRequest(include_offline=True, without_episodes=True), timeout=2.0
             )
         except grpc.RpcError as err:
             raise RoutingError(
