@@ -72,6 +72,9 @@ def test_compaction_keeps_the_index_proportional_to_what_is_stored(tmp_path: Pat
         assert len(store.index.alive.a) <= max(1024, 4 * live)  # capacity shrank with the rows
         # the hot tier is at most twice capacity_mb (not cache_mb's 256 MB of evicted transitions)
         assert store.hot_bytes == 2 << 20 and store.cache_info()["bytes"] <= (2 << 20) * 9 // 8  # (frame ring slack)
+        # and its ring has no more rows than capacity holds steps (+25%): not 2 MB of rows for 1 MB of steps
+        step_bytes = episode("arm-0", "e0000", 2, dim=DIM)[0].ByteSize()
+        assert live <= store.cache_info()["capacity"] <= (1 << 20) * 1.25 / step_bytes
         rows = store.index.episode_rows
         assert sum(map(len, rows)) == live == len(store.index.slot_of) * LENGTH  # whole episodes, live rows only
         survivors = set(range(150 - store.stats()["episodes"], 150))

@@ -311,7 +311,7 @@ class ReplayStore:
         if self.hot_bytes <= 0 or n == 0:
             return
         newest = self._read([self.index.key(n - 1)])[0]
-        gid = self._robot_group[newest.robot_id] = self._group(layout_of(newest))
+        gid = self._robot_group[newest.robot_id] = self._group(layout_of(newest), newest)
         group = self._groups[gid]
         first = max(0, n - int(group.capacity * 0.85))
         warmed = 0
@@ -391,11 +391,17 @@ class ReplayStore:
         if self._closed:
             raise StoreClosedError(f"replay store {self.path} is closed")
 
-    def _group(self, layout: Layout) -> int:
+    def _group(self, layout: Layout, step: step_pb2.Step) -> int:
+        """The hot group of a layout, made at its first step. With a capacity, its ring holds at most the rows
+        that capacity could store of steps like this one (+25%): the rest would be rows of evicted transitions
+        (a 104-byte state row vs ~230 stored bytes a step: 2x capacity_mb of rows alone is 4x too many)."""
         gid = self._layout_ids.get(layout)
         if gid is None:
             gid = self._layout_ids[layout] = len(self._groups)
-            self._groups.append(HotGroup(layout, self.hot_bytes, self._encoded_features(layout)))
+            max_rows = None
+            if self.capacity_bytes:
+                max_rows = int(self.capacity_bytes * 1.25 // max(1, step.ByteSize() + len(step.robot_id) + 32))
+            self._groups.append(HotGroup(layout, self.hot_bytes, self._encoded_features(layout), max_rows))
         return gid
 
     def _encoded_features(self, layout: Layout) -> frozenset[str]:
@@ -817,7 +823,7 @@ class ReplayStore:
         a new layout or encoded frames), its actions as one array, final observations after."""
         gid = self._robot_group.get(robot)
         if gid is None:  # a robot's first steps: the group of its layout (robots with one spec share one)
-            gid = self._robot_group[robot] = self._group(layout_of(steps[idx[0]]))
+            gid = self._robot_group[robot] = self._group(layout_of(steps[idx[0]]), steps[idx[0]])
         group = self._groups[gid]
         got = group.write_many([steps[i].observation for i in idx])
         acts = None if got is None else group.actions_of([steps[i].action for i in idx])
@@ -946,7 +952,7 @@ class ReplayStore:
             group = self._groups[gid]
             seq = group.write_tensors(step.observation)
         except (ValueError, KeyError):  # first step of the robot, or it re-registered with a new layout
-            gid = self._robot_group[step.robot_id] = self._group(layout_of(step))
+            gid = self._robot_group[step.robot_id] = self._group(layout_of(step), step)
             group = self._groups[gid]
             seq = group.write_tensors(step.observation)
         tail = self._new_tail(gid, seq, group, step)
