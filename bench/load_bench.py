@@ -410,6 +410,7 @@ class LoadRun:
                 "anon_start_mb": float(anon[0]),
                 "anon_end_mb": float(anon[-1]),
                 "anon_slope_mb_per_min": slope(anon),
+                "series": [[round(float(t), 1), round(float(m), 1), round(float(a), 1)] for t, m, a in series],  # s, MB
             }
         return {
             "window_s": window,
@@ -490,7 +491,7 @@ def rows(result: dict[str, Any]) -> list[Row]:
         procs.append(
             (
                 f"{len(edges)} edges (sum)",
-                {key: sum(r[key] for r in edges) for key in edges[0]},
+                {key: sum(r[key] for r in edges) for key in edges[0] if key != "series"},
             )
         )
     for name, r in procs:
@@ -505,6 +506,11 @@ def rows(result: dict[str, Any]) -> list[Row]:
             hot0, hot1 = result["replay_hot_mb"]
             note += f"; RAM tier (cache) {hot0:.1f} -> {hot1:.1f} MB"
         out.append(Row(group, f"RSS {name}, end", r["end_mb"], r["start_mb"], "MB", False, note, PEER))
+        # after warm-up: the slope of anonymous memory (LMDB's map is file-backed) over the window's second half
+        out.append(
+            Row(group, f"RSS {name}, anonymous slope 2nd half", r["anon_slope_mb_per_min"], "", "MB/min", None,
+                f"resident {r['slope_mb_per_min']:+.2f} MB/min; flat = within noise of 0", PEER)
+        )  # fmt: skip
     return out
 
 

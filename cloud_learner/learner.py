@@ -720,7 +720,8 @@ class Learner:
             while not self._stop.is_set():
                 try:
                     resp = stub.ListRobots(
-                        control_pb2.ListRobotsRequest(include_offline=True), timeout=self.lc.rpc_timeout_s
+                        control_pb2.ListRobotsRequest(include_offline=True, without_episodes=True),
+                        timeout=self.lc.rpc_timeout_s,
                     )
                 except grpc.RpcError as err:
                     log.warning("ListRobots failed", extra=kv(addr=self.lc.control_addr, code=str(err.code())))

@@ -174,6 +174,11 @@ def test_register_heartbeat_list_get(make_service: Callable[..., ControlService]
         )
         info = stub.GetRobot(control_pb2.GetRobotRequest(robot_id="arm-0"), timeout=5)
         assert [e.episode_id for e in info.recent_episodes] == ["ep3", "ep4", "ep5"]
+        listed = stub.ListRobots(control_pb2.ListRobotsRequest(), timeout=5).robots
+        assert [len(r.recent_episodes) for r in listed] == [3, 0]
+        lean = stub.ListRobots(control_pb2.ListRobotsRequest(without_episodes=True), timeout=5).robots
+        assert [(r.spec.robot_id, len(r.recent_episodes)) for r in lean] == [("arm-0", 0), ("arm-1", 0)]
+        assert lean[0].status.env_steps == 260 and lean[0].spec == listed[0].spec  # the rest is the same
 
         with pytest.raises(grpc.RpcError) as err:
             stub.GetRobot(control_pb2.GetRobotRequest(robot_id="nope"), timeout=5)
@@ -344,3 +349,65 @@ def test_auth_health_and_metrics(make_service: Callable[..., ControlService]) ->
     assert svc.running is not None
     body = urllib.request.urlopen(f"http://127.0.0.1:{svc.running.metrics_port}/metrics", timeout=5).read().decode()
     assert "user_control_robots_online" in body and "user_control_heartbeats_total" in body
+
+
+def test_a_long_run_keeps_control_state_bounded(make_service: Callable[..., ControlService]) -> None:
+    """Many more episodes, commands and reconnects than control keeps: its per-robot history, command history
+    and connections stay at their bounds (episodes_kept, commands_kept, live streams), totals count everything."""
+    svc = make_service(episodes_kept=4)
+    svc.registry.commands_kept = 5
+    stub = _stub(svc)
+    robots = ("arm-0", "arm-1")
+    sent = 0
+    for life in range(3):  # the edge reconnects twice (a new stream and connection each time)
+        edge = Edge(stub, register_msg("edge-a", *(spec(r) for r in robots)))
+        try:
+            assert edge.next_message().WhichOneof("msg") == "registered"
+            for beat in range(10):
+                statuses = []
+                for rid in robots:
+                    eps = [control_pb2.EpisodeSummary(episode_id=f"{rid}-{sent + k}", length=50, episode_return=1.0)
+                           for k in range(3)]  # fmt: skip
+                    # the last one of the previous heartbeat again (a re-send is counted once)
+                    if sent:
+                        eps.insert(0, control_pb2.EpisodeSummary(episode_id=f"{rid}-{sent - 1}", length=50))
+                    statuses.append(
+                        control_pb2.RobotStatus(
+                            robot_id=rid, state=control_pb2.ROBOT_STATE_RUNNING, env_steps=sent + 3, new_episodes=eps
+                        )
+                    )
+                sent += 3
+                edge.heartbeat(100 * life + beat, *statuses)
+            for k in range(4):  # commands, each answered
+                cmd = control_pb2.Command(kind=control_pb2.COMMAND_KIND_PAUSE, robot_id=robots[k % 2])
+                resp = stub.SendCommand(control_pb2.SendCommandRequest(command=cmd), timeout=5)
+                down = edge.next_message()
+                assert down.command.command_id == resp.command_id
+                result = control_pb2.CommandResult(command_id=resp.command_id, ok=True, message="x" * 100)
+                edge.put(control_pb2.EdgeMessage(command_result=result))
+                done = stub.GetCommand(control_pb2.GetCommandRequest(command_id=resp.command_id), timeout=5)
+                wait_for(
+                    lambda r=resp: (
+                        stub.GetCommand(control_pb2.GetCommandRequest(command_id=r.command_id), timeout=5).results
+                    ),
+                    "command result kept",
+                )
+            wait_for(
+                lambda n=sent: (
+                    stub.GetRobot(control_pb2.GetRobotRequest(robot_id="arm-1"), timeout=5).status.env_steps == n
+                ),
+                "heartbeats applied",
+            )
+        finally:
+            edge.close()
+        wait_for(lambda: not stub.GetRobot(control_pb2.GetRobotRequest(robot_id="arm-0"), timeout=5).online, "offline")
+    reg = svc.registry
+    for rid in robots:
+        info = stub.GetRobot(control_pb2.GetRobotRequest(robot_id=rid), timeout=5)
+        assert [e.episode_id for e in info.recent_episodes] == [f"{rid}-{k}" for k in range(sent - 4, sent)]
+        assert all(e.robot_id == rid for e in info.recent_episodes)
+        assert len(reg._robots[rid].episodes) == 4
+    assert sum(t.episodes for t in reg._totals.values()) == 2 * sent == 180  # every episode counted once
+    assert len(reg._commands) == 5 and all(len(c.results) == 1 for c in reg._commands.values())
+    assert not reg._conns and len(reg._robots) == 2
+    assert done.command.kind == control_pb2.COMMAND_KIND_PAUSE

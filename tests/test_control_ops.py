@@ -10,14 +10,13 @@ import pytest
 
 from edge_agent.control_client import ControlClient
 from services.control.server import ControlService
-from services.inference.server import InferenceService
+from services.inference.server import InferenceService, report_to_control
 from tests.helpers import wait_for
 from tests.test_replay_store import spec
 from user import cli
-from user.config import AuthConfig, StackConfig
+from user.config import AuthConfig, ExperimentConfig, RobotSelector, StackConfig
 from user.rpc import make_channel
 from user.v1 import control_pb2, control_pb2_grpc
-from user.worker import report_worker
 
 AUTH = AuthConfig(token="test-token")
 
@@ -132,15 +131,20 @@ def test_workers_register_their_devices_and_operators_list_them(
     cfg = StackConfig(auth=AUTH)
     cfg.inference.server.port = cfg.inference.server.metrics_port = 0
     cfg.inference.server.grace_s = 0.5
+    cfg.inference.control_addr = control.address
+    cfg.experiments = [
+        ExperimentConfig(name=name, robots=RobotSelector(ids=[robot]))
+        for name, robot in (("reach", "arm-0"), ("push", "arm-1"))
+    ]
     inference = InferenceService(cfg, policy_source="manual", start_metrics=False).start()
     client = edge_client(control, [])
     try:
-        with report_worker(inference, "inference", control.address, AUTH, "cpu", ["reach"]) as reporter:
+        with report_to_control(inference) as reporter:  # what `userctl inference` reports: the experiments it serves
             assert reporter.reported.wait(10)
         workers = stub(control).ListWorkers(control_pb2.ListWorkersRequest(), timeout=5).workers
         assert len(workers) == 1
         w = workers[0]
-        assert (w.kind, w.device, list(w.experiments), w.online) == ("inference", "cpu", ["reach"], True)
+        assert (w.kind, w.device, list(w.experiments), w.online) == ("inference", "cpu", ["reach", "push"], True)
         assert w.address.endswith(f":{inference.port}") and w.cpu_count >= 1
         assert w.devices[0].name == "cpu" and w.devices[0].memory_bytes > 2**20
         base = ["--control", control.address, "--set", "auth.token=test-token"]

@@ -129,7 +129,8 @@ class Edge:
         reg = control_pb2.RegisterRequest(agent_id="fuzz-edge", hostname="h", robots=[robot_spec()])
         self.up.put(control_pb2.EdgeMessage(register=reg))
         self.commands: list[control_pb2.Command] = []
-        self.call = stub.Connect(iter(self.up.get, None), timeout=3600)
+        # the stream lives for the whole run: `make fuzz` took 75 min on a loaded 2-core machine (1 h ended it)
+        self.call = stub.Connect(iter(self.up.get, None), timeout=3600 if EXAMPLES <= 1000 else 86400)
         assert next(self.call).WhichOneof("msg") == "registered"
         self.thread = threading.Thread(target=self._read, daemon=True)
         self.thread.start()
@@ -291,7 +292,8 @@ def test_control_unary(stack: dict[str, Any], list_req: Any, get_req: Any) -> No
 
 
 def experiment_states(stack: dict[str, Any]) -> dict[str, int]:
-    listed = stack["control"].ListExperiments(control_pb2.ListExperimentsRequest(), timeout=CALL_S).experiments
+    # the test's own bookkeeping, not a fuzzed call: a loaded machine must not fail it (5 s ran out once)
+    listed = stack["control"].ListExperiments(control_pb2.ListExperimentsRequest(), timeout=60).experiments
     return {e.name: e.state for e in listed}
 
 

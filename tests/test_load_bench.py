@@ -52,6 +52,9 @@ def test_load_harness_counts_lost_steps(tmp_path: Path) -> None:
 
     table = {r.metric: r for r in rows(result)}
     assert table["steps lost (collected - stored)"].ours == f"{dark_steps} of {result['collected']}"
+    for name in ("control", "replay", "learner", "inference"):  # slope after warm-up, per service, in the table
+        assert table[f"RSS {name}, anonymous slope 2nd half"].unit == "MB/min"
+        assert len(result["rss"][name]["series"]) >= 3
 
 
 def test_histogram_quantile_reads_cumulative_buckets() -> None:

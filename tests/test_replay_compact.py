@@ -44,9 +44,10 @@ def fill(put: Callable[[list], object], episodes: int, first: int = 0) -> None:
 
 def index_rows(store: ReplayStore) -> list[int]:
     idx = store.index
-    cols = [idx.robot, idx.group, idx.hot_row, idx.reward, idx.terminated, idx.truncated, idx.intervention,
-            idx.policy_version, idx.next_tid, idx.prev_tid, idx.alive, idx.priority, idx.ids]  # fmt: skip
-    return [len(idx.keys), len(idx.tid_of), *(c.n for c in cols)]
+    cols = [idx.episode, idx.step, idx.robot, idx.group, idx.hot_row, idx.reward, idx.terminated, idx.truncated,
+            idx.intervention, idx.policy_version, idx.next_tid, idx.prev_tid, idx.alive, idx.priority,
+            idx.ids]  # fmt: skip
+    return [len(idx.slot_of), sum(map(len, idx.episode_rows)), *(c.n for c in cols)]
 
 
 def check_n_step(batch: dict, gamma: float, n_step: int) -> None:
@@ -72,8 +73,15 @@ def test_compaction_keeps_the_index_proportional_to_what_is_stored(tmp_path: Pat
         assert 0 < live <= 20 * LENGTH
         assert max(index_rows(store)) <= 2 * live  # without compaction: a row per transition ever indexed
         assert store.compactions > 0
-        assert len(store.index.keys) == store.index.alive.n == live + store.index.dead
+        assert store.index.n_rows == store.index.alive.n == live + store.index.dead
         assert len(store.index.alive.a) <= max(1024, 4 * live)  # capacity shrank with the rows
+        # the hot tier is at most twice capacity_mb (not cache_mb's 256 MB of evicted transitions)
+        assert store.hot_bytes == 2 << 20 and store.cache_info()["bytes"] <= (2 << 20) * 9 // 8  # (frame ring slack)
+        # and its ring has no more rows than capacity holds steps (+25%): not 2 MB of rows for 1 MB of steps
+        step_bytes = episode("arm-0", "e0000", 2, dim=DIM)[0].ByteSize()
+        assert live <= store.cache_info()["capacity"] <= (1 << 20) * 1.25 / step_bytes
+        rows = store.index.episode_rows
+        assert sum(map(len, rows)) == live == len(store.index.slot_of) * LENGTH  # whole episodes, live rows only
         survivors = set(range(150 - store.stats()["episodes"], 150))
         misses = store.cache_info()["misses"]
         batch = store.sample(2000, np.random.default_rng(0), draw=Draw(2000, n_step=3, gamma=0.5))
@@ -139,7 +147,7 @@ def test_chunks_and_priorities_over_grpc_after_compaction(make_service: Callable
     evicted = sum(stats.evicted_steps_per_robot.values())
     assert evicted > 0  # capacity evicted whole episodes, and Stats accounts for every acked step
     assert sum(stats.steps_per_robot.values()) + evicted == seq
-    assert len(service.store.index.keys) <= 2 * service.store.transitions
+    assert service.store.index.n_rows <= 2 * service.store.transitions
     req = replay_pb2.SampleRequest(batch_size=256, action_horizon=4)
     batch = stub(service).Sample(req, timeout=60).batch
     assert check_chunks(batch, 4, lambda version, t: LENGTH - 1) > 0

@@ -9,6 +9,7 @@ edges hold their robots still.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import socket
 import threading
@@ -29,7 +30,7 @@ from user.log import kv
 from user.policy import Policy, build_policy, check_device
 from user.v1 import inference_pb2, inference_pb2_grpc
 from user.weights import WeightSet, WeightSubscriber
-from user.worker import report_worker
+from user.worker import WorkerReporter, report_worker
 
 log = logging.getLogger(__name__)
 
@@ -176,7 +177,7 @@ class Router:
             channel = self._channel
         try:
             resp = control_pb2_grpc.ControlStub(channel).ListRobots(
-                control_pb2.ListRobotsRequest(include_offline=True), timeout=2.0
+                control_pb2.ListRobotsRequest(include_offline=True, without_episodes=True), timeout=2.0
             )
         except grpc.RpcError as err:
             raise RoutingError(
@@ -357,7 +358,14 @@ def run(cfg: StackConfig, ready_file: str | None) -> int:
 
     # Per-robot MLP forwards are latency-bound; extra intra-op threads only contend with the learner.
     torch.set_num_threads(1)
-    service, ic = InferenceService(cfg), cfg.inference
-    with report_worker(service, "inference", ic.control_addr, cfg.auth, ic.device, []):
+    service = InferenceService(cfg)
+    with report_to_control(service):
         rpc.serve_until_signal(service, "inference", ready_file)
     return 0
+
+
+def report_to_control(service: InferenceService) -> contextlib.AbstractContextManager[WorkerReporter]:
+    """The worker report run() keeps sending: device and the experiments this process serves a policy for
+    (one slot each, the names `userctl exp status` and ListWorkers show)."""
+    cfg, ic = service.cfg, service.cfg.inference
+    return report_worker(service, "inference", ic.control_addr, cfg.auth, ic.device, list(service.slots))

@@ -70,10 +70,10 @@ def gather_actions(store: ReplayStore, tids: np.ndarray, like: np.ndarray) -> np
         done[ok] = True
     cold = np.flatnonzero(~done)
     if len(cold):
-        keys = [idx.keys[t] for t in tids[cold].tolist()]
+        keys = idx.keys_of(tids[cold])
         for i, raw in zip(cold.tolist(), store._get_many(keys), strict=True):
             if raw is None:
-                raise ReplayError(f"index points at a missing step {idx.keys[int(tids[i])]!r}")
+                raise ReplayError(f"index points at a missing step {idx.key(int(tids[i]))!r}")
             out[i] = tensor_array(step_pb2.Step.FromString(raw).action).reshape(like.shape[1:])
     return out
 

@@ -47,7 +47,9 @@ def frame_nbytes(layout: Layout) -> int:
 class HotGroup:
     """Frames and transitions of one layout, each a ring of `capacity` rows (pages are touched lazily)."""
 
-    def __init__(self, layout: Layout, max_bytes: int, encoded: frozenset[str] = frozenset()) -> None:
+    def __init__(
+        self, layout: Layout, max_bytes: int, encoded: frozenset[str] = frozenset(), max_rows: int | None = None
+    ) -> None:
         features, (act_dtype, act_shape) = layout
         self.layout = layout
         # camera features kept as their stored JPEG/PNG bytes (decoded when sampled): RAM per frame ~1/10
@@ -57,6 +59,8 @@ class HotGroup:
         guess = self.frame_bytes + sum(raw[n] // ENCODED_GUESS + _BLOB_OVERHEAD for n in self.encoded)
         self.row_bytes = np.dtype(act_dtype).itemsize * math.prod(act_shape) + _ROW_OVERHEAD
         self.capacity = max(16, int(max_bytes // max(1.0, guess * 9 / 8 + self.row_bytes)))
+        if max_rows is not None:  # no more rows than the buffer's capacity can hold transitions
+            self.capacity = max(16, min(self.capacity, max_rows))
         cap = self.capacity
         # frames: one per transition plus each episode's final observation, so a little more room
         self.frame_capacity = cap + cap // 8 + 16

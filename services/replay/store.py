@@ -18,7 +18,6 @@ from collections import deque
 from collections.abc import Callable, Iterable
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
@@ -118,7 +117,6 @@ class Episode:
     nbytes: int = 0
     success: bool = False
     interventions: int = 0
-    tids: list[int] = field(default_factory=list)
     top: int = -1  # highest step index stored
     last: int = -1  # index of the step that ended it, -1 while open
 
@@ -210,8 +208,13 @@ class ReplayStore:
         self.path = Path(path)
         # observation feature -> how its uint8 images are stored in LMDB ("raw", "jpeg", "png"); "*" = every camera
         self.image_encoding = {k: ENCODINGS[v] for k, v in (image_encoding or {}).items() if ENCODINGS[v]}
-        self.hot_bytes = int(cache_mb) << 20
         self.capacity_bytes = int(capacity_mb) << 20  # 0 = no limit but the map
+        # the hot tier never needs more rows than are stored: with a capacity, at most twice its bytes (a hot row
+        # is about a stored step's size or less), so a small bounded buffer does not fill a 256 MB ring of
+        # evicted transitions
+        self.hot_bytes = int(cache_mb) << 20
+        if self.capacity_bytes:
+            self.hot_bytes = min(self.hot_bytes, 2 * self.capacity_bytes)
         self._write_lock = threading.Lock()  # one writer; also guards close()
         self._queue: deque[_Pending] = deque()
         self._queue_cond = threading.Condition()
@@ -312,23 +315,22 @@ class ReplayStore:
                     sc[2],
                 )
             )
-        for r, tid in zip(records, self.index.add_many(records), strict=True):
-            episodes[r.key[len(mark) : -8]].tids.append(tid)
+        self.index.add_many(records)  # (rows of each episode: the index keeps them)
         return episodes
 
     def _warm(self) -> None:
         """After a restart, read the newest transitions back into the hot tier (what online RL samples most)."""
-        n = len(self.index.keys)
+        n = self.index.n_rows
         if self.hot_bytes <= 0 or n == 0:
             return
-        newest = self._read([self.index.keys[n - 1]])[0]
-        gid = self._robot_group[newest.robot_id] = self._group(layout_of(newest))
+        newest = self._read([self.index.key(n - 1)])[0]
+        gid = self._robot_group[newest.robot_id] = self._group(layout_of(newest), newest)
         group = self._groups[gid]
         first = max(0, n - int(group.capacity * 0.85))
         warmed = 0
         for start in range(first, n, 1024):
             tids = [t for t in range(start, min(n, start + 1024)) if self.index.alive.a[t]]
-            keys = [self.index.keys[t] for t in tids]
+            keys = self.index.keys_of(tids)
             steps = dict(zip(keys, self._read(keys), strict=True))
             missing = [next_key(k) for k, s in steps.items() if not s.HasField("final_observation")]
             missing = [k for k in missing if k not in steps]
@@ -402,11 +404,17 @@ class ReplayStore:
         if self._closed:
             raise StoreClosedError(f"replay store {self.path} is closed")
 
-    def _group(self, layout: Layout) -> int:
+    def _group(self, layout: Layout, step: step_pb2.Step) -> int:
+        """The hot group of a layout, made at its first step. With a capacity, its ring holds at most the rows
+        that capacity could store of steps like this one (+25%): the rest would be rows of evicted transitions
+        (a 104-byte state row vs ~230 stored bytes a step: 2x capacity_mb of rows alone is 4x too many)."""
         gid = self._layout_ids.get(layout)
         if gid is None:
             gid = self._layout_ids[layout] = len(self._groups)
-            self._groups.append(HotGroup(layout, self.hot_bytes, self._encoded_features(layout)))
+            max_rows = None
+            if self.capacity_bytes:
+                max_rows = int(self.capacity_bytes * 1.25 // max(1, step.ByteSize() + len(step.robot_id) + 32))
+            self._groups.append(HotGroup(layout, self.hot_bytes, self._encoded_features(layout), max_rows))
         return gid
 
     def _encoded_features(self, layout: Layout) -> frozenset[str]:
@@ -636,7 +644,7 @@ class ReplayStore:
                         step.policy_version,
                     )
                 )
-        first = len(self.index.keys)
+        first = self.index.n_rows
         for gid, items in hot.items():
             rows = self._groups[gid].add_many(
                 [first + i for i, _, _, _ in items],
@@ -646,9 +654,7 @@ class ReplayStore:
             )
             for (i, _, _, _), row in zip(items, rows.tolist(), strict=True):
                 records[i].hot_row = row
-        tids = self.index.add_many(records)
-        for r, tid in zip(records, tids, strict=True):
-            self._episodes[r.key[:-8]].tids.append(tid)
+        self.index.add_many(records)
         for key in sampleable:  # their transitions are indexed; a successor finds its frame in the ring
             self._tails.pop(key, None)
 
@@ -729,13 +735,13 @@ class ReplayStore:
         nxt = np.concatenate([np.asarray(cols.nxt, np.int64), np.where(nxt_gid == gids[j], nxt_seq, -1)])
         hot = (group >= 0) & (obs >= 0) & (nxt >= 0)
         hot_row = np.full(len(rec_keys), -1, np.int64)
-        tid0 = len(self.index.keys)
+        tid0 = self.index.n_rows
         if hot.any() and full is not None:
             acts = full[j] if not cols.keys else np.concatenate([_rows(cols.action, full), full[j]])
             for gid in np.unique(group[hot]).tolist():
                 m = np.flatnonzero(hot & (group == gid))
                 hot_row[m] = self._groups[gid].add_many((tid0 + m).tolist(), obs[m], nxt[m], acts[m])
-        tids = self.index.add_columns(
+        self.index.add_columns(
             rec_keys,
             robot,
             rec_tables,
@@ -747,11 +753,6 @@ class ReplayStore:
             np.where(hot, group, -1).astype(np.int32),
             hot_row,
         )
-        rec_prefixes = [k[:-8] for k in rec_keys]
-        starts = [i for i in range(len(rec_prefixes)) if i == 0 or rec_prefixes[i] != rec_prefixes[i - 1]]
-        tid_list = tids.tolist()
-        for a, b in pairwise([*starts, len(rec_prefixes)]):  # one extend per episode run
-            self._episodes[rec_prefixes[a]].tids.extend(tid_list[a:b])
         for i in np.flatnonzero(~same_next & ~ends).tolist():  # wait for their successor (a later group)
             f = int(flags[i])
             act = None if full is None else full[i].copy()
@@ -836,7 +837,7 @@ class ReplayStore:
         a new layout or encoded frames), its actions as one array, final observations after."""
         gid = self._robot_group.get(robot)
         if gid is None:  # a robot's first steps: the group of its layout (robots with one spec share one)
-            gid = self._robot_group[robot] = self._group(layout_of(steps[idx[0]]))
+            gid = self._robot_group[robot] = self._group(layout_of(steps[idx[0]]), steps[idx[0]])
         group = self._groups[gid]
         got = group.write_many([steps[i].observation for i in idx])
         acts = None if got is None else group.actions_of([steps[i].action for i in idx])
@@ -917,13 +918,12 @@ class ReplayStore:
                 tail = _Tail(gids[i], seqs[i], actions[i], r, bool(flags & TERMINATED), bool(flags & TRUNCATED),
                              bool(flags & INTERVENTION), v)  # fmt: skip
                 self._remember(key, tail)
-        first = len(self.index.keys)
+        first = self.index.n_rows
         for gid, (ridx, obs, nxt, acts) in hot.items():
             rows = self._groups[gid].add_many([first + i for i in ridx], obs, nxt, acts)
             for i, row in zip(ridx, rows.tolist(), strict=True):
                 records[i].hot_row = row
-        for r, tid in zip(records, self.index.add_many(records), strict=True):
-            self._episodes[r.key[:-8]].tids.append(tid)
+        self.index.add_many(records)
 
     def _complete_waiting(self, prev: bytes, robot: str, gid: int, seq: int, add: Callable[..., None]) -> None:
         """The transition of a step stored in an earlier group, completed by its successor's frame."""
@@ -966,7 +966,7 @@ class ReplayStore:
             group = self._groups[gid]
             seq = group.write_tensors(step.observation)
         except (ValueError, KeyError):  # first step of the robot, or it re-registered with a new layout
-            gid = self._robot_group[step.robot_id] = self._group(layout_of(step))
+            gid = self._robot_group[step.robot_id] = self._group(layout_of(step), step)
             group = self._groups[gid]
             seq = group.write_tensors(step.observation)
         tail = self._new_tail(gid, seq, group, step)
@@ -1009,10 +1009,8 @@ class ReplayStore:
         # Out of the index first, then out of LMDB: a sample (which holds the lock from draw to read) never draws
         # a step whose bytes are already gone.
         with self._lock:
-            tids: list[int] = []
             for prefix in victims:
                 ep = self._episodes.pop(prefix)
-                tids += ep.tids
                 self._n_steps -= ep.steps
                 left = self._steps_per_robot[ep.robot] - ep.steps
                 if left:
@@ -1021,7 +1019,7 @@ class ReplayStore:
                     del self._steps_per_robot[ep.robot]
                 self._bytes -= ep.nbytes
                 self._evicted_steps_per_robot[ep.robot] = self._evicted_steps_per_robot.get(ep.robot, 0) + ep.steps
-            self.index.evict(tids)
+            self.index.evict_episodes(victims)
             if self.index.wants_compaction():
                 self._compact_index()
             gone = set(victims)
@@ -1040,10 +1038,6 @@ class ReplayStore:
         for group in self._groups:  # rows whose transition was dropped never validate again
             held = group.t_tid >= 0
             group.t_tid[held] = remap[group.t_tid[held]]
-        for eps in [self._episodes, *self._attached_episodes.values()]:
-            for ep in eps.values():
-                if ep.tids:
-                    ep.tids = remap[ep.tids].tolist()
         self.compactions += 1
         COMPACTIONS.inc()
 
@@ -1185,8 +1179,8 @@ class ReplayStore:
         """Hot rows gathered from RAM, the rest read from LMDB into the same columns (caller holds the lock)."""
         idx = self.index
         cold_obs, cold_next = np.flatnonzero(~ok_obs), np.flatnonzero(~ok_next)
-        keys = [idx.keys[t] for t in tids[cold_obs].tolist()]
-        last_keys = [idx.keys[t] for t in last[cold_next].tolist()]
+        keys = idx.keys_of(tids[cold_obs])
+        last_keys = idx.keys_of(last[cold_next])
         n = len(tids)
         layout = hot.layout if hot is not None else None
         if layout is None and not self._attached:

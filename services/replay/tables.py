@@ -8,13 +8,18 @@ names tables with mixing ratios (RLPD's 50/50: {"online": 1, "demos": 1}); withi
 sampler is uniform, a recency window (the newest W transitions) or prioritized (p^alpha, with
 importance weights; priorities updated by the learner through UpdatePriorities).
 
-A tid is a row of the columns: rows of evicted transitions stay (marked dead) until they outnumber live
-ones, then compact() renumbers the live rows densely. Clients see public ids instead (Index.ids,
+A tid is a row of the columns: rows of evicted transitions stay (marked dead) until they are a quarter of
+the rows, then compact() renumbers the live rows densely. Clients see public ids instead (Index.ids,
 Batch.indices): ascending and never renumbered, mapped back to rows by binary search.
+
+A row's LMDB key is not kept as a bytes object: it is its episode's prefix (stored once per episode, in a
+slot) + its step index (a column), and each episode's rows are one int64 array. So the index costs ~100
+bytes per transition in numpy/array columns instead of ~300 in Python objects (a key, a dict entry, ints).
 """
 
 from __future__ import annotations
 
+from array import array
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -120,14 +125,14 @@ class Grow:
 
     def append(self, value: float | int) -> None:
         if self.n == len(self.a):
-            self.a = np.concatenate([self.a, np.full(len(self.a), self.fill, self.a.dtype)])
+            self.a = np.concatenate([self.a, np.full(len(self.a) // 2, self.fill, self.a.dtype)])
         self.a[self.n] = value
         self.n += 1
 
     def extend(self, values: np.ndarray) -> None:
         need = self.n + len(values)
         if need > len(self.a):
-            size = max(need, 2 * len(self.a))
+            size = max(need, len(self.a) + len(self.a) // 2)  # 1.5x: less slack than doubling
             self.a = np.concatenate([self.a, np.full(size - len(self.a), self.fill, self.a.dtype)])
         self.a[self.n : need] = values
         self.n = need
@@ -141,8 +146,9 @@ class Grow:
         self.n = len(kept)
 
     def replace(self, values: np.ndarray) -> None:
-        """Hold exactly `values` in a right-sized array (room for a quarter more), so capacity can shrink."""
-        self.a = np.full(max(1024, len(values) + len(values) // 4), self.fill, self.a.dtype)
+        """Hold exactly `values` in a right-sized array, so capacity can shrink. Room for half more: the rows
+        grow by at most a third of the live ones before the next compaction, so it is not regrown in between."""
+        self.a = np.full(max(1024, len(values) + len(values) // 2), self.fill, self.a.dtype)
         self.a[: len(values)] = values
         self.n = len(values)
 
@@ -194,8 +200,8 @@ class Index:
     """Not thread-safe: the store calls it under its index lock."""
 
     def __init__(self) -> None:
-        self.keys: list[bytes] = []
-        self.tid_of: dict[bytes, int] = {}
+        self.episode = Grow(np.int32)  # each row's episode slot (its key's prefix)
+        self.step = Grow(np.int64)  # each row's step index (its key's last 8 bytes)
         self.robot = Grow(np.int32)
         self.group = Grow(np.int32, -1)  # hot layout group, -1 unknown
         self.hot_row = Grow(np.int64, -1)
@@ -218,9 +224,19 @@ class Index:
         self.robot_code: dict[str, int] = {}
         self.tables: dict[str, dict[int, Grow]] = {}
         self.all: dict[int, Grow] = {}
+        # episodes with indexed rows: slot -> key prefix and its rows (ascending); slots of evicted ones are reused
+        self.prefixes: list[bytes] = []
+        self.slot_of: dict[bytes, int] = {}
+        self.episode_rows: list[array] = []
+        self._free_slots: list[int] = []
 
     def __len__(self) -> int:
         return sum(g.n for g in self.all.values())
+
+    @property
+    def n_rows(self) -> int:
+        """Rows, live and dead (a tid is < n_rows)."""
+        return self.alive.n
 
     def code(self, robot_id: str) -> int:
         code = self.robot_code.get(robot_id)
@@ -229,13 +245,74 @@ class Index:
             self.robots.append(robot_id)
         return code
 
+    # ------------------------------------------------------------------ keys
+
+    def key(self, tid: int) -> bytes:
+        """The LMDB key of a row (an attached buffer's keys keep their b"\0" + source mark)."""
+        return self.prefixes[self.episode.a[tid]] + int(self.step.a[tid]).to_bytes(8, "big")
+
+    def keys_of(self, tids: np.ndarray | list[int]) -> list[bytes]:
+        tids = np.asarray(tids, np.int64)
+        pre = self.prefixes
+        return [
+            pre[e] + t.to_bytes(8, "big")
+            for e, t in zip(self.episode.a[tids].tolist(), self.step.a[tids].tolist(), strict=True)
+        ]
+
+    def _slot(self, prefix: bytes) -> int:
+        slot = self.slot_of.get(prefix)
+        if slot is None:
+            if self._free_slots:
+                slot = self._free_slots.pop()
+                self.prefixes[slot] = prefix
+                self.episode_rows[slot] = array("q")
+            else:
+                slot = len(self.prefixes)
+                self.prefixes.append(prefix)
+                self.episode_rows.append(array("q"))
+            self.slot_of[prefix] = slot
+        return slot
+
+    def row_of(self, prefix: bytes, t: int) -> int:
+        """The row of step t of an episode, -1 if it is not indexed. O(1) for the episode's newest row (the
+        usual case), else O(episode length) in numpy."""
+        slot = self.slot_of.get(prefix)
+        if slot is None or t < 0:
+            return -1
+        rows = self.episode_rows[slot]
+        if not rows:
+            return -1
+        if self.step.a[rows[-1]] == t:
+            return rows[-1]
+        mine = np.frombuffer(rows, np.int64).copy()  # a copy: a live view would stop the array from growing
+        hit = mine[self.step.a[mine] == t]
+        return int(hit[0]) if len(hit) else -1
+
+    def _add_rows(self, prefixes: list[bytes], t: np.ndarray, first: int) -> None:
+        """Episode slot and step columns of new rows first.. (prefixes usually repeat in runs), and each
+        episode's row list."""
+        n = len(prefixes)
+        slots = np.empty(n, np.int32)
+        i = 0
+        while i < n:  # one slot lookup and one array extend per run of the same episode
+            j = i + 1
+            p = prefixes[i]
+            while j < n and prefixes[j] == p:
+                j += 1
+            slot = self._slot(p)
+            slots[i:j] = slot
+            self.episode_rows[slot].extend(range(first + i, first + j))
+            i = j
+        self.episode.extend(slots)
+        self.step.extend(t)
+
     def add_many(self, records: list[Record]) -> list[int]:
         """Index transitions in one go (column appends are vectorized); returns their tids."""
-        first = len(self.keys)
+        first = self.n_rows
         tids = list(range(first, first + len(records)))
-        for tid, r in zip(tids, records, strict=True):
-            self.keys.append(r.key)
-            self.tid_of[r.key] = tid
+        prefixes = [r.key[:-8] for r in records]
+        steps = np.fromiter((int.from_bytes(r.key[-8:], "big") for r in records), np.int64, len(records))
+        self._add_rows(prefixes, steps, first)
         self.robot.extend(np.fromiter((r.robot for r in records), np.int32, len(records)))
         self.group.extend(np.fromiter((r.group for r in records), np.int32, len(records)))
         self.hot_row.extend(np.fromiter((r.hot_row for r in records), np.int64, len(records)))
@@ -250,17 +327,8 @@ class Index:
         self.priority.extend(np.full(len(records), self.max_priority, np.float32))
         self._new_ids(len(records))
         by_table: dict[tuple[str, int], list[int]] = {}
+        self._link(prefixes, steps, first)
         for tid, r in zip(tids, records, strict=True):
-            # link the episode's neighbours for n-step returns (in any arrival order)
-            prefix, t = r.key[:-8], int.from_bytes(r.key[-8:], "big")
-            prev = self.tid_of.get(prefix + (t - 1).to_bytes(8, "big")) if t > 0 else None
-            if prev is not None:
-                self.next_tid.a[prev] = tid
-                self.prev_tid.a[tid] = prev
-            nxt = self.tid_of.get(prefix + (t + 1).to_bytes(8, "big"))
-            if nxt is not None:
-                self.next_tid.a[tid] = nxt
-                self.prev_tid.a[nxt] = tid
             by_table.setdefault((r.table, r.robot), []).append(tid)
             if r.intervention and r.table != INTERVENTIONS:
                 by_table.setdefault((INTERVENTIONS, r.robot), []).append(tid)
@@ -268,6 +336,32 @@ class Index:
                 by_table.setdefault((ALL, r.robot), []).append(tid)
         self._append_tables({k: np.asarray(v, np.int64) for k, v in by_table.items()})
         return tids
+
+    def _link(self, prefixes: list[bytes], steps: np.ndarray, first: int) -> None:
+        """Link new rows first.. to their episode neighbours for n-step returns, in any arrival order: within
+        the batch by sorting (episode, step), to rows indexed before by one lookup per batch edge."""
+        n = len(steps)
+        tids = np.arange(first, first + n, dtype=np.int64)
+        slots = self.episode.a[first : first + n]
+        order = np.lexsort((steps, slots))
+        s, t, tid = slots[order], steps[order], tids[order]
+        adj = (s[1:] == s[:-1]) & (t[1:] == t[:-1] + 1)
+        self.prev_tid.a[tid[1:][adj]] = tid[:-1][adj]
+        self.next_tid.a[tid[:-1][adj]] = tid[1:][adj]
+        has_prev = np.zeros(n, np.bool_)
+        has_prev[1:] = adj
+        has_next = np.zeros(n, np.bool_)
+        has_next[:-1] = adj
+        for i in np.flatnonzero(~has_prev & (t > 0)).tolist():
+            row = self.row_of(prefixes[order[i]], int(t[i]) - 1)
+            if row >= 0:
+                self.next_tid.a[row] = tid[i]
+                self.prev_tid.a[tid[i]] = row
+        for i in np.flatnonzero(~has_next).tolist():
+            row = self.row_of(prefixes[order[i]], int(t[i]) + 1)
+            if row >= 0:
+                self.next_tid.a[tid[i]] = row
+                self.prev_tid.a[row] = tid[i]
 
     def _new_ids(self, n: int) -> None:
         self.ids.extend(np.arange(self.next_id, self.next_id + n, dtype=np.int64))
@@ -311,10 +405,17 @@ class Index:
         """add_many for transitions that arrived in order (none has a successor indexed yet), as columns:
         a transition's predecessor is the one before it in the batch, else looked up once per episode."""
         n = len(keys)
-        first = len(self.keys)
+        first = self.n_rows
         tids = np.arange(first, first + n, dtype=np.int64)
-        self.keys.extend(keys)
-        self.tid_of.update(zip(keys, range(first, first + n), strict=True))
+        prefixes = [k[:-8] for k in keys]
+        t = np.fromiter((int.from_bytes(k[-8:], "big") for k in keys), np.int64, n)
+        prev = np.full(n, -1, np.int64)
+        if n > 1:
+            adj = np.fromiter(map(bytes.__eq__, prefixes[1:], prefixes[:-1]), np.bool_, n - 1) & (t[1:] == t[:-1] + 1)
+            prev[1:][adj] = tids[:-1][adj]
+        for i in np.flatnonzero((prev < 0) & (t > 0)).tolist():  # before this batch's rows exist
+            prev[i] = self.row_of(prefixes[i], int(t[i]) - 1)
+        self._add_rows(prefixes, t, first)
         self.robot.extend(robot)
         self.group.extend(group)
         self.hot_row.extend(hot_row)
@@ -328,14 +429,6 @@ class Index:
         self.alive.extend(np.ones(n, np.bool_))
         self.priority.extend(np.full(n, self.max_priority, np.float32))
         self._new_ids(n)
-        prefixes = [k[:-8] for k in keys]
-        t = np.fromiter((int.from_bytes(k[-8:], "big") for k in keys), np.int64, n)
-        prev = np.full(n, -1, np.int64)
-        if n > 1:
-            adj = np.fromiter(map(bytes.__eq__, prefixes[1:], prefixes[:-1]), np.bool_, n - 1) & (t[1:] == t[:-1] + 1)
-            prev[1:][adj] = tids[:-1][adj]
-        for i in np.flatnonzero((prev < 0) & (t > 0)).tolist():
-            prev[i] = self.tid_of.get(prefixes[i] + int(t[i] - 1).to_bytes(8, "big"), -1)
         has = prev >= 0
         self.prev_tid.a[tids[has]] = prev[has]
         self.next_tid.a[prev[has]] = tids[has]
@@ -359,39 +452,49 @@ class Index:
         self._append_tables(by_table)
         return tids
 
-    def evict(self, tids: list[int]) -> None:
-        if not tids:
+    def evict_episodes(self, prefixes: list[bytes]) -> None:
+        """Every indexed row of these episodes leaves (rows stay, dead, until compact())."""
+        parts = []
+        for prefix in prefixes:
+            slot = self.slot_of.pop(prefix, None)
+            if slot is None:
+                continue
+            parts.append(np.frombuffer(self.episode_rows[slot], np.int64).copy())
+            self.prefixes[slot] = b""
+            self.episode_rows[slot] = array("q")
+            self._free_slots.append(slot)
+        if not parts:
             return
-        dead = np.asarray(tids, np.int64)
+        dead = np.concatenate(parts)
         self.dead += int(self.alive.a[dead].sum())
         self.alive.a[dead] = False
-        for t in tids:
-            self.tid_of.pop(self.keys[t], None)
-            self.keys[t] = b""  # the columns keep a row per tid ever indexed; the key bytes can go
         for grows in [*self.tables.values(), self.all]:
             for g in grows.values():
                 g.keep(self.alive.a[g.view()])
         self._trees.clear()  # positions moved: rebuilt on the next prioritized draw
 
     def wants_compaction(self) -> bool:
-        """Once evicted rows outnumber live ones (and are many), compact() pays for itself."""
-        return self.dead >= self.compact_min and 2 * self.dead > len(self.keys)
+        """Once evicted rows are a quarter of the rows (and many), compact(): rows stay <= 4/3 of the live ones,
+        and a compaction (O(rows), ~60 ms for 600k) comes once per a third of the live count evicted."""
+        return self.dead >= self.compact_min and 4 * self.dead > self.n_rows
 
     def compact(self) -> np.ndarray:
         """Drop evicted rows: live rows are renumbered densely in order (public ids stay); returns old row -> new
-        row (-1 for dropped), for every other holder of rows to remap. O(rows), vectorized but for keys."""
-        n = len(self.keys)
+        row (-1 for dropped), for every other holder of rows to remap. O(rows), vectorized."""
+        n = self.n_rows
         live = np.flatnonzero(self.alive.view())
         remap = np.full(n, -1, np.int64)
         remap[live] = np.arange(len(live), dtype=np.int64)
-        for col in (self.robot, self.group, self.hot_row, self.reward, self.terminated, self.truncated,
-                    self.intervention, self.policy_version, self.alive, self.priority, self.ids):  # fmt: skip
+        for col in (self.episode, self.step, self.robot, self.group, self.hot_row, self.reward, self.terminated,
+                    self.truncated, self.intervention, self.policy_version, self.alive, self.priority,
+                    self.ids):  # fmt: skip
             col.replace(col.view()[live])
         for col in (self.next_tid, self.prev_tid):  # links to evicted rows become -1
             old = col.view()[live]
             col.replace(np.where(old >= 0, remap[np.maximum(old, 0)], -1))
-        self.keys = [self.keys[t] for t in live.tolist()]
-        self.tid_of = dict(zip(self.keys, range(len(self.keys)), strict=True))  # a fresh dict: pops never shrink one
+        for slot, rows in enumerate(self.episode_rows):  # live episodes only hold live rows: renumbered in order
+            if rows:
+                self.episode_rows[slot] = array("q", remap[np.frombuffer(rows, np.int64)].tobytes())
         for grows in [*self.tables.values(), self.all]:
             for g in grows.values():
                 g.replace(remap[g.view()])  # tables hold live rows only (evict dropped the rest)
