@@ -30,6 +30,7 @@ from user.v1 import control_pb2, control_pb2_grpc, robot_pb2
 
 ROOT = Path(__file__).resolve().parents[1]
 AUTH = AuthConfig(token="test-token-0123456789")
+ALL = control_pb2.ListRobotsRequest(include_offline=True)
 RUNNING, STOPPED = control_pb2.EXPERIMENT_STATE_RUNNING, control_pb2.EXPERIMENT_STATE_STOPPED
 
 
@@ -311,29 +312,35 @@ def test_a_robot_that_goes_silent_is_released_and_the_experiment_goes_on(make_co
 
 
 def test_max_robots_leases_the_first_and_a_waiting_robot_takes_a_freed_place(make_control) -> None:
-    control = make_control(experiments(max_alpha=1), lease_ttl_s=30.0)  # no lease ends by the clock here
+    # Robot and agent ids of this test only: a stray edge of another test that finds this control on a reused port
+    # must not take the freed place. No lease ends by the clock here.
+    control = make_control(experiments(max_alpha=1), lease_ttl_s=30.0)
     s = stub_for(control.address)
-    pc1 = Edge(control.address, "lab-pc-1", [team_spec("arm-0", "a")])
+    pc1 = Edge(control.address, "mr-pc-1", [team_spec("mr-arm-0", "a")])
     assert pc1.client.wait_registered(10)
-    pc2 = Edge(control.address, "lab-pc-2", [team_spec("arm-1", "a")])
+    pc2 = Edge(control.address, "mr-pc-2", [team_spec("mr-arm-1", "a")])
     try:
         assert pc2.client.wait_registered(10)
-        assert pc1.lease("arm-0") == ("alpha", False)
-        assert pc2.lease("arm-1") == ("", True)
-        assert robot(s, "arm-1").lease_reason == "experiment alpha at max_robots=1"
+        assert pc1.lease("mr-arm-0") == ("alpha", False)
+        assert pc2.lease("mr-arm-1") == ("", True)
+        assert robot(s, "mr-arm-1").lease_reason == "experiment alpha at max_robots=1"
         # lab-pc-1 reconnects (a new stream supersedes its old one): arm-0 keeps its place throughout.
-        again = SilentEdge(control.address, "lab-pc-1", [team_spec("arm-0", "a")])
-        assert [(lease.robot_id, lease.experiment) for lease in again.registered.leases] == [("arm-0", "alpha")]
+        again = SilentEdge(control.address, "mr-pc-1", [team_spec("mr-arm-0", "a")])
+        assert [(lease.robot_id, lease.experiment) for lease in again.registered.leases] == [("mr-arm-0", "alpha")]
         assert again.ended.wait(30)  # pc1's client reconnected and superseded it in turn
         again.close()
         assert all(lease.hold for lease in pc2.history)  # arm-1 was never leased meanwhile
         pc1.close()  # hangs up: its place goes to arm-1, told through its stream
-        wait_for(lambda: pc2.lease("arm-1") == ("alpha", False), "arm-1 leased")
+        try:
+            wait_for(lambda: pc2.lease("mr-arm-1") == ("alpha", False), "arm-1 leased")
+        except AssertionError as exc:  # say who holds the place
+            held = [(r.spec.robot_id, r.agent_id, r.online, r.lease) for r in s.ListRobots(ALL, timeout=5).robots]
+            raise AssertionError(f"{exc}; robots: {held}") from None
         # arm-0 returns: the place stays with the robot holding it.
-        pc1 = Edge(control.address, "lab-pc-1", [team_spec("arm-0", "a")])
+        pc1 = Edge(control.address, "mr-pc-1", [team_spec("mr-arm-0", "a")])
         assert pc1.client.wait_registered(10)
-        assert pc1.lease("arm-0") == ("", True)
-        assert list(experiment(s, "alpha").leased_robots) == ["arm-1"]
+        assert pc1.lease("mr-arm-0") == ("", True)
+        assert list(experiment(s, "alpha").leased_robots) == ["mr-arm-1"]
     finally:
         pc1.close()
         pc2.close()
