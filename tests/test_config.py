@@ -60,6 +60,7 @@ def test_no_file_gives_the_defaults() -> None:
         ("edge.robots=[{id: 'no spaces allowed'}]", "edge.robots.0.id"),
         ("edge.robots=[{id: arm-0}, {kind: sim_reach_arm}]", "edge.robots.1.id"),
         ("log_level=LOUD", "log_level"),
+        ("experiments=[{name: a, table: 'lab a'}]", "experiments.0.table"),  # replay would refuse every step
     ],
 )
 def test_a_bad_value_names_its_dotted_field(override: str, field: str) -> None:

@@ -199,7 +199,9 @@ class ExperimentConfig(Strict):
     robots: RobotSelector = RobotSelector()
     policy: PluginChoice | None = Field(default=None, description="policy kind and params; None = the algorithm's")
     algorithm: PluginChoice = PluginChoice(kind="sac")
-    table: str = Field(default="online", description="replay table the experiment's robots fill")
+    table: str = Field(
+        default="online", pattern=r"^[A-Za-z0-9_.\-]{1,64}$", description="replay table the experiment's robots fill"
+    )
     shared_embodiment: bool = Field(
         default=False, description="one policy for robots of different shapes: pad state/action, mask, embodiment id"
     )
