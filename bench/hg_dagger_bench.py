@@ -242,13 +242,10 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
     stop = threading.Event()
     updates = [0]
 
-    def learner() -> None:
+    def learner() -> None:  # the demos' half alone until interventions arrive, as the sync rounds train
         while not stop.is_set():
-            if async_ivs.obs:
-                async_algo.update(make_batch([(demos, 0.5), (async_ivs, 0.5)], async_algo.p.batch_size, rng))
-                updates[0] += 1
-            else:
-                time.sleep(0.001)
+            async_algo.update(make_batch([(demos, 0.5), (async_ivs, 0.5)], async_algo.p.batch_size, rng))
+            updates[0] += 1
 
     thread = threading.Thread(target=learner, daemon=True)
     t0 = time.perf_counter()
