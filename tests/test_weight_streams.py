@@ -616,3 +616,13 @@ def test_buffer_pool_reuses_a_buffer_only_once_nothing_views_it() -> None:
     assert id(fresh.base) != owner  # still viewed: never handed out again while in use
     del tensor
     assert id(pool.take(2 << 20).base) == owner
+
+
+def test_read_varint_matches_protobuf_and_refuses_truncated_or_overlong_bytes() -> None:
+    for value in (1, 127, 128, 300, 2**32, 2**63 - 1, 2**64 - 1):
+        msg = learner_pb2.WeightChunk(version=value).SerializeToString()  # tag 0x08, then the varint
+        assert wire.read_varint(msg, 1) == (value, len(msg))
+    with pytest.raises(wire.WireError, match="truncated"):
+        wire.read_varint(b"\x80\x80", 0)
+    with pytest.raises(wire.WireError, match="10 bytes"):
+        wire.read_varint(b"\xff" * 11 + b"\x01", 0)

@@ -34,7 +34,15 @@ import xxhash
 
 from user.v1 import learner_pb2
 from user.v1 import tensor_pb2 as tpb
-from user.wire import WireError, dtype_from_proto, dtype_to_proto, from_wire_dtype, to_wire_dtype, wire_itemsize
+from user.wire import (
+    WireError,
+    dtype_from_proto,
+    dtype_to_proto,
+    from_wire_dtype,
+    read_varint,
+    to_wire_dtype,
+    wire_itemsize,
+)
 
 ENCODING_RAW = tpb.ENCODING_RAW
 ENCODING_ZSTD = tpb.ENCODING_ZSTD
@@ -595,44 +603,31 @@ class RawChunk:
     data: memoryview
 
 
-def _read_varint(buf: bytes, pos: int) -> tuple[int, int]:
-    value = shift = 0
-    while True:
-        if pos >= len(buf) or shift > 63:
-            raise IndexError("truncated varint")
-        b = buf[pos]
-        pos += 1
-        value |= (b & 0x7F) << shift
-        if b < 0x80:
-            return value, pos
-        shift += 7
-
-
 def parse_weight_message(buf: bytes) -> learner_pb2.WeightMessage | RawChunk:
     """Response deserializer of the weight streams: a lone chunk as a RawChunk (no copy of its data),
     anything else (a header, unknown or repeated fields) by protobuf."""
     try:
         if buf[:1] == _CHUNK_TAG:
-            size, pos = _read_varint(buf, 1)
+            size, pos = read_varint(buf, 1)
             if pos + size == len(buf):
                 version = offset = 0
                 data = memoryview(b"")
                 while pos < len(buf):
-                    tag, pos = _read_varint(buf, pos)
+                    tag, pos = read_varint(buf, pos)
                     if tag == 0x08:
-                        version, pos = _read_varint(buf, pos)
+                        version, pos = read_varint(buf, pos)
                     elif tag == 0x10:
-                        offset, pos = _read_varint(buf, pos)
+                        offset, pos = read_varint(buf, pos)
                     elif tag == 0x1A:
-                        n, pos = _read_varint(buf, pos)
+                        n, pos = read_varint(buf, pos)
                         if pos + n > len(buf):
-                            raise IndexError("truncated bytes field")
+                            raise WireError("truncated bytes field")
                         data, pos = memoryview(buf)[pos : pos + n], pos + n
                     else:
                         break  # another field: protobuf's parse below decides
                 else:
                     return RawChunk(version & (2**64 - 1), offset & (2**64 - 1), data)
-    except IndexError:
+    except WireError:
         pass  # malformed: protobuf's parse raises the proper error
     return learner_pb2.WeightMessage.FromString(buf)
 

@@ -36,6 +36,29 @@ _BF16_STORAGE = np.dtype("<u2")
 FLOAT_WIRE_DTYPES = (tpb.DTYPE_FLOAT32, tpb.DTYPE_FLOAT16, tpb.DTYPE_BFLOAT16)
 
 
+def read_varint(buf: bytes | memoryview, pos: int) -> tuple[int, int]:
+    """A protobuf varint at buf[pos:]: (value, position after it). For the hot paths that read a
+    message's bytes in place instead of parsing it (replay's cold reads, weight chunks). Raises
+    WireError when the buffer ends inside it or it runs past 10 bytes."""
+    try:
+        b = buf[pos]
+        if b < 0x80:  # most tags, dtypes and small values: one byte
+            return b, pos + 1
+        value, shift = b & 0x7F, 7
+        pos += 1
+        while True:
+            b = buf[pos]
+            pos += 1
+            value |= (b & 0x7F) << shift
+            if b < 0x80:
+                return value, pos
+            shift += 7
+            if shift > 63:
+                raise WireError("varint longer than 10 bytes")
+    except IndexError:
+        raise WireError("truncated varint") from None
+
+
 def wire_itemsize(code: int) -> int:
     """Bytes per element of `code` on the wire (bf16 included)."""
     return 2 if code == tpb.DTYPE_BFLOAT16 else dtype_from_proto(code).itemsize

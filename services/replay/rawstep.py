@@ -6,12 +6,15 @@ array) before the frame reaches the batch. Here the protobuf wire format (varint
 fields, https://protobuf.dev/programming-guides/encoding/) is walked over the LMDB page itself
 (a zero-copy buffer) to find each tensor's dtype, shape, encoding and data span, so a frame is copied once,
 from the page into the batch column. Only steps this process wrote are read here (validated on insert);
-anything unexpected raises `Unexpected`, and the caller falls back to the protobuf parse.
+anything unexpected raises `Unexpected` (a truncated varint: `WireError`), and the caller falls back
+to the protobuf parse.
 """
 
 from __future__ import annotations
 
 from typing import NamedTuple
+
+from user.wire import read_varint
 
 STEP_OBSERVATION, STEP_ACTION, STEP_FINAL = 4, 5, 13  # user.v1.Step field numbers
 TENSOR_DTYPE, TENSOR_SHAPE, TENSOR_DATA, TENSOR_ENCODING = 1, 2, 3, 4  # user.v1.Tensor
@@ -38,34 +41,17 @@ class StepSpans(NamedTuple):
     final: dict[str, Span] | None  # None: the step has no final_observation
 
 
-def _varint(buf: memoryview, pos: int) -> tuple[int, int]:
-    b = buf[pos]
-    if b < 0x80:  # most tags, dtypes and small values: one byte
-        return b, pos + 1
-    value, shift = b & 0x7F, 7
-    pos += 1
-    while True:
-        b = buf[pos]
-        pos += 1
-        value |= (b & 0x7F) << shift
-        if b < 0x80:
-            return value, pos
-        shift += 7
-        if shift > 63:
-            raise Unexpected("varint longer than 10 bytes")
-
-
 def _fields(buf: memoryview, pos: int, end: int) -> list[tuple[int, int, int, int]]:
     """(field number, wire type, value or start of a LEN field, its stop) of the fields in [pos, end)."""
     out = []
     while pos < end:
-        tag, pos = _varint(buf, pos)
+        tag, pos = read_varint(buf, pos)
         kind = tag & 7
         if kind == VARINT:
-            value, pos = _varint(buf, pos)
+            value, pos = read_varint(buf, pos)
             out.append((tag >> 3, kind, value, 0))
         elif kind == LEN:
-            size, pos = _varint(buf, pos)
+            size, pos = read_varint(buf, pos)
             out.append((tag >> 3, kind, pos, pos + size))
             pos += size
         elif kind == I64:
@@ -93,7 +79,7 @@ def _tensor(buf: memoryview, pos: int, end: int) -> Span:
         elif field == TENSOR_SHAPE and kind == LEN:  # packed (proto3's default)
             at = value
             while at < until:
-                dim, at = _varint(buf, at)
+                dim, at = read_varint(buf, at)
                 shape.append(dim)
         elif field == TENSOR_SHAPE and kind == VARINT:
             shape.append(value)
