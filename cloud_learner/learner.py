@@ -26,6 +26,7 @@ error: logged, counted and reported in the experiment's status, never read as an
 
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import json
 import logging
@@ -43,6 +44,7 @@ import torch
 
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
 from cloud_learner.checkpoint import load_latest, read_version_mark, save_checkpoint, write_version_mark
+from cloud_learner.prepare import check_prepare, normalize_keys, state_stats, with_stats
 from cloud_learner.replay_sampler import ShardedSampler, replay_source
 from user import rpc
 from user.config import ExperimentConfig, StackConfig
@@ -77,6 +79,12 @@ SAMPLE_ERRORS = prometheus_client.Counter(
 )
 CHECKPOINT_SECONDS = prometheus_client.Histogram(
     "user_learner_checkpoint_seconds", "Time to write a checkpoint", buckets=(0.01, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 10)
+)
+PRETRAIN_UPDATES = prometheus_client.Gauge(
+    "user_learner_pretrain_updates", "Pretraining updates done (experiments[].pretrain)", ["experiment"]
+)
+PRETRAIN_TARGET = prometheus_client.Gauge(
+    "user_learner_pretrain_steps", "Pretraining updates asked for (experiments[].pretrain.steps)", ["experiment"]
 )
 CAPPED = prometheus_client.Counter(
     "user_learner_capped_total", "Times training paused at the update-to-data cap (max_updates_per_transition)"
@@ -232,14 +240,18 @@ def layout_fingerprint(layout: Layout) -> str:
     )
 
 
-def checkpoint_state(algo: Algorithm, kind: str, weight_version: int, layout: Layout) -> dict[str, Any]:
-    """Tensors, ints and strings only, so torch.load(weights_only=True) reads it back."""
+def checkpoint_state(
+    algo: Algorithm, kind: str, weight_version: int, layout: Layout, extra: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """Tensors, ints, floats, strings, lists and dicts only, so torch.load(weights_only=True) reads it back.
+    `extra`: the learner's own state beside the algorithm's (pretrain progress, normalization statistics)."""
     return {
         "algorithm": algo.state_dict(),
         "kind": kind,
         "weight_version": int(weight_version),
         "updates": int(algo.updates),
         "layout": layout_fingerprint(layout),
+        **(extra or {}),
     }
 
 
@@ -285,8 +297,11 @@ class Prefetched:
     transitions: int
 
 
-def build_algorithm(index: int, exp: ExperimentConfig, layout: Layout, device: str) -> Algorithm:
-    """ALGORITHMS.build with the experiment's params; the policy choice goes to algorithms that take one."""
+def build_algorithm(
+    index: int, exp: ExperimentConfig, layout: Layout, device: str, stats: dict[str, Any] | None = None
+) -> Algorithm:
+    """ALGORITHMS.build with the experiment's params (plus normalization `stats` as state_mean/state_std);
+    the policy choice goes to algorithms that take one."""
     where = f"experiments[{index}]"
     context: dict[str, Any] = {"layout": layout, "device": torch.device(device)}
     entry = ALGORITHMS.get(exp.algorithm.kind, f"{where}.algorithm.kind")
@@ -297,7 +312,8 @@ def build_algorithm(index: int, exp: ExperimentConfig, layout: Layout, device: s
         if "policy" not in inspect.signature(entry.cls.__init__).parameters:
             raise LearnerError(f"{where}.policy: algorithm {exp.algorithm.kind!r} does not take a policy choice")
         context["policy"] = choice
-    return ALGORITHMS.build(exp.algorithm.kind, exp.algorithm.params, where=f"{where}.algorithm.params", **context)
+    params = with_stats(exp.algorithm.params, stats)
+    return ALGORITHMS.build(exp.algorithm.kind, params, where=f"{where}.algorithm.params", **context)
 
 
 class ExperimentRun:
@@ -319,6 +335,8 @@ class ExperimentRun:
         self._lock = threading.Lock()  # robot set changes vs. sampling
         self._tables_warned = False
         self.stopped = threading.Event()  # control stopped the experiment: no sampling, no updates
+        self.pretrain_updates = 0  # updates done on experiments[].pretrain.table (checkpointed)
+        self.normalization: dict[str, Any] | None = None  # state_mean/state_std the algorithm was built with
 
     def set_stopped(self, stopped: bool) -> None:
         if stopped == self.stopped.is_set():
@@ -346,22 +364,184 @@ class ExperimentRun:
     # ------------------------------------------------------------------ lifecycle
 
     def start(self) -> None:
+        if self.exp.pretrain is None and self.exp.normalize is None:
+            self._run(self._restore(load_latest(self.ckpt_dir, map_location=self.lc.device)))
+        else:  # statistics and pretraining wait for replay: off the discovery thread
+            self.state.state = "preparing"
+            self._spawn(self._prepare, "prepare")
+
+    def _restore(self, ckpt: dict[str, Any] | None) -> int:
+        """Load the checkpoint (if any) into the algorithm; returns the weight version it had published."""
         restored = 0
-        ckpt = load_latest(self.ckpt_dir, map_location=self.lc.device)
         if ckpt is not None:
             restored = restore_checkpoint(self.algo, ckpt, self.exp.algorithm.kind, self.layout, self.ckpt_dir)
             self._last_ckpt_updates = int(ckpt["updates"])
+            # A checkpoint without pretrain progress but with updates predates pretraining: it is past that.
+            past = self._pretrain_steps() if int(ckpt["updates"]) > 0 else 0
+            self.pretrain_updates = int(ckpt.get("pretrain_updates", past))
             log.info("resumed", extra=kv(experiment=self.exp.name, updates=self.algo.updates, weight_version=restored))
         self.state.updates = int(self.algo.updates)
+        return restored
+
+    def _run(self, restored: int) -> None:
+        """Publish the first version of this run and start sampling and training."""
         # Never reuse a published number (the checkpoint may predate the last publishes, e.g. after
         # kill -9): subscribers holding a higher one would reject the new weights.
-        self.publish(max(restored, read_version_mark(self.ckpt_dir)) + 1)
+        self.publish(max(restored, self.state.weight_version, read_version_mark(self.ckpt_dir)) + 1)
         self.state.state = "stopped" if self.stopped.is_set() else "waiting_for_data"
         if self.lc.mode == "async":
             self._spawn(self._sample_loop, "sampler")
             self._spawn(self._train_async, "train")
         else:
             self._spawn(self._train_sync, "train")
+
+    # ------------------------------------------------------------------ before the first version
+
+    def _pretrain_steps(self) -> int:
+        return self.exp.pretrain.steps if self.exp.pretrain is not None else 0
+
+    def _prepare(self) -> None:
+        """Statistics, then pretraining, then version 1 and the training loops. Until version 1 exists the
+        inference service answers "no policy yet" and the robots hold (see docs/notes/core.md)."""
+        ckpt = load_latest(self.ckpt_dir, map_location=self.lc.device)
+        stats = ckpt.get("normalization") if ckpt is not None else None
+        norm = self.exp.normalize
+        if ckpt is not None and stats is None and norm is not None and int(ckpt["updates"]) > 0:
+            raise LearnerError(
+                f"{self.ckpt_dir} was trained without normalization statistics; with experiments[{self.index}]."
+                "normalize set its networks would see other inputs: use another checkpoint_dir or drop normalize"
+            )
+        with rpc.make_channel(self.lc.replay_addr, self.learner.cfg.auth) as channel:
+            replay = replay_source(self.lc, self.learner.cfg.auth, channel)
+            try:
+                if stats is None and norm is not None:
+                    if norm.from_table == self.exp.table:  # the robots' own steps: they act with the initial policy
+                        self._run_initial(ckpt)
+                    stats = self._compute_stats(replay)
+                    if stats is None:  # stopping
+                        return
+                if stats is not None:
+                    self.normalization = stats
+                    self.algo = build_algorithm(self.index, self.exp, self.layout, self.lc.device, stats)
+                restored = self._restore(ckpt)
+                if self.pretrain_updates < self._pretrain_steps():
+                    self._pretrain(replay)
+            finally:
+                if isinstance(replay, ShardedSampler):
+                    replay.close()
+        if not self._stop.is_set():
+            self._run(restored)
+
+    def _run_initial(self, ckpt: dict[str, Any] | None) -> None:
+        """normalize from the robots' own table: publish the initial policy so they can collect min_steps."""
+        self.publish(max(self._restore(ckpt), read_version_mark(self.ckpt_dir)) + 1)
+
+    def _table_request(self, table: str, req: BatchRequest) -> replay_pb2.SampleRequest:
+        """A sample of one table: the experiment's own (its robots) or a pre-filled one (every row of it:
+        imported demos carry their dataset's robot id)."""
+        request = replay_pb2.SampleRequest(batch_size=req.batch_size)
+        if table == self.exp.table:
+            with self._lock:
+                request.robot_ids.extend(sorted(self.specs))
+        if table != "online":
+            request.tables[table] = 1.0
+        if req.n_step > 1:
+            request.n_step, request.gamma = req.n_step, req.gamma
+        if req.action_horizon > 1:
+            request.action_horizon = req.action_horizon
+        return request
+
+    def _sample_table(
+        self, replay: Any, table: str, req: BatchRequest, keys: list[str]
+    ) -> tuple[dict[str, Any] | None, int]:
+        """(decoded arrays of `keys`, transitions the table holds); (None, 0) while empty or on an error."""
+        try:
+            resp = replay.Sample(self._table_request(table, req), timeout=self.lc.rpc_timeout_s)
+        except grpc.RpcError as err:
+            details = err.details() if hasattr(err, "details") else ""
+            if not (
+                err.code() == grpc.StatusCode.FAILED_PRECONDITION and any(d in (details or "") for d in EMPTY_DETAILS)
+            ):
+                self._sample_error(err.code().name.lower(), f"{err.code().name}: {details}")
+            return None, 0
+        size = int(resp.table_transitions.get(table, resp.transitions))
+        try:
+            arrays = decode_arrays(resp.batch, keys)
+            _check_layout(arrays, self._sub_layout(keys))
+        except WireError as exc:
+            self._sample_error("decode", f"{table}: {exc}")
+            return None, size
+        return arrays, size
+
+    def _sub_layout(self, keys: list[str]) -> Layout:
+        return Layout({k: self.layout.observation[k] for k in keys}, self.layout.action_low, self.layout.action_high)
+
+    def _compute_stats(self, replay: Any) -> dict[str, Any] | None:
+        """Mean and std of the float state features over `samples` transitions of normalize.from_table."""
+        norm = self.exp.normalize
+        assert norm is not None
+        keys = normalize_keys(self.layout, norm.keys)
+        self.state.state = "normalizing"
+        rows: dict[str, list[np.ndarray]] = {k: [] for k in keys}
+        got, backoff = 0, rpc.Backoff(initial_s=0.1, max_s=2.0)
+        req = BatchRequest(batch_size=min(256, norm.samples))
+        while got < norm.samples:
+            if self._stop.is_set():
+                return None
+            arrays, size = self._sample_table(replay, norm.from_table, req, keys)
+            self.state.scalars = {"normalize_samples": float(got), "normalize_table_transitions": float(size)}
+            if arrays is None or size < norm.min_steps:
+                backoff.sleep(self._stop)
+                continue
+            backoff.reset()
+            for k in keys:
+                rows[k].append(arrays["observation"][k])
+            got += len(arrays["action"])
+        stats = state_stats({k: np.concatenate(v)[: norm.samples] for k, v in rows.items()}, norm.min_std)
+        log.info(
+            "normalization statistics",
+            extra=kv(experiment=self.exp.name, table=norm.from_table, samples=got, **{"keys": keys}),
+        )
+        return {**stats, "from_table": norm.from_table, "samples": int(got)}
+
+    def _pretrain(self, replay: Any) -> None:
+        """pretrain.steps updates on pretrain.table; checkpointed every checkpoint_every and at the end, so a
+        restart resumes the count and a finished pretraining is never redone."""
+        pre = self.exp.pretrain
+        assert pre is not None
+        req = dataclasses.replace(self.algo.batch_request(), tables={pre.table: 1.0})
+        keys = sorted(self.layout.observation)
+        PRETRAIN_TARGET.labels(self.exp.name).set(pre.steps)
+        backoff = rpc.Backoff(initial_s=0.1, max_s=2.0)
+        log.info(
+            "pretraining",
+            extra=kv(experiment=self.exp.name, table=pre.table, done=self.pretrain_updates, steps=pre.steps),
+        )
+        while self.pretrain_updates < pre.steps and not self._stop.is_set():
+            if self._wait_while_stopped():
+                continue
+            arrays, size = self._sample_table(replay, pre.table, req, keys)
+            if arrays is None or size < pre.min_size:
+                self.state.state = "pretraining"
+                self.state.scalars = {**self._pretrain_scalars(), "pretrain_table_transitions": float(size)}
+                backoff.sleep(self._stop)
+                continue
+            backoff.reset()
+            if pre.human:  # every row of a demo table is a demonstrated action: BC terms count them
+                arrays["intervention"] = np.ones(len(arrays["action"]), bool)
+            self.pretrain_updates += 1
+            self.update(to_batch(arrays, self.lc.device, req.gamma), publish=False, state="pretraining")
+            PRETRAIN_UPDATES.labels(self.exp.name).set(self.pretrain_updates)
+        if self.pretrain_updates >= pre.steps:
+            log.info(
+                "pretraining done", extra=kv(experiment=self.exp.name, updates=self.algo.updates, **self.state.scalars)
+            )
+            self.checkpoint()
+
+    def _pretrain_scalars(self) -> dict[str, float]:
+        if self.exp.pretrain is None:
+            return {}
+        return {"pretrain_updates": float(self.pretrain_updates), "pretrain_steps": float(self.exp.pretrain.steps)}
 
     def _spawn(self, target: Any, what: str) -> None:
         def run() -> None:
@@ -516,7 +696,7 @@ class ExperimentRun:
             except queue.Empty:
                 continue
             BATCH_WAIT.observe(time.perf_counter() - start)
-            if self.algo.updates >= self.lc.max_updates_per_transition * item.transitions:
+            if self.algo.updates - self.pretrain_updates >= self.lc.max_updates_per_transition * item.transitions:
                 CAPPED.inc()  # at the update-to-data cap: drop this (stale) batch and let more data arrive
                 self._stop.wait(0.1)
                 continue
@@ -597,11 +777,12 @@ class ExperimentRun:
             self.state.updates_per_s = value
             UPDATES_PER_S.labels(self.exp.name).set(value)
 
-    def update(self, batch: Batch, publish: bool = True) -> None:
+    def update(self, batch: Batch, publish: bool = True, state: str = "training") -> None:
         scalars = self.algo.update(batch)
         st = self.state
-        st.updates, st.scalars = int(self.algo.updates), {k: float(v) for k, v in scalars.items()}
-        st.state, st.last_update_mono = "stopped" if self.stopped.is_set() else "training", time.monotonic()
+        st.updates = int(self.algo.updates)
+        st.scalars = {**{k: float(v) for k, v in scalars.items()}, **self._pretrain_scalars()}
+        st.state, st.last_update_mono = "stopped" if self.stopped.is_set() else state, time.monotonic()
         UPDATES.labels(self.exp.name).inc()
         for name, value in st.scalars.items():
             SCALARS.labels(self.exp.name, name).set(value)
@@ -633,7 +814,10 @@ class ExperimentRun:
         if updates == self._last_ckpt_updates:
             return
         start = time.perf_counter()
-        state = checkpoint_state(self.algo, self.exp.algorithm.kind, self.state.weight_version, self.layout)
+        extra: dict[str, Any] = {"pretrain_updates": int(self.pretrain_updates)}
+        if self.normalization is not None:
+            extra["normalization"] = self.normalization
+        state = checkpoint_state(self.algo, self.exp.algorithm.kind, self.state.weight_version, self.layout, extra)
         save_checkpoint(self.ckpt_dir, state)
         self._last_ckpt_updates = updates
         CHECKPOINT_SECONDS.observe(time.perf_counter() - start)
@@ -665,6 +849,7 @@ class Learner:
         self.store = store
         self.experiments = cfg.resolved_experiments()
         check_plugins(self.experiments)  # a typo in a param fails here, naming experiments[i]...
+        check_prepare(self.experiments)
         self.experiment_states = {
             e.name: ExperimentState(e.name, e.algorithm.kind, policy_kind=e.policy.kind if e.policy else "")
             for e in self.experiments

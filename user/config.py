@@ -192,6 +192,32 @@ class PluginChoice(Strict):
     params: dict[str, Any] = Field(default={}, description="the kind's typed params, checked at start")
 
 
+TABLE_NAME = r"^[A-Za-z0-9_.\-]{1,64}$"  # replay's table-name pattern
+
+
+class PretrainConfig(Strict):
+    """Updates on a pre-filled replay table (e.g. imported demos) before the experiment's first weight version."""
+
+    table: str = Field(default="demos", pattern=TABLE_NAME, description="replay table to pretrain on")
+    steps: int = Field(ge=1, description="gradient updates before the first weight version is published")
+    min_size: int = Field(default=1, ge=1, description="wait until the table holds this many transitions")
+    human: bool = Field(
+        default=True, description="every row is a demonstrated action: batches mark them intervention (BC terms)"
+    )
+
+
+class NormalizeConfig(Strict):
+    """State normalization statistics computed by the learner from a replay table, shipped with the policy."""
+
+    from_table: str = Field(
+        default="demos", pattern=TABLE_NAME, description="table the statistics come from (the experiment's own: online)"
+    )
+    min_steps: int = Field(default=1000, ge=2, description="wait until the table holds this many transitions")
+    samples: int = Field(default=8192, ge=2, description="transitions sampled (uniformly) for mean and std")
+    keys: list[str] = Field(default=[], description="float state features to normalize; empty = every one")
+    min_std: float = Field(default=1e-2, gt=0, description="std floor: a near-constant feature is not blown up")
+
+
 class ExperimentConfig(Strict):
     """One learning problem: robots (selector), policy, algorithm, replay table. Several train at once."""
 
@@ -208,6 +234,25 @@ class ExperimentConfig(Strict):
     max_robots: int = Field(
         default=0, ge=0, description="control leases at most this many of the selected robots; 0 = all of them"
     )
+    pretrain: PretrainConfig | None = Field(
+        default=None, description="train on a pre-filled table before the first weight version; robots hold till then"
+    )
+    normalize: NormalizeConfig | None = Field(
+        default=None, description="learner computes state mean/std from a table; stored in checkpoints and the policy"
+    )
+
+    @model_validator(mode="after")
+    def _prepare_fits(self) -> ExperimentConfig:
+        if self.shared_embodiment and (self.normalize is not None or self.pretrain is not None):
+            raise ValueError(
+                "normalize / pretrain: not supported with shared_embodiment yet (padded state and actions)"
+            )
+        if self.pretrain is not None and self.normalize is not None and self.normalize.from_table == self.table:
+            raise ValueError(
+                f"normalize.from_table: {self.table!r} is the table the robots fill, but pretraining runs before they "
+                f"act; take the statistics from a pre-filled table (e.g. pretrain.table {self.pretrain.table!r})"
+            )
+        return self
 
 
 # SAC fields of the learner section that the implicit default experiment (learner.robot_kind) passes on.

@@ -44,13 +44,28 @@ class FlowBcParams(PluginParams):
     flow_steps: int = Field(5, ge=1)
     default_instruction: str = ""
     seed: int = 0
+    state_mean: dict[str, list[float]] = Field(
+        default={}, description="per state feature, values subtracted before the network (learner.normalize sets it)"
+    )
+    state_std: dict[str, list[float]] = Field(default={}, description="per state feature, divisors after state_mean")
 
 
 def config_for(layout: Layout, params: FlowBcParams) -> FlowVlaConfig:
     """The policy architecture for an experiment's observation layout."""
     has_instruction = INSTRUCTION_KEY in layout.observation
     state_keys = [k for k in layout.state_keys() if k != INSTRUCTION_KEY]
+    dims = {k: int(np.prod(layout.observation[k].shape)) for k in state_keys}
+    for name, stats in (("state_mean", params.state_mean), ("state_std", params.state_std)):
+        bad = {k: len(v) for k, v in stats.items() if dims.get(k) != len(v)}
+        if bad:
+            raise ValueError(f"{name}: {bad} are not state features of the right size ({dims})")
+    mean = std = None
+    if params.state_mean or params.state_std:
+        mean = [x for k in state_keys for x in params.state_mean.get(k, [0.0] * dims[k])]
+        std = [x for k in state_keys for x in params.state_std.get(k, [1.0] * dims[k])]
     return FlowVlaConfig(
+        state_mean=mean,
+        state_std=std,
         image_keys=layout.image_keys(),
         state_keys=state_keys,
         state_dim=sum(int(np.prod(layout.observation[k].shape)) for k in state_keys),

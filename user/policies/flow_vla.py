@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from torch import nn
 
 from user.policy import Policy, check_device, load_tensors, module_tensors, register_policy
@@ -54,6 +54,19 @@ class FlowVlaConfig(BaseModel):
     embed_dim: int = Field(32, ge=1)
     hidden: int = Field(128, ge=8)
     flow_steps: int = Field(5, ge=1, description="Euler steps from noise to a chunk")
+    # State normalization (e.g. the learner's statistics of the demos): (state - mean) / std before the network.
+    # Absent in specs published before it existed: those load and see the raw state.
+    state_mean: list[float] | None = Field(None, description="one value per flattened state feature")
+    state_std: list[float] | None = Field(None, description="one value > 0 per flattened state feature")
+
+    @model_validator(mode="after")
+    def _stats_fit(self) -> FlowVlaConfig:
+        for name, values in (("state_mean", self.state_mean), ("state_std", self.state_std)):
+            if values is not None and len(values) != self.state_dim:
+                raise ValueError(f"{name} has {len(values)} values, state_dim is {self.state_dim}")
+        if self.state_std is not None and min(self.state_std, default=1.0) <= 0:
+            raise ValueError("state_std must be > 0")
+        return self
 
     def observation_keys(self) -> list[str]:
         keys = [*self.image_keys, *self.state_keys]
@@ -175,6 +188,13 @@ class Preprocessor:
     def __init__(self, cfg: FlowVlaConfig, device: torch.device) -> None:
         self.cfg, self.device = cfg, device
         self.pinned = device.type == "cuda"  # page-locked host buffers make the copy asynchronous
+        dim = cfg.state_dim
+        self.shift = None if cfg.state_mean is None and cfg.state_std is None else np.zeros(dim, np.float32)
+        self.scale = None if self.shift is None else np.ones(dim, np.float32)
+        if cfg.state_mean is not None:
+            self.shift = np.asarray(cfg.state_mean, np.float32)
+        if cfg.state_std is not None:
+            self.scale = 1.0 / np.asarray(cfg.state_std, np.float32)
 
     def _to_device(self, array: np.ndarray) -> torch.Tensor:
         tensor = torch.from_numpy(np.ascontiguousarray(array))
@@ -217,6 +237,8 @@ class Preprocessor:
             flat = np.concatenate(parts, axis=1)
             if flat.shape[1] != self.cfg.state_dim:
                 raise ValueError(f"state has {flat.shape[1]} features, the policy expects {self.cfg.state_dim}")
+            if self.shift is not None:  # the statistics shipped in the spec: learner and actors normalize alike
+                flat = (flat - self.shift) * self.scale
             state = self._to_device(flat)
         tokens = self._to_device(self.tokens(self.instructions(observation, instructions, batch)))
         return Prepared(images, state, tokens)
