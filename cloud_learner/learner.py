@@ -873,6 +873,18 @@ class Learner:
         if self._thread is not None:
             self._thread.join(timeout)
 
+    def preparing(self) -> list[str]:
+        """Experiments whose robots should hold (WorkerInfo.preparing): no version published yet while
+        normalizing from, or pretraining on, a pre-filled table. Control leases them a hold till then."""
+        return sorted(
+            e.name
+            for e in self.experiments
+            if (e.pretrain is not None or (e.normalize is not None and e.normalize.from_table != e.table))
+            and self.experiment_states[e.name].weight_version == 0
+            and self.experiment_states[e.name].state != "failed"
+            and not self._stop.is_set()
+        )
+
     @property
     def failed(self) -> bool:
         return self.error is not None

@@ -113,7 +113,9 @@ def run(cfg: StackConfig, ready_file: str | None) -> int:
     service = LearnerService(cfg)
     lc = cfg.learner
     experiments = [e.name for e in cfg.resolved_experiments()]  # `userctl exp status` lists its learners by these
-    with report_worker(service, "learner", lc.control_addr, cfg.auth, lc.device, experiments):
+    with report_worker(
+        service, "learner", lc.control_addr, cfg.auth, lc.device, experiments, service.learner.preparing
+    ):
         rpc.serve_until_signal(service, "learner", ready_file, healthy=lambda: not service.learner.failed)
     if service.learner.failed:
         log.error("learner stopped on an error", extra=kv(error=str(service.learner.error)))

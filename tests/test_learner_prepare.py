@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import functools
 import json
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +32,7 @@ from user.experiments import layout_for
 from user.policy import build_policy
 from user.rpc import make_channel
 from user.v1 import (
+    control_pb2,
     control_pb2_grpc,
     inference_pb2,
     inference_pb2_grpc,
@@ -41,6 +42,7 @@ from user.v1 import (
     replay_pb2_grpc,
     step_pb2,
 )
+from user.worker import report_worker
 
 wait_for = functools.partial(helpers.wait_for, limit_s=180.0, poll_s=0.1)
 AUTH = {"token": "test-token"}
@@ -115,23 +117,23 @@ def stack_cfg(tmp_path: Path, experiment: dict[str, Any]) -> StackConfig:
 
 
 @pytest.fixture
-def base(tmp_path: Path) -> Iterator[tuple[Path, ControlService, ReplayService]]:
-    """Control and replay; the experiment's config comes per test."""
-    cfg = stack_cfg(tmp_path, {"name": "x"})
-    control = ControlService(cfg, start_metrics=False).start()
-    cfg.replay.control_addr = control.address
-    replay = ReplayService(cfg, start_metrics=False).start()
-    try:
-        yield tmp_path, control, replay
-    finally:
-        replay.stop()
-        control.stop()
+def base(tmp_path: Path) -> Iterator[Callable[[dict[str, Any]], tuple[StackConfig, ControlService, ReplayService]]]:
+    """start(experiment): control (knowing the experiment) and replay, wired into the config."""
+    started: list[Any] = []
 
+    def start(experiment: dict[str, Any]) -> tuple[StackConfig, ControlService, ReplayService]:
+        cfg = stack_cfg(tmp_path, experiment)
+        control = ControlService(cfg, start_metrics=False).start()
+        started.append(control)
+        cfg.replay.control_addr = cfg.learner.control_addr = cfg.inference.control_addr = control.address
+        replay = ReplayService(cfg, start_metrics=False).start()
+        started.append(replay)
+        cfg.learner.replay_addr = replay.address
+        return cfg, control, replay
 
-def wire_up(cfg: StackConfig, control: ControlService, replay: ReplayService) -> StackConfig:
-    cfg.replay.control_addr = cfg.learner.control_addr = cfg.inference.control_addr = control.address
-    cfg.learner.replay_addr = replay.address
-    return cfg
+    yield start
+    for service in reversed(started):
+        service.stop()
 
 
 def status_of(cfg: StackConfig, learner: LearnerService) -> learner_pb2.ExperimentStatus:
@@ -155,9 +157,18 @@ FLOW = {
 
 
 def test_flow_bc_pretrains_on_demos_before_version_1_and_ships_its_statistics(base) -> None:
-    tmp_path, control, replay = base
-    cfg = wire_up(stack_cfg(tmp_path, FLOW), control, replay)
+    cfg, control, replay = base(FLOW)
     learner = LearnerService(cfg, start_metrics=False).start()
+    # As `userctl learner` does: the learner reports to control, with the experiments it still prepares.
+    reporter = report_worker(learner, "learner", control.address, cfg.auth, "cpu", ["lang"], learner.learner.preparing)
+    reporter.__enter__()
+    control_stub = control_pb2_grpc.ControlStub(make_channel(control.address, cfg.auth))
+
+    def preparing() -> list[str]:
+        workers = control_stub.ListWorkers(control_pb2.ListWorkersRequest(), timeout=5).workers
+        return [name for w in workers for name in w.preparing]
+
+    assert wait_for(lambda: preparing() == ["lang"], "control to know the learner prepares 'lang'")
     cfg.inference.learner_addr = learner.address
     inference = InferenceService(cfg, start_metrics=False).start()
     edge = cfg.edge
@@ -171,7 +182,10 @@ def test_flow_bc_pretrains_on_demos_before_version_1_and_ships_its_statistics(ba
         waiting = wait_for(lambda: (s := status_of(cfg, learner)).state == "normalizing" and s, "waiting for demos")
         assert waiting.weight_version == 0 and waiting.scalars["normalize_table_transitions"] == 0
         loop = agent.loops["arm-0"]
-        assert loop.policy_version == 0
+        # Control holds the robot while the learner prepares: it neither acts nor records a step.
+        robot = wait_for(lambda: (r := robot_info(control_stub)) is not None and r.lease_reason and r, "a lease")
+        assert "prepares its first policy" in robot.lease_reason and loop.held_by_lease
+        assert loop.env_steps == 0 and loop.policy_version == 0
         steps, states, actions = record_demos(episodes=20)
         insert_demos(replay.address, cfg, steps)
 
@@ -216,14 +230,21 @@ def test_flow_bc_pretrains_on_demos_before_version_1_and_ships_its_statistics(ba
         )
 
         # The robot held (no policy) until version 1, then acts with it.
+        # Then control releases it and it acts with the pretrained version.
         wait_for(lambda: loop.policy_version >= 1, "the robot to act with the pretrained version")
-        assert loop.held_steps > 0
+        assert preparing() == [] and not loop.held_by_lease and robot_info(control_stub).lease == "lang"
     finally:
         agent.stop()
         inference.stop()
+        reporter.__exit__(None, None, None)
         learner.stop()
     ckpt = torch.load(latest_ckpt(cfg, "lang"), weights_only=True)
     assert ckpt["pretrain_updates"] == 300 and ckpt["normalization"]["state_mean"]["state"] == config["state_mean"]
+
+
+def robot_info(stub: control_pb2_grpc.ControlStub) -> control_pb2.RobotInfo | None:
+    robots = stub.ListRobots(control_pb2.ListRobotsRequest(), timeout=5).robots
+    return robots[0] if robots else None
 
 
 def latest_ckpt(cfg: StackConfig, experiment: str) -> Path:
@@ -253,8 +274,7 @@ RLPD = {
 
 
 def test_rlpd_pretraining_resumes_after_a_restart_and_is_not_redone(base) -> None:
-    tmp_path, control, replay = base
-    cfg = wire_up(stack_cfg(tmp_path, RLPD), control, replay)
+    cfg, control, replay = base(RLPD)
     robots = Edge(control_pb2_grpc.ControlStub(make_channel(control.address, cfg.auth)), register_msg("e", arm_spec()))
     try:
         assert robots.next_message().WhichOneof("msg") == "registered"
@@ -341,3 +361,31 @@ def test_flow_vla_spec_with_statistics_normalizes_and_old_specs_still_load() -> 
     build_policy(policy_spec(raw), random_weights(raw), 1)
     with pytest.raises(ValueError, match="state_mean has 1 values"):
         FlowVlaConfig(**base, state_mean=[1.0])
+
+
+def test_control_holds_the_robots_of_an_experiment_its_learner_prepares(base) -> None:
+    """WorkerInfo.preparing -> lease hold with a reason; cleared -> leased; a name it does not serve -> refused."""
+    import grpc
+
+    cfg, control, _ = base(FLOW)
+    stub = control_pb2_grpc.ControlStub(make_channel(control.address, cfg.auth))
+    edge = Edge(stub, register_msg("e", arm_spec()))
+    try:
+        assert edge.next_message().WhichOneof("msg") == "registered"
+        assert robot_info(stub).lease == "lang"
+
+        def report(*preparing: str, experiments: tuple[str, ...] = ("lang",)) -> None:
+            worker = control_pb2.WorkerInfo(worker_id="learner-1", kind="learner", experiments=experiments)
+            worker.preparing.extend(preparing)
+            stub.RegisterWorker(control_pb2.RegisterWorkerRequest(worker=worker), timeout=5)
+
+        report("lang")
+        held = robot_info(stub)
+        assert held.lease == "" and "prepares its first policy" in held.lease_reason
+        report()
+        assert robot_info(stub).lease == "lang"
+        with pytest.raises(grpc.RpcError) as err:
+            report("other")
+        assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "other" in err.value.details()
+    finally:
+        edge.close()

@@ -13,6 +13,7 @@ import os
 import platform
 import socket
 import threading
+import time
 from collections.abc import Callable, Iterator
 
 import grpc
@@ -24,6 +25,8 @@ from user.rpc import Backoff, make_channel
 from user.v1 import control_pb2, control_pb2_grpc
 
 log = logging.getLogger(__name__)
+
+CHANGE_POLL_S = 0.2  # how soon a change of `preparing` is reported (robots waiting for a policy)
 
 
 def host_devices() -> list[control_pb2.DeviceInfo]:
@@ -105,14 +108,31 @@ class WorkerReporter:
                 backoff.reset()
                 self.reported.set()
                 self.interval_s = resp.interval_s if resp.interval_s > 0 else self.interval_s
-                self._stop.wait(self.interval_s)
+                self._wait_or_change(info)
+
+    def _wait_or_change(self, sent: control_pb2.WorkerInfo) -> None:
+        """Until the next report is due, or earlier when the learner's `preparing` changed (robots wait on it)."""
+        due = time.monotonic() + self.interval_s
+        while not self._stop.wait(min(CHANGE_POLL_S, max(0.0, due - time.monotonic()))):
+            if time.monotonic() >= due:
+                return
+            now = self.info()
+            if now is not None and list(now.preparing) != list(sent.preparing):
+                return
 
 
 @contextlib.contextmanager
 def report_worker(
-    service: object, kind: str, control_addr: str, auth: AuthConfig, device: str, experiments: list[str]
+    service: object,
+    kind: str,
+    control_addr: str,
+    auth: AuthConfig,
+    device: str,
+    experiments: list[str],
+    preparing: Callable[[], list[str]] | None = None,
 ) -> Iterator[WorkerReporter]:
-    """Around `serve_until_signal(service, ...)`: report once the service is bound, until it stops."""
+    """Around `serve_until_signal(service, ...)`: report once the service is bound, until it stops.
+    `preparing()`: the learner's experiments without a policy yet (WorkerInfo.preparing), re-read each report."""
 
     def info() -> control_pb2.WorkerInfo | None:
         running = getattr(service, "running", None)
@@ -120,7 +140,12 @@ def report_worker(
             return None
         if not hasattr(info, "cached"):
             info.cached = worker_info(kind, f"{socket.gethostname()}:{running.port}", device, experiments)
-        return info.cached
+        if preparing is None:
+            return info.cached
+        out = control_pb2.WorkerInfo()
+        out.CopyFrom(info.cached)
+        out.preparing.extend(preparing())
+        return out
 
     reporter = WorkerReporter(control_addr, auth, info).start()
     try:

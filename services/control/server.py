@@ -103,6 +103,8 @@ def worker_problem(w: control_pb2.WorkerInfo) -> str | None:
         return f"a text field is longer than {MAX_TEXT_BYTES} bytes"
     if len(w.devices) > 64 or len(w.experiments) > 256:
         return "at most 64 devices and 256 experiments"
+    if any(name not in w.experiments for name in w.preparing):
+        return f"preparing {sorted(set(w.preparing) - set(w.experiments))} are not among its experiments"
     return None
 
 
@@ -253,6 +255,7 @@ class Registry:
         self._robots: dict[str, RobotRecord] = {}
         self._conns: dict[str, Connection] = {}  # lease_id -> live connection
         self._workers: dict[str, control_pb2.WorkerInfo] = {}
+        self._preparing: set[str] = set()  # experiments an online learner is still preparing: robots hold
         self._commands: OrderedDict[str, CommandRecord] = OrderedDict()
         self._experiments: dict[str, ExperimentRecord] = {}  # config order: the first matching selector wins
         self._last_lease: dict[str, str] = state.load_leases() if state is not None else {}
@@ -462,6 +465,14 @@ class Registry:
                 for rec in recs:
                     out[rec.spec.robot_id] = control_pb2.RobotLease(
                         robot_id=rec.spec.robot_id, hold=True, reason=f"experiment {name} stopped"
+                    )
+                continue
+            if name in self._preparing:  # no policy yet: acting would only record still frames
+                for rec in recs:
+                    out[rec.spec.robot_id] = control_pb2.RobotLease(
+                        robot_id=rec.spec.robot_id,
+                        hold=True,
+                        reason=f"experiment {name}: the learner prepares its first policy (normalize/pretrain)",
                     )
                 continue
             # Robots holding a place keep it; then those it had last (across reconnects and restarts); then by id.
@@ -692,6 +703,25 @@ class Registry:
             self._workers[info.worker_id] = kept
             if self.state is not None:
                 self.state.save_worker(kept)
+            self._refresh_preparing_locked()
+
+    def refresh_preparing(self) -> None:
+        """A learner that stopped reporting no longer holds its experiments' robots (called by the reaper)."""
+        with self._lock:
+            self._refresh_preparing_locked()
+
+    def _refresh_preparing_locked(self) -> None:
+        cutoff = time.time_ns() - int(self.worker_ttl_s * 1e9)
+        now = {
+            name
+            for w in self._workers.values()
+            if w.kind == "learner" and w.last_seen_ns >= cutoff
+            for name in w.preparing
+        }
+        if now != self._preparing:
+            self._preparing = now
+            log.info("learners preparing", extra=kv(experiments=sorted(now)))
+            self._relay_leases_locked()
 
     def workers(self, include_offline: bool) -> list[control_pb2.WorkerInfo]:
         cutoff = time.time_ns() - int(self.worker_ttl_s * 1e9)
@@ -999,6 +1029,7 @@ class ControlService(rpc.GrpcService):
     def _reap(self) -> None:
         period = min(0.5, self.registry.lease_ttl_s / 4)
         while not self._stop.wait(period):
+            self.registry.refresh_preparing()
             for conn in self.registry.expire():
                 LEASE_EXPIRATIONS.inc()
                 conn.outbox.put(
