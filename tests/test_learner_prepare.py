@@ -209,6 +209,7 @@ def test_flow_bc_pretrains_on_demos_before_version_1_and_ships_its_statistics(ba
         layout = layout_for(ExperimentConfig.model_validate(FLOW), [arm_spec()])
         init = build_algorithm(0, ExperimentConfig.model_validate(FLOW), layout, "cpu", run.normalization)
         before, after = action_error(*init.policy(), states, actions), action_error(spec_, tensors, states, actions)
+        print(f"action error vs demos: init {before:.4f}, pretrained {after:.4f}")
         assert after < 0.6 * before, (before, after)
 
         # Inference serves the pretrained version and normalizes as the learner does: same actions.
@@ -304,6 +305,7 @@ def test_rlpd_pretraining_resumes_after_a_restart_and_is_not_redone(base) -> Non
         layout = layout_for(ExperimentConfig.model_validate(RLPD), [arm_spec()])
         init = build_algorithm(0, ExperimentConfig.model_validate(RLPD), layout, "cpu", run.normalization)
         before, after = action_error(*init.policy(), states, actions), action_error(spec_, tensors, states, actions)
+        print(f"action error vs demos: init {before:.4f}, pretrained {after:.4f}")
         assert after < 0.6 * before, (before, after)
         second.stop()
 
