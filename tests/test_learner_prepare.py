@@ -11,6 +11,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import grpc
 import numpy as np
 import pytest
 import torch
@@ -137,8 +138,12 @@ def base(tmp_path: Path) -> Iterator[Callable[[dict[str, Any]], tuple[StackConfi
 
 
 def status_of(cfg: StackConfig, learner: LearnerService) -> learner_pb2.ExperimentStatus:
+    """The experiment's status; an empty one when the call fails (a loaded machine: wait_for asks again)."""
     stub = learner_pb2_grpc.LearnerStub(make_channel(learner.address, cfg.auth))
-    (exp,) = stub.GetStatus(learner_pb2.LearnerStatusRequest(), timeout=5).experiments
+    try:
+        (exp,) = stub.GetStatus(learner_pb2.LearnerStatusRequest(), timeout=10).experiments
+    except grpc.RpcError:
+        return learner_pb2.ExperimentStatus()
     return exp
 
 
@@ -367,8 +372,6 @@ def test_flow_vla_spec_with_statistics_normalizes_and_old_specs_still_load() -> 
 
 def test_control_holds_the_robots_of_an_experiment_its_learner_prepares(base) -> None:
     """WorkerInfo.preparing -> lease hold with a reason; cleared -> leased; a name it does not serve -> refused."""
-    import grpc
-
     cfg, control, _ = base(FLOW)
     stub = control_pb2_grpc.ControlStub(make_channel(control.address, cfg.auth))
     edge = Edge(stub, register_msg("e", arm_spec()))
@@ -391,3 +394,40 @@ def test_control_holds_the_robots_of_an_experiment_its_learner_prepares(base) ->
         assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "other" in err.value.details()
     finally:
         edge.close()
+
+
+OWN = {
+    "name": "own",
+    "algorithm": {"kind": "sac", "params": {"batch_size": 32, "hidden": [32, 32]}},
+    "normalize": {"from_table": "online", "min_steps": 100, "samples": 1024},
+}
+
+
+def test_statistics_from_the_robots_own_first_steps(base) -> None:
+    """normalize from the experiment's own table: the initial policy (no statistics) is published so the robots
+    can collect; once min_steps exist the algorithm is rebuilt with their statistics and the next version carries
+    them (and the checkpoint keeps them)."""
+    cfg, control, replay = base(OWN)
+    robots = Edge(control_pb2_grpc.ControlStub(make_channel(control.address, cfg.auth)), register_msg("e", arm_spec()))
+    learner = LearnerService(cfg, start_metrics=False).start()
+    try:
+        assert robots.next_message().WhichOneof("msg") == "registered"
+        initial = wait_for(lambda: (s := status_of(cfg, learner)).weight_version >= 1 and s, "the initial version")
+        assert initial.state == "normalizing" and learner.learner.preparing() == []  # robots act meanwhile
+        assert "state_mean" not in json.loads(learner.store.latest("own").header.policy.config_json)
+
+        steps, states, _ = record_demos(episodes=6)  # the robot's own first steps (default table)
+        stub = replay_pb2_grpc.ReplayStub(make_channel(replay.address, cfg.auth))
+        reqs = [replay_pb2.InsertRequest(seq=i, step=s) for i, s in enumerate(steps)]
+        assert len([q for ack in stub.Insert(iter(reqs), timeout=30) for q in ack.seqs]) == len(steps)
+
+        nxt = wait_for(lambda: (s := status_of(cfg, learner)).weight_version > initial.weight_version and s, "v2")
+        config = json.loads(learner.store.latest("own").header.policy.config_json)
+        true_std = np.maximum(states.std(0), 1e-2)
+        np.testing.assert_allclose(config["state_mean"], states.mean(0), atol=0.15 * true_std.max())
+        assert nxt.updates == 0 and learner.learner.runs["own"].normalization["samples"] >= 1024
+    finally:
+        learner.stop()
+        robots.close()
+    ckpt = torch.load(latest_ckpt(cfg, "own"), weights_only=True)
+    assert ckpt["normalization"]["state_mean"]["state"] == config["state_mean"]
