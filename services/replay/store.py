@@ -414,15 +414,18 @@ class ReplayStore:
             max_rows = None
             if self.capacity_bytes:
                 max_rows = int(self.capacity_bytes * 1.25 // max(1, step.ByteSize() + len(step.robot_id) + 32))
-            self._groups.append(HotGroup(layout, self.hot_bytes, self._encoded_features(layout), max_rows))
+            self._groups.append(HotGroup(layout, self.hot_bytes, self._encoded_features(layout, step), max_rows))
         return gid
 
-    def _encoded_features(self, layout: Layout) -> frozenset[str]:
-        """Camera features LMDB keeps as JPEG/PNG (replay.image_encoding): the hot tier keeps those bytes too."""
+    def _encoded_features(self, layout: Layout, step: step_pb2.Step) -> frozenset[str]:
+        """Camera features LMDB keeps as JPEG/PNG: those of replay.image_encoding and those the edge sends encoded
+        (stored as sent). The hot tier keeps their bytes too and the sampler decodes them."""
+        tensors = step.observation.tensors
         out = set()
         for name, dtype, shape in layout[0]:
             enc = self.image_encoding.get(name, self.image_encoding.get("*") if name.startswith("camera.") else 0)
-            if enc and dtype == np.uint8 and (len(shape) == 2 or (len(shape) == 3 and shape[2] in (1, 3))):
+            enc = enc or (name in tensors and tensors[name].encoding in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG))
+            if enc and dtype == np.uint8 and wire.is_image_shape(shape):
                 out.add(name)
         return frozenset(out)
 
