@@ -80,7 +80,7 @@ def _cfg(tmp_path: Path) -> StackConfig:
 
 @pytest.fixture
 def camera_arm() -> Iterator[Robot]:
-    robot = make_robot("sim_reach_arm", "cam-0", {"camera": True, "max_episode_steps": 12}, seed=0)
+    robot = make_robot("sim_reach_arm", "cam-0", {"camera": True, "max_episode_steps": 4}, seed=0)
     yield robot
     robot.close()
 
@@ -107,7 +107,7 @@ def test_edge_encoded_jpeg_steps_sample_back_from_a_real_replay(
     loop = RobotLoop(camera_arm, RandomPolicy(), recorder, mode="fast")  # type: ignore[arg-type]
     loop.start()
     try:
-        wait_for(lambda: recorder.count() >= 48, "48 steps")
+        wait_for(lambda: recorder.count() >= 10, "10 steps", limit_s=300)
     finally:
         loop.stop()
         encoder.close()
@@ -238,3 +238,29 @@ def test_the_encoder_keeps_send_order_and_passes_unplanned_robots_through() -> N
     assert all(s.observation.tensors["camera.front"].encoding == tpb.ENCODING_JPEG for s in mine)
     assert all(s.observation.tensors["camera.depth"].encoding == tpb.ENCODING_RAW for s in mine)
     assert encoder.encoded == 40 and encoder.pending == 0
+
+
+def test_a_jpeg_that_passes_the_check_but_does_not_decode_is_sampled_as_zeros(replay: ReplayService) -> None:
+    """Insert checks a JPEG's header, shape and end marker, not every Huffman table: a frame damaged inside is
+    stored, and read back as zeros (counted), so it never fails the batches that draw it."""
+    from services.replay.hot import UNDECODABLE
+
+    rng = np.random.default_rng(2)
+    good = wire.to_tensor(rng.integers(0, 256, (64, 64, 3), dtype=np.uint8), tpb.ENCODING_JPEG)
+    bad = tpb.Tensor()
+    bad.CopyFrom(good)
+    data = bytearray(good.data)
+    table = data.find(b"\xff\xc4")  # the first Huffman table: garbage there and libjpeg gives up
+    data[table + 5 : table + 25] = b"\xff" * 20
+    bad.data = bytes(data)
+    wire.check_image(bad)  # passes the insert check
+    before = UNDECODABLE._value.get()
+    requests = [replay_pb2.InsertRequest(seq=i + 1, step=_step(t, i)) for i, t in enumerate([bad, good])]
+    acks = list(stub(replay).Insert(iter(requests), timeout=10))
+    assert sorted(s for a in acks for s in a.seqs) == [1, 2]
+    batch = stub(replay).Sample(replay_pb2.SampleRequest(batch_size=8), timeout=10).batch
+    obs = wire.from_tensor(batch.observation.tensors["camera.front"])
+    nxt = wire.from_tensor(batch.next_observation.tensors["camera.front"])
+    assert obs.shape == (8, 64, 64, 3) and not obs.any()  # the damaged frame, as zeros
+    assert nxt.std() > 20  # the good one decodes
+    assert UNDECODABLE._value.get() > before

@@ -43,7 +43,7 @@ from services.replay.disk import (
     split_key,
     step_key,
 )
-from services.replay.hot import HotGroup, Layout, frame_nbytes
+from services.replay.hot import HotGroup, Layout, decode_image, frame_nbytes
 from services.replay.rawstep import Span, StepSpans, Unexpected, step_spans
 from services.replay.tables import INTERVENTIONS, Draw, EmptyBufferError, Index, Record
 from user import wire
@@ -87,6 +87,8 @@ def tensor_array(tensor: tpb.Tensor) -> np.ndarray:
     """Stored tensors were validated on insert: RAW data is viewed as is, other encodings decoded."""
     if tensor.encoding == tpb.ENCODING_RAW:
         return np.frombuffer(tensor.data, dtype=wire.dtype_from_proto(tensor.dtype)).reshape(tuple(tensor.shape))
+    if tensor.encoding in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG):
+        return decode_image(tensor)
     return wire.from_tensor(tensor)
 
 
