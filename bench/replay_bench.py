@@ -33,6 +33,7 @@ STATE_DIM = 15
 ACTION_DIM = 3
 IMAGE_HW = 128
 CAMERAS = ("front", "wrist")
+EDGE_JPEG_QUALITY = 90  # edge.robots[i].jpeg_quality's default
 
 
 @dataclass(frozen=True)
@@ -156,6 +157,45 @@ def insert_ours(store: Any, steps: list[step_pb2.Step], on_commit: Callable[[int
         ack()
 
 
+def edge_encode(steps: list[step_pb2.Step], quality: int = EDGE_JPEG_QUALITY) -> tuple[list[step_pb2.Step], float, int]:
+    """The steps as an edge with image_encoding {"*": "jpeg"} sends them: every camera frame JPEG-encoded the way
+    edge_agent/encoder.py does it (wire.encode_image of the raw bytes in place). Returns (steps, seconds of
+    encoding summed over frames, frames)."""
+    from edge_agent.encoder import _encode
+    from user.v1 import tensor_pb2 as tpb
+
+    out, seconds, frames = [], 0.0, 0
+    for step in steps:
+        enc = step_pb2.Step()
+        enc.CopyFrom(step)
+        parts = [enc.observation] + ([enc.final_observation] if enc.HasField("final_observation") else [])
+        for part in parts:
+            for name, tensor in part.tensors.items():
+                if name.startswith("camera."):
+                    data, took = _encode(tensor, tpb.ENCODING_JPEG, quality)
+                    tensor.data, tensor.encoding = data, tpb.ENCODING_JPEG
+                    seconds += took
+                    frames += 1
+        out.append(enc)
+    return out, seconds, frames
+
+
+def replay_check_seconds(steps: list[step_pb2.Step]) -> tuple[float, int]:
+    """What replay's Insert spends checking the encoded frames (user.wire.check_image, part of validate_step):
+    (seconds, frames)."""
+    from user import wire
+
+    tensors = [
+        t
+        for st in steps
+        for part in (st.observation, st.final_observation)
+        for name, t in part.tensors.items()
+        if name.startswith("camera.")
+    ]
+    seconds = timed(lambda: [wire.check_image(t) for t in tensors])[0]
+    return seconds, len(tensors)
+
+
 def map_size_for(shape: Shape, n: int) -> int:
     per = (2 * IMAGE_HW * IMAGE_HW * 3 + 1024) if shape.images else 1024
     return max(64, int(3 * n * per / 2**20) + 64)
@@ -274,19 +314,30 @@ def bench_shape(
     encoding: str = "",
     hot_fraction: float = 1.0,
     crash: bool = True,
+    edge_jpeg: bool = False,
 ) -> list[Row]:
     """Ours and the peer take turns (a batch of inserts, a sample) so background load hits both alike.
 
     encoding: replay.image_encoding for the cameras (the hot tier then keeps them encoded too);
-    hot_fraction: the hot tier holds this share of the N transitions (the rest is read from LMDB).
+    hot_fraction: the hot tier holds this share of the N transitions (the rest is read from LMDB);
+    edge_jpeg: the frames arrive JPEG-encoded by the edge (replay stores and keeps them as sent; the peer gets
+    the same raw frames as float32, as its actor sends them); the edge's encode cost is a row of its own.
     """
     episodes = make_episodes(shape, n)
     steps = to_steps(episodes)
+    warm_steps = to_steps(episodes, robot_id="warm-0")
+    edge_rows: list[Row] = []
+    if edge_jpeg:
+        steps, enc_s, enc_frames = edge_encode(steps)
+        warm_steps = edge_encode(warm_steps)[0]
+        check_s, check_frames = replay_check_seconds(steps)
     peer_in = peer_transitions(episodes)  # same transitions, same order
     config = [f"{encoding} in LMDB and hot tier"] if encoding else []
+    config += [f"JPEG q{EDGE_JPEG_QUALITY} encoded on the edge, kept as sent"] if edge_jpeg else []
     config += [f"hot tier = N/{round(1 / hot_fraction)}"] if hot_fraction < 1 else []
     group = f"replay {shape.name}, N={n}" + "".join(f", {c}" for c in config)
-    path = workdir / (("img" if shape.images else "arm") + (f"-{encoding}" if encoding else "") + f"-{hot_fraction}")
+    tag = f"-{encoding}" if encoding else "-edgejpeg" if edge_jpeg else ""
+    path = workdir / (("img" if shape.images else "arm") + tag + f"-{hot_fraction}")
     path.mkdir(parents=True, exist_ok=True)
     # Both sides are timed in their steady state, full and overwriting. Theirs: a ring preallocated with
     # torch.empty, filled once untimed (the first fill pays page faults), then overwritten. Ours, alike:
@@ -299,10 +350,10 @@ def bench_shape(
     per_step = sum(len(st.SerializeToString()) + 40 for st in stored) / len(stored)
     store.capacity_bytes = math.ceil(1.1 * n * per_step)
     frame = sum(a.nbytes for a in episodes[0].observations[0].values())
-    if encoding:  # the hot tier sizes its rings for encoded frames as 1/8 of raw (hot.ENCODED_GUESS)
+    if encoding or edge_jpeg:  # the hot tier sizes its rings for encoded frames as 1/8 of raw (hot.ENCODED_GUESS)
         frame = STATE_DIM * 4 + sum(len(t.data) for st in stored[:1] for t in st.observation.tensors.values())
     store.hot_bytes = int(hot_fraction * 1.05 * n * (frame * 9 / 8 + ACTION_DIM * 4 + 48))
-    insert_ours(store, to_steps(episodes, robot_id="warm-0"))
+    insert_ours(store, warm_steps)
     buf = make_peer(n)
     for tr in peer_in:
         buf.add(**tr)
@@ -336,7 +387,40 @@ def bench_shape(
         ours_disk = on_disk / n
     else:
         ours_disk = disk_per_step
-    frames = f" ({encoding} frames)" if encoding else " (uint8 frames)" if shape.images else ""
+    frames = f" ({encoding or 'jpeg'} frames)" if encoding or edge_jpeg else " (uint8 frames)" if shape.images else ""
+    if edge_jpeg:
+        raw_frame = IMAGE_HW * IMAGE_HW * 3
+        jpeg_bytes = sum(len(t.data) for st in steps for t in st.observation.tensors.values()) - n * STATE_DIM * 4
+        edge_rows = [
+            Row(
+                group,
+                "edge JPEG encode per frame (robot PC, off the control loop)",
+                enc_s / enc_frames * 1e6,
+                "none (sends float32)",
+                "us",
+                None,
+                f"cv2.imencode q{EDGE_JPEG_QUALITY} of {enc_frames} {IMAGE_HW}x{IMAGE_HW}x3 frames, one thread; "
+                f"{raw_frame} B raw -> {jpeg_bytes / (2 * n):.0f} B mean; paid on the edge, not by replay",
+            ),
+            Row(
+                group,
+                "replay's check per JPEG frame (part of Insert validation)",
+                check_s / check_frames * 1e6,
+                "none",
+                "us",
+                None,
+                "header (H, W) = declared shape, a scan and an end marker (wire.check_image); not in the insert row",
+            ),
+            Row(
+                group,
+                "insert incl. replay's frame checks",
+                n / (ours_s + check_s * n / len(steps)),
+                n / peer_s,
+                "tr/s",
+                True,
+                "the insert row's time plus the JPEG checks of the same steps (one thread); theirs: add() as above",
+            ),
+        ]
     rows = [
         Row(
             group,
@@ -355,7 +439,7 @@ def bench_shape(
             median(peer_ms),
             "ms",
             False,
-            f"ours: hot-tier column gather{' + decode on a thread pool' if encoding else ''} (hit rate "
+            f"ours: hot-tier column gather{' + decode on a thread pool' if encoding or edge_jpeg else ''} (hit rate "
             f"{hit['hits'] / max(1, hit['hits'] + hit['misses']):.0%}, misses read from LMDB); theirs: tensor index",
         ),
         Row(
@@ -377,6 +461,7 @@ def bench_shape(
             "ours: LMDB pages on disk (durable); theirs: RAM tensors (lost on exit)",
         ),
     ]
+    rows[1:1] = edge_rows
     if crash:
         rows.append(
             Row(
@@ -446,6 +531,9 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
     # and raw frames with a hot tier a tenth of the buffer (the rest read from LMDB)
     n_img, r_img = (100, 2) if quick else sizes[1][1:]
     rows += bench_shape(CAMERA, n_img, r_img, workdir, log, encoding="jpeg", crash=False)
+    # the same camera-like frames JPEG-encoded on the edge (edge.robots[i].image_encoding): replay stores and keeps
+    # the bytes as sent, the sampler decodes
+    rows += bench_shape(CAMERA, n_img, r_img, workdir, log, crash=False, edge_jpeg=True)
     rows += bench_shape(IMAGES, n_img, r_img, workdir, log, hot_fraction=0.1, crash=False)
     rows += bench_larger_than_hot(2_000 if quick else 50_000, 3 if quick else 20, workdir, log)
     return rows

@@ -25,6 +25,7 @@ import numpy as np
 import prometheus_client
 
 from edge_agent.control_client import ControlClient
+from edge_agent.encoder import FrameEncoder, Plan, plan_for
 from edge_agent.policy_source import PolicySource, make_policy_source
 from edge_agent.replay_client import ReplaySender
 from edge_agent.robot import Observation, Robot, action_bounds, clip_action, make_robot
@@ -472,6 +473,20 @@ class RobotLoop:
         return out
 
 
+def encoding_plans(cfg: StackConfig, robots: list[Robot]) -> dict[str, Plan]:
+    """Per robot, the camera features its config (edge.robots[i].image_encoding) encodes on the edge."""
+    by_id = {rc.id: (i, rc) for i, rc in enumerate(cfg.edge.robots)}
+    plans: dict[str, Plan] = {}
+    for robot in robots:
+        rid = robot.spec.robot_id
+        if rid in by_id and by_id[rid][1].image_encoding:
+            i, rc = by_id[rid]
+            plan = plan_for(robot.spec, rc.image_encoding, rc.jpeg_quality, f"edge.robots[{i}].image_encoding")
+            if plan:
+                plans[rid] = plan
+    return plans
+
+
 class EdgeAgent:
     """Robots from cfg.edge.robots, one RobotLoop each, plus the replay sender, policy source and control client."""
 
@@ -487,12 +502,16 @@ class EdgeAgent:
         self.robots = robots if robots is not None else self._build_robots(cfg)
         self.tasks, self.teleops = build_judges_and_teleops(cfg, self.robots)
         self.sender = sender or ReplaySender(edge.replay_addr, cfg.auth, start=False, outbox=open_outbox(edge))
+        # robots with image_encoding: frames encoded off their loops, before the spool (edge_agent/encoder.py)
+        plans = encoding_plans(cfg, self.robots)
+        self.encoder = FrameEncoder(self.sender, plans, edge.encode_threads) if plans else None
+        self.sink: StepSink = self.encoder if self.encoder is not None else self.sender
         self.policy = policy or make_policy_source(cfg, edge.agent_id, [r.spec for r in self.robots])
         self.loops = {
             r.spec.robot_id: RobotLoop(
                 r,
                 self.policy,
-                self.sender,
+                self.sink,
                 edge.mode,
                 edge.action_deadline_ms / 1000.0,
                 task=self.tasks[r.spec.robot_id],
@@ -553,7 +572,10 @@ class EdgeAgent:
             loop.stop(wait=False)  # every robot finishes its step at once
         for loop in self.loops.values():
             loop.stop()
-        flushed = self.sender.flush(flush_timeout_s)
+        end = time.monotonic() + flush_timeout_s
+        if self.encoder is not None:  # queued steps into the spool first
+            self.encoder.close(flush_timeout_s)
+        flushed = self.sender.flush(max(0.0, end - time.monotonic()))
         if not flushed:
             log.warning("replay did not acknowledge every step before shutdown", extra=kv(unacked=self.sender.unacked))
         self.control.close()

@@ -276,6 +276,12 @@ class RobotConfig(Strict):
     teleop: PluginConfig | None = Field(
         default=None, description="who may take over {kind, params}, e.g. scripted_expert; none: the policy drives"
     )
+    image_encoding: dict[str, Literal["raw", "jpeg", "png"]] = Field(
+        default={},
+        description='camera frames encoded on the edge before the spool, e.g. {"*": "jpeg"} (* = every camera.*); '
+        "default raw",
+    )
+    jpeg_quality: int = Field(default=90, ge=1, le=100, description="JPEG quality of image_encoding jpeg (1-100)")
 
 
 class EdgeConfig(Strict):
@@ -307,6 +313,9 @@ class EdgeConfig(Strict):
     spool_max_mb: int = Field(default=1024, ge=1, description="spool byte cap (step bytes)")
     spool_full_policy: Literal["pause", "drop_oldest"] = Field(
         default="pause", description="at the cap: pause collection (robots hold) or drop the oldest steps"
+    )
+    encode_threads: int = Field(
+        default=2, ge=1, le=64, description="threads encoding camera frames (robots with image_encoding), off the loops"
     )
     spool_fsync: bool = Field(
         default=False, description="fsync every spooled step (survives power loss); off: synced each second"

@@ -189,6 +189,12 @@ def check_tensor_map(where: str, tmap: tpb.TensorMap, spec_features: Sequence[ro
             raise StepError("dtype", f"{name}: dtype {_dtype_name(tensor.dtype)}, spec says {_dtype_name(feat.dtype)}")
         if tuple(tensor.shape) != tuple(feat.shape):
             raise StepError("shape", f"{name}: shape {list(tensor.shape)}, spec says {list(feat.shape)}")
+        if tensor.encoding in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG):  # uint8: decodable to its shape is enough
+            try:
+                wire.check_image(tensor)
+            except wire.WireError as exc:
+                raise StepError("decode", f"{name}: {exc}") from None
+            continue
         array = _decode(name, tensor)
         if not feat.allow_nan and array.dtype.kind == "f" and not np.isfinite(array).all():
             raise StepError("non_finite", f"{name}: NaN or Inf where the spec does not allow it")

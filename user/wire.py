@@ -7,13 +7,14 @@ instead of producing a garbage array.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
 from user.v1 import tensor_pb2 as tpb
 
 MAX_TENSOR_BYTES = 256 * 1024 * 1024
+DEFAULT_JPEG_QUALITY = 95  # cv2's default
 
 
 class WireError(ValueError):
@@ -113,7 +114,9 @@ def dtype_name(code: int) -> str:
     return tpb.DType.Name(code).removeprefix("DTYPE_").lower()
 
 
-def to_tensor(array: np.ndarray, encoding: int = tpb.ENCODING_RAW, wire_dtype: int = 0) -> tpb.Tensor:
+def to_tensor(
+    array: np.ndarray, encoding: int = tpb.ENCODING_RAW, wire_dtype: int = 0, jpeg_quality: int = DEFAULT_JPEG_QUALITY
+) -> tpb.Tensor:
     """wire_dtype=DTYPE_FLOAT16/DTYPE_BFLOAT16 sends a float array at half size (lossy; decodes to float32)."""
     arr = np.asarray(array)
     code = dtype_to_proto(arr.dtype)
@@ -124,7 +127,7 @@ def to_tensor(array: np.ndarray, encoding: int = tpb.ENCODING_RAW, wire_dtype: i
     if encoding == tpb.ENCODING_RAW:
         data = np.ascontiguousarray(arr, dtype=dtype_from_proto(code)).tobytes()
     elif encoding in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG):
-        data = _encode_image(arr, encoding)
+        data = encode_image(arr, encoding, jpeg_quality)
     elif encoding == tpb.ENCODING_ZSTD:
         import zstandard
 
@@ -167,28 +170,57 @@ def from_tensor(tensor: tpb.Tensor) -> np.ndarray:
     return stored.astype(dtype.newbyteorder("="), copy=True)
 
 
-def _encode_image(arr: np.ndarray, encoding: int) -> bytes:
+def is_image_shape(shape: Sequence[int]) -> bool:
+    """Shapes JPEG/PNG tensors may have: (H, W), (H, W, 1) or (H, W, 3)."""
+    return len(shape) == 2 or (len(shape) == 3 and shape[2] in (1, 3))
+
+
+def encode_image(arr: np.ndarray, encoding: int, jpeg_quality: int = DEFAULT_JPEG_QUALITY) -> bytes:
+    """JPEG/PNG bytes of a uint8 image; channels are kept in the order given (cv2 reads and writes them as is)."""
     import cv2
 
     if arr.dtype != np.uint8 or arr.ndim not in (2, 3):
         raise WireError("JPEG/PNG encode uint8 images (H, W) or (H, W, C)")
     ext = ".jpg" if encoding == tpb.ENCODING_JPEG else ".png"
-    ok, buf = cv2.imencode(ext, arr)
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if encoding == tpb.ENCODING_JPEG else []
+    ok, buf = cv2.imencode(ext, arr, params)
     if not ok:
         raise WireError(f"cv2 could not encode {ext}")
     return buf.tobytes()
 
 
-def _decode_image(data: bytes, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
-    import cv2
-
+def _check_image_header(data: bytes, shape: tuple[int, ...], dtype: np.dtype) -> None:
     if dtype != np.uint8:
         raise WireError("JPEG/PNG tensors must be uint8")
-    if len(shape) not in (2, 3) or (len(shape) == 3 and shape[-1] not in (1, 3)):
+    if not is_image_shape(shape):
         raise WireError(f"JPEG/PNG tensors are images (H, W), (H, W, 1) or (H, W, 3), got shape {shape}")
     size = _image_size(data, shape)
     if size != shape[:2]:  # checked before decoding: a tiny payload may claim a huge image
         raise WireError(f"image header says {size} (H, W), declared shape is {shape}")
+
+
+def check_image(tensor: tpb.Tensor) -> None:
+    """Raise WireError unless a JPEG/PNG tensor is a whole image of its declared uint8 shape, without decoding a
+    JPEG: its header must name the declared (H, W), and it must hold a scan and end with the end-of-image marker
+    (a truncated or cut-together payload does not). What libjpeg finds wrong inside the scan it decodes as well
+    as it can; a frame that still fails to decode is read back as zeros and counted
+    (user_replay_undecodable_frames_total). A PNG is decoded in full: its zlib stream and CRCs have no cheaper check.
+    """
+    shape = tuple(int(d) for d in tensor.shape)
+    if tensor.encoding not in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG):
+        raise WireError(f"not an image encoding: {tensor.encoding}")
+    data = tensor.data
+    _check_image_header(data, shape, dtype_from_proto(tensor.dtype))
+    if tensor.encoding == tpb.ENCODING_PNG:
+        _decode_image(data, shape, np.dtype(np.uint8))
+    elif data[-2:] != b"\xff\xd9" or data.find(b"\xff\xda") < 0:
+        raise WireError("JPEG payload has no scan or no end-of-image marker (truncated?)")
+
+
+def _decode_image(data: bytes, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+    import cv2
+
+    _check_image_header(data, shape, dtype)
     flag = cv2.IMREAD_GRAYSCALE if len(shape) == 2 or shape[-1] == 1 else cv2.IMREAD_COLOR
     img = cv2.imdecode(np.frombuffer(data, np.uint8), flag)
     if img is None:

@@ -9,10 +9,12 @@ it and both its frames are still in the frame ring. Everything else is read from
 
 from __future__ import annotations
 
+import logging
 import math
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+import prometheus_client
 
 from user import wire
 from user.v1 import tensor_pb2 as tpb
@@ -25,6 +27,22 @@ _BLOB_OVERHEAD = 33  # a Python bytes object's header
 _DECODE_MIN = 16  # fewer frames than this are decoded in the calling thread
 _pool: ThreadPoolExecutor | None = None
 _WORKERS = 2
+log = logging.getLogger(__name__)
+UNDECODABLE = prometheus_client.Counter(
+    "user_replay_undecodable_frames_total", "Stored JPEG/PNG frames that did not decode when read (read as zeros)"
+)
+
+
+def decode_image(tensor: tpb.Tensor) -> np.ndarray:
+    """A stored JPEG/PNG frame, or zeros of its shape (counted) if it does not decode: Insert checked its header,
+    shape and end marker (wire.check_image), not every coefficient, and one bad frame must not fail every batch
+    that draws it."""
+    try:
+        return wire.from_tensor(tensor)
+    except wire.WireError as exc:
+        UNDECODABLE.inc()
+        log.warning("stored camera frame does not decode; read as zeros", extra={"error": str(exc)})
+        return np.zeros(tuple(int(d) for d in tensor.shape), np.uint8)
 
 
 def _decoder_pool() -> ThreadPoolExecutor:
@@ -122,7 +140,7 @@ class HotGroup:
             if t.encoding == tpb.ENCODING_RAW and len(t.data) == rows.shape[1]:
                 rows[row] = np.frombuffer(t.data, np.uint8)
             else:
-                self.frames[name][row] = wire.from_tensor(t)  # JPEG/PNG from the edge; ValueError if the shape differs
+                self.frames[name][row] = decode_image(t)  # JPEG/PNG from the edge (dtype and shape checked above)
         self.frames_written = seq + 1
         return seq
 
@@ -237,8 +255,8 @@ class HotGroup:
                     out[i] = np.frombuffer(blobs[i], np.uint8).reshape(shape)
                     continue
                 img = cv2.imdecode(np.frombuffer(blobs[i], np.uint8), flag)  # validated when it was stored
-                if img is None or img.size != out[i].size:  # not expected: the checked decoder says why
-                    img = wire.from_tensor(
+                if img is None or img.size != out[i].size:  # the checked decoder says why, or zeros
+                    img = decode_image(
                         tpb.Tensor(dtype=tpb.DTYPE_UINT8, shape=shape, data=blobs[i], encoding=int(encs[i]))
                     )
                 out[i] = img.reshape(shape)

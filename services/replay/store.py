@@ -43,7 +43,7 @@ from services.replay.disk import (
     split_key,
     step_key,
 )
-from services.replay.hot import HotGroup, Layout, frame_nbytes
+from services.replay.hot import HotGroup, Layout, decode_image, frame_nbytes
 from services.replay.rawstep import Span, StepSpans, Unexpected, step_spans
 from services.replay.tables import INTERVENTIONS, Draw, EmptyBufferError, Index, Record
 from user import wire
@@ -87,6 +87,8 @@ def tensor_array(tensor: tpb.Tensor) -> np.ndarray:
     """Stored tensors were validated on insert: RAW data is viewed as is, other encodings decoded."""
     if tensor.encoding == tpb.ENCODING_RAW:
         return np.frombuffer(tensor.data, dtype=wire.dtype_from_proto(tensor.dtype)).reshape(tuple(tensor.shape))
+    if tensor.encoding in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG):
+        return decode_image(tensor)
     return wire.from_tensor(tensor)
 
 
@@ -414,15 +416,18 @@ class ReplayStore:
             max_rows = None
             if self.capacity_bytes:
                 max_rows = int(self.capacity_bytes * 1.25 // max(1, step.ByteSize() + len(step.robot_id) + 32))
-            self._groups.append(HotGroup(layout, self.hot_bytes, self._encoded_features(layout), max_rows))
+            self._groups.append(HotGroup(layout, self.hot_bytes, self._encoded_features(layout, step), max_rows))
         return gid
 
-    def _encoded_features(self, layout: Layout) -> frozenset[str]:
-        """Camera features LMDB keeps as JPEG/PNG (replay.image_encoding): the hot tier keeps those bytes too."""
+    def _encoded_features(self, layout: Layout, step: step_pb2.Step) -> frozenset[str]:
+        """Camera features LMDB keeps as JPEG/PNG: those of replay.image_encoding and those the edge sends encoded
+        (stored as sent). The hot tier keeps their bytes too and the sampler decodes them."""
+        tensors = step.observation.tensors
         out = set()
         for name, dtype, shape in layout[0]:
             enc = self.image_encoding.get(name, self.image_encoding.get("*") if name.startswith("camera.") else 0)
-            if enc and dtype == np.uint8 and (len(shape) == 2 or (len(shape) == 3 and shape[2] in (1, 3))):
+            enc = enc or (name in tensors and tensors[name].encoding in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG))
+            if enc and dtype == np.uint8 and wire.is_image_shape(shape):
                 out.add(name)
         return frozenset(out)
 
