@@ -409,7 +409,7 @@ def bench_shape(
                 "none",
                 "us",
                 None,
-                "header (H, W) = declared shape, a scan and an end marker (wire.check_image); not in the insert row",
+                "header (H, W) = declared shape and a grey decode (wire.check_image); not in the insert row",
             ),
             Row(
                 group,

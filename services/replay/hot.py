@@ -34,9 +34,9 @@ UNDECODABLE = prometheus_client.Counter(
 
 
 def decode_image(tensor: tpb.Tensor) -> np.ndarray:
-    """A stored JPEG/PNG frame, or zeros of its shape (counted) if it does not decode: Insert checked its header,
-    shape and end marker (wire.check_image), not every coefficient, and one bad frame must not fail every batch
-    that draws it."""
+    """A stored JPEG/PNG frame, or zeros of its shape (counted) if it does not decode. Insert decodes every frame
+    (wire.check_image), so this is a defence (e.g. a store from an older build): one bad frame must not fail
+    every batch that draws it."""
     try:
         return wire.from_tensor(tensor)
     except wire.WireError as exc:
