@@ -136,6 +136,38 @@ def test_cold_reads_equal_hot_reads(tmp_path: Path) -> None:
         big.close()
 
 
+def test_all_hot_batches_equal_lmdb_reads_and_own_their_columns(tmp_path: Path) -> None:
+    """The all-hot gather (obs and next frames in one take, validity from the ring's records) gives what LMDB
+    gives, one-step and n-step, and a batch's columns do not alias each other or the ring."""
+    hot = ReplayStore(tmp_path / "hot", 64)
+    cold = ReplayStore(tmp_path / "cold", 64, cache_mb=0)  # no hot tier: every draw read from LMDB
+    try:
+        for e in range(4):
+            steps = episode("arm-0", f"e{e}", 20, policy_version=e, terminated=e % 2 == 0)
+            hot.put_steps(steps)
+            cold.put_steps(steps)
+        for n_step in (1, 3):
+            req = {"draw": draw(128, n_step=n_step, gamma=0.5)} if n_step > 1 else {}
+            before = hot.cache_info()["hits"]
+            a = hot.sample(128, np.random.default_rng(n_step), **req)
+            b = cold.sample(128, np.random.default_rng(n_step), **req)
+            assert hot.cache_info()["hits"] - before == 128 and hot.cache_info()["misses"] == 0
+            for key in ("reward", "terminated", "truncated", "policy_version", "action", "indices", "n_steps"):
+                np.testing.assert_array_equal(a[key], b[key])
+            for part in ("observation", "next_observation"):
+                np.testing.assert_array_equal(a[part]["state"], b[part]["state"])
+            next_before = a["next_observation"]["state"].copy()
+            a["observation"]["state"][:] = -1  # a learner may normalise in place
+            a["action"][:] = -1
+            np.testing.assert_array_equal(a["next_observation"]["state"], next_before)
+            again = hot.sample(128, np.random.default_rng(n_step), **req)
+            np.testing.assert_array_equal(again["observation"]["state"], b["observation"]["state"])
+            np.testing.assert_array_equal(again["action"], b["action"])
+    finally:
+        hot.close()
+        cold.close()
+
+
 def test_capacity_evicts_whole_episodes_oldest_first(tmp_path: Path) -> None:
     store = ReplayStore(tmp_path / "replay", 64, capacity_mb=1)
     try:

@@ -1141,6 +1141,10 @@ class ReplayStore:
         """observation (of tids), next_observation (after last) and action columns (caller holds the lock)."""
         idx = self.index
         same = last is tids  # one-step transitions: one set of checks
+        rows = idx.hot_row.a[tids]
+        next_rows = rows if same else idx.hot_row.a[last]
+        if self._gather_hot(out, tids, last, rows, next_rows):
+            return
         g_obs = idx.group.a[tids]
         g_next = g_obs if same else idx.group.a[last]
         g0 = int(g_obs[0])
@@ -1155,8 +1159,6 @@ class ReplayStore:
                 "sample robots with different specs separately (robot_ids)"
             )
         hot = self._groups[known[0]] if known else None
-        rows = idx.hot_row.a[tids]
-        next_rows = rows if same else idx.hot_row.a[last]
         if hot is not None:
             ok_obs = hot.valid(rows, tids)
             ok_next = ok_obs if same else hot.valid(next_rows, last)
@@ -1165,12 +1167,26 @@ class ReplayStore:
         n_hot = int(np.count_nonzero(ok_obs))
         self.hits += n_hot
         self.misses += len(tids) - n_hot
-        if hot is not None and n_hot == len(tids) and (same or ok_next.all()):
-            out["observation"], out["next_observation"] = hot.observations_pair(rows, next_rows)
-            action = hot.action[rows]
-            out["action"] = action if action.dtype == np.float32 else action.astype(np.float32)
-            return
         self._fill_mixed(out, hot, tids, last, ok_obs, ok_next)
+
+    def _gather_hot(
+        self, out: dict[str, Any], tids: np.ndarray, last: np.ndarray, rows: np.ndarray, next_rows: np.ndarray
+    ) -> bool:
+        """The usual batch, every draw still in the first draw's hot ring: gathered from RAM (True), else
+        nothing done (False). A transition is only ever written to its own group's ring, so draws that all
+        validate in g0's ring all have g0's layout: the per-draw group check of _gather would pass."""
+        g0 = int(self.index.group.a[tids[0]])
+        if g0 < 0:
+            return False
+        hot = self._groups[g0]
+        n_hot = int(np.count_nonzero(hot.valid(rows, tids)))
+        if n_hot != len(tids) or not (last is tids or hot.valid(next_rows, last).all()):
+            return False
+        self.hits += n_hot
+        out["observation"], out["next_observation"] = hot.observations_pair(rows, next_rows)
+        action = hot.action.take(rows, axis=0)
+        out["action"] = action if action.dtype == np.float32 else action.astype(np.float32)
+        return True
 
     def _fill_mixed(
         self,
