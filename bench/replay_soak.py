@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import gc
 import json
 import math
 import os
@@ -29,6 +30,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -91,6 +93,22 @@ def mallinfo() -> dict[str, float]:
 # --------------------------------------------------------------------------- the service process
 
 
+def structures(store: Any) -> dict[str, int]:
+    """Sizes of the store's growable structures (read without its lock: a report, not an invariant)."""
+    index = store.index
+    return {
+        "py_blocks": sys.getallocatedblocks(),
+        "writer_queue": len(store._queue),
+        "tails": len(store._tails),
+        "store_episodes": len(store._episodes),
+        "index_rows": index.n_rows,
+        "index_slots": len(index.prefixes),
+        "index_col_bytes": sum(
+            getattr(index, name).a.nbytes for name in vars(index) if hasattr(getattr(index, name), "fill")
+        ),
+    }
+
+
 def serve(args: argparse.Namespace) -> int:
     import tracemalloc
 
@@ -98,7 +116,7 @@ def serve(args: argparse.Namespace) -> int:
     from user.config import load_config
 
     if args.tracemalloc:
-        tracemalloc.start(8)
+        tracemalloc.start(args.trace_frames)
     base = [f"auth.token={TOKEN}", f"replay.path={Path(args.dir) / 'replay'}", f"replay.server.port={args.port}"]
     cfg = load_config(None, [*base, "replay.server.metrics_port=0", *args.set], environ={})
     specs = {f"arm-{i}": robot_spec(f"arm-{i}") for i in range(args.robots)}
@@ -106,7 +124,7 @@ def serve(args: argparse.Namespace) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     t0, first, trim = time.monotonic(), None, ctypes.CDLL("libc.so.6").malloc_trim if args.trim_every else None
-    next_trim = args.trim_every
+    next_trim, next_objects = args.trim_every, 0.0
     Path(args.dir, "ready").write_text(svc.address)
     with open(Path(args.dir) / "mem.jsonl", "a") as out:
         while not stop.wait(args.every):
@@ -122,6 +140,10 @@ def serve(args: argparse.Namespace) -> int:
             row.update(hot_mb=cache["bytes"] / 2**20, hot_rows=cache["entries"], hot_capacity=cache["capacity"])
             row.update(hot_hits=cache["hits"], hot_misses=cache["misses"])
             row["guard_episodes"] = len(svc.servicer.episodes._episodes)  # the episode guard's memory grows with it
+            row.update(structures(svc.store))
+            if args.objects and t >= next_objects:  # gc-tracked objects by type (ints, strs, bytes are not tracked)
+                next_objects += args.objects
+                row["objects"] = dict(Counter(type(o).__name__ for o in gc.get_objects()).most_common(12))
             if args.tracemalloc:
                 row["traced_mb"] = tracemalloc.get_traced_memory()[0] / 2**20
                 if t >= args.trace_from:
@@ -278,6 +300,10 @@ def drive(args: argparse.Namespace) -> int:
         str(args.trace_from),
         "--trim-every",
         str(args.trim_every),
+        "--trace-frames",
+        str(args.trace_frames),
+        "--objects",
+        str(args.objects),
     ]
     cmd += [a for s in args.set for a in ("--set", s)] + (["--tracemalloc"] if args.tracemalloc else [])  # fmt: skip
     proc = subprocess.Popen(cmd, env=env)
@@ -348,7 +374,9 @@ def main() -> int:
     ap.add_argument("--set", action="append", default=[], help="config override, e.g. replay.capacity_mb=32")
     ap.add_argument("--env", action="append", default=[], help="environment of the service, e.g. MALLOC_ARENA_MAX=2")
     ap.add_argument("--tracemalloc", action="store_true", help="trace Python allocations in the service (slower)")
+    ap.add_argument("--trace-frames", type=int, default=4, help="frames per tracemalloc traceback")
     ap.add_argument("--trace-from", type=float, default=300.0, help="seconds: the tracemalloc baseline")
+    ap.add_argument("--objects", type=float, default=0.0, help="seconds between gc object counts; 0 = none")
     ap.add_argument("--trim-every", type=float, default=0.0, help="seconds between malloc_trim(0) calls; 0 = none")
     ap.add_argument("--out", default="", help="write the summary and the series here (JSON)")
     args = ap.parse_args()
