@@ -442,6 +442,8 @@ class LoadRun:
             "agent_of_robot": dict(self.robot_agent),
             # replay's RAM tier (a cache up to replay.cache_mb) grows with the data: part of its RSS growth
             "replay_hot_mb": [total(s["replay"], "user_replay_hot_bytes") / 2**20 for s in (services0, services1)],
+            # share of sampled transitions served from RAM (since start): low = reads from LMDB
+            "replay_hot_hit_rate": total(services1["replay"], "user_replay_hot_hit_rate"),
         }
 
 
@@ -504,7 +506,8 @@ def rows(result: dict[str, Any]) -> list[Row]:
         )
         if name == "replay":
             hot0, hot1 = result["replay_hot_mb"]
-            note += f"; RAM tier (cache) {hot0:.1f} -> {hot1:.1f} MB"
+            hits = result.get("replay_hot_hit_rate", 0.0)
+            note += f"; RAM tier (cache) {hot0:.1f} -> {hot1:.1f} MB, hit rate {hits:.0%}"
         out.append(Row(group, f"RSS {name}, end", r["end_mb"], r["start_mb"], "MB", False, note, PEER))
         # after warm-up: the slope of anonymous memory (LMDB's map is file-backed) over the window's second half
         out.append(

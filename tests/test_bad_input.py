@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import queue
+import tracemalloc
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -163,6 +164,34 @@ def test_episode_guard_rules() -> None:
     guard.check(make_step("r", "f", 0))
     guard.check(make_step("r", "g", 0))
     guard.check(make_step("r", "e", 9))
+
+
+def test_episode_guard_memory_stays_small_and_bounded() -> None:
+    """The guard keeps up to 100k episodes (hours of a 64-robot fleet): an entry must stay small, or it is a
+    slow leak until full (it was ~600 B with the ids kept as strings; 60 MB at capacity)."""
+    guard = EpisodeGuard(capacity=4000)
+
+    def episodes(first: int, n: int) -> None:
+        for e in range(first, first + n):
+            robot = f"arm-{e % 64}"
+            for t in (0, 1, 49):  # the edge's id format: robot, start time in ns, a counter
+                guard.check(make_step(robot, f"{robot}-1763924000000000000-{e}", t, last=t == 49))
+
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        episodes(0, 4000)
+        full = tracemalloc.get_traced_memory()[0] - base
+        episodes(4000, 8000)  # past capacity: the oldest are forgotten
+        later = tracemalloc.get_traced_memory()[0] - base
+    finally:
+        tracemalloc.stop()
+    assert len(guard) == 4000
+    assert full / 4000 < 250, f"{full / 4000:.0f} B per remembered episode"
+    # no growth with the count of episodes seen, beyond the dict's hash table sizing under churn (~1.3x)
+    assert later < 1.5 * full, f"{full} B at capacity, {later} B after twice as many more episodes"
+    with pytest.raises(StepError):  # the newest episodes are still known
+        guard.check(make_step("arm-31", "arm-31-1763924000000000000-11999", 50))  # after its last step 49
 
 
 def test_final_observation_only_on_the_last_step() -> None:

@@ -159,7 +159,9 @@ def serve_stack(conn: Any, tmp: Path) -> None:
         section.server.port = 0
         section.server.metrics_port = 0
         section.server.grace_s = 0.5
-    cfg.control.lease_ttl_s = 3600.0  # the recording edge sends no heartbeats
+    # the recording edge sends no heartbeats: its lease must outlive the run, like its stream's deadline (the
+    # 10,000-example run took 80 min at load 20-85 and control dropped it after the 1 h this was)
+    cfg.control.lease_ttl_s = 86400.0 if LONG else 3600.0
     control = ControlService(cfg, start_metrics=False).start()
     cfg.replay.path = tmp / "replay"
     cfg.replay.control_addr = control.address

@@ -105,6 +105,27 @@ def test_open_tail_waits_for_its_successor(store: ReplayStore) -> None:
     assert store.transitions == 3
 
 
+def test_interleaved_robots_complete_their_transitions_in_the_hot_tier(store: ReplayStore) -> None:
+    """An edge streams its robots' steps in turn (arm-0 t, arm-1 t, ..., arm-0 t+1): a step's successor in the
+    same commit is not its neighbour. Each transition must still be completed in that commit, in RAM: before,
+    most steps stayed waiting as tails (memory up to MAX_OPEN_TAILS) and their transitions were read back from
+    LMDB, outside the hot tier."""
+    robots = [f"arm-{i}" for i in range(4)]
+    episodes = [episode(r, "e", 12) for r in robots]
+    rng = np.random.default_rng(0)
+    t = 0
+    while t < 12:  # groups of 1-5 ticks, every robot's step of a tick in turn
+        k = int(rng.integers(1, 6))
+        store.put_steps([ep[i] for i in range(t, min(12, t + k)) for ep in episodes])
+        t += k
+        assert len(store._tails) <= len(robots)  # at most each robot's newest step waits
+    assert store.transitions == 48
+    assert store.cache_info()["entries"] == 48  # every transition hot
+    batch = store.sample(256, np.random.default_rng(1))
+    np.testing.assert_array_equal(batch["next_observation"]["state"], batch["observation"]["state"] + 1)
+    assert store.cache_info()["misses"] == 0
+
+
 def test_resent_steps_are_stored_once(store: ReplayStore) -> None:
     steps = episode("arm-0", "e", 6)
     assert store.put_steps(steps[:4]) == (4, 0)

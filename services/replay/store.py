@@ -548,19 +548,23 @@ class ReplayStore:
         if not self._in_order(keys, scalars):
             return False
         tables = [t for item in group for t in item.tables]
+        raws = [r for item in group for r in item.raws]
+        steps = [s for item in group for s in item.steps]
+        # An episode's steps next to each other, ascending: indexing completes a step's transition with its
+        # successor in the same group only when that is its neighbour. Interleaved robots (an edge streams its
+        # robots' steps in turn) left most steps waiting as tails (up to MAX_OPEN_TAILS, ~40 MB) that were
+        # then completed from LMDB, outside the hot tier.
+        order = sorted(range(len(keys)), key=lambda i: (keys[i][:-8], keys[i][-8:]))
+        if order != list(range(len(keys))):
+            keys, scalars = [keys[i] for i in order], [scalars[i] for i in order]
+            tables, raws, steps = [tables[i] for i in order], [raws[i] for i in order], [steps[i] for i in order]
         episode_tables = {k[:-8]: t for k, t in zip(keys, tables, strict=True) if t != ONLINE}
         try:
-            self.db.put_in_order(
-                keys,
-                [r for item in group for r in item.raws],
-                scalars,
-                episode_tables,
-                [spec for item in group for spec in item.specs],
-            )
+            self.db.put_in_order(keys, raws, scalars, episode_tables, [spec for item in group for spec in item.specs])
         except NotInOrder:
             return False
         with self._lock:  # committed: only now may samples see these steps
-            self._index_in_order([s for item in group for s in item.steps], keys, scalars, tables)
+            self._index_in_order(steps, keys, scalars, tables)
             self.inserted += len(keys)
             self.generation += 1
         self._evict_over_capacity()
