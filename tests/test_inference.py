@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import threading
+import time
 from collections.abc import Iterator
 
 import grpc
@@ -290,3 +291,55 @@ def test_weights_arrive_through_a_weight_stream() -> None:
         store.close()
         svc.stop()
         learner.stop()
+
+
+class SlowFirstForward:
+    """Wraps a policy's act: the first forward takes `first_s` (a VLA-sized forward), the rest are fast."""
+
+    def __init__(self, act, first_s: float) -> None:
+        self.act, self.first_s, self.sizes = act, first_s, []
+
+    def __call__(self, observation, deterministic):
+        self.sizes.append(len(observation["state"]))
+        if len(self.sizes) == 1:
+            time.sleep(self.first_s)
+        return self.act(observation, deterministic)
+
+
+def test_batcher_waits_for_a_robot_on_its_round_trip(policy) -> None:
+    """Two closed-loop robots answered together come back a little apart: with a slow forward the batcher
+    waits (a share of that forward) for the second instead of sending the first alone after max_wait."""
+    act = SlowFirstForward(policy.act, first_s=2.0)  # patience after it: RETURN_WAIT_FRACTION * 2 s = 0.5 s
+    batcher = MicroBatcher(max_batch=64, max_wait_ms=1.0)
+    try:
+        batcher.set_policy(act, 1)
+        first = [batcher.submit(obs(i), True, key=f"r{i}") for i in range(2)]
+        batcher.start()  # after both are queued: the slow first forward answers them together
+        assert [f.result(timeout=10).batch_size for f in first] == [2, 2]
+        a = batcher.submit(obs(0), True, key="r0")
+        time.sleep(0.05)  # r1's round trip: far over max_wait, far under the patience
+        b = batcher.submit(obs(1), True, key="r1")
+        assert (a.result(timeout=10).batch_size, b.result(timeout=10).batch_size) == (2, 2)
+        assert act.sizes == [2, 2]
+    finally:
+        batcher.stop()
+
+
+def test_batcher_does_not_wait_for_a_robot_pacing_itself(policy) -> None:
+    """A robot answered longer ago than the patience asks at its own rate: the other goes after max_wait,
+    not held for it (held, the two would share a forward)."""
+    act = SlowFirstForward(policy.act, first_s=2.0)  # patience 0.5 s
+    batcher = MicroBatcher(max_batch=64, max_wait_ms=1.0)
+    try:
+        batcher.set_policy(act, 1)
+        first = [batcher.submit(obs(i), True, key=f"r{i}") for i in range(2)]
+        batcher.start()  # after both are queued: the slow first forward answers them together
+        assert [f.result(timeout=10).batch_size for f in first] == [2, 2]
+        time.sleep(0.7)  # r1 is still active (asked within ACTIVE_WINDOW_S) but not on a round trip
+        a = batcher.submit(obs(0), True, key="r0")
+        time.sleep(0.2)  # under the patience: a batcher holding r0 for r1 would batch them together
+        b = batcher.submit(obs(1), True, key="r1")
+        assert (a.result(timeout=10).batch_size, b.result(timeout=10).batch_size) == (1, 1)
+        assert act.sizes == [2, 1, 1]
+    finally:
+        batcher.stop()
