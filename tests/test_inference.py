@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 
+from services.inference import batcher as batcher_module
 from services.inference.batcher import MicroBatcher, NoPolicyError
 from services.inference.server import InferenceService
 from tests import helpers
@@ -325,21 +326,43 @@ def test_batcher_waits_for_a_robot_on_its_round_trip(policy) -> None:
         batcher.stop()
 
 
-def test_batcher_does_not_wait_for_a_robot_pacing_itself(policy) -> None:
+def test_batcher_does_not_wait_for_a_robot_pacing_itself(policy, monkeypatch: pytest.MonkeyPatch) -> None:
     """A robot answered longer ago than the patience asks at its own rate: the other goes after max_wait,
     not held for it (held, the two would share a forward)."""
-    act = SlowFirstForward(policy.act, first_s=2.0)  # patience 0.5 s
+    monkeypatch.setattr(batcher_module, "ACTIVE_WINDOW_S", 30.0)  # r1 stays a known, active robot throughout
+    act = SlowFirstForward(policy.act, first_s=3.0)  # patience RETURN_WAIT_FRACTION * 3 s = 0.75 s
     batcher = MicroBatcher(max_batch=64, max_wait_ms=1.0)
     try:
         batcher.set_policy(act, 1)
         first = [batcher.submit(obs(i), True, key=f"r{i}") for i in range(2)]
         batcher.start()  # after both are queued: the slow first forward answers them together
-        assert [f.result(timeout=10).batch_size for f in first] == [2, 2]
-        time.sleep(0.7)  # r1 is still active (asked within ACTIVE_WINDOW_S) but not on a round trip
+        assert [f.result(timeout=20).batch_size for f in first] == [2, 2]
+        time.sleep(1.0)  # over the patience: r1 is pacing itself, not on a round trip
         a = batcher.submit(obs(0), True, key="r0")
-        time.sleep(0.2)  # under the patience: a batcher holding r0 for r1 would batch them together
+        time.sleep(0.5)  # under the patience: a batcher holding r0 for r1 would batch them together
         b = batcher.submit(obs(1), True, key="r1")
         assert (a.result(timeout=10).batch_size, b.result(timeout=10).batch_size) == (1, 1)
         assert act.sizes == [2, 1, 1]
     finally:
         batcher.stop()
+
+
+def test_batcher_workers_run_forwards_side_by_side(policy) -> None:
+    """Two workers: each forward waits at a barrier for a second one to start, which one worker
+    (forwards in turn) can never reach; both answers come back."""
+    barrier = threading.Barrier(2, timeout=10)
+
+    def act(observation, deterministic):
+        barrier.wait()
+        return policy.act(observation, deterministic)
+
+    batcher = MicroBatcher(max_batch=1, max_wait_ms=1.0, workers=2).start()
+    try:
+        batcher.set_policy(act, 1)
+        futures = [batcher.submit(obs(i), True, key=f"r{i}") for i in range(2)]
+        assert [f.result(timeout=20).batch_size for f in futures] == [1, 1]
+        assert batcher.batches == 2
+    finally:
+        batcher.stop()
+    with pytest.raises(ValueError, match="workers"):
+        MicroBatcher(max_batch=1, max_wait_ms=1.0, workers=0)

@@ -11,6 +11,11 @@ Robots that ask at their own rate (answered long ago) are never waited for beyon
 Requests are grouped by (deterministic, observation shapes), stacked, and the policy runs
 once per group; each future gets its own row of the result.
 
+With `workers` > 1 several such threads take batches from the one queue, so a batch can start while
+another is still in its forward (on a CPU with one torch thread per forward, a second core serves a
+second batch instead of idling); each batch still runs one forward, and a swap of weights reaches
+every worker's next batch.
+
 Heavy preprocessing stays off the gRPC threads: a policy that defines
 `preprocess(batched observation, instructions)` (resize and normalize images, tokenize
 instructions, copy to the device in one go) has it run here, once per group, and its `act` then
@@ -84,7 +89,7 @@ class _Served:
 
 
 class MicroBatcher:
-    """Thread-safe; start() the worker, set_policy() whenever new weights arrive, stop() at shutdown."""
+    """Thread-safe; start() the workers, set_policy() whenever new weights arrive, stop() at shutdown."""
 
     def __init__(
         self,
@@ -92,9 +97,13 @@ class MicroBatcher:
         max_wait_ms: float,
         on_batch: BatchObserver | None = None,
         name: str = "batcher",
+        workers: int = 1,
     ) -> None:
         if max_batch < 1:
             raise ValueError("max_batch must be >= 1")
+        if workers < 1:
+            raise ValueError("workers must be >= 1")
+        self.workers = workers
         self.max_batch = max_batch
         self.max_wait_s = max(0.0, max_wait_ms) / 1000.0
         self.on_batch = on_batch
@@ -106,23 +115,25 @@ class MicroBatcher:
         self._answered: dict[str, float] = {}  # robot key -> when its last answer was set
         self._forward_s = 0.0  # recent preprocess + forward seconds per batch (EWMA)
         self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._threads: list[threading.Thread] = []
         self.requests = 0  # requests answered by a forward
         self.batches = 0  # forwards run
 
     # ----------------------------------------------------------------------- public
 
     def start(self) -> MicroBatcher:
-        if self._thread is None:
-            self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
-            self._thread.start()
+        if not self._threads:
+            names = [self.name] if self.workers == 1 else [f"{self.name}-{i}" for i in range(self.workers)]
+            self._threads = [threading.Thread(target=self._run, name=n, daemon=True) for n in names]
+            for thread in self._threads:
+                thread.start()
         return self
 
     def stop(self, timeout: float = 5.0) -> None:
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout)
-            self._thread = None
+        for thread in self._threads:
+            thread.join(timeout)
+        self._threads = []
         self._fail_pending(RuntimeError("batcher stopped"))
 
     def set_policy(self, act: ActFn, version: int, preprocess: PreprocessFn | None = None) -> None:
@@ -213,7 +224,7 @@ class MicroBatcher:
             remaining = end - now
             try:
                 req = self._queue.get(timeout=remaining) if remaining > 0 else self._queue.get_nowait()
-            except queue.Empty:  # answers come from this thread only: no robot starts "returning" meanwhile
+            except queue.Empty:  # (one answered by another worker meanwhile is not waited for: a rare miss)
                 break
             batch.append(req)
             if req.key:
