@@ -214,7 +214,8 @@ class MicroBatcher:
         # Returning robots are waited for from when the worker got free, not from when `first` came:
         # `first` may have queued behind the last forward, and the robots that forward answered are
         # the ones about to ask again.
-        patience = max(self.max_wait_s, RETURN_WAIT_FRACTION * self._forward_s) if self.max_wait_s > 0 else 0.0
+        # With a fast forward (a small MLP) this is a fraction of a millisecond: max_wait alone decides.
+        patience = RETURN_WAIT_FRACTION * self._forward_s if self.max_wait_s > 0 else 0.0
         patient_deadline = max(deadline, picked + patience)
         # Anonymous callers give no hint how many are coming: they wait the full max_wait.
         expected = self._expected(picked) if first.key else self.max_batch + 1
