@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import threading
+import time
 from collections.abc import Iterator
 
 import grpc
@@ -15,6 +16,7 @@ import numpy as np
 import pytest
 import torch
 
+from services.inference import batcher as batcher_module
 from services.inference.batcher import MicroBatcher, NoPolicyError
 from services.inference.server import InferenceService
 from tests import helpers
@@ -290,3 +292,77 @@ def test_weights_arrive_through_a_weight_stream() -> None:
         store.close()
         svc.stop()
         learner.stop()
+
+
+class SlowFirstForward:
+    """Wraps a policy's act: the first forward takes `first_s` (a VLA-sized forward), the rest are fast."""
+
+    def __init__(self, act, first_s: float) -> None:
+        self.act, self.first_s, self.sizes = act, first_s, []
+
+    def __call__(self, observation, deterministic):
+        self.sizes.append(len(observation["state"]))
+        if len(self.sizes) == 1:
+            time.sleep(self.first_s)
+        return self.act(observation, deterministic)
+
+
+def test_batcher_waits_for_a_robot_on_its_round_trip(policy) -> None:
+    """Two closed-loop robots answered together come back a little apart: with a slow forward the batcher
+    waits (a share of that forward) for the second instead of sending the first alone after max_wait."""
+    act = SlowFirstForward(policy.act, first_s=2.0)  # patience after it: RETURN_WAIT_FRACTION * 2 s = 0.5 s
+    batcher = MicroBatcher(max_batch=64, max_wait_ms=1.0)
+    try:
+        batcher.set_policy(act, 1)
+        first = [batcher.submit(obs(i), True, key=f"r{i}") for i in range(2)]
+        batcher.start()  # after both are queued: the slow first forward answers them together
+        assert [f.result(timeout=10).batch_size for f in first] == [2, 2]
+        a = batcher.submit(obs(0), True, key="r0")
+        time.sleep(0.05)  # r1's round trip: far over max_wait, far under the patience
+        b = batcher.submit(obs(1), True, key="r1")
+        assert (a.result(timeout=10).batch_size, b.result(timeout=10).batch_size) == (2, 2)
+        assert act.sizes == [2, 2]
+    finally:
+        batcher.stop()
+
+
+def test_batcher_does_not_wait_for_a_robot_pacing_itself(policy, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A robot answered longer ago than the patience asks at its own rate: the other goes after max_wait,
+    not held for it (held, the two would share a forward)."""
+    monkeypatch.setattr(batcher_module, "ACTIVE_WINDOW_S", 30.0)  # r1 stays a known, active robot throughout
+    act = SlowFirstForward(policy.act, first_s=3.0)  # patience RETURN_WAIT_FRACTION * 3 s = 0.75 s
+    batcher = MicroBatcher(max_batch=64, max_wait_ms=1.0)
+    try:
+        batcher.set_policy(act, 1)
+        first = [batcher.submit(obs(i), True, key=f"r{i}") for i in range(2)]
+        batcher.start()  # after both are queued: the slow first forward answers them together
+        assert [f.result(timeout=20).batch_size for f in first] == [2, 2]
+        time.sleep(1.0)  # over the patience: r1 is pacing itself, not on a round trip
+        a = batcher.submit(obs(0), True, key="r0")
+        time.sleep(0.5)  # under the patience: a batcher holding r0 for r1 would batch them together
+        b = batcher.submit(obs(1), True, key="r1")
+        assert (a.result(timeout=10).batch_size, b.result(timeout=10).batch_size) == (1, 1)
+        assert act.sizes == [2, 1, 1]
+    finally:
+        batcher.stop()
+
+
+def test_batcher_workers_run_forwards_side_by_side(policy) -> None:
+    """Two workers: each forward waits at a barrier for a second one to start, which one worker
+    (forwards in turn) can never reach; both answers come back."""
+    barrier = threading.Barrier(2, timeout=10)
+
+    def act(observation, deterministic):
+        barrier.wait()
+        return policy.act(observation, deterministic)
+
+    batcher = MicroBatcher(max_batch=1, max_wait_ms=1.0, workers=2).start()
+    try:
+        batcher.set_policy(act, 1)
+        futures = [batcher.submit(obs(i), True, key=f"r{i}") for i in range(2)]
+        assert [f.result(timeout=20).batch_size for f in futures] == [1, 1]
+        assert batcher.batches == 2
+    finally:
+        batcher.stop()
+    with pytest.raises(ValueError, match="workers"):
+        MicroBatcher(max_batch=1, max_wait_ms=1.0, workers=0)

@@ -130,6 +130,9 @@ class InferenceConfig(_ServerSection):
     )
     max_batch: int = Field(default=64, ge=1, description="most requests per policy forward")
     max_wait_ms: float = Field(default=2.0, ge=0, description="longest a request waits for others to batch with")
+    batch_workers: int = Field(
+        default=1, ge=1, description="batches in their forward at once per policy (CPU: up to the cores left over)"
+    )
     device: str = DEVICE
     weights_lossy: bool = Field(
         default=False,

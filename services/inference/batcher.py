@@ -3,8 +3,18 @@
 Request handlers `submit()` one observation and wait on the returned future. One worker thread
 takes the first waiting request, then collects more until max_batch, or until max_wait_ms after
 the first one arrived, or until every robot seen recently has a request in (waiting longer could
-only add latency). Requests are grouped by (deterministic, observation shapes), stacked, and the
-policy runs once per group; each future gets its own row of the result.
+only add latency). A robot answered moments ago and not back yet (a robot in a closed loop, on its
+round trip) is worth waiting for a little longer: up to RETURN_WAIT_FRACTION of a recent forward,
+since sent on without it, it would wait a whole forward for the next batch, and two forwards of
+half the robots cost more than one of all (a forward's weight reads are paid once per batch).
+Robots that ask at their own rate (answered long ago) are never waited for beyond max_wait.
+Requests are grouped by (deterministic, observation shapes), stacked, and the policy runs
+once per group; each future gets its own row of the result.
+
+With `workers` > 1 several such threads take batches from the one queue, so a batch can start while
+another is still in its forward (on a CPU with one torch thread per forward, a second core serves a
+second batch instead of idling); each batch still runs one forward, and a swap of weights reaches
+every worker's next batch.
 
 Heavy preprocessing stays off the gRPC threads: a policy that defines
 `preprocess(batched observation, instructions)` (resize and normalize images, tokenize
@@ -37,7 +47,9 @@ ActFn = Callable[[Any, bool], np.ndarray]
 PreprocessFn = Callable[[Mapping[str, np.ndarray], Sequence[str]], Any]
 # Called once per policy forward: (batch size, compute seconds).
 BatchObserver = Callable[[int, float], None]
-ACTIVE_WINDOW_S = 1.0  # a robot counts as active this long after its last request
+ACTIVE_WINDOW_S = 1.0  # a robot counts as active this long after its last request or answer
+RETURN_WAIT_FRACTION = 0.25  # longest wait for returning robots, as a share of a recent forward
+FORWARD_EWMA = 0.3  # weight of the newest batch in the recent-forward estimate
 
 
 class NoPolicyError(RuntimeError):
@@ -77,7 +89,7 @@ class _Served:
 
 
 class MicroBatcher:
-    """Thread-safe; start() the worker, set_policy() whenever new weights arrive, stop() at shutdown."""
+    """Thread-safe; start() the workers, set_policy() whenever new weights arrive, stop() at shutdown."""
 
     def __init__(
         self,
@@ -85,9 +97,13 @@ class MicroBatcher:
         max_wait_ms: float,
         on_batch: BatchObserver | None = None,
         name: str = "batcher",
+        workers: int = 1,
     ) -> None:
         if max_batch < 1:
             raise ValueError("max_batch must be >= 1")
+        if workers < 1:
+            raise ValueError("workers must be >= 1")
+        self.workers = workers
         self.max_batch = max_batch
         self.max_wait_s = max(0.0, max_wait_ms) / 1000.0
         self.on_batch = on_batch
@@ -96,24 +112,28 @@ class MicroBatcher:
         self._policy: _Served | None = None
         self._lock = threading.Lock()
         self._active: dict[str, float] = {}  # robot key -> last submit (perf_counter)
+        self._answered: dict[str, float] = {}  # robot key -> when its last answer was set
+        self._forward_s = 0.0  # recent preprocess + forward seconds per batch (EWMA)
         self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._threads: list[threading.Thread] = []
         self.requests = 0  # requests answered by a forward
         self.batches = 0  # forwards run
 
     # ----------------------------------------------------------------------- public
 
     def start(self) -> MicroBatcher:
-        if self._thread is None:
-            self._thread = threading.Thread(target=self._run, name=self.name, daemon=True)
-            self._thread.start()
+        if not self._threads:
+            names = [self.name] if self.workers == 1 else [f"{self.name}-{i}" for i in range(self.workers)]
+            self._threads = [threading.Thread(target=self._run, name=n, daemon=True) for n in names]
+            for thread in self._threads:
+                thread.start()
         return self
 
     def stop(self, timeout: float = 5.0) -> None:
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout)
-            self._thread = None
+        for thread in self._threads:
+            thread.join(timeout)
+        self._threads = []
         self._fail_pending(RuntimeError("batcher stopped"))
 
     def set_policy(self, act: ActFn, version: int, preprocess: PreprocessFn | None = None) -> None:
@@ -169,24 +189,43 @@ class MicroBatcher:
                         req.future.set_exception(exc)
 
     def _expected(self, now: float) -> int:
-        """How many distinct callers were active within the window (at least 1)."""
+        """How many distinct callers asked or were answered within the window (at least 1): a robot
+        waiting on a forward longer than the window still counts."""
         with self._lock:
-            stale = [k for k, t in self._active.items() if now - t > ACTIVE_WINDOW_S]
-            for k in stale:
-                del self._active[k]
-            return max(1, len(self._active))
+            for seen in (self._active, self._answered):
+                for k in [k for k, t in seen.items() if now - t > ACTIVE_WINDOW_S]:
+                    del seen[k]
+            return max(1, len(self._active.keys() | self._answered.keys()))
+
+    def _returning(self, keys: set[str], now: float, patience_s: float) -> bool:
+        """Is a robot missing from `keys` that was answered within patience_s and has not asked since?"""
+        with self._lock:
+            return any(
+                now - t <= patience_s and t > self._active.get(k, 0.0)
+                for k, t in self._answered.items()
+                if k not in keys
+            )
 
     def _collect(self, first: _Request) -> list[_Request]:
         batch = [first]
         keys = {first.key}
+        picked = time.perf_counter()
         deadline = first.submitted + self.max_wait_s
+        # Returning robots are waited for from when the worker got free, not from when `first` came:
+        # `first` may have queued behind the last forward, and the robots that forward answered are
+        # the ones about to ask again.
+        # With a fast forward (a small MLP) this is a fraction of a millisecond: max_wait alone decides.
+        patience = RETURN_WAIT_FRACTION * self._forward_s if self.max_wait_s > 0 else 0.0
+        patient_deadline = max(deadline, picked + patience)
         # Anonymous callers give no hint how many are coming: they wait the full max_wait.
-        expected = self._expected(time.perf_counter()) if first.key else self.max_batch + 1
+        expected = self._expected(picked) if first.key else self.max_batch + 1
         while len(batch) < self.max_batch and len(keys) < expected:
-            remaining = deadline - time.perf_counter()
+            now = time.perf_counter()
+            end = patient_deadline if first.key and self._returning(keys, now, patience) else deadline
+            remaining = end - now
             try:
                 req = self._queue.get(timeout=remaining) if remaining > 0 else self._queue.get_nowait()
-            except queue.Empty:
+            except queue.Empty:  # (one answered by another worker meanwhile is not waited for: a rare miss)
                 break
             batch.append(req)
             if req.key:
@@ -235,10 +274,15 @@ class MicroBatcher:
         with self._lock:
             self.requests += len(reqs)
             self.batches += 1
+            spent = forward_end - start
+            self._forward_s += FORWARD_EWMA * (spent - self._forward_s) if self._forward_s else spent
         if self.on_batch is not None:
             self.on_batch(len(reqs), compute_s)
         preprocess_us, compute_us = int((forward_start - start) * 1e6), int(compute_s * 1e6)
         postprocess_us = int((end - forward_end) * 1e6)
+        answered = time.perf_counter()  # before any caller has its answer, so before it can ask again
+        with self._lock:
+            self._answered.update((r.key, answered) for r in reqs if r.key)
         for req, row in zip(reqs, rows, strict=True):
             queue_us = int((start - req.submitted) * 1e6)
             req.future.set_result(

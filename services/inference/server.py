@@ -102,7 +102,11 @@ class PolicySlot:
         icfg = service.cfg.inference
         self.service, self.experiment = service, experiment
         self.batcher = MicroBatcher(
-            icfg.max_batch, icfg.max_wait_ms, on_batch=_observe_batch, name=f"inference-batch-{experiment}"
+            icfg.max_batch,
+            icfg.max_wait_ms,
+            on_batch=_observe_batch,
+            name=f"inference-batch-{experiment}",
+            workers=icfg.batch_workers,
         )
         self.policy: Policy | None = None
         self.subscriber: WeightSubscriber | None = None
