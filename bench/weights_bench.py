@@ -364,7 +364,7 @@ def bench_fanout(
     makers: dict[str, Callable[[], Any]] = {
         "fp32": lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_FP32),
         "delta": lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD),
-        "patch": lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD, allow_lossy=True),
+        "patch": lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD, allow_lossy=True),
         "raw": lambda: RawFanout(n),
         "lerobot": lambda: PeerFanout(n),
     }
