@@ -795,7 +795,15 @@ class _PatchStreamDecoder:
     def finish(self) -> np.ndarray:
         if self.current is not None or self.rest_filled != self.rest.size:
             raise WireError("weight patch: the stream ended before the body was complete")
-        return _write_state(self.out, self.f32, self.values, self.other, self.rest)
+        out = _write_state(self.out, self.f32, self.values, self.other, self.rest)
+        self.close()
+        return out
+
+    def close(self) -> None:
+        """Break the cycle with zstd's writer (it holds us): otherwise the payload buffer stays referenced
+        until the garbage collector runs, and the pool cannot hand it out again (fresh pages instead)."""
+        self.writer = None
+        self.values = self.old = _EMPTY
 
 
 def iter_weight_messages(
@@ -998,6 +1006,7 @@ class WeightAssembler:
 
     def reset(self) -> None:
         if self._stream is not None:
+            self._stream.close()
             self._pool.give(self._stream.out)  # a streamed patch that failed: its state buffer is free
         self._header, self._buf, self._filled, self._hash, self._stream = None, _EMPTY, 0, None, None
 
