@@ -367,6 +367,36 @@ def test_streamed_patch_corrupt_truncated_aborted_or_on_a_wrong_base_is_rejected
         _feed(list(iter_weight_frames(sink, 4096)), holding_v1())
 
 
+@pytest.mark.parametrize("framed", [True, False], ids=["frames", "protobuf"])
+def test_one_streamed_patch_fans_out_to_every_subscriber_holding_its_base(framed: bool) -> None:
+    store = WeightStore()
+    srv = Server(store, framed=framed)
+    stream = WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD
+    subs = [subscribe(srv, f"edge-{i}", encoding=stream, allow_lossy=True) for i in range(2)]
+    encodes = []
+    real = store._stream_patch
+    store._stream_patch = lambda *a: encodes.append(a[0].version) or real(*a)  # count the encoder threads
+    try:
+        t = tensors(0, n=1 << 16)
+        for v in range(1, 4):
+            store.publish(v, SPEC, t)
+            for sub, _ in subs:
+                assert sub.wait_version(v, 30)
+            helpers.wait_for(
+                lambda v=v: all(st.applied_version == v for st in srv.servicer.subscriber_status()), f"acks of v{v}"
+            )
+            t = trained(t, v, lr=1e-3)
+        (_, a), (_, b) = subs
+        assert [w.encoding for w in a] == [WE.WEIGHT_ENCODING_FP32_ZSTD, stream, stream]
+        assert [w.encoding for w in b] == [w.encoding for w in a]
+        assert all(np.array_equal(a[-1].tensors[k], b[-1].tensors[k]) for k in t)  # the same bits on both
+        assert encodes == [2, 3]  # one encode per (version, base), shared by both streams
+    finally:
+        for sub, _ in subs:
+            sub.stop()
+        srv.close()
+
+
 def test_one_encode_per_version_encoding_and_base() -> None:
     store = WeightStore()
     store.publish(1, SPEC, tensors(0))
