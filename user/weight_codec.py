@@ -683,11 +683,17 @@ def patch_stream_header(full: PackedWeights, wire: WirePayload, base: WirePayloa
 
 
 def encode_patch_stream(
-    full: PackedWeights, wire: WirePayload, base: WirePayload, sink: StreamedPatch, buf: np.ndarray | None = None
+    full: PackedWeights,
+    wire: WirePayload,
+    base: WirePayload,
+    sink: StreamedPatch,
+    buf: np.ndarray | None = None,
+    reached: Callable[[WirePayload], None] | None = None,
 ) -> WirePayload:
     """Quantize, compress and hand `sink` the patch slice by slice; returns the state it leads to
     (in `buf` when given, uint8 of the payload's size) and finishes `sink` with its digest. On
-    PatchError (non-finite values) `sink` fails: its trailer tells the receiver to ask for a full set."""
+    PatchError (non-finite values) `sink` fails: its trailer tells the receiver to ask for a full set.
+    reached(state) runs before `sink` finishes: a subscriber acking it may ask for a patch on it next."""
     import zstandard
 
     try:
@@ -722,11 +728,14 @@ def encode_patch_stream(
         sink.add(b"".join(parts))
         state_payload = _write_state(out, f32, values, other, rest)
         digest = _HASHERS[full.header.digest_kind][0](state_payload).digest()
+        state = WirePayload(wire.version, wire.tensors, state_payload, digest)
+        if reached is not None:
+            reached(state)
     except BaseException as exc:
         sink.fail(exc)
         raise
     sink.finish(digest)
-    return WirePayload(wire.version, wire.tensors, state_payload, digest)
+    return state
 
 
 class _PatchStreamDecoder:

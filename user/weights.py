@@ -438,14 +438,16 @@ class WeightStore:
         def run() -> None:
             start = time.perf_counter()
             try:
-                reached = encode_patch_stream(full, wire, held, sink, buf)
+                # the reached state is kept before the last chunk goes out: the subscriber's ack may come
+                # back at once, naming it as the base of its next patch
+                keep = lambda st: self._keep_state(experiment, st, patched=True)  # noqa: E731
+                encode_patch_stream(full, wire, held, sink, buf, keep)
             except PatchError as exc:  # its trailer sends the subscribers back for a full set
                 log.warning("no patch for this version", extra=kv(version=full.version, error=str(exc)))
                 return
             except Exception:
                 log.exception("streamed patch failed; its subscribers get a full set", extra=kv(version=full.version))
                 return
-            self._keep_state(experiment, reached, patched=True)  # the base of this link's next patch
             ratio = sink.encoded_bytes / max(1, full_bytes)
             self._stats[encoding].observe(ratio, full_bytes, time.perf_counter() - start)
 
