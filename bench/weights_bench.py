@@ -8,7 +8,8 @@ subscriber holding the new version as numpy/torch tensors, for
   lerobot: one lerobot learner per actor, as lerobot serves actors (see PeerFanout): each pushes its
            own state_to_bytes through a torch.multiprocessing Queue to its LearnerService.StreamParameters,
            the actor receives (receive_bytes_in_chunks -> its Queue) and decodes (bytes_to_state_dict);
-  ours, patch: error-bounded patches (lossy) against the state each subscriber holds;
+  ours, patch: error-bounded patches (lossy) against the state each subscriber holds, streamed
+           (FP32_PATCH_STREAM_ZSTD: sent while later slices are quantized, applied as they arrive);
   raw:     a bare gRPC server stream of the same fp32 bytes in 1 MiB chunks into a preallocated buffer
            (no manifest, no checksum, no auth): the floor for a full set.
 Plus the learner's updates/s with 0, 1 and 8 subscribers, and (bench.weights_link, in a private
@@ -364,7 +365,7 @@ def bench_fanout(
     makers: dict[str, Callable[[], Any]] = {
         "fp32": lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_FP32),
         "delta": lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD),
-        "patch": lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD, allow_lossy=True),
+        "patch": lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD, allow_lossy=True),
         "raw": lambda: RawFanout(n),
         "lerobot": lambda: PeerFanout(n),
     }
@@ -375,6 +376,9 @@ def bench_fanout(
         for side, make in makers.items():
             links[side] = make()
             links[side].send(module)  # warm-up version: connection set-up, first allocations, delta base
+        trainer.step()
+        for link in links.values():  # a second one: the first delta/patch fills the buffer pools on both ends
+            link.send(module)
         for i in range(versions):
             trainer.step()
             for side, link in links.items():  # take turns, so background load hits all alike

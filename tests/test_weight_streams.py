@@ -161,9 +161,10 @@ def test_adaptive_choice_follows_the_link() -> None:
     link.goodput_bps = 1e3  # far too slow for lossless within 1 s, but the client's exact state is unknown
     assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD, 1)
     link.base_digest = store.wire(store.get(1), tpb.DTYPE_FLOAT32, ("",)).digest  # it holds v1 exactly: a patch
-    assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD, 1)
+    patch = WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD  # streamed: encode, transfer and apply overlap
+    assert choose_encoding(store, link, store.latest()) == (patch, 1)
     link.patches_in_row = 16  # the periodic exact resync
-    assert choose_encoding(store, link, store.latest(), keyframe_every=16)[0] != WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD
+    assert choose_encoding(store, link, store.latest(), keyframe_every=16)[0] != patch
     link.patches_in_row = 0
     link.allow_lossy = False
     assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD, 1)
@@ -240,17 +241,20 @@ def test_patch_against_a_wrong_or_missing_base_and_corrupt_patches_are_rejected(
         assert good.base_version == 1  # the held payload survives for the full-set fallback
 
 
-def test_patches_flow_with_periodic_exact_resyncs_and_fall_back_on_a_lost_base() -> None:
+@pytest.mark.parametrize(
+    "patch", [WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD, WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD], ids=["oneshot", "stream"]
+)
+def test_patches_flow_with_periodic_exact_resyncs_and_fall_back_on_a_lost_base(patch: int) -> None:
     store = WeightStore()
     srv = Server(store, WeightServicer(store, poll_s=0.1, keyframe_every=2))
-    sub, got = subscribe(srv, "edge-1", encoding=WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD, allow_lossy=True)
+    sub, got = subscribe(srv, "edge-1", encoding=patch, allow_lossy=True)
     try:
         t = tensors(0)
         for v in range(1, 6):
             store.publish(v, SPEC, t)
             assert sub.wait_version(v, 30)
             t = trained(t, v, lr=1e-3)
-        full, patch = WE.WEIGHT_ENCODING_FP32_ZSTD, WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD
+        full = WE.WEIGHT_ENCODING_FP32_ZSTD
         assert [w.encoding for w in got] == [full, patch, patch, full, patch]  # keyframe after 2 patches
         helpers.wait_for(lambda: srv.servicer.subscriber_status()[0].applied_version == 5, "ack of v5")
         sub._assembler.forget_base()  # a client that lost its state: the patch is rejected, a full set follows
@@ -260,6 +264,136 @@ def test_patches_flow_with_periodic_exact_resyncs_and_fall_back_on_a_lost_base()
         assert all(np.array_equal(got[-1].tensors[k], t[k]) for k in t)
     finally:
         sub.stop()
+        srv.close()
+
+
+def _streamed(full, wire, base, chunk: int = 4096) -> tuple[list[bytes], object]:
+    """A streamed patch's frames as a subscriber receives them, and the state the sender reached."""
+    from user.weight_codec import StreamedPatch, encode_patch_stream, iter_weight_frames, patch_stream_header
+
+    sink = StreamedPatch(patch_stream_header(full, wire, base))
+    reached = []
+    encoder = threading.Thread(target=lambda: reached.append(encode_patch_stream(full, wire, base, sink)))
+    encoder.start()  # frames are read while later slices are still being quantized
+    frames = list(iter_weight_frames(sink, chunk))
+    encoder.join()
+    return frames, reached[0]
+
+
+def _feed(frames: list[bytes], receiver: WeightAssembler) -> WeightSet | None:
+    from user.weight_codec import parse_weight_message
+
+    out = None
+    for frame in frames:
+        out = receiver.feed(parse_weight_message(frame))
+    return out
+
+
+def test_streamed_patch_leads_to_the_same_bits_as_the_one_shot_patch_within_its_bound() -> None:
+    from user.weight_codec import PATCH_BLOCK, PATCH_SLICE_BLOCKS, encode_patch, patch_body_bytes
+
+    fp32, prefixes = tpb.DTYPE_FLOAT32, ("",)
+    n = 3 * PATCH_SLICE_BLOCKS * PATCH_BLOCK + 1000  # several slices, the last one partial
+    v1 = tensors(0, n=n)
+    v2 = trained(v1, 1, lr=1e-3)
+    full1, full2 = pack_weights(1, SPEC, v1), pack_weights(2, SPEC, v2)
+    base, wire2 = wire_payload(full1, fp32, prefixes), wire_payload(full2, fp32, prefixes)
+    receiver = WeightAssembler()
+    decode(full1, receiver)
+    frames, reached = _streamed(full2, wire2, base)
+    assert len(frames) > 3  # header, chunks, trailer
+    got = _feed(frames, receiver)
+    assert got is not None and got.version == 2 and got.encoding == WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD
+    _, state = encode_patch(full2, wire2, base)
+    # Lossless where it must be: receiver, streaming sender and one-shot sender hold the same bits.
+    assert np.array_equal(receiver.held.payload, state.payload) and np.array_equal(reached.payload, state.payload)
+    assert receiver.base_digest == reached.digest == state.digest
+    err = np.abs(_f32(got.tensors).astype(np.float64) - _f32(v2))
+    assert (err <= _patch_bound(v2, v1)).all() and err.max() > 0
+    assert np.array_equal(got.tensors["actor.steps"], v2["actor.steps"])
+    assert got.encoded_bytes < 0.5 * patch_body_bytes(wire2.tensors)
+
+
+def test_streamed_patch_corrupt_truncated_aborted_or_on_a_wrong_base_is_rejected() -> None:
+    from user.weight_codec import (
+        PatchError,
+        StreamedPatch,
+        encode_patch_stream,
+        iter_weight_frames,
+        patch_stream_header,
+    )
+
+    fp32, prefixes = tpb.DTYPE_FLOAT32, ("",)
+    v1, v2 = tensors(0, n=1 << 16), trained(tensors(0, n=1 << 16), 1)
+    full1, full2 = pack_weights(1, SPEC, v1), pack_weights(2, SPEC, v2)
+    base, wire2 = wire_payload(full1, fp32, prefixes), wire_payload(full2, fp32, prefixes)
+    frames, _ = _streamed(full2, wire2, base)
+
+    def holding_v1() -> WeightAssembler:
+        r = WeightAssembler()
+        decode(full1, r)
+        return r
+
+    for i in (1, len(frames) // 2, len(frames) - 2):  # a flipped byte in the first, a middle, the last data chunk
+        bad = bytearray(frames[i])
+        bad[-3] ^= 0x55
+        r = holding_v1()
+        with pytest.raises(wire.WireError):
+            _feed([*frames[:i], bytes(bad), *frames[i + 1 :]], r)
+        assert r.base_version == 1  # the held payload survives for the full-set fallback
+    trailer = learner_pb2.WeightMessage.FromString(frames[-1])
+    assert trailer.chunk.last and len(trailer.chunk.digest) == 16
+    dropped = sum(len(learner_pb2.WeightMessage.FromString(f).chunk.data) for f in frames[-2:-1])
+    trailer.chunk.offset -= dropped  # the stream ends one chunk early
+    with pytest.raises(wire.WireError, match="ended before"):
+        _feed([*frames[:-2], trailer.SerializeToString()], holding_v1())
+    trailer.chunk.digest = b""  # the sender gave up (non-finite weights): ask for a full set
+    with pytest.raises(wire.WireError, match="gave up"):
+        _feed([*frames[:-2], trailer.SerializeToString()], holding_v1())
+    with pytest.raises(wire.WireError, match="this client holds none"):
+        _feed(frames, WeightAssembler())
+    impostor = WeightAssembler()  # v1 by number, other bits
+    decode(pack_weights(1, SPEC, tensors(7, n=1 << 16)), impostor)
+    with pytest.raises(wire.WireError, match="holds v1"):
+        _feed(frames, impostor)
+    # A sender that hits non-finite weights mid-stream ends it with an empty digest.
+    v3 = trained(v2, 2)
+    v3["critic.w"][-1, -1] = np.inf
+    full3 = pack_weights(3, SPEC, v3)
+    sink = StreamedPatch(patch_stream_header(full3, wire_payload(full3, fp32, prefixes), base))
+    with pytest.raises(PatchError, match="non-finite"):
+        encode_patch_stream(full3, wire_payload(full3, fp32, prefixes), base, sink)
+    with pytest.raises(wire.WireError, match="gave up"):
+        _feed(list(iter_weight_frames(sink, 4096)), holding_v1())
+
+
+@pytest.mark.parametrize("framed", [True, False], ids=["frames", "protobuf"])
+def test_one_streamed_patch_fans_out_to_every_subscriber_holding_its_base(framed: bool) -> None:
+    store = WeightStore()
+    srv = Server(store, framed=framed)
+    stream = WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD
+    subs = [subscribe(srv, f"edge-{i}", encoding=stream, allow_lossy=True) for i in range(2)]
+    encodes = []
+    real = store._stream_patch
+    store._stream_patch = lambda *a: encodes.append(a[0].version) or real(*a)  # count the encoder threads
+    try:
+        t = tensors(0, n=1 << 16)
+        for v in range(1, 4):
+            store.publish(v, SPEC, t)
+            for sub, _ in subs:
+                assert sub.wait_version(v, 30)
+            helpers.wait_for(
+                lambda v=v: all(st.applied_version == v for st in srv.servicer.subscriber_status()), f"acks of v{v}"
+            )
+            t = trained(t, v, lr=1e-3)
+        (_, a), (_, b) = subs
+        assert [w.encoding for w in a] == [WE.WEIGHT_ENCODING_FP32_ZSTD, stream, stream]
+        assert [w.encoding for w in b] == [w.encoding for w in a]
+        assert all(np.array_equal(a[-1].tensors[k], b[-1].tensors[k]) for k in t)  # the same bits on both
+        assert encodes == [2, 3]  # one encode per (version, base), shared by both streams
+    finally:
+        for sub, _ in subs:
+            sub.stop()
         srv.close()
 
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 import hashlib
 import math
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -69,6 +70,7 @@ class Codec:
     delta: bool
     zstd: bool
     patch: bool = False  # quantized difference against the receiver's exact state (lossy)
+    stream: bool = False  # sent while it is computed: the digest and size come last (StreamedPatch)
 
     @property
     def lossy(self) -> bool:
@@ -84,13 +86,16 @@ CODECS: dict[int, Codec] = {
     WE.WEIGHT_ENCODING_BF16_ZSTD: Codec(tpb.DTYPE_BFLOAT16, False, True),
     WE.WEIGHT_ENCODING_BF16_DELTA_ZSTD: Codec(tpb.DTYPE_BFLOAT16, True, True),
     WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD: Codec(tpb.DTYPE_FLOAT32, True, True, patch=True),
+    WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD: Codec(tpb.DTYPE_FLOAT32, True, True, patch=True, stream=True),
 }
 FULL_OF: dict[int, int] = {  # the full-set fallback of each delta encoding
     WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD: WE.WEIGHT_ENCODING_FP32_ZSTD,
     WE.WEIGHT_ENCODING_FP16_DELTA_ZSTD: WE.WEIGHT_ENCODING_FP16_ZSTD,
     WE.WEIGHT_ENCODING_BF16_DELTA_ZSTD: WE.WEIGHT_ENCODING_BF16_ZSTD,
     WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD: WE.WEIGHT_ENCODING_FP32_ZSTD,  # also the exact resync (keyframe)
+    WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD: WE.WEIGHT_ENCODING_FP32_ZSTD,
 }
+PATCHES = (WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD, WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD)
 PATCH_BLOCK = 4096  # float32 elements per quantization step (4 bytes of step per 4 KiB of int8)
 # Error bound of a patch per element, relative to the RMS of the new weights in its block. Measured on a
 # 1M-parameter actor, 5 Adam steps (lr 3e-4) between versions: 2^-10 -> 13 % of the fp32 bytes and a max
@@ -377,18 +382,25 @@ def patch_body_bytes(tensors: Sequence[learner_pb2.TensorInfo]) -> int:
 PATCH_SLICE_BLOCKS = 64  # blocks per slice of work: 1 MiB of float32 scratch, reused (stays in cache)
 
 
+def _apply_blocks(base: np.ndarray, steps: np.ndarray, q: np.ndarray, out: np.ndarray, scratch: np.ndarray) -> None:
+    """out = base + q * step of its block, in float32: the one computation both sides run, so sender
+    and receiver hold the same bits. base/out: the slice's elements (the last block may be partial);
+    steps: one per block; q: int8, whole blocks. The int8 -> float32 cast inside the mixed multiply is
+    exact, so the product has the bits of a float32 multiply."""
+    blocks, m = steps.size, base.size
+    tmp = scratch[: blocks * PATCH_BLOCK].reshape(blocks, PATCH_BLOCK)
+    np.multiply(q.reshape(blocks, PATCH_BLOCK), steps[:, None], out=tmp)
+    np.add(base, tmp.reshape(-1)[:m], out=out)
+
+
 def _apply_slice(
     base: np.ndarray, steps: np.ndarray, q: np.ndarray, out: np.ndarray, lo: int, hi: int, scratch: np.ndarray
 ) -> None:
-    """out[lo:hi] = base + q * step of its blocks, in float32: the one computation both sides run, so
-    sender and receiver hold the same bits. The int8 -> float32 cast is exact, so cast-then-multiply
-    gives the bits of a mixed-type multiply. lo is a multiple of PATCH_BLOCK."""
+    """out[lo:hi] = base + q * step of its blocks (_apply_blocks on whole-payload arrays); lo is a
+    multiple of PATCH_BLOCK."""
     blocks = -(-(hi - lo) // PATCH_BLOCK)
-    tmp = scratch[: blocks * PATCH_BLOCK].reshape(blocks, PATCH_BLOCK)
     b0 = lo // PATCH_BLOCK
-    tmp[...] = q[lo : lo + blocks * PATCH_BLOCK].reshape(blocks, PATCH_BLOCK)
-    tmp *= steps[b0 : b0 + blocks, None]
-    np.add(base[lo:hi], tmp.reshape(-1)[: hi - lo], out=out[lo:hi])
+    _apply_blocks(base[lo:hi], steps[b0 : b0 + blocks], q[lo : lo + blocks * PATCH_BLOCK], out[lo:hi], scratch)
 
 
 def _apply_steps(base: np.ndarray, steps: np.ndarray, q: np.ndarray, out: np.ndarray) -> np.ndarray:
@@ -401,38 +413,53 @@ def _apply_steps(base: np.ndarray, steps: np.ndarray, q: np.ndarray, out: np.nda
     return out
 
 
-def _quantize(new: np.ndarray, old: np.ndarray, steps: np.ndarray, q: np.ndarray, out: np.ndarray) -> np.ndarray:
-    """Fill steps (one per block) and q (int8, padded to whole blocks) for new - old, and out with the
-    state the receiver will compute (_apply_slice), slice by slice while the slice is in cache.
+def _quantize_blocks(
+    new: np.ndarray,
+    old: np.ndarray,
+    steps: np.ndarray,
+    q: np.ndarray,
+    out: np.ndarray,
+    d: np.ndarray,
+    scratch: np.ndarray,
+) -> None:
+    """Fill steps (one per block) and q (int8, whole blocks) for new - old of one slice, and out with
+    the state the receiver will compute (_apply_blocks), while the slice is in cache.
 
     Only the sender quantizes (steps travel), so its arithmetic need not match the receiver's: sums of
     squares accumulate in float32 (einsum), and q needs no clipping: step >= max|diff| / 127 keeps
-    |diff / step| <= 127 (plus rounding), which rint keeps at 127."""
+    |diff / step| <= 127 (plus rounding), which rint keeps at 127. d, scratch: float32 of whole blocks."""
+    m, blocks = new.size, steps.size
+    size = blocks * PATCH_BLOCK
+    if m < size:  # the last, partial block: zero padding (the receiver ignores it)
+        d[m:size] = 0
+        w = np.zeros(size, dtype=np.float32)
+        w[:m] = new
+    else:
+        w = new
+    np.subtract(new, old, out=d[:m])
+    d2, w2 = d[:size].reshape(blocks, PATCH_BLOCK), w.reshape(blocks, PATCH_BLOCK)
+    rms = np.sqrt(np.einsum("ij,ij->i", w2, w2) / np.float32(PATCH_BLOCK))
+    peak = np.maximum(d2.max(axis=1), -d2.min(axis=1))
+    s = np.maximum(np.float32(2 * PATCH_REL_TOL) * rms, peak / np.float32(127))  # |error| <= step / 2
+    if not np.isfinite(s).all():
+        raise PatchError("non-finite weights or differences")
+    s[s == 0] = 1.0  # an unchanged all-zero block
+    steps[...] = s
+    d2 /= s[:, None]
+    np.rint(d2, out=q.reshape(blocks, PATCH_BLOCK), casting="unsafe")  # into int8
+    _apply_blocks(old, steps, q, out, scratch)
+
+
+def _quantize(new: np.ndarray, old: np.ndarray, steps: np.ndarray, q: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """_quantize_blocks over whole payloads (steps | q layout of FP32_PATCH_ZSTD), slice by slice."""
     n, step = new.size, PATCH_SLICE_BLOCKS * PATCH_BLOCK
     d = np.zeros(step, dtype=np.float32)
     scratch = np.empty(step, dtype=np.float32)
     for lo in range(0, n, step):
         hi = min(n, lo + step)
-        blocks = -(-(hi - lo) // PATCH_BLOCK)
-        b0, size = lo // PATCH_BLOCK, blocks * PATCH_BLOCK
-        if hi - lo < size:  # the last, partial block: zero padding (the receiver ignores it)
-            d[hi - lo : size] = 0
-            w = np.zeros(size, dtype=np.float32)
-            w[: hi - lo] = new[lo:hi]
-        else:
-            w = new[lo:hi]
-        np.subtract(new[lo:hi], old[lo:hi], out=d[: hi - lo])
-        d2, w2 = d[:size].reshape(blocks, PATCH_BLOCK), w.reshape(blocks, PATCH_BLOCK)
-        rms = np.sqrt(np.einsum("ij,ij->i", w2, w2) / np.float32(PATCH_BLOCK))
-        peak = np.maximum(d2.max(axis=1), -d2.min(axis=1))
-        s = np.maximum(np.float32(2 * PATCH_REL_TOL) * rms, peak / np.float32(127))  # |error| <= step / 2
-        if not np.isfinite(s).all():
-            raise PatchError("non-finite weights or differences")
-        s[s == 0] = 1.0  # an unchanged all-zero block
-        steps[b0 : b0 + blocks] = s
-        d2 /= s[:, None]
-        np.rint(d2, out=q[lo : lo + size].reshape(blocks, PATCH_BLOCK), casting="unsafe")  # into int8
-        _apply_slice(old, steps, q, out, lo, hi, scratch)
+        b0, blocks = lo // PATCH_BLOCK, -(-(hi - lo) // PATCH_BLOCK)
+        q_s = q[lo : lo + blocks * PATCH_BLOCK]
+        _quantize_blocks(new[lo:hi], old[lo:hi], steps[b0 : b0 + blocks], q_s, out[lo:hi], d, scratch)
     return out
 
 
@@ -531,12 +558,272 @@ def apply_patch(
     return _write_state(out, f32, values, other, rest)
 
 
+# --------------------------------------------------------------------------- streamed patches
+# FP32_PATCH_STREAM_ZSTD: the same quantization and the same float32 apply as FP32_PATCH_ZSTD, but the
+# body is interleaved per slice (its steps, then its int8 values), so the sender compresses and sends
+# slice k while it quantizes slice k + 1, and the receiver applies slice k while later ones are still on
+# the way. Encode, transfer and decode overlap (on loopback they were three serial stages of similar
+# length). The header cannot carry the digest or the compressed size: the last chunk does.
+
+PATCH_FLUSH_BYTES = 1 << 20  # body bytes between zstd flushes: what goes out ahead of the rest
+
+
+def _slice_elements(n: int) -> Iterator[tuple[int, int, int]]:
+    """(lo, hi, blocks) of each slice of n float32 elements, in body order."""
+    step = PATCH_SLICE_BLOCKS * PATCH_BLOCK
+    for lo in range(0, n, step):
+        hi = min(n, lo + step)
+        yield lo, hi, -(-(hi - lo) // PATCH_BLOCK)
+
+
+class StreamedPatch:
+    """A streamed patch as the server fans it out: the header now, compressed pieces as they are
+    made (by encode_patch_stream, on its own thread), then the digest. Every subscriber that wants this
+    (version, base) reads the same pieces; none waits for another's flow control."""
+
+    def __init__(self, header: learner_pb2.WeightHeader) -> None:
+        self.header = header  # encoded_bytes 0 and no digest: both are known at the end
+        self._pieces: list[bytes] = []
+        self._cond = threading.Condition()
+        self.done = False
+        self.error: BaseException | None = None
+        self.digest = b""
+        self._encoded = 0
+
+    @property
+    def version(self) -> int:
+        return self.header.version
+
+    @property
+    def nbytes(self) -> int:
+        return self.header.total_bytes
+
+    @property
+    def encoded_bytes(self) -> int:
+        """Compressed bytes so far (all of them once done)."""
+        return self._encoded
+
+    def add(self, piece: bytes) -> None:
+        if piece:
+            with self._cond:
+                self._pieces.append(piece)
+                self._encoded += len(piece)
+                self._cond.notify_all()
+
+    def finish(self, digest: bytes) -> None:
+        with self._cond:
+            self.digest, self.done = digest, True
+            self._cond.notify_all()
+
+    def fail(self, exc: BaseException) -> None:
+        with self._cond:
+            self.error, self.done = exc, True
+            self._cond.notify_all()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: self.done, timeout)
+
+    def _chunks(self, max_chunk_bytes: int) -> Iterator[tuple[int, memoryview]]:
+        """(offset, data) of the compressed stream as it grows, in chunks of at most max_chunk_bytes."""
+        i = offset = 0
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda i=i: i < len(self._pieces) or self.done)
+                new, done = self._pieces[i:], self.done
+            i += len(new)
+            for piece in new:
+                view = memoryview(piece)
+                for start in range(0, len(view), max_chunk_bytes):
+                    part = view[start : start + max_chunk_bytes]
+                    yield offset, part
+                    offset += len(part)
+            if done and i == len(self._pieces):
+                return
+
+    def _trailer(self, offset: int) -> learner_pb2.WeightMessage:
+        digest = self.digest if self.error is None else b""  # empty: given up, the receiver asks for a full set
+        chunk = learner_pb2.WeightChunk(version=self.version, offset=offset, last=True, digest=digest)
+        return learner_pb2.WeightMessage(chunk=chunk)
+
+    def frames(self, max_chunk_bytes: int) -> Iterator[bytes]:
+        yield learner_pb2.WeightMessage(header=self.header).SerializeToString()
+        end = 0
+        for offset, data in self._chunks(max_chunk_bytes):
+            yield chunk_frame(self.version, offset, data)
+            end = offset + len(data)
+        yield self._trailer(end).SerializeToString()
+
+    def messages(self, max_chunk_bytes: int) -> Iterator[learner_pb2.WeightMessage]:
+        yield learner_pb2.WeightMessage(header=self.header)
+        end = 0
+        for offset, data in self._chunks(max_chunk_bytes):
+            chunk = learner_pb2.WeightChunk(version=self.version, offset=offset, data=bytes(data))
+            yield learner_pb2.WeightMessage(chunk=chunk)
+            end = offset + len(data)
+        yield self._trailer(end)
+
+
+def patch_stream_header(full: PackedWeights, wire: WirePayload, base: WirePayload) -> learner_pb2.WeightHeader:
+    src = full.header
+    return learner_pb2.WeightHeader(
+        version=src.version,
+        policy=src.policy,
+        tensors=wire.tensors,
+        total_bytes=int(wire.payload.nbytes),
+        encoding=ENCODING_ZSTD,
+        created_at_ns=src.created_at_ns,
+        learner_updates=src.learner_updates,
+        digest_kind=src.digest_kind,
+        base_version=base.version,
+        base_digest=base.digest,
+        experiment=src.experiment,
+        weight_encoding=WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD,
+    )
+
+
+def encode_patch_stream(
+    full: PackedWeights,
+    wire: WirePayload,
+    base: WirePayload,
+    sink: StreamedPatch,
+    buf: np.ndarray | None = None,
+    reached: Callable[[WirePayload], None] | None = None,
+) -> WirePayload:
+    """Quantize, compress and hand `sink` the patch slice by slice; returns the state it leads to
+    (in `buf` when given, uint8 of the payload's size) and finishes `sink` with its digest. On
+    PatchError (non-finite values) `sink` fails: its trailer tells the receiver to ask for a full set.
+    reached(state) runs before `sink` finishes: a subscriber acking it may ask for a patch on it next."""
+    import zstandard
+
+    try:
+        if not base.same_layout(wire.tensors) or base.version >= wire.version:
+            raise PatchError("a patch needs an older base of the same layout")
+        f32, other = _f32_segments(wire.tensors)
+        new, old = _gather_f32(wire.payload, f32), _gather_f32(base.payload, f32)
+        size = wire.payload.nbytes
+        out = buf if buf is not None and buf.nbytes == size else np.empty(size, dtype=np.uint8)
+        values = _state_values(out, f32, new.size)
+        slice_elems = PATCH_SLICE_BLOCKS * PATCH_BLOCK
+        body = np.empty(PATCH_SLICE_BLOCKS * (4 + PATCH_BLOCK), dtype=np.uint8)
+        d, scratch = np.zeros(slice_elems, np.float32), np.empty(slice_elems, np.float32)
+        comp = zstandard.ZstdCompressor(level=ZSTD_LEVEL).compressobj()
+        parts, pending = [], 0
+        for lo, hi, blocks in _slice_elements(new.size):
+            steps = body[: blocks * 4].view("<f4")
+            q = body[blocks * 4 : blocks * (4 + PATCH_BLOCK)].view(np.int8)
+            _quantize_blocks(new[lo:hi], old[lo:hi], steps, q, values[lo:hi], d, scratch)
+            parts.append(comp.compress(body[: blocks * (4 + PATCH_BLOCK)]))
+            pending += blocks * (4 + PATCH_BLOCK)
+            if pending >= PATCH_FLUSH_BYTES:
+                parts.append(comp.flush(zstandard.COMPRESSOBJ_FLUSH_BLOCK))
+                sink.add(b"".join(parts))
+                parts, pending = [], 0
+        rest = np.empty(sum(n for _, n in other), dtype=np.uint8)
+        pos = 0
+        for o, nb in other:  # non-float tensors travel raw, after the slices
+            rest[pos : pos + nb] = wire.payload[o : o + nb]
+            pos += nb
+        parts += [comp.compress(rest), comp.flush()]
+        sink.add(b"".join(parts))
+        state_payload = _write_state(out, f32, values, other, rest)
+        digest = _HASHERS[full.header.digest_kind][0](state_payload).digest()
+        state = WirePayload(wire.version, wire.tensors, state_payload, digest)
+        if reached is not None:
+            reached(state)
+    except BaseException as exc:
+        sink.fail(exc)
+        raise
+    sink.finish(digest)
+    return state
+
+
+class _PatchStreamDecoder:
+    """Applies a streamed patch as it arrives: zstd output (bounded: write_size at a time, checked
+    against the manifest's sizes) fills one slice of the body; a full slice is applied to the held base
+    at once, while later chunks are still on the way."""
+
+    WRITE_SIZE = 1 << 18
+
+    def __init__(self, base: WirePayload, tensors: Sequence[learner_pb2.TensorInfo], out: np.ndarray) -> None:
+        import zstandard
+
+        self.f32, self.other = _f32_segments(tensors)
+        self.old = _gather_f32(base.payload, self.f32)
+        self.out = out
+        self.values = _state_values(out, self.f32, self.old.size)
+        self.slices = _slice_elements(self.old.size)
+        self.rest = np.empty(sum(n for _, n in self.other), dtype=np.uint8)
+        self.body = np.empty(PATCH_SLICE_BLOCKS * (4 + PATCH_BLOCK), dtype=np.uint8)
+        self.scratch = np.empty(PATCH_SLICE_BLOCKS * PATCH_BLOCK, dtype=np.float32)
+        self._next_slice()
+        self.rest_filled = 0
+        self.writer = zstandard.ZstdDecompressor().stream_writer(self, write_size=self.WRITE_SIZE)
+        self._error = zstandard.ZstdError
+
+    def _next_slice(self) -> None:
+        self.current = next(self.slices, None)
+        self.need = self.current[2] * (4 + PATCH_BLOCK) if self.current else 0
+        self.filled = 0
+
+    def feed(self, data: memoryview) -> None:
+        try:
+            self.writer.write(data)
+        except self._error as exc:
+            raise WireError(f"weight patch: bad zstd stream: {exc}") from exc
+
+    def write(self, data: bytes) -> int:
+        """zstd's output (the stream_writer's writer)."""
+        view, pos = memoryview(data), 0
+        while pos < len(view):
+            if self.current is None:  # the non-float tensors
+                take = len(view) - pos
+                if self.rest_filled + take > self.rest.size:
+                    raise WireError("weight patch: decoded body longer than the manifest says")
+                self.rest[self.rest_filled : self.rest_filled + take] = np.frombuffer(view[pos:], np.uint8)
+                self.rest_filled += take
+                break
+            take = min(self.need - self.filled, len(view) - pos)
+            self.body[self.filled : self.filled + take] = np.frombuffer(view[pos : pos + take], np.uint8)
+            self.filled += take
+            pos += take
+            if self.filled == self.need:
+                self._apply()
+        return len(data)
+
+    def _apply(self) -> None:
+        assert self.current is not None
+        lo, hi, blocks = self.current
+        steps = self.body[: blocks * 4].view("<f4")
+        if not np.isfinite(steps).all():
+            raise WireError("weight patch: non-finite step")
+        q = self.body[blocks * 4 : blocks * (4 + PATCH_BLOCK)].view(np.int8)
+        _apply_blocks(self.old[lo:hi], steps, q, self.values[lo:hi], self.scratch)
+        self._next_slice()
+
+    def finish(self) -> np.ndarray:
+        if self.current is not None or self.rest_filled != self.rest.size:
+            raise WireError("weight patch: the stream ended before the body was complete")
+        out = _write_state(self.out, self.f32, self.values, self.other, self.rest)
+        self.close()
+        return out
+
+    def close(self) -> None:
+        """Break the cycle with zstd's writer (it holds us): otherwise the payload buffer stays referenced
+        until the garbage collector runs, and the pool cannot hand it out again (fresh pages instead)."""
+        self.writer = None
+        self.values = self.old = _EMPTY
+
+
 def iter_weight_messages(
-    packed: PackedWeights, max_chunk_bytes: int = DEFAULT_CHUNK_BYTES
+    packed: PackedWeights | StreamedPatch, max_chunk_bytes: int = DEFAULT_CHUNK_BYTES
 ) -> Iterator[learner_pb2.WeightMessage]:
     """Header, then the payload in chunks of at most max_chunk_bytes (messages cached per chunk size)."""
     if max_chunk_bytes <= 0:
         raise ValueError("max_chunk_bytes must be positive")
+    if isinstance(packed, StreamedPatch):
+        yield from packed.messages(max_chunk_bytes)
+        return
     msgs = packed._chunk_cache.get(max_chunk_bytes)
     if msgs is None:
         msgs = [learner_pb2.WeightMessage(header=packed.header)]
@@ -579,10 +866,15 @@ def chunk_frame(version: int, offset: int, data: memoryview) -> bytes:
     return b"".join((_CHUNK_TAG, _varint(len(head) + len(data)), head, data))
 
 
-def iter_weight_frames(packed: PackedWeights, max_chunk_bytes: int = DEFAULT_CHUNK_BYTES) -> Iterator[bytes]:
+def iter_weight_frames(
+    packed: PackedWeights | StreamedPatch, max_chunk_bytes: int = DEFAULT_CHUNK_BYTES
+) -> Iterator[bytes]:
     """iter_weight_messages, serialized: one copy per chunk straight from the payload, nothing cached."""
     if max_chunk_bytes <= 0:
         raise ValueError("max_chunk_bytes must be positive")
+    if isinstance(packed, StreamedPatch):
+        yield from packed.frames(max_chunk_bytes)
+        return
     yield learner_pb2.WeightMessage(header=packed.header).SerializeToString()
     view = memoryview(packed.payload).cast("B")
     for start in range(0, len(view), max_chunk_bytes):
@@ -601,6 +893,8 @@ class RawChunk:
     version: int
     offset: int
     data: memoryview
+    last: bool = False  # frames never carry these (the trailer of a stream goes through protobuf)
+    digest: bytes = b""
 
 
 def parse_weight_message(buf: bytes) -> learner_pb2.WeightMessage | RawChunk:
@@ -648,17 +942,20 @@ def _check_header(h: learner_pb2.WeightHeader) -> None:
         raise WireError(
             f"weight header: raw payload with encoded_bytes {h.encoded_bytes} != total_bytes {h.total_bytes}"
         )
-    if h.weight_encoding == WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD:
+    streamed = h.weight_encoding == WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD
+    if h.weight_encoding in PATCHES:
         if not h.base_version or not h.base_digest or h.encoding != ENCODING_ZSTD:
             raise WireError("weight header: a patch needs a base version, a base digest and zstd")
         if any(i.wire_dtype not in (0, i.dtype) for i in h.tensors):
             raise WireError("weight header: a patch carries full-precision tensors only")
+    if streamed and (h.digest or h.encoded_bytes):
+        raise WireError("weight header: a streamed patch's digest and size come with its last chunk")
     if h.base_version >= h.version:
         raise WireError(f"weight header: v{h.version} is a delta against a base v{h.base_version} that is not older")
     if h.digest_kind not in _HASHERS:
         raise WireError(f"weight header: unsupported digest kind {h.digest_kind}")
     want = _HASHERS[h.digest_kind][1]
-    if len(h.digest) != want:
+    if len(h.digest) != want and not streamed:
         name = learner_pb2.Digest.Name(h.digest_kind)
         raise WireError(f"weight header: a {name} digest is {want} bytes, got {len(h.digest)}")
     names: set[str] = set()
@@ -702,6 +999,7 @@ class WeightAssembler:
         # receive, decoded patch body and payload buffers cycle through here: keep one spare of each
         self._pool = BufferPool(keep=3)
         self.chunk_bytes = 0  # data bytes of the last chunk fed (0 for a header or a skipped chunk)
+        self._stream: _PatchStreamDecoder | None = None  # a streamed patch being applied
 
     @property
     def in_progress(self) -> bool:
@@ -716,7 +1014,10 @@ class WeightAssembler:
         return self.held.digest if self.held is not None else b""
 
     def reset(self) -> None:
-        self._header, self._buf, self._filled, self._hash = None, _EMPTY, 0, None
+        if self._stream is not None:
+            self._stream.close()
+            self._pool.give(self._stream.out)  # a streamed patch that failed: its state buffer is free
+        self._header, self._buf, self._filled, self._hash, self._stream = None, _EMPTY, 0, None, None
 
     def forget_base(self) -> None:
         if self.held is not None:
@@ -750,13 +1051,18 @@ class WeightAssembler:
         _check_header(header)
         if header.base_version:
             held = self.held
-            patch = header.weight_encoding == WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD
+            patch = header.weight_encoding in PATCHES
             wrong = held is None or held.version != header.base_version or not held.same_layout(header.tensors)
             if wrong or (patch and held is not None and held.digest != header.base_digest):
                 have = f"v{held.version}" if held is not None else "none"
                 raise WireError(
                     f"weight v{header.version}: delta against v{header.base_version}, this client holds {have}"
                 )
+        if header.weight_encoding == WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD:
+            assert self.held is not None  # checked above
+            self._filled = 0
+            self._stream = _PatchStreamDecoder(self.held, header.tensors, self._pool.take(header.total_bytes))
+            return None
         # Preallocated (the header passed the size limit): one copy per chunk, no regrowth; numpy for
         # huge pages (see pack_weights).
         self._buf, self._filled = self._pool.take(header.encoded_bytes), 0
@@ -774,6 +1080,10 @@ class WeightAssembler:
         self.chunk_bytes = len(data)
         if chunk.offset != start:
             raise WireError(f"weight chunk at offset {chunk.offset}, expected {start}")
+        if self._stream is not None:
+            return self._on_stream_chunk(h, data, chunk.last, chunk.digest)
+        if chunk.last or chunk.digest:
+            raise WireError("a last chunk or a chunk digest outside a streamed payload")
         if not data:
             raise WireError("empty weight chunk")
         if start + len(data) > h.encoded_bytes:
@@ -784,11 +1094,29 @@ class WeightAssembler:
             self._hash.update(data)
         return self._finish() if self._filled == h.encoded_bytes else None
 
+    def _on_stream_chunk(self, h: learner_pb2.WeightHeader, data: Any, last: bool, digest: bytes) -> WeightSet | None:
+        assert self._stream is not None
+        if not data and not last:
+            raise WireError("empty weight chunk")
+        if self._filled + len(data) > MAX_WEIGHT_BYTES:
+            raise WireError(f"weight v{h.version}: streamed patch exceeds {MAX_WEIGHT_BYTES} bytes")
+        if data:
+            self._stream.feed(data)
+            self._filled += len(data)
+        if not last:
+            return None
+        if not digest:
+            raise WireError(f"weight v{h.version}: the sender gave up on this patch (non-finite weights?)")
+        h.digest, h.encoded_bytes = digest, self._filled  # what the header could not carry
+        return self._finish()
+
     def _finish(self) -> WeightSet:
         h = self._header
         assert h is not None
         patch = h.weight_encoding == WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD
-        if patch:
+        if self._stream is not None:
+            raw, self._stream = self._stream.finish(), None  # applied slice by slice as it arrived
+        elif patch:
             assert self.held is not None  # checked on the header
             body = self._decode(h, self._buf, patch_body_bytes(h.tensors))
             raw = apply_patch(self.held, h.tensors, body, self._pool)
@@ -797,7 +1125,7 @@ class WeightAssembler:
             raw = self._decode(h, self._buf)  # the buffer is handed over, not copied: reset() starts a new one
         if h.encoding != ENCODING_RAW:
             self._pool.give(self._buf)
-        if h.base_version and not patch:
+        if h.base_version and h.weight_encoding not in PATCHES:
             assert self.held is not None  # checked on the header
             np.bitwise_xor(raw, self.held.payload, out=raw)  # raw is ours (received or decoded here)
         digest = self._hash.digest() if self._hash is not None else _HASHERS[h.digest_kind][0](raw).digest()

@@ -50,17 +50,20 @@ from user.weight_codec import (
     PackedWeights,
     PatchError,
     RawChunk,
+    StreamedPatch,
     WeightAssembler,
     WeightSet,
     WirePayload,
     encode,
     encode_patch,
+    encode_patch_stream,
     encoding_name,
     iter_weight_frames,
     iter_weight_messages,
     pack_weights,
     parse_weight_message,
     patch_body_bytes,
+    patch_stream_header,
     selected,
     serialize_weight_message,
     wire_payload,
@@ -93,7 +96,9 @@ DEFAULT_HISTORY = 4
 # anyway (each is taken against what the subscriber holds); the resync makes it bit-exact again, e.g.
 # for evaluation at a known version. At publish_every = 100 updates: one exact set per 3,200 updates.
 DEFAULT_KEYFRAME_EVERY = 32
-PATCH = WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD
+# What the adaptive choice sends as a patch: streamed (encode, transfer and apply overlap). The one-shot
+# FP32_PATCH_ZSTD stays for subscribers that pin it.
+PATCH = WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD
 
 WEIGHTS_RECEIVED = prometheus_client.Counter("user_weights_received_total", "Weight versions received and applied")
 WEIGHTS_BYTES = prometheus_client.Counter("user_weights_bytes_total", "Weight payload bytes received (as encoded)")
@@ -161,6 +166,7 @@ _PRIOR_RATIO = {  # measured on SAC actors mid-training (docs/notes/weights.md);
     WE.WEIGHT_ENCODING_FP16_DELTA_ZSTD: 0.25,
     WE.WEIGHT_ENCODING_BF16_ZSTD: 0.4,
     WE.WEIGHT_ENCODING_BF16_DELTA_ZSTD: 0.15,
+    WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD: 0.13,
     PATCH: 0.13,
 }
 
@@ -365,7 +371,7 @@ class WeightStore:
         prefixes: tuple[str, ...],
         base_version: int = 0,
         base_digest: bytes = b"",
-    ) -> PackedWeights:
+    ) -> PackedWeights | StreamedPatch:
         """`full` in `encoding` (a delta against base_version if nonzero), built once and shared.
 
         Patches name their base by digest (the exact state the subscriber holds): KeyError if it is no
@@ -374,8 +380,10 @@ class WeightStore:
         codec = CODECS[encoding]
         key = (experiment, full.version, "enc", encoding, prefixes, base_digest if codec.patch else base_version)
 
-        def build() -> PackedWeights:
+        def build() -> PackedWeights | StreamedPatch:
             start = time.perf_counter()
+            if codec.stream:
+                return self._stream_patch(full, encoding, prefixes, base_digest)
             if codec.patch:
                 held = self.state(base_digest, experiment)
                 if held is None:
@@ -409,6 +417,42 @@ class WeightStore:
             return out
 
         return self._once(key, build)
+
+    def _stream_patch(
+        self, full: PackedWeights, encoding: int, prefixes: tuple[str, ...], base_digest: bytes
+    ) -> StreamedPatch:
+        """Start a streamed patch on its own thread and return it at once: every stream that wants it
+        sends its pieces as they come, none waits for another subscriber's flow control."""
+        experiment = full.header.experiment
+        held = self.state(base_digest, experiment)
+        if held is None:
+            raise KeyError(base_digest)
+        wire = self.wire(full, tpb.DTYPE_FLOAT32, prefixes)
+        if not held.same_layout(wire.tensors) or held.version >= wire.version:
+            raise PatchError("a patch needs an older base of the same layout")
+        with self._pool_lock:
+            buf = self._state_pool.take(wire.payload.nbytes)
+        sink = StreamedPatch(patch_stream_header(full, wire, held))
+        full_bytes = self.selected_bytes(full, prefixes)
+
+        def run() -> None:
+            start = time.perf_counter()
+            try:
+                # the reached state is kept before the last chunk goes out: the subscriber's ack may come
+                # back at once, naming it as the base of its next patch
+                keep = lambda st: self._keep_state(experiment, st, patched=True)  # noqa: E731
+                encode_patch_stream(full, wire, held, sink, buf, keep)
+            except PatchError as exc:  # its trailer sends the subscribers back for a full set
+                log.warning("no patch for this version", extra=kv(version=full.version, error=str(exc)))
+                return
+            except Exception:
+                log.exception("streamed patch failed; its subscribers get a full set", extra=kv(version=full.version))
+                return
+            ratio = sink.encoded_bytes / max(1, full_bytes)
+            self._stats[encoding].observe(ratio, full_bytes, time.perf_counter() - start)
+
+        threading.Thread(target=run, daemon=True, name=f"patch-v{full.version}").start()
+        return sink
 
     def is_cached(self, full: PackedWeights, encoding: int, prefixes: tuple[str, ...], base: int | bytes) -> bool:
         key = (full.header.experiment, full.version, "enc", encoding, prefixes, base)
@@ -676,7 +720,7 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
                     pass
             log.info("weight subscriber left", extra=kv(client_id=link.client_id, applied=link.applied_version))
 
-    def _encode(self, link: Link, full: PackedWeights) -> PackedWeights:
+    def _encode(self, link: Link, full: PackedWeights) -> PackedWeights | StreamedPatch:
         prefixes = link.prefixes or (full.header.policy.tensor_prefix,)  # none asked: what the policy needs
         encoding, base = choose_encoding(self.store, link, full, prefixes, self.keyframe_every)
         try:
@@ -686,7 +730,7 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
             return self.store.encoded(full, full_encoding, prefixes, 0)
 
     @staticmethod
-    def _count_sent(link: Link, packed: PackedWeights) -> None:
+    def _count_sent(link: Link, packed: PackedWeights | StreamedPatch) -> None:
         link.encoding = packed.header.weight_encoding
         link.bytes_sent += packed.encoded_bytes
         link.versions_sent += 1
@@ -708,7 +752,9 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
                 return ack
         return None
 
-    def _on_ack(self, link: Link, packed: PackedWeights, ack: learner_pb2.WeightAck, elapsed_s: float) -> bool:
+    def _on_ack(
+        self, link: Link, packed: PackedWeights | StreamedPatch, ack: learner_pb2.WeightAck, elapsed_s: float
+    ) -> bool:
         """Update the link from an ack; False if the version was rejected (resend)."""
         if ack.rejected:
             link.rejects_in_row += 1
