@@ -207,6 +207,20 @@ class ModeStack:
         if wait:
             _wait(f"{self.mode} learner stopped", lambda: self.experiment().state == "stopped", 120)
 
+    def _settle(self, per_update_s: float) -> None:
+        """Until the training thread has parked: "stopped" is reported at once, but an update in progress
+        (seconds each under load) finishes first, and a window of the same mode right after this one
+        (A S S A) must not start inside the old one's sync round."""
+        quiet_s = min(30.0, max(1.0, 2.0 * per_update_s))
+        deadline = time.monotonic() + 120
+        last = self.experiment().updates
+        while time.monotonic() < deadline:
+            time.sleep(quiet_s)
+            now = self.experiment().updates
+            if now == last:
+                return
+            last = now
+
     def warm_up(self, extra_s: float) -> None:
         """Run until the learner has updated (replay past min_transitions), then `extra_s` more; stop."""
         u0 = self.experiment().updates
@@ -214,6 +228,7 @@ class ModeStack:
         _wait(f"{self.mode} first update", lambda: self.experiment().updates > u0, 300)
         time.sleep(extra_s)
         self.stop_experiment()
+        self._settle(5.0)
 
     def window(self, rep: int, seconds: float) -> Window:
         u0, s0 = self.counts()
@@ -229,6 +244,7 @@ class ModeStack:
         elapsed = time.monotonic() - t0
         c1, p1, t1_threads, load1 = self.cpu(), self.phases(), _threads(learner_pid), _load()
         self.stop_experiment()
+        self._settle(2.0 * elapsed / max(u1 - u0, 1))
         exp = self.experiment()
         if exp.sample_errors:
             raise RuntimeError(f"{self.mode}: learner sample errors: {exp.sample_errors}: {exp.error}")
