@@ -109,6 +109,7 @@ class Window:
     seconds: float
     updates: int
     env_steps: int
+    held_steps: int  # robot ticks without an action in time (the robot held still)
     cpu_s: dict[str, float]  # per process of the stack (edges summed)
     phases_s: dict[str, float]  # the learner's training-thread wall time by phase
     load: tuple[float, float]
@@ -168,12 +169,13 @@ class ModeStack:
         status = self.learner.GetStatus(learner_pb2.LearnerStatusRequest(), timeout=10)
         return next(e for e in status.experiments if e.name == self.setup.experiment)
 
-    def counts(self) -> tuple[int, int]:
-        """(learner updates, the robots' env steps) now."""
+    def counts(self) -> tuple[int, int, int]:
+        """(learner updates, the robots' env steps, steps they held for want of an action in time) now."""
         from user.v1 import control_pb2
 
         robots = self.control.ListRobots(control_pb2.ListRobotsRequest(), timeout=10).robots
-        return int(self.experiment().updates), sum(int(r.status.env_steps) for r in robots)
+        steps, held = sum(int(r.status.env_steps) for r in robots), sum(int(r.status.held_steps) for r in robots)
+        return int(self.experiment().updates), steps, held
 
     def cpu(self) -> dict[str, float]:
         out: dict[str, float] = {}
@@ -231,7 +233,7 @@ class ModeStack:
         self._settle(5.0)
 
     def window(self, rep: int, seconds: float) -> Window:
-        u0, s0 = self.counts()
+        u0, s0, h0 = self.counts()
         learner_pid = self.stack.child("learner").proc.pid
         c0, p0, t0_threads, load0 = self.cpu(), self.phases(), _threads(learner_pid), _load()
         t0 = time.monotonic()
@@ -240,7 +242,7 @@ class ModeStack:
             time.sleep(min(2.0, seconds))
             if self.stack.dead_children():
                 raise RuntimeError(f"{self.mode}: children died: {[c.name for c in self.stack.dead_children()]}")
-        u1, s1 = self.counts()
+        u1, s1, h1 = self.counts()
         elapsed = time.monotonic() - t0
         c1, p1, t1_threads, load1 = self.cpu(), self.phases(), _threads(learner_pid), _load()
         self.stop_experiment()
@@ -254,6 +256,7 @@ class ModeStack:
             elapsed,
             u1 - u0,
             s1 - s0,
+            h1 - h0,
             {k: round(c1[k] - c0.get(k, 0.0), 2) for k in c1},
             {k: round(p1[k] - p0.get(k, 0.0), 2) for k in p1},
             (load0, load1),
@@ -369,7 +372,8 @@ def measure(
                 windows.append(w)
                 log(
                     f"learning {config} rep {rep} {mode}: {w.updates_per_s:.2f} upd/s, {w.env_steps_per_s:.1f} "
-                    f"steps/s, load {w.load}, cpu {w.cpu_s}, phases {w.phases_s}, learner threads {w.threads}"
+                    f"steps/s, held {w.held_steps}, load {w.load}, cpu {w.cpu_s}, phases {w.phases_s}, "
+                    f"learner threads {w.threads}"
                 )
     finally:
         for ms in stacks.values():
@@ -411,6 +415,21 @@ def rows_for(config: str, windows: list[Window], window_s: float) -> list[Row]:
             "% of window",
             False,
             "training thread: async waits for the sampler's prefetched batches, sync for its round's env steps",
+            PEER,
+        )
+    )
+    held = {m: sum(w.held_steps for w in windows if w.mode == m) for m in ("async", "sync")}
+    steps = {m: max(1, sum(w.env_steps for w in windows if w.mode == m)) for m in ("async", "sync")}
+    rows.append(
+        Row(
+            group,
+            "robot steps held (no action in time)",
+            held["async"] / steps["async"] * 100,
+            held["sync"] / steps["sync"] * 100,
+            "% of steps",
+            False,
+            f"{held['async']} of {steps['async']} vs {held['sync']} of {steps['sync']}; robots' cap 2 x 20 Hz = 40 "
+            "steps/s (sync: paused while its learner trains)",
             PEER,
         )
     )
