@@ -295,7 +295,7 @@ class _HgDaggerPrep:
         cfg = load_config(SETUPS["hgdagger"].config)
         robot, _ = _eval_robot(cfg)
         always = TELEOPERATORS.build("lang_reach_expert", {"mode": "always"}, spec=robot.spec)
-        n_demos, updates = (4, 30) if quick else (30, 500)
+        n_demos, updates = (4, 30) if quick else (10, 300)
         self.demos = [record_demo(robot, always, s, f"demo-{s}") for s in range(n_demos)]
         self.ckpt = pretrain(cfg, robot.spec, self.demos, updates, log)
         self.experiment = EXPERIMENT
