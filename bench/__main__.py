@@ -56,7 +56,10 @@ LEGEND = {
     "inference": "inference: ours InferenceService (micro-batching) vs the same Act proto served one forward per "
     "request in the handler; each robot is a separate process, windows alternate.",
     "learning": "learning: the whole stack as processes, learner.mode=async (ours) vs learner.mode=sync (collect, "
-    "pause robots, train, publish in turn) on the same config; env steps/s and updates/s over the same window.",
+    "pause robots, train, publish in turn) on the same config; both stacks up at once, windows alternate (A S S A, "
+    "the other stack's experiment stopped); env steps/s and updates/s per pair of windows, the learner's CPU and "
+    "its training thread's time by phase. Configs: CNN+SAC (quick), HG-DAgger flow_bc (full; "
+    "USER_LEARNING_CONFIGS=cnn,state,hgdagger picks).",
     "inference_vla": "inference_vla: ours InferenceService (dynamic batching, batched preprocess) vs the same flow_vla "
     "model served one request at a time (openpi / lerobot policy-server style), at two sizes (0.16M toy, 13.9M with "
     "two 128x128 cameras); robots are separate processes, closed loop or paced at a chunk's control rate; windows "

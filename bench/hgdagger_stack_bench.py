@@ -19,7 +19,9 @@ the scripted expert as each edge's teleoperator):
 
 Run twice on the same checkpoint, demos and window: learner.mode=async (ours) and learner.mode=sync
 (collect sync_env_steps, pause the robots, sync_updates updates, publish, resume). Env steps/s and
-updates/s over the window are the async/sync ratios (RLinf-USER: 5.7x for pi0 + HG-DAgger).
+updates/s over the window are the async/sync ratios (RLinf-USER: 5.7x for pi0 + HG-DAgger). The two windows
+run one after the other, so other jobs' load may differ between them: the throughput ratio measured in
+alternating windows of both stacks at once is `python -m bench --only learning` (its hgdagger config).
 """
 
 from __future__ import annotations
@@ -384,7 +386,8 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
             peer.env_steps_per_s,
             "/s",
             True,
-            f"env steps {ours.env_steps} vs {peer.env_steps}; load {ours.load} vs {peer.load}",
+            f"env steps {ours.env_steps} vs {peer.env_steps}; load {ours.load} vs {peer.load}; sequential windows "
+            "(interleaved: bench learning)",
             PEER,
         ),
         Row(

@@ -26,11 +26,13 @@ error: logged, counted and reported in the experiment's status, never read as an
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import inspect
 import json
 import logging
 import queue
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -85,6 +87,13 @@ PRETRAIN_UPDATES = prometheus_client.Gauge(
 )
 PRETRAIN_TARGET = prometheus_client.Gauge(
     "user_learner_pretrain_steps", "Pretraining updates asked for (experiments[].pretrain.steps)", ["experiment"]
+)
+LOOP_SECONDS = prometheus_client.Counter(
+    "user_learner_loop_seconds_total",
+    "Wall time of the training thread by phase: update (the algorithm's step), publish, wait_batch (async: "
+    "waiting for the sampler), capped (async: at the update-to-data cap), sample (sync: sampling in the loop), "
+    "wait_robots (sync: collecting a round while the learner idles)",
+    ["experiment", "phase"],
 )
 CAPPED = prometheus_client.Counter(
     "user_learner_capped_total", "Times training paused at the update-to-data cap (max_updates_per_transition)"
@@ -545,6 +554,7 @@ class ExperimentRun:
 
     def _spawn(self, target: Any, what: str) -> None:
         def run() -> None:
+            _name_os_thread(what)  # per-thread CPU and run-queue time in /proc/<pid>/task (benchmarks, top -H)
             try:
                 target()
             except BaseException as exc:
@@ -694,11 +704,14 @@ class ExperimentRun:
             try:
                 item = self._queue.get(timeout=0.5)
             except queue.Empty:
+                self._phase("wait_batch", start)
                 continue
-            BATCH_WAIT.observe(time.perf_counter() - start)
+            BATCH_WAIT.observe(self._phase("wait_batch", start))
             if self.algo.updates - self.pretrain_updates >= self.lc.max_updates_per_transition * item.transitions:
                 CAPPED.inc()  # at the update-to-data cap: drop this (stale) batch and let more data arrive
+                start = time.perf_counter()
                 self._stop.wait(0.1)
+                self._phase("capped", start)
                 continue
             self.update(item.batch)
             self._rate(rate)
@@ -734,16 +747,21 @@ class ExperimentRun:
                 continue
             self._command(control, control_pb2.COMMAND_KIND_RESUME)
             target = max(seen + self.lc.sync_env_steps, self.lc.min_transitions)
+            start = time.perf_counter()
             while not self._stop.is_set() and not self.stopped.is_set() and self._env_steps(replay) < target:
                 self._stop.wait(0.05)
             self._command(control, control_pb2.COMMAND_KIND_PAUSE)
             seen = self._env_steps(replay)
+            self._phase("wait_robots", start)
             done = 0
             while done < self.lc.sync_updates and not self._stop.is_set() and not self.stopped.is_set():
+                start = time.perf_counter()
                 item = self.sample_once(replay)
                 if item is None:
                     self._stop.wait(0.1)
+                    self._phase("sample", start)
                     continue
+                self._phase("sample", start)
                 self.update(item.batch, publish=False)
                 done += 1
                 self._rate(rate)
@@ -777,8 +795,16 @@ class ExperimentRun:
             self.state.updates_per_s = value
             UPDATES_PER_S.labels(self.exp.name).set(value)
 
+    def _phase(self, phase: str, start: float) -> float:
+        """Count the wall time since `start` to the training thread's `phase`; returns it."""
+        seconds = time.perf_counter() - start
+        LOOP_SECONDS.labels(self.exp.name, phase).inc(seconds)
+        return seconds
+
     def update(self, batch: Batch, publish: bool = True, state: str = "training") -> None:
+        start = time.perf_counter()
         scalars = self.algo.update(batch)
+        self._phase("update", start)
         st = self.state
         st.updates = int(self.algo.updates)
         st.scalars = {**{k: float(v) for k, v in scalars.items()}, **self._pretrain_scalars()}
@@ -792,6 +818,13 @@ class ExperimentRun:
             self.checkpoint()
 
     def publish(self, version: int) -> None:
+        start = time.perf_counter()
+        try:
+            self._publish(version)
+        finally:
+            self._phase("publish", start)
+
+    def _publish(self, version: int) -> None:
         spec, tensors = self.algo.policy()
         if self.exp.shared_embodiment:  # actors pad per robot kind; see user/policies/padded.py
             from user.policies.padded import padded_spec
@@ -821,6 +854,17 @@ class ExperimentRun:
         save_checkpoint(self.ckpt_dir, state)
         self._last_ckpt_updates = updates
         CHECKPOINT_SECONDS.observe(time.perf_counter() - start)
+
+
+def _name_os_thread(name: str) -> None:
+    """Give the calling thread its name at the OS level too (Linux; 15 bytes), where ps/top/proc show it."""
+    if sys.platform != "linux":
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(15, ctypes.c_char_p(name.encode()[:15]), 0, 0, 0)  # 15 = PR_SET_NAME
+    except (OSError, AttributeError):
+        pass
 
 
 class _Rate:

@@ -175,6 +175,10 @@ def test_two_experiments_train_at_once_each_on_its_own_robots(services) -> None:
         return exps if all(e.weight_version >= 3 and e.updates > 0 for e in exps.values()) else None
 
     exps = wait_for(both_published, "both experiments to train and publish version 3")
+    from prometheus_client import REGISTRY
+
+    for phase in ("update", "publish", "wait_batch"):  # async: the training thread's time by phase is counted
+        assert REGISTRY.get_sample_value("user_learner_loop_seconds_total", {"experiment": "reach", "phase": phase})
     assert [list(exps[n].robot_ids) for n in ("reach", "pick")] == [["arm-0"], ["panda-0"]]
     assert all(e.sample_errors == 0 and e.policy_kind == "test_constant" for e in exps.values())
     assert "distance" in exps["reach"].scalars
@@ -261,8 +265,18 @@ def test_sync_mode_collects_trains_and_publishes_in_turn(services) -> None:
     def commands(kind: str) -> float:
         return REGISTRY.get_sample_value("user_control_commands_total", {"kind": kind}) or 0.0
 
+    def loop_s(phase: str) -> float:
+        return (
+            REGISTRY.get_sample_value("user_learner_loop_seconds_total", {"experiment": "reach", "phase": phase}) or 0.0
+        )
+
     paused_before = commands("pause")
+    waited_batch_before = loop_s("wait_batch")
     status = wait_for(rounds, "three sync rounds")
+    # The training thread's time is counted by phase: it idled while the robots collected, sampled inline (no
+    # prefetch thread in sync mode) and updated; the async phase (waiting for the sampler's queue) never moved.
+    assert loop_s("wait_robots") > 0 and loop_s("sample") > 0 and loop_s("update") > 0
+    assert loop_s("wait_batch") == waited_batch_before
     # Weights go out only at the end of a round: sync_updates per published version after v1.
     assert 7 * (status.weight_version - 1) <= status.updates <= 7 * status.weight_version
     assert status.env_steps >= 40 * (status.weight_version - 1)
