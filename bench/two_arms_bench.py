@@ -2,7 +2,7 @@
 
 The whole stack as real processes (`userctl up`'s Stack: control, replay, learner, inference and one
 edge agent per robot at its real control rate), two experiments, each its own RLPD instance and
-replay table: `so101` (lerobot-env-so101's SO-101 pick-cube, 17-d state, 4-d action) and `pick`
+replay table: `so101` (lerobot-env-so101's SO-101 pick-cube, 21-d state, 4-d action) and `pick`
 (gym-hil's Panda pick-cube, 21-d state, 7-d action). Both from state with the recipe the in-process
 curves use (bench/curves_bench.py): sparse reward, 50/50 batches of the experiment's table and its
 interventions, a BC term on human rows, SERL's starting temperature, the state standardized by the

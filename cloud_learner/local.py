@@ -69,6 +69,11 @@ class Table:
             self.rows.setdefault(k, []).append(np.asarray(v))
         self.size += 1
 
+    def extend(self, other: Table) -> None:
+        for k, v in other.rows.items():
+            self.rows.setdefault(k, []).extend(v)
+        self.size += other.size
+
     def sample(self, n: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
         idx = rng.integers(0, self.size, size=n)
         return {k: np.stack([v[i] for i in idx]) for k, v in self.rows.items()}
@@ -232,25 +237,43 @@ def train_local(
 
 
 def record_episodes(
-    robot: Robot, expert: Expert, episodes: int, table: Table, task: Task | None = None, seed: int = 0
+    robot: Robot,
+    expert: Expert,
+    episodes: int,
+    table: Table,
+    task: Task | None = None,
+    seed: int = 0,
+    only_successes: bool = False,
 ) -> list[bool]:
-    """Run `expert` alone for `episodes` episodes into `table` (scripted demos); returns their successes."""
-    max_steps = int(robot.spec.max_episode_steps) or 1_000_000
-    successes = []
-    for episode in range(episodes):
-        obs = robot.reset(seed=seed + episode)
-        if task is not None:
-            task.reset(obs)
-        for ep_step in range(max_steps):
-            action = expert(obs, ep_step)
-            if action is None:
-                raise ValueError("the expert must act on every step of a recorded episode")
-            applied = robot.act(action)
-            next_obs = robot.observe()
-            reward, terminated, success = _judge(task, obs, applied, next_obs)
-            table.add(obs.features, applied, reward, next_obs.features, terminated, intervention=True)
-            obs = next_obs
-            if terminated:
-                break
-        successes.append(success)
+    """Run `expert` alone for `episodes` episodes into `table` (scripted demos); returns their successes.
+
+    With `only_successes` a failed episode's transitions are dropped and another is tried until `table` holds
+    `episodes` successful ones (at most 3x as many tries), as one keeps only good human demos; the returned
+    list still has every try, so the expert's own success rate stays visible."""
+    successes: list[bool] = []
+    tries = 3 * episodes if only_successes else episodes
+    while len(successes) < tries and (not only_successes or sum(successes) < episodes):
+        episode = Table()
+        successes.append(_record_one(robot, expert, episode, task, seed + len(successes)))
+        if successes[-1] or not only_successes:
+            table.extend(episode)
     return successes
+
+
+def _record_one(robot: Robot, expert: Expert, table: Table, task: Task | None, seed: int) -> bool:
+    """One expert episode from reset into `table`; whether it succeeded."""
+    obs, success = robot.reset(seed=seed), False
+    if task is not None:
+        task.reset(obs)
+    for ep_step in range(int(robot.spec.max_episode_steps) or 1_000_000):
+        action = expert(obs, ep_step)
+        if action is None:
+            raise ValueError("the expert must act on every step of a recorded episode")
+        applied = robot.act(action)
+        next_obs = robot.observe()
+        reward, terminated, success = _judge(task, obs, applied, next_obs)
+        table.add(obs.features, applied, reward, next_obs.features, terminated, intervention=True)
+        obs = next_obs
+        if terminated:
+            break
+    return success

@@ -104,3 +104,28 @@ def test_so101_expert_records_demos_and_takes_over_mid_episode() -> None:
             break
     robot.close()
     assert helped > 0 and obs.success
+
+
+def test_only_successful_demos_are_kept() -> None:
+    """`only_successes`: a failed expert episode leaves no rows; tries go on until enough succeed (at most 3x),
+    and every try is reported, so the expert's own success rate stays visible."""
+    from edge_agent.teleoperators.scripted_expert import ReachExpert
+
+    robot = make_robot("sim_reach_arm", "t", params={"max_episode_steps": 30}, seed=0)
+    reach, starts = ReachExpert(robot.spec), [0]
+
+    def every_other(obs, ep_step):  # odd episodes: the expert; even ones: stand still (fail)
+        starts[0] += ep_step == 0
+        return reach.action(obs) if starts[0] % 2 else np.zeros(3, np.float32)
+
+    kept, everything = Buffer().table("kept"), Buffer().table("all")
+    assert record_episodes(robot, every_other, 2, kept, only_successes=True) == [True, False, True]
+    assert int(np.sum(kept.rows["terminated"])) == 2 and all(np.array(kept.rows["intervention"]))
+    starts[0] = 0
+    assert record_episodes(robot, every_other, 2, everything) == [True, False]
+    # without the filter the failed try's 30 (truncated, not terminated) rows are there too
+    assert int(np.sum(everything.rows["terminated"])) == 1 and everything.size >= 31
+    none = Buffer().table("none")
+    assert record_episodes(robot, lambda o, s: np.zeros(3, np.float32), 2, none, only_successes=True) == [False] * 6
+    robot.close()
+    assert none.size == 0

@@ -126,9 +126,9 @@ def test_so101_spec_clips_and_holds() -> None:
     try:
         spec = robot.spec
         assert list(spec.action.names) == ["dx", "dy", "dz", "grasp"]
-        assert list(spec.action.low) == [-1, -1, -1, 0] and list(spec.observation[0].shape) == [17]
+        assert list(spec.action.low) == [-1, -1, -1, 0] and list(spec.observation[0].shape) == [21]
         obs = robot.reset()
-        assert obs.features["state"].shape == (17,) and obs.features["state"].dtype == np.float32
+        assert obs.features["state"].shape == (21,) and obs.features["state"].dtype == np.float32
         applied = robot.act(np.array([5.0, -5.0, np.nan, 2.0]))
         np.testing.assert_array_equal(applied, [1.0, -1.0, 0.0, 1.0])
         for _ in range(3):
@@ -211,6 +211,40 @@ class ScriptedArm(LeRobot):
 
     def disconnect(self) -> None:
         self._connected = False
+
+
+def test_so101_state_shows_the_jaw_and_the_controllers_hidden_target() -> None:
+    """`observe_command` (default): the measured jaw angle tells a jaw closed on the cube from one closed on
+    nothing (the package's state has only the gripper command, -1 in both), and the IK target's offset shows
+    what the package's accumulated target hides: pushing down onto the cube winds it centimetres below the jaws.
+    `observe_command: false` is the package's 17-d state."""
+    robot = make_robot("so101", "so101-0", {"reward_type": "sparse"}, seed=0)
+    plain = make_robot("so101", "so101-1", {"observe_command": False}, seed=0)
+    try:
+        assert plain.reset(seed=3).features["state"].shape == (17,)
+        obs = robot.reset(seed=3)
+        np.testing.assert_allclose(obs.features["state"][15:18], 0.0, atol=1e-9)  # target = grasp point at reset
+        np.testing.assert_allclose(obs.features["state"][18:], obs.info["block_pos"], atol=1e-6)
+        for _ in range(8):  # close on nothing, high above the cube
+            robot.act(np.array([0.0, 0.0, 0.0, 0.0]))
+        empty = robot.observe().features["state"]
+        expert = TELEOPERATORS.build("scripted_expert", {"takeover": "always"}, spec=robot.spec)
+        obs = robot.reset(seed=3)
+        expert.reset(obs)
+        for _ in range(80):  # the expert's approach, until it commands "close"
+            robot.act(expert.poll(obs))
+            obs = robot.observe()
+            if obs.features["state"][10] < 0:
+                break
+        for _ in range(8):
+            robot.act(np.array([0.0, 0.0, -1.0, 0.0]))  # keep pushing down with the jaws shut on the cube
+        holding = robot.observe().features["state"]
+        assert empty[10] == holding[10] == -1.0  # the command alone cannot tell the two apart
+        assert holding[14] > empty[14] + 0.3  # the jaw angle can: the cube keeps the jaws apart
+        assert holding[17] < -0.005  # the IK target wound down below the blocked jaws (0 at reset)
+    finally:
+        robot.close()
+        plain.close()
 
 
 def test_lerobot_robot_adapter_maps_features_connects_and_holds(tmp_path: Path) -> None:

@@ -12,7 +12,7 @@ from user.up import Episode
 def test_overrides_build_one_rlpd_experiment_per_arm() -> None:
     stats = {
         name: {"state_mean": {"state": [0.0] * dim}, "state_std": {"state": [1.0] * dim}}
-        for name, dim in (("so101", 17), ("pick", 21))
+        for name, dim in (("so101", 21), ("pick", 21))
     }
     cfg = load_config(bench.CONFIG, bench.overrides(stats, 60.0, quick=False))
     assert [e.name for e in cfg.experiments] == ["so101", "pick"]

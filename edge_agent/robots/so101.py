@@ -1,8 +1,15 @@
 """The SO-101 arm picking a cube in MuJoCo (lerobot-env-so101's SO101PickCube-v0) behind the Robot interface.
 
 A second, different manipulator beside gym-hil's Panda: 5 arm joints and a jaw gripper, position IK
-on the grasp point. Features: "state" = agent_pos (arm qpos and qvel, gripper, end-effector position)
-followed by the cube position (17 floats), and with `camera: true` a front "camera.front" uint8 image.
+on the grasp point. Features: "state" = agent_pos (arm qpos and qvel, gripper command, end-effector position),
+then (with `observe_command`, the default) the measured jaw angle and the IK target's offset from the grasp
+point, then the cube position (21 floats; 17 without), and with `camera: true` a front "camera.front" image.
+
+Why `observe_command`: the package's controller keeps hidden state. Each action moves an accumulated IK
+target, and the position servos (kp 17.8) sag under gravity by 1-4 cm while the top-down IK cannot reach the
+far edge, so the target runs centimetres ahead of the arm (up to 5 cm while a jaw rests on the cube); the
+same arm pose then answers the same action differently. And agent_pos reports the gripper *command*,
+not the jaw, which takes ~4 steps to close. A policy seeing neither is not Markov (a real arm reports both).
 The 4-d action is (dx, dy, dz) in [-1, 1], scaled to ee_step_m metres per step, and an absolute grasp
 target in [0, 1] (0 closed, 1 open). The env's reward and success reach the `env` task (default);
 `info` carries the grasp point and cube for the package's scripted expert.
@@ -48,6 +55,9 @@ class SO101(Robot):
         top_down_ik: bool = Field(default=True, description="keep the jaws pointing down (the scripted expert's mode)")
         jaw_pads: bool = True
         camera: bool = Field(default=False, description="add a 128x128 front image")
+        observe_command: bool = Field(
+            default=True, description="state adds the jaw angle and the IK target's offset (false: the package's 17)"
+        )
 
     def __init__(self, params: Params, robot_id: str, seed: int = 0) -> None:
         import gymnasium
@@ -110,8 +120,14 @@ class SO101(Robot):
         return self._spec
 
     def _state(self) -> np.ndarray:
-        block = self._base.data.sensor("block_pos").data
-        return np.concatenate([self._base.get_robot_state(), block]).astype(np.float32)
+        base = self._base
+        block = base.data.sensor("block_pos").data
+        if not self.params.observe_command:
+            return np.concatenate([base.get_robot_state(), block]).astype(np.float32)
+        jaw = base.data.qpos[base.model.jnt_qposadr[base.model.joint("gripper").id]]
+        # the package keeps its accumulated IK target private; it is the controller state a policy must see
+        command = np.asarray(base._target_ee_pos) - base.ik_point_pos
+        return np.concatenate([base.get_robot_state(), [jaw], command, block]).astype(np.float32)
 
     def observe(self) -> Observation:
         features = {"state": self._state()}
