@@ -269,9 +269,9 @@ def test_patches_flow_with_periodic_exact_resyncs_and_fall_back_on_a_lost_base(p
 
 def _streamed(full, wire, base, chunk: int = 4096) -> tuple[list[bytes], object]:
     """A streamed patch's frames as a subscriber receives them, and the state the sender reached."""
-    from user.weight_codec import StreamedPatch, encode_patch_stream, iter_weight_frames, patch_stream_header
+    from user.weight_codec import StreamedPatch, encode_patch_stream, iter_weight_frames, patch_header
 
-    sink = StreamedPatch(patch_stream_header(full, wire, base))
+    sink = StreamedPatch(patch_header(full, wire, base))
     reached = []
     encoder = threading.Thread(target=lambda: reached.append(encode_patch_stream(full, wire, base, sink)))
     encoder.start()  # frames are read while later slices are still being quantized
@@ -320,7 +320,7 @@ def test_streamed_patch_corrupt_truncated_aborted_or_on_a_wrong_base_is_rejected
         StreamedPatch,
         encode_patch_stream,
         iter_weight_frames,
-        patch_stream_header,
+        patch_header,
     )
 
     fp32, prefixes = tpb.DTYPE_FLOAT32, ("",)
@@ -360,7 +360,7 @@ def test_streamed_patch_corrupt_truncated_aborted_or_on_a_wrong_base_is_rejected
     v3 = trained(v2, 2)
     v3["critic.w"][-1, -1] = np.inf
     full3 = pack_weights(3, SPEC, v3)
-    sink = StreamedPatch(patch_stream_header(full3, wire_payload(full3, fp32, prefixes), base))
+    sink = StreamedPatch(patch_header(full3, wire_payload(full3, fp32, prefixes), base))
     with pytest.raises(PatchError, match="non-finite"):
         encode_patch_stream(full3, wire_payload(full3, fp32, prefixes), base, sink)
     with pytest.raises(wire.WireError, match="gave up"):

@@ -520,23 +520,8 @@ def encode_patch(
     digest = _HASHERS[full.header.digest_kind][0](state_payload).digest()
     state = WirePayload(wire.version, wire.tensors, state_payload, digest)
     payload = _compress(body)
-    src = full.header
-    header = learner_pb2.WeightHeader(
-        version=src.version,
-        policy=src.policy,
-        tensors=wire.tensors,
-        total_bytes=int(wire.payload.nbytes),
-        digest=digest,
-        encoding=ENCODING_ZSTD,
-        encoded_bytes=len(payload),
-        created_at_ns=src.created_at_ns,
-        learner_updates=src.learner_updates,
-        digest_kind=src.digest_kind,
-        base_version=base.version,
-        base_digest=base.digest,
-        experiment=src.experiment,
-        weight_encoding=WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD,
-    )
+    header = patch_header(full, wire, base, WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD)
+    header.digest, header.encoded_bytes = digest, len(payload)
     return PackedWeights(header, payload), state
 
 
@@ -664,7 +649,14 @@ class StreamedPatch:
         yield self._trailer(end)
 
 
-def patch_stream_header(full: PackedWeights, wire: WirePayload, base: WirePayload) -> learner_pb2.WeightHeader:
+def patch_header(
+    full: PackedWeights,
+    wire: WirePayload,
+    base: WirePayload,
+    weight_encoding: int = WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD,
+) -> learner_pb2.WeightHeader:
+    """The header of a patch from `base` towards `wire` (a one-shot patch adds its digest and size; a
+    streamed one sends its digest on the last chunk)."""
     src = full.header
     return learner_pb2.WeightHeader(
         version=src.version,
@@ -678,7 +670,7 @@ def patch_stream_header(full: PackedWeights, wire: WirePayload, base: WirePayloa
         base_version=base.version,
         base_digest=base.digest,
         experiment=src.experiment,
-        weight_encoding=WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD,
+        weight_encoding=weight_encoding,
     )
 
 

@@ -63,7 +63,7 @@ from user.weight_codec import (
     pack_weights,
     parse_weight_message,
     patch_body_bytes,
-    patch_stream_header,
+    patch_header,
     selected,
     serialize_weight_message,
     wire_payload,
@@ -432,7 +432,7 @@ class WeightStore:
             raise PatchError("a patch needs an older base of the same layout")
         with self._pool_lock:
             buf = self._state_pool.take(wire.payload.nbytes)
-        sink = StreamedPatch(patch_stream_header(full, wire, held))
+        sink = StreamedPatch(patch_header(full, wire, held))
         full_bytes = self.selected_bytes(full, prefixes)
 
         def run() -> None:
