@@ -356,6 +356,36 @@ def test_prioritized_draws_are_proportional_to_the_sum_tree(store: ReplayStore) 
 
 
 @pytest.mark.parametrize("encoding", ["jpeg", "png"])
+def test_the_decoded_window_serves_the_newest_frames_like_lmdb(tmp_path: Path, encoding: str) -> None:
+    """decoded_mb keeps the newest encoded frames as uint8 once sampled: later batches take them from there (no
+    decode), equal frame for frame to LMDB reads, also after newer frames pushed older ones out of the window."""
+    hot = ReplayStore(tmp_path / "hot", 64, image_encoding={"*": encoding}, decoded_mb=1)  # 85 frames of 64x64x3
+    cold = ReplayStore(tmp_path / "cold", 64, cache_mb=0, image_encoding={"*": encoding})
+    try:
+        for n, (first, second) in enumerate([(_camera_episode(120), None), (_camera_episode(60), "cam2")]):
+            if second:
+                for s in first:
+                    s.episode_id = second
+            for s in (hot, cold):
+                s.put_steps(first)
+            for seed in range(3):
+                a = hot.sample(64, np.random.default_rng(10 * n + seed))
+                b = cold.sample(64, np.random.default_rng(10 * n + seed))
+                np.testing.assert_array_equal(a["indices"], b["indices"])
+                for part in ("observation", "next_observation"):
+                    np.testing.assert_array_equal(a[part]["camera.front"], b[part]["camera.front"])
+            group = hot._groups[0]
+            assert group.decoded_capacity == (1 << 20) // (64 * 64 * 3) < group.frames_written
+            kept = group.decoded_tag["camera.front"]
+            assert kept.max() == group.frames_written - 1  # the newest frames are kept decoded
+        assert hot.cache_info()["decoded_hits"] > 0
+        assert group.decoded_bytes == np.count_nonzero(kept >= 0) * 64 * 64 * 3 <= (1 << 20)  # bounded
+    finally:
+        hot.close()
+        cold.close()
+
+
+@pytest.mark.parametrize("encoding", ["jpeg", "png"])
 def test_the_hot_tier_keeps_encoded_frames_and_decodes_them_like_lmdb(tmp_path: Path, encoding: str) -> None:
     """With image_encoding the hot tier holds the stored JPEG/PNG bytes (far less RAM than raw frames) and the
     sampler decodes them: a hot batch equals the same batch read from LMDB (cache off), frame for frame."""

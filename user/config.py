@@ -117,6 +117,9 @@ class ReplayConfig(_ServerSection):
     image_encoding: dict[str, Literal["raw", "jpeg", "png"]] = Field(
         default={}, description='camera frames in LMDB, e.g. {"*": "png", "camera.wrist": "jpeg"}; default raw'
     )
+    decoded_mb: int = Field(
+        default=0, ge=0, description="RAM for the newest JPEG/PNG camera frames kept decoded after a sample; 0 = off"
+    )
     attach: dict[str, Path] = Field(
         default={}, description="read-only tables from other buffers, e.g. {prior: runs/old/replay}"
     )

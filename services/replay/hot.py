@@ -66,7 +66,12 @@ class HotGroup:
     """Frames and transitions of one layout, each a ring of `capacity` rows (pages are touched lazily)."""
 
     def __init__(
-        self, layout: Layout, max_bytes: int, encoded: frozenset[str] = frozenset(), max_rows: int | None = None
+        self,
+        layout: Layout,
+        max_bytes: int,
+        encoded: frozenset[str] = frozenset(),
+        max_rows: int | None = None,
+        decoded_bytes: int = 0,
     ) -> None:
         features, (act_dtype, act_shape) = layout
         self.layout = layout
@@ -90,6 +95,15 @@ class HotGroup:
         self.blobs = {name: np.full(self.frame_capacity, b"", object) for name in self.encoded}
         self.blob_enc = {name: np.zeros(self.frame_capacity, np.uint8) for name in self.encoded}
         self.blob_bytes = 0
+        # the newest encoded frames also as uint8, once a sample has decoded them (a direct-mapped window: frame
+        # seq s lives in slot s % decoded_capacity, tagged s), so draws from the recent window need no decode
+        raw_encoded = sum(raw[n] for n in self.encoded)
+        dcap = int(decoded_bytes // raw_encoded) if raw_encoded else 0
+        self.decoded_capacity = min(dcap, self.frame_capacity) if dcap >= 16 else 0
+        self.decoded = {name: np.empty((self.decoded_capacity, *self.encoded[name]), np.uint8) for name in self.encoded}
+        self.decoded_tag = {name: np.full(self.decoded_capacity, -1, np.int64) for name in self.encoded}
+        self.decoded_bytes = 0  # of slots ever filled (their pages are touched)
+        self.decoded_hits = 0
         # the same memory as rows of bytes, so a RAW wire tensor is copied in without decoding
         self._bytes = {name: col.reshape(self.frame_capacity, -1).view(np.uint8) for name, col in self.frames.items()}
         self._codes = {name: wire.dtype_to_proto(dtype) for name, dtype, _ in features}
@@ -247,7 +261,34 @@ class HotGroup:
         return obs, nxt
 
     def _decode(self, name: str, at: np.ndarray) -> np.ndarray:
-        """Frames of an encoded feature at ring rows, decoded into one array (on the decoder threads)."""
+        """Frames of an encoded feature at ring rows, decoded into one array (on the decoder threads); frames of the
+        decoded window are copied from it, and decoded frames that belong to it are kept there."""
+        shape = self.encoded[name]
+        dcap = self.decoded_capacity
+        if not dcap:
+            return self._decode_blobs(name, at)
+        newest = self.frames_written - 1
+        seqs = newest - (newest - at) % self.frame_capacity  # the frame each ring row holds now
+        slots = seqs % dcap
+        hit = self.decoded_tag[name].take(slots) == seqs
+        out = np.empty((len(at), *shape), np.uint8)
+        out[hit] = self.decoded[name].take(slots[hit], axis=0)
+        miss = np.flatnonzero(~hit)
+        self.decoded_hits += len(at) - len(miss)
+        if len(miss):
+            frames = self._decode_blobs(name, at[miss])
+            out[miss] = frames
+            keep = seqs[miss] > newest - dcap  # only the newest dcap frames enter the window
+            if keep.any():
+                kept_slots = slots[miss][keep]
+                tags = self.decoded_tag[name]
+                self.decoded_bytes += np.unique(kept_slots[tags[kept_slots] < 0]).size * math.prod(shape)
+                self.decoded[name][kept_slots] = frames[keep]
+                tags[kept_slots] = seqs[miss][keep]
+        return out
+
+    def _decode_blobs(self, name: str, at: np.ndarray) -> np.ndarray:
+        """Frames of an encoded feature at ring rows, each decoded from its bytes (on the decoder threads)."""
         shape = self.encoded[name]
         out = np.empty((len(at), *shape), np.uint8)
         blobs, encs = self.blobs[name][at], self.blob_enc[name][at]
@@ -281,7 +322,7 @@ class HotGroup:
     def resident_bytes(self) -> int:
         frames = min(self.frames_written, self.frame_capacity) * self.frame_bytes
         blobs = self.blob_bytes + len(self.encoded) * min(self.frames_written, self.frame_capacity) * _BLOB_OVERHEAD
-        return frames + blobs + min(self.rows_written, self.capacity) * self.row_bytes
+        return frames + blobs + self.decoded_bytes + min(self.rows_written, self.capacity) * self.row_bytes
 
     def hot_transitions(self) -> int:
         return min(self.rows_written, self.capacity)

@@ -707,6 +707,7 @@ class ReplayService(rpc.GrpcService):
             capacity_mb=rc.capacity_mb,
             durability=rc.durability,
             image_encoding=rc.image_encoding,
+            decoded_mb=rc.decoded_mb,
         )
         try:
             for table, path in rc.attach.items():

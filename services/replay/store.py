@@ -206,8 +206,10 @@ class ReplayStore:
         durability: str = "fsync",
         readonly: bool = False,
         image_encoding: dict[str, str] | None = None,
+        decoded_mb: int = 0,
     ) -> None:
         self.path = Path(path)
+        self.decoded_bytes = int(decoded_mb) << 20  # per hot group: newest JPEG/PNG frames kept decoded
         # observation feature -> how its uint8 images are stored in LMDB ("raw", "jpeg", "png"); "*" = every camera
         self.image_encoding = {k: ENCODINGS[v] for k, v in (image_encoding or {}).items() if ENCODINGS[v]}
         self.capacity_bytes = int(capacity_mb) << 20  # 0 = no limit but the map
@@ -416,7 +418,8 @@ class ReplayStore:
             max_rows = None
             if self.capacity_bytes:
                 max_rows = int(self.capacity_bytes * 1.25 // max(1, step.ByteSize() + len(step.robot_id) + 32))
-            self._groups.append(HotGroup(layout, self.hot_bytes, self._encoded_features(layout, step), max_rows))
+            encoded = self._encoded_features(layout, step)
+            self._groups.append(HotGroup(layout, self.hot_bytes, encoded, max_rows, self.decoded_bytes))
         return gid
 
     def _encoded_features(self, layout: Layout, step: step_pb2.Step) -> frozenset[str]:
@@ -1427,6 +1430,7 @@ class ReplayStore:
                 "capacity": sum(g.capacity for g in self._groups),
                 "hits": self.hits,
                 "misses": self.misses,
+                "decoded_hits": sum(g.decoded_hits for g in self._groups),  # frames served from the decoded window
                 "evicted_episodes": self._evicted_episodes,
                 "stored_bytes": self._bytes,
             }
