@@ -103,7 +103,7 @@ class HotGroup:
         self.decoded = {name: np.empty((self.decoded_capacity, *self.encoded[name]), np.uint8) for name in self.encoded}
         self.decoded_tag = {name: np.full(self.decoded_capacity, -1, np.int64) for name in self.encoded}
         self.decoded_bytes = 0  # of slots ever filled (their pages are touched)
-        self.decoded_hits = 0
+        self.decoded_hits = self.decoded_misses = 0  # encoded frames read from the window / decoded
         # the same memory as rows of bytes, so a RAW wire tensor is copied in without decoding
         self._bytes = {name: col.reshape(self.frame_capacity, -1).view(np.uint8) for name, col in self.frames.items()}
         self._codes = {name: wire.dtype_to_proto(dtype) for name, dtype, _ in features}
@@ -275,6 +275,7 @@ class HotGroup:
         out[hit] = self.decoded[name].take(slots[hit], axis=0)
         miss = np.flatnonzero(~hit)
         self.decoded_hits += len(at) - len(miss)
+        self.decoded_misses += len(miss)
         if len(miss):
             frames = self._decode_blobs(name, at[miss])
             out[miss] = frames

@@ -1431,6 +1431,7 @@ class ReplayStore:
                 "hits": self.hits,
                 "misses": self.misses,
                 "decoded_hits": sum(g.decoded_hits for g in self._groups),  # frames served from the decoded window
+                "decoded_misses": sum(g.decoded_misses for g in self._groups),  # frames decoded (window on)
                 "evicted_episodes": self._evicted_episodes,
                 "stored_bytes": self._bytes,
             }
