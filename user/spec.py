@@ -173,8 +173,12 @@ def check_observation(
             raise StepError("non_finite", f"{name}: NaN or Inf where the spec does not allow it")
 
 
-def check_tensor_map(where: str, tmap: tpb.TensorMap, spec_features: Sequence[robot_pb2.FeatureSpec]) -> None:
-    """Wire tensors against the spec (checked before decoding: names, dtype, shape, then finiteness)."""
+def check_tensor_map(
+    where: str, tmap: tpb.TensorMap, spec_features: Sequence[robot_pb2.FeatureSpec], images_checked: bool = False
+) -> None:
+    """Wire tensors against the spec (checked before decoding: names, dtype, shape, then finiteness).
+    images_checked: every JPEG/PNG tensor of `tmap` already passed wire.check_image (replay checks them in the
+    stream's reader thread, in parallel with this)."""
     given = set(tmap.tensors)
     wanted = {f.name for f in spec_features}
     if given != wanted:
@@ -190,6 +194,8 @@ def check_tensor_map(where: str, tmap: tpb.TensorMap, spec_features: Sequence[ro
         if tuple(tensor.shape) != tuple(feat.shape):
             raise StepError("shape", f"{name}: shape {list(tensor.shape)}, spec says {list(feat.shape)}")
         if tensor.encoding in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG):  # uint8: decodable to its shape is enough
+            if images_checked:
+                continue
             try:
                 wire.check_image(tensor)
             except wire.WireError as exc:
@@ -264,8 +270,9 @@ def action_check(spec: robot_pb2.RobotSpec) -> ActionCheck:
     return check
 
 
-def validate_step(step: step_pb2.Step, spec: robot_pb2.RobotSpec) -> None:
-    """Raise StepError naming the first thing in `step` that does not match `spec`."""
+def validate_step(step: step_pb2.Step, spec: robot_pb2.RobotSpec, images_checked: bool = False) -> None:
+    """Raise StepError naming the first thing in `step` that does not match `spec` (images_checked: see
+    check_tensor_map)."""
     _check_id("robot_id", step.robot_id, MAX_ROBOT_ID_BYTES)
     if step.robot_id != spec.robot_id:
         raise StepError("robot_id", f"robot_id {step.robot_id!r} does not match the spec's {spec.robot_id!r}")
@@ -274,7 +281,7 @@ def validate_step(step: step_pb2.Step, spec: robot_pb2.RobotSpec) -> None:
         raise StepError("step_index", f"step_index {step.step_index} must be below 2**63 - 1")
     if step.policy_version > MAX_INT64:
         raise StepError("policy_version", f"policy_version {step.policy_version} must fit in int64")
-    check_tensor_map("observation", step.observation, list(spec.observation))
+    check_tensor_map("observation", step.observation, list(spec.observation), images_checked)
     action_check(spec)(step.action)
     if not math.isfinite(step.reward):
         raise StepError("non_finite", "reward: NaN or Inf")
@@ -288,4 +295,4 @@ def validate_step(step: step_pb2.Step, spec: robot_pb2.RobotSpec) -> None:
                 "final_observation",
                 "final_observation is set only on the last step of an episode (terminated or truncated)",
             )
-        check_tensor_map("final_observation", step.final_observation, list(spec.observation))
+        check_tensor_map("final_observation", step.final_observation, list(spec.observation), images_checked)

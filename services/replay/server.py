@@ -46,6 +46,7 @@ from user.auth import Identity
 from user.config import AuthConfig, StackConfig
 from user.log import kv
 from user.v1 import control_pb2, control_pb2_grpc, replay_pb2, replay_pb2_grpc, robot_pb2, step_pb2
+from user.v1 import tensor_pb2 as tpb
 
 log = logging.getLogger(__name__)
 
@@ -205,8 +206,23 @@ _END = object()  # the client closed its side
 _BROKEN = object()  # the call was cancelled or broke
 
 
+def _images_pass(step: step_pb2.Step) -> bool:
+    """Whether every JPEG/PNG tensor of a step passes wire.check_image (False: validate_step checks them again and
+    says which one fails and why)."""
+    for part in (step.observation, step.final_observation):
+        for tensor in part.tensors.values():
+            if tensor.encoding in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG):
+                try:
+                    wire.check_image(tensor)
+                except Exception:  # WireError, or anything odd: the stream thread's own check decides
+                    return False
+    return True
+
+
 class _Inbox:
-    """Reads the request stream in a thread, so a half-full batch commits on time while the client is idle."""
+    """Reads the request stream in a thread, so a half-full batch commits on time while the client is idle. The
+    reader also checks each step's JPEG/PNG frames (cv2 releases the GIL), in parallel with the stream thread's
+    validation of the steps before it: items are (request, its frames passed check_image)."""
 
     def __init__(self, requests: Iterator[replay_pb2.InsertRequest], maxsize: int) -> None:
         self._queue: queue.Queue = queue.Queue(maxsize=maxsize)  # bounded: backpressure on the client
@@ -217,7 +233,7 @@ class _Inbox:
         end = _END
         try:
             for req in requests:
-                if not self._offer(req):
+                if not self._offer((req, _images_pass(req.step))):
                     return
         except Exception as exc:  # cancelled, deadline, connection lost
             log.debug("insert stream read ended", extra=kv(error=repr(exc)))
@@ -351,6 +367,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
                     pass
                 return
             if item is not None:
+                item, images_checked = item
                 RECEIVED.inc()
                 if who is not None and not who.owns_robot(item.step.robot_id):  # before _admit records anything
                     failure = (
@@ -358,7 +375,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
                         f"seq {item.seq}: {who.name!r} may not write robot {item.step.robot_id!r}",
                     )
                 else:
-                    failure = self._admit(item)
+                    failure = self._admit(item, images_checked)
                 if failure is not None:  # everything before the failing step is committed and acknowledged first
                     yield from self._drain(pending, inflight, context)
                     context.abort(*failure)
@@ -402,11 +419,11 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         self._update_gauges()
         return replay_pb2.InsertAck(seqs=job.seqs, stored=stored, duplicates=dups)
 
-    def _admit(self, req: replay_pb2.InsertRequest) -> tuple[grpc.StatusCode, str] | None:
+    def _admit(self, req: replay_pb2.InsertRequest, images_checked: bool = False) -> tuple[grpc.StatusCode, str] | None:
         """None for a valid step; otherwise the status that ends the stream (after the steps before it)."""
         step = req.step
         try:
-            problem = self._check(step)
+            problem = self._check(step, images_checked)
             if problem is None and req.table and not TABLE_NAME.match(req.table):
                 problem = "table", f"table {req.table[:80]!r} must be 1-64 characters of A-Z a-z 0-9 _ . -"
             if problem is None and req.table and self.store.too_many_tables(req.table, MAX_STORE_TABLES):
@@ -438,7 +455,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         )
         return grpc.StatusCode.INVALID_ARGUMENT, f"seq {req.seq}: {message}"
 
-    def _check(self, step: step_pb2.Step) -> tuple[str, str] | None:
+    def _check(self, step: step_pb2.Step, images_checked: bool = False) -> tuple[str, str] | None:
         """None when valid, else (metric reason, message). Raises SpecUnavailable."""
         rid = step.robot_id
         if not rid:
@@ -447,7 +464,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         if spec is None:
             return "unknown_robot", f"unknown robot {rid} (control has no registration for it)"
         try:
-            validate_step(step, spec)
+            validate_step(step, spec, images_checked)
             self.episodes.check(step)
             return None
         except StepError as exc:
@@ -464,7 +481,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
                 return "unknown_robot", f"unknown robot {rid} (control has no registration for it)"
             if fresh != spec:
                 try:
-                    validate_step(step, fresh)
+                    validate_step(step, fresh, images_checked)
                     self.episodes.check(step)
                     return None
                 except StepError as exc:
