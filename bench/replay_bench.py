@@ -497,9 +497,10 @@ def camera_spec(robot_id: str) -> Any:
 
 
 def insert_streams(servicer: Any, streams: list[list[step_pb2.Step]]) -> None:
-    """Each list of steps through the service's Insert loop (ReplayServicer._insert: validate_step with
-    wire.check_image of every JPEG, the episode guard, batches submitted to the group-committing writer while the
-    next validate, acks after commit), one stream per thread as replay's gRPC server runs them; no transport."""
+    """Each list of steps through the service's Insert loop as its gRPC server runs it, one stream per thread: the
+    stream's reader thread checks every JPEG (wire.check_image), the stream thread runs validate_step and the
+    episode guard and submits batches to the group-committing writer while it validates the next, acks come after
+    the commit. No transport (the peer has none either)."""
     import threading
 
     from services.replay.server import _Inbox
@@ -616,8 +617,9 @@ def bench_camera_service(
             per_kind[k] / peer_s[k],
             "tr/s",
             True,
-            f"ours: ReplayServicer._insert per stream (validate_step + JPEG check of every frame, episode guard, "
-            f"batches of 256 group-committed, acked after fsync), {k} thread(s); theirs: add() into a warm RAM ring",
+            f"ours: ReplayServicer._insert per stream (JPEG check of every frame in its reader thread, validate_step, "
+            f"episode guard, batches of 256 group-committed, acked after fsync), {k} stream(s); theirs: add() into "
+            "a warm RAM ring",
         )
         for k in (1, 2)
     ]

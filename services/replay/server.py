@@ -31,6 +31,7 @@ import prometheus_client
 
 from services.replay.chunks import add_action_chunks, horizon_problem
 from services.replay.disk import ReplayError
+from services.replay.hot import single_threaded_cv2
 from services.replay.prefetch import Prefetcher
 from services.replay.store import (
     EmptyBufferError,
@@ -212,6 +213,7 @@ def _images_pass(step: step_pb2.Step) -> bool:
     for part in (step.observation, step.final_observation):
         for tensor in part.tensors.values():
             if tensor.encoding in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG):
+                single_threaded_cv2()
                 try:
                     wire.check_image(tensor)
                 except Exception:  # WireError, or anything odd: the stream thread's own check decides
