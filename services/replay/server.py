@@ -97,6 +97,9 @@ SAMPLE_SECONDS = prometheus_client.Histogram(
 HOT_TRANSITIONS = prometheus_client.Gauge("user_replay_hot_transitions", "Transitions held by the RAM tier")
 HOT_BYTES = prometheus_client.Gauge("user_replay_hot_bytes", "RAM tier bytes in use")
 HOT_HIT_RATE = prometheus_client.Gauge("user_replay_hot_hit_rate", "Sampled transitions served from RAM / all sampled")
+DECODED_HIT_RATE = prometheus_client.Gauge(
+    "user_replay_decoded_window_hit_rate", "JPEG/PNG frames of hot samples copied from the decoded window / all read"
+)
 TABLE_TRANSITIONS = prometheus_client.Gauge("user_replay_table_transitions", "Transitions per table", ["table"])
 PREFETCH_SERVED = prometheus_client.Counter("user_replay_prefetch_served_total", "Samples served from a ready batch")
 RATE_LIMITED = prometheus_client.Counter("user_replay_rate_limited_total", "Samples refused by the rate limiter")
@@ -503,6 +506,8 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         HOT_BYTES.set(cache["bytes"])
         drawn = cache["hits"] + cache["misses"]
         HOT_HIT_RATE.set(cache["hits"] / drawn if drawn else 0.0)
+        frames = cache["decoded_hits"] + cache["decoded_misses"]
+        DECODED_HIT_RATE.set(cache["decoded_hits"] / frames if frames else 0.0)
         for table in self.store.tables():
             TABLE_TRANSITIONS.labels(table).set(self.store.transitions_for(None, [table]))
 
