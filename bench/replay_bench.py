@@ -350,8 +350,11 @@ def bench_shape(
     per_step = sum(len(st.SerializeToString()) + 40 for st in stored) / len(stored)
     store.capacity_bytes = math.ceil(1.1 * n * per_step)
     frame = sum(a.nbytes for a in episodes[0].observations[0].values())
-    if encoding or edge_jpeg:  # the hot tier sizes its rings for encoded frames as 1/8 of raw (hot.ENCODED_GUESS)
-        frame = STATE_DIM * 4 + sum(len(t.data) for st in stored[:1] for t in st.observation.tensors.values())
+    if encoding or edge_jpeg:  # the hot tier sizes its rings for encoded frames as 1/8 of raw (hot.ENCODED_GUESS):
+        # size it the same way, so every transition is hot (with the JPEG's real size only ~60% were)
+        from services.replay.hot import ENCODED_GUESS
+
+        frame = STATE_DIM * 4 + len(CAMERAS) * (IMAGE_HW * IMAGE_HW * 3 // ENCODED_GUESS + 33)
     store.hot_bytes = int(hot_fraction * 1.05 * n * (frame * 9 / 8 + ACTION_DIM * 4 + 48))
     insert_ours(store, warm_steps)
     buf = make_peer(n)
