@@ -10,6 +10,8 @@ subscriber holding the new version as numpy/torch tensors, for
            the actor receives (receive_bytes_in_chunks -> its Queue) and decodes (bytes_to_state_dict);
   ours, patch: error-bounded patches (lossy) against the state each subscriber holds, streamed
            (FP32_PATCH_STREAM_ZSTD: sent while later slices are quantized, applied as they arrive);
+  ours, adaptive: the server picks per subscriber and version (lossy allowed); the rows say what it
+           picked (on loopback: fp32 for small models, where a patch's CPU costs more than the bytes it saves);
   raw:     a bare gRPC server stream of the same fp32 bytes in 1 MiB chunks into a preallocated buffer
            (no manifest, no checksum, no auth): the floor for a full set.
 Plus the learner's updates/s with 0, 1 and 8 subscribers, and (bench.weights_link, in a private
@@ -36,7 +38,7 @@ from user import rpc
 from user.config import AuthConfig, LearnerConfig, ServerConfig
 from user.policy import actor_from_config, policy_spec_for
 from user.v1 import learner_pb2
-from user.weight_codec import WE
+from user.weight_codec import WE, encoding_name
 from user.weights import WeightServicer, WeightSet, WeightStore, WeightSubscriber, add_learner_servicer
 
 RECEIVE_TIMEOUT_S = 300.0
@@ -131,13 +133,14 @@ class OursFanout:
         self.version = 0
         self.wire_bytes = 0
         self.last_encoding = 0
+        self.encodings: list[int] = []  # what each subscriber got, last send
 
     def send(self, module: torch.nn.Module) -> tuple[float, dict[str, Any]]:
         self.version += 1
         start = time.perf_counter()
         self.store.publish(self.version, self.spec, state_views(module))
         last, got = 0.0, None
-        self.wire_bytes = 0
+        self.wire_bytes, self.encodings = 0, []
         for _ in self.subs:
             arrived, got = self.received.get(timeout=RECEIVE_TIMEOUT_S)
             if got.version != self.version:
@@ -145,6 +148,7 @@ class OursFanout:
             last = max(last, arrived)
             self.wire_bytes += got.encoded_bytes
             self.last_encoding = got.encoding
+            self.encodings.append(got.encoding)
         return last - start, got.tensors
 
     def close(self) -> None:
@@ -356,6 +360,8 @@ def _check_same(module: torch.nn.Module, received: dict[str, Any]) -> None:
 
 
 FROZEN_HALF = ("net.4.", "net.6.")  # last hidden layer + head learn; the first layers stay frozen
+# Above this the adaptive side's store and buffers would push the 100M group (~13 GB) past free memory.
+ADAPTIVE_UP_TO_BYTES = 128 << 20
 
 
 def bench_fanout(
@@ -374,6 +380,9 @@ def bench_fanout(
         "raw": lambda: RawFanout(n),
         "lerobot": lambda: PeerFanout(n),
     }
+    if raw_bytes <= ADAPTIVE_UP_TO_BYTES:  # what a subscriber that lets the server choose gets on this link
+        makers["adaptive"] = lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_ADAPTIVE, allow_lossy=True)
+    picked: dict[str, int] = {}
     times: dict[str, list[float]] = {k: [] for k in makers}
     wire: dict[str, int] = {}
     links: dict[str, Any] = {}
@@ -389,8 +398,11 @@ def bench_fanout(
             for side, link in links.items():  # take turns, so background load hits all alike
                 seconds, received = link.send(module)
                 times[side].append(seconds)
-                if side in ("delta", "patch"):
+                if side in ("delta", "patch", "adaptive"):
                     wire[side] = link.wire_bytes // n
+                if side == "adaptive":
+                    for enc in link.encodings:
+                        picked[encoding_name(enc)] = picked.get(encoding_name(enc), 0) + 1
                 if i == versions - 1 and side in ("fp32", "delta"):
                     _check_same(module, received)
     finally:
@@ -402,7 +414,7 @@ def bench_fanout(
     if frozen:
         group += ", first layers frozen (fine-tuning)"
     what = f"publish -> all {n} hold it (median of {versions})"
-    return [
+    rows = [
         Row(group, f"{what}, fp32 full", ms["fp32"], ms["lerobot"], "ms", False, "ours pinned fp32 vs lerobot"),
         Row(group, f"{what}, fp32 full vs raw", ms["fp32"], ms["raw"], "ms", False, "raw = floor", peer_name=RAW),
         Row(
@@ -427,6 +439,13 @@ def bench_fanout(
         ),
         Row(group, f"{what}, error-bounded patch vs lerobot", ms["patch"], ms["lerobot"], "ms", False, "lossy"),
     ]
+    if "adaptive" in ms:
+        chose = ", ".join(f"{k} x{v}" for k, v in sorted(picked.items()))
+        note = (
+            f"server's choice per subscriber and version (lossy allowed): {chose}; {wire['adaptive'] / 2**20:.1f} MiB"
+        )
+        rows.append(Row(group, f"{what}, adaptive encoding vs raw", ms["adaptive"], ms["raw"], "ms", False, note, RAW))
+    return rows
 
 
 # --------------------------------------------------------------------------- learner updates/s
