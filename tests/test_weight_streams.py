@@ -172,6 +172,21 @@ def test_adaptive_choice_follows_the_link() -> None:
     assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_FP32_ZSTD, 0)
 
 
+def test_adaptive_choice_counts_the_clients_measured_decode_time() -> None:
+    store = WeightStore()
+    t = tensors(0, n=1 << 16)
+    store.publish(1, SPEC, t)
+    store.publish(2, SPEC, trained(t, 2))
+    delta, fp32 = WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD, WE.WEIGHT_ENCODING_FP32
+    link = Link("c", "", ("",), False, 0, 1.0, True, base_version=1, goodput_bps=200e6)
+    store.encoded(store.latest(), delta, ("",), 1)  # encoded once already (another subscriber): no encode cost
+    assert choose_encoding(store, link, store.latest()) == (delta, 1)  # fewer bytes, decode not measured yet
+    link.decode_bps[delta] = 50e6  # the client's acks: decompress + XOR is slower than the link
+    assert choose_encoding(store, link, store.latest()) == (fp32, 0)
+    link.goodput_bps = 1e6  # a slow link: the bytes saved matter more than the client's decode
+    assert choose_encoding(store, link, store.latest()) == (delta, 1)
+
+
 def _patch_bound(new: dict[str, np.ndarray], old: dict[str, np.ndarray]) -> np.ndarray:
     """Per float32 element (in payload order) the error a patch from `old` to `new` may make."""
     from user.weight_codec import PATCH_BLOCK, PATCH_REL_TOL
