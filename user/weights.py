@@ -533,7 +533,7 @@ def choose_encoding(
     Pinned encodings are honoured (a delta falls back to its full set where the base is unknown; a
     patch also does every keyframe_every patches: the exact resync). Adaptive: until the link is
     measured, lossless zstd (delta where possible); then the lossless encoding with the least expected
-    encode + transfer time, and a patch (error-bounded, ~13 % of the fp32 bytes mid-training; action
+    encode + transfer + client decode time, and a patch (error-bounded, ~13 % of the fp32 bytes mid-training; action
     error measured in the bench) only where the subscriber allows lossy weights, the lossless one would
     miss the freshness target and the patch's base (the exact state the subscriber holds) is kept.
     """
