@@ -787,7 +787,6 @@ def encode_patch_stream(
                 body, filled, in_body = compressor.buffer(), 0, 0
         if filled:
             compressor.put(body, filled)
-            body = compressor.buffer()
         rest = np.empty(sum(n for _, n in other), dtype=np.uint8)
         pos = 0
         for o, nb in other:  # non-float tensors travel raw, after the slices
