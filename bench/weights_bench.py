@@ -10,6 +10,8 @@ subscriber holding the new version as numpy/torch tensors, for
            the actor receives (receive_bytes_in_chunks -> its Queue) and decodes (bytes_to_state_dict);
   ours, patch: error-bounded patches (lossy) against the state each subscriber holds, streamed
            (FP32_PATCH_STREAM_ZSTD: sent while later slices are quantized, applied as they arrive);
+  ours, adaptive: the server picks per subscriber and version (lossy allowed); the rows say what it
+           picked (on loopback: fp32 for small models, where a patch's CPU costs more than the bytes it saves);
   raw:     a bare gRPC server stream of the same fp32 bytes in 1 MiB chunks into a preallocated buffer
            (no manifest, no checksum, no auth): the floor for a full set.
 Plus the learner's updates/s with 0, 1 and 8 subscribers, and (bench.weights_link, in a private
@@ -34,9 +36,9 @@ import torch
 from bench import Row, median
 from user import rpc
 from user.config import AuthConfig, LearnerConfig, ServerConfig
-from user.policy import actor_from_config, module_tensors, policy_spec_for
+from user.policy import actor_from_config, policy_spec_for
 from user.v1 import learner_pb2
-from user.weight_codec import WE
+from user.weight_codec import WE, encoding_name
 from user.weights import WeightServicer, WeightSet, WeightStore, WeightSubscriber, add_learner_servicer
 
 RECEIVE_TIMEOUT_S = 300.0
@@ -65,6 +67,12 @@ def sized_config(params: float) -> dict[str, Any]:
     """An MLP actor with about `params` parameters (3 hidden layers of equal width)."""
     width = int((params / 2) ** 0.5)
     return actor_config(64, 7, [width, width, width])
+
+
+def state_views(module: torch.nn.Module) -> dict[str, np.ndarray]:
+    """The module's tensors as numpy views (no copy): what both the raw stream and ours publish from. Safe
+    here because nothing trains during a send; pack_weights and tobytes copy them before returning."""
+    return {k: v.detach().numpy() for k, v in module.state_dict().items()}
 
 
 class Trainer:
@@ -125,13 +133,14 @@ class OursFanout:
         self.version = 0
         self.wire_bytes = 0
         self.last_encoding = 0
+        self.encodings: list[int] = []  # what each subscriber got, last send
 
     def send(self, module: torch.nn.Module) -> tuple[float, dict[str, Any]]:
         self.version += 1
         start = time.perf_counter()
-        self.store.publish(self.version, self.spec, module_tensors(module))
+        self.store.publish(self.version, self.spec, state_views(module))
         last, got = 0.0, None
-        self.wire_bytes = 0
+        self.wire_bytes, self.encodings = 0, []
         for _ in self.subs:
             arrived, got = self.received.get(timeout=RECEIVE_TIMEOUT_S)
             if got.version != self.version:
@@ -139,6 +148,7 @@ class OursFanout:
             last = max(last, arrived)
             self.wire_bytes += got.encoded_bytes
             self.last_encoding = got.encoding
+            self.encodings.append(got.encoding)
         return last - start, got.tensors
 
     def close(self) -> None:
@@ -319,8 +329,7 @@ class RawFanout:
 
     def send(self, module: torch.nn.Module) -> tuple[float, None]:
         start = time.perf_counter()
-        tensors = module_tensors(module)
-        payload = b"".join(np.ascontiguousarray(t).tobytes() for t in tensors.values())
+        payload = b"".join(np.ascontiguousarray(t).tobytes() for t in state_views(module).values())
         with self.cond:
             self.payload, self.version = payload, self.version + 1
             self.cond.notify_all()
@@ -351,6 +360,8 @@ def _check_same(module: torch.nn.Module, received: dict[str, Any]) -> None:
 
 
 FROZEN_HALF = ("net.4.", "net.6.")  # last hidden layer + head learn; the first layers stay frozen
+# Above this the adaptive side's store and buffers would push the 100M group (~13 GB) past free memory.
+ADAPTIVE_UP_TO_BYTES = 128 << 20
 
 
 def bench_fanout(
@@ -369,6 +380,9 @@ def bench_fanout(
         "raw": lambda: RawFanout(n),
         "lerobot": lambda: PeerFanout(n),
     }
+    if raw_bytes <= ADAPTIVE_UP_TO_BYTES:  # what a subscriber that lets the server choose gets on this link
+        makers["adaptive"] = lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_ADAPTIVE, allow_lossy=True)
+    picked: dict[str, int] = {}
     times: dict[str, list[float]] = {k: [] for k in makers}
     wire: dict[str, int] = {}
     links: dict[str, Any] = {}
@@ -384,8 +398,11 @@ def bench_fanout(
             for side, link in links.items():  # take turns, so background load hits all alike
                 seconds, received = link.send(module)
                 times[side].append(seconds)
-                if side in ("delta", "patch"):
+                if side in ("delta", "patch", "adaptive"):
                     wire[side] = link.wire_bytes // n
+                if side == "adaptive":
+                    for enc in link.encodings:
+                        picked[encoding_name(enc)] = picked.get(encoding_name(enc), 0) + 1
                 if i == versions - 1 and side in ("fp32", "delta"):
                     _check_same(module, received)
     finally:
@@ -397,7 +414,7 @@ def bench_fanout(
     if frozen:
         group += ", first layers frozen (fine-tuning)"
     what = f"publish -> all {n} hold it (median of {versions})"
-    return [
+    rows = [
         Row(group, f"{what}, fp32 full", ms["fp32"], ms["lerobot"], "ms", False, "ours pinned fp32 vs lerobot"),
         Row(group, f"{what}, fp32 full vs raw", ms["fp32"], ms["raw"], "ms", False, "raw = floor", peer_name=RAW),
         Row(
@@ -422,6 +439,13 @@ def bench_fanout(
         ),
         Row(group, f"{what}, error-bounded patch vs lerobot", ms["patch"], ms["lerobot"], "ms", False, "lossy"),
     ]
+    if "adaptive" in ms:
+        chose = ", ".join(f"{k} x{v}" for k, v in sorted(picked.items()))
+        note = (
+            f"server's choice per subscriber and version (lossy allowed): {chose}; {wire['adaptive'] / 2**20:.1f} MiB"
+        )
+        rows.append(Row(group, f"{what}, adaptive encoding vs raw", ms["adaptive"], ms["raw"], "ms", False, note, RAW))
+    return rows
 
 
 # --------------------------------------------------------------------------- learner updates/s
@@ -465,11 +489,9 @@ class RemoteSubscribers:
                 self.proc.kill()
 
 
-def bench_learner_rate(subscriber_counts: list[int], seconds: float, log: Callable[..., None]) -> list[Row]:
-    """Real SAC updates on the sim-arm shapes, publishing every publish_every updates into a served store,
-    with n acked subscribers in another process (where edges and inference servers are: not in the
-    learner's process, so they cost it CPU time, not its GIL)."""
-    from cloud_learner.algorithm import ALGORITHMS, Batch, Feature, Layout
+def _sac_batch() -> tuple[Any, Any, Any]:
+    """A SAC on the sim-arm shapes with the learner's default widths, its layout and one training batch."""
+    from cloud_learner.algorithm import Batch, Feature, Layout
     from tests.helpers import random_sac_batch
 
     obs_dim, act_dim = 15, 3
@@ -485,43 +507,79 @@ def bench_learner_rate(subscriber_counts: list[int], seconds: float, log: Callab
         terminated=raw["terminated"],
         intervention=torch.zeros(lc.batch_size, dtype=torch.bool),
     )
+    return lc, layout, batch
+
+
+def bench_learner_rate(
+    subscriber_counts: list[int], seconds: float, log: Callable[..., None], windows: int = 25
+) -> list[Row]:
+    """Real SAC updates on the sim-arm shapes, publishing every publish_every updates into a served store,
+    with n acked subscribers in another process (where edges and inference servers are: not in the
+    learner's process, so they cost it CPU time, not its GIL).
+
+    One SAC trains throughout; every subscriber count has its own server and subscriber process, set up
+    once, and the counts take turns in short windows (order rotated each turn), so load that comes and
+    goes on a shared machine hits every count alike. Rates are medians over the windows; the spread
+    (min-max of the windows, and of the per-turn ratios) says whether a difference is real."""
+    from cloud_learner.algorithm import ALGORITHMS
+
+    lc, layout, batch = _sac_batch()
+    torch.manual_seed(0)
+    sac = ALGORITHMS.build("sac", {"hidden": list(lc.hidden)}, layout=layout, device=torch.device("cpu"))
+    spec, _ = sac.policy()
+    setups: dict[int, tuple[OursFanout, RemoteSubscribers]] = {}
+    versions = dict.fromkeys(subscriber_counts, 1)
     samples: dict[int, list[float]] = {n: [] for n in subscriber_counts}
-    rounds = 3 if seconds >= 5 else 1  # --quick: one round (each spawns a subscriber process)
-    for _ in range(rounds):  # interleaved, so changing background load hits every count alike
+    try:
         for n in subscriber_counts:
-            torch.manual_seed(0)
-            sac = ALGORITHMS.build("sac", {"hidden": list(lc.hidden)}, layout=layout, device=torch.device("cpu"))
-            spec, _ = sac.policy()
             fan = OursFanout(spec, 0, WE.WEIGHT_ENCODING_ADAPTIVE, remote=n)
-            subs = RemoteSubscribers(fan.server.address(), fan.auth.token, n)
-            try:
-                fan.store.publish(1, spec, sac.policy()[1])
-                if n and not subs.wait_ready(fan, 120):
-                    raise RuntimeError(f"{n} subscriber processes did not connect")
-                for _ in range(20):  # warm-up: the first updates of a fresh SAC take ~100x longer
-                    sac.update(batch)
-                version, updates = 1, 0
+            setups[n] = (fan, RemoteSubscribers(fan.server.address(), fan.auth.token, n))
+            fan.store.publish(1, spec, sac.policy()[1])
+        for n, (fan, subs) in setups.items():
+            if n and not subs.wait_ready(fan, 120):
+                raise RuntimeError(f"{n} subscriber processes did not connect")
+        for _ in range(20):  # warm-up: the first updates of a fresh SAC take ~100x longer
+            sac.update(batch)
+        window, total = max(0.2, seconds / windows), 0
+        for turn in range(windows):
+            order = (
+                subscriber_counts[turn % len(subscriber_counts) :] + subscriber_counts[: turn % len(subscriber_counts)]
+            )
+            for n in order:
+                store, updates = setups[n][0].store, 0
                 start = time.perf_counter()
-                while time.perf_counter() - start < seconds / rounds or updates < 5:  # a rate > 0 under load
+                while time.perf_counter() - start < window or updates < 5:  # a rate > 0 under load
                     sac.update(batch)
-                    updates += 1
-                    if updates % lc.publish_every == 0:
-                        version += 1
+                    updates, total = updates + 1, total + 1
+                    if total % lc.publish_every == 0:  # counted across windows: each count gets its share
+                        versions[n] += 1
                         spec, tensors = sac.policy()
-                        fan.store.publish(version, spec, tensors, updates)
+                        store.publish(versions[n], spec, tensors, total)
                 samples[n].append(updates / (time.perf_counter() - start))
-            finally:
-                subs.close()
-                fan.close()
+    finally:
+        for fan, subs in setups.values():
+            subs.close()
+            fan.close()
     rates = {n: median(v) for n, v in samples.items()}
     for n in subscriber_counts:
-        log(f"  learner with {n} subscribers: {rates[n]:.0f} updates/s (rounds: {[round(x) for x in samples[n]]})")
+        lo, hi = min(samples[n]), max(samples[n])
+        log(
+            f"  learner with {n} subscribers: median {rates[n]:.0f} updates/s over {windows} windows of {window:.1f} s"
+            f" (min {lo:.0f}, max {hi:.0f}; windows {[round(x) for x in samples[n]]})"
+        )
     group = f"learner updates/s while publishing (SAC sim arm, publish every {lc.publish_every})"
-    return [
-        Row(group, f"updates/s with {n} subscribers", rates[n], rates[0], "1/s", True, "vs 0 subscribers", "no subs")
-        for n in subscriber_counts
-        if n
-    ]
+    rows = []
+    for n in subscriber_counts:
+        if not n:
+            continue
+        turns = sorted(a / b for a, b in zip(samples[n], samples[0], strict=True))  # same turn: same load
+        note = (
+            f"medians of {windows} interleaved windows; per-turn ratio {median(turns):.2f}x"
+            f" (min {turns[0]:.2f}, max {turns[-1]:.2f}); windows {round(min(samples[n]))}-{round(max(samples[n]))}"
+            f" vs {round(min(samples[0]))}-{round(max(samples[0]))}"
+        )
+        rows.append(Row(group, f"updates/s with {n} subscribers", rates[n], rates[0], "1/s", True, note, "no subs"))
+    return rows
 
 
 def fact_rows() -> list[Row]:
@@ -574,6 +632,6 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
         for n in fanouts:
             log(f"weights: {label} params, {n} subscriber(s), {versions} versions" + (", frozen" if frozen else ""))
             rows += _fanout_in_child(label, params, n, versions, frozen, log)
-    rows += bench_learner_rate([0, 1, 2] if quick else [0, 1, 8], 2.0 if quick else 10.0, log)
+    rows += bench_learner_rate([0, 1, 2] if quick else [0, 1, 8], 2.0 if quick else 15.0, log, 5 if quick else 25)
     rows += weights_link.run(quick, log)
     return rows + fact_rows()

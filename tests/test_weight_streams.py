@@ -172,6 +172,21 @@ def test_adaptive_choice_follows_the_link() -> None:
     assert choose_encoding(store, link, store.latest()) == (WE.WEIGHT_ENCODING_FP32_ZSTD, 0)
 
 
+def test_adaptive_choice_counts_the_clients_measured_decode_time() -> None:
+    store = WeightStore()
+    t = tensors(0, n=1 << 16)
+    store.publish(1, SPEC, t)
+    store.publish(2, SPEC, trained(t, 2))
+    delta, fp32 = WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD, WE.WEIGHT_ENCODING_FP32
+    link = Link("c", "", ("",), False, 0, 1.0, True, base_version=1, goodput_bps=200e6)
+    store.encoded(store.latest(), delta, ("",), 1)  # encoded once already (another subscriber): no encode cost
+    assert choose_encoding(store, link, store.latest()) == (delta, 1)  # fewer bytes, decode not measured yet
+    link.decode_bps[delta] = 50e6  # the client's acks: decompress + XOR is slower than the link
+    assert choose_encoding(store, link, store.latest()) == (fp32, 0)
+    link.goodput_bps = 1e6  # a slow link: the bytes saved matter more than the client's decode
+    assert choose_encoding(store, link, store.latest()) == (delta, 1)
+
+
 def _patch_bound(new: dict[str, np.ndarray], old: dict[str, np.ndarray]) -> np.ndarray:
     """Per float32 element (in payload order) the error a patch from `old` to `new` may make."""
     from user.weight_codec import PATCH_BLOCK, PATCH_REL_TOL
@@ -289,8 +304,16 @@ def _feed(frames: list[bytes], receiver: WeightAssembler) -> WeightSet | None:
     return out
 
 
-def test_streamed_patch_leads_to_the_same_bits_as_the_one_shot_patch_within_its_bound() -> None:
+@pytest.mark.parametrize("pipelined", [False, True], ids=["one-thread", "pipelined"])
+def test_streamed_patch_leads_to_the_same_bits_as_the_one_shot_patch_within_its_bound(
+    pipelined: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from user import weight_codec
     from user.weight_codec import PATCH_BLOCK, PATCH_SLICE_BLOCKS, encode_patch, patch_body_bytes
+
+    # one slice per flushed piece: with 4 slices the quantizer and zstd take turns on their own threads
+    monkeypatch.setattr(weight_codec, "PATCH_FLUSH_BYTES", 1)
+    monkeypatch.setattr(weight_codec, "PATCH_PIPELINE_FROM", 3 if pipelined else 1 << 30)
 
     fp32, prefixes = tpb.DTYPE_FLOAT32, ("",)
     n = 3 * PATCH_SLICE_BLOCKS * PATCH_BLOCK + 1000  # several slices, the last one partial
@@ -365,6 +388,31 @@ def test_streamed_patch_corrupt_truncated_aborted_or_on_a_wrong_base_is_rejected
         encode_patch_stream(full3, wire_payload(full3, fp32, prefixes), base, sink)
     with pytest.raises(wire.WireError, match="gave up"):
         _feed(list(iter_weight_frames(sink, 4096)), holding_v1())
+
+
+def test_pipelined_streamed_patch_that_meets_non_finite_weights_late_gives_up_and_stops_its_compressor(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from user import weight_codec
+    from user.weight_codec import PATCH_BLOCK, PATCH_SLICE_BLOCKS, PatchError, StreamedPatch, encode_patch_stream
+
+    monkeypatch.setattr(weight_codec, "PATCH_FLUSH_BYTES", 1)  # a piece per slice: pipelined from 3 slices
+    fp32, prefixes = tpb.DTYPE_FLOAT32, ("",)
+    v1 = tensors(0, n=2 * PATCH_SLICE_BLOCKS * PATCH_BLOCK)  # 4 slices and a bit of float32
+    v2 = trained(v1, 1)
+    v2["critic.w"][-1, -1] = np.nan  # in the last slice: earlier pieces are out already
+    full1, full2 = pack_weights(1, SPEC, v1), pack_weights(2, SPEC, v2)
+    base, wire2 = wire_payload(full1, fp32, prefixes), wire_payload(full2, fp32, prefixes)
+    sink = StreamedPatch(weight_codec.patch_header(full2, wire2, base))
+    before = threading.active_count()
+    with pytest.raises(PatchError, match="non-finite"):
+        encode_patch_stream(full2, wire2, base, sink)
+    assert sink.done and sink.error is not None
+    helpers.wait_for(lambda: threading.active_count() <= before, "the compressor thread ends")
+    receiver = WeightAssembler()
+    decode(full1, receiver)
+    with pytest.raises(wire.WireError, match="gave up"):
+        _feed(list(weight_codec.iter_weight_frames(sink, 4096)), receiver)
 
 
 @pytest.mark.parametrize("framed", [True, False], ids=["frames", "protobuf"])

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import queue
 import sys
 import threading
 import time
@@ -674,6 +675,73 @@ def patch_header(
     )
 
 
+class _Compressor:
+    """The zstd half of a streamed patch encode: compresses bodies in order and hands `sink` one flushed
+    piece per body. Pipelined, on its own thread (zstd releases the GIL), it compresses body k while the
+    caller quantizes body k+1 into another of `buffers`; otherwise it compresses in the caller's thread
+    (a small patch: one or two bodies, where a thread hand-off costs more than it overlaps)."""
+
+    def __init__(self, sink: StreamedPatch, buffers: list[np.ndarray], pipelined: bool) -> None:
+        import zstandard
+
+        self.sink, self.pipelined = sink, pipelined
+        self.comp = zstandard.ZstdCompressor(level=ZSTD_LEVEL).compressobj()
+        self.flush_block, self.flush_end = zstandard.COMPRESSOBJ_FLUSH_BLOCK, zstandard.COMPRESSOBJ_FLUSH_FINISH
+        self.free: queue.Queue[np.ndarray] = queue.Queue()
+        for buf in buffers:
+            self.free.put(buf)
+        self.todo: queue.Queue[tuple[np.ndarray, int, bool] | None] = queue.Queue()
+        self.error: BaseException | None = None
+        self.thread: threading.Thread | None = None
+        if pipelined:
+            self.thread = threading.Thread(target=self._run, daemon=True, name="patch-zstd")
+            self.thread.start()
+
+    def buffer(self) -> np.ndarray:
+        """A free body buffer (waits while the compressor holds all of them)."""
+        if self.error is not None:
+            raise self.error
+        return self.free.get()
+
+    def put(self, buf: np.ndarray, nbytes: int, last: bool = False) -> None:
+        """Compress buf[:nbytes] next (the last one ends the frame); buf returns to the free ones after."""
+        if self.pipelined:
+            self.todo.put((buf, nbytes, last))
+        else:
+            self._compress(buf, nbytes, last)
+
+    def _compress(self, buf: np.ndarray, nbytes: int, last: bool) -> None:
+        piece = self.comp.compress(buf[:nbytes]) + self.comp.flush(self.flush_end if last else self.flush_block)
+        self.free.put(buf)  # zstd copied what it needs: the quantizer may refill it
+        self.sink.add(piece)
+
+    def _run(self) -> None:
+        while (job := self.todo.get()) is not None:
+            if self.error is None:
+                try:
+                    self._compress(*job)
+                    continue
+                except BaseException as exc:  # the caller raises it at its next buffer() or close()
+                    self.error = exc
+            self.free.put(job[0])
+
+    def stop(self) -> None:
+        """Wait until everything put is compressed (and handed to the sink) and the thread has ended."""
+        if self.thread is not None and self.thread.is_alive():
+            self.todo.put(None)
+            self.thread.join()
+
+    def close(self) -> None:
+        """stop(), then raise what failed."""
+        self.stop()
+        if self.error is not None:
+            raise self.error
+
+
+PATCH_PIPELINE_BUFFERS = 3  # bodies in flight between the quantizer and the compressor
+PATCH_PIPELINE_FROM = 3  # pieces: smaller patches quantize and compress in one thread (no hand-offs)
+
+
 def encode_patch_stream(
     full: PackedWeights,
     wire: WirePayload,
@@ -685,9 +753,11 @@ def encode_patch_stream(
     """Quantize, compress and hand `sink` the patch slice by slice; returns the state it leads to
     (in `buf` when given, uint8 of the payload's size) and finishes `sink` with its digest. On
     PatchError (non-finite values) `sink` fails: its trailer tells the receiver to ask for a full set.
-    reached(state) runs before `sink` finishes: a subscriber acking it may ask for a patch on it next."""
-    import zstandard
+    reached(state) runs before `sink` finishes: a subscriber acking it may ask for a patch on it next.
 
+    The body goes out in pieces of about PATCH_FLUSH_BYTES (one zstd flush each); past two pieces the
+    quantizer (this thread) and zstd (a _Compressor thread) work on consecutive pieces at once."""
+    compressor: _Compressor | None = None
     try:
         if not base.same_layout(wire.tensors) or base.version >= wire.version:
             raise PatchError("a patch needs an older base of the same layout")
@@ -696,34 +766,42 @@ def encode_patch_stream(
         size = wire.payload.nbytes
         out = buf if buf is not None and buf.nbytes == size else np.empty(size, dtype=np.uint8)
         values = _state_values(out, f32, new.size)
-        slice_elems = PATCH_SLICE_BLOCKS * PATCH_BLOCK
-        body = np.empty(PATCH_SLICE_BLOCKS * (4 + PATCH_BLOCK), dtype=np.uint8)
+        slice_elems, slice_body = PATCH_SLICE_BLOCKS * PATCH_BLOCK, PATCH_SLICE_BLOCKS * (4 + PATCH_BLOCK)
+        per_piece = max(1, -(-PATCH_FLUSH_BYTES // slice_body))  # slices per flushed piece
+        slices = -(-new.size // slice_elems)
+        pipelined = slices >= PATCH_PIPELINE_FROM * per_piece
+        bodies = [
+            np.empty(per_piece * slice_body, dtype=np.uint8) for _ in range(PATCH_PIPELINE_BUFFERS if pipelined else 1)
+        ]
+        compressor = _Compressor(sink, bodies, pipelined)
         d, scratch = np.zeros(slice_elems, np.float32), np.empty(slice_elems, np.float32)
-        comp = zstandard.ZstdCompressor(level=ZSTD_LEVEL).compressobj()
-        parts, pending = [], 0
+        body, filled, in_body = compressor.buffer(), 0, 0
         for lo, hi, blocks in _slice_elements(new.size):
-            steps = body[: blocks * 4].view("<f4")
-            q = body[blocks * 4 : blocks * (4 + PATCH_BLOCK)].view(np.int8)
+            steps = body[filled : filled + blocks * 4].view("<f4")
+            q = body[filled + blocks * 4 : filled + blocks * (4 + PATCH_BLOCK)].view(np.int8)
             _quantize_blocks(new[lo:hi], old[lo:hi], steps, q, values[lo:hi], d, scratch)
-            parts.append(comp.compress(body[: blocks * (4 + PATCH_BLOCK)]))
-            pending += blocks * (4 + PATCH_BLOCK)
-            if pending >= PATCH_FLUSH_BYTES:
-                parts.append(comp.flush(zstandard.COMPRESSOBJ_FLUSH_BLOCK))
-                sink.add(b"".join(parts))
-                parts, pending = [], 0
+            filled += blocks * (4 + PATCH_BLOCK)
+            in_body += 1
+            if in_body == per_piece:
+                compressor.put(body, filled)
+                body, filled, in_body = compressor.buffer(), 0, 0
+        if filled:
+            compressor.put(body, filled)
         rest = np.empty(sum(n for _, n in other), dtype=np.uint8)
         pos = 0
         for o, nb in other:  # non-float tensors travel raw, after the slices
             rest[pos : pos + nb] = wire.payload[o : o + nb]
             pos += nb
-        parts += [comp.compress(rest), comp.flush()]
-        sink.add(b"".join(parts))
+        compressor.put(rest, rest.size, last=True)
+        compressor.close()
         state_payload = _write_state(out, f32, values, other, rest)
         digest = _HASHERS[full.header.digest_kind][0](state_payload).digest()
         state = WirePayload(wire.version, wire.tensors, state_payload, digest)
         if reached is not None:
             reached(state)
     except BaseException as exc:
+        if compressor is not None:
+            compressor.stop()  # before the sink fails: no piece is added after its end
         sink.fail(exc)
         raise
     sink.finish(digest)

@@ -501,6 +501,9 @@ class Link:
     bytes_sent: int = 0
     versions_sent: int = 0
     rejects_in_row: int = 0
+    # encoding -> bytes/s the client decodes + applies at (its acks' apply_ns): a delta that saves bytes
+    # but costs the client more than it saves on a fast link loses to fp32
+    decode_bps: dict[int, float] = field(default_factory=dict)
     published_version: Callable[[], int] = field(default=lambda: 0, repr=False)
 
     def status(self) -> learner_pb2.SubscriberStatus:
@@ -530,7 +533,7 @@ def choose_encoding(
     Pinned encodings are honoured (a delta falls back to its full set where the base is unknown; a
     patch also does every keyframe_every patches: the exact resync). Adaptive: until the link is
     measured, lossless zstd (delta where possible); then the lossless encoding with the least expected
-    encode + transfer time, and a patch (error-bounded, ~13 % of the fp32 bytes mid-training; action
+    encode + transfer + client decode time, and a patch (error-bounded, ~13 % of the fp32 bytes mid-training; action
     error measured in the bench) only where the subscriber allows lossy weights, the lossless one would
     miss the freshness target and the patch's base (the exact state the subscriber holds) is kept.
     """
@@ -565,7 +568,13 @@ def choose_encoding(
 
     def cost(choice: tuple[int, int]) -> float:
         base: int | bytes = link.base_digest if CODECS[choice[0]].patch else choice[1]
-        return store.estimate_s(full, choice[0], selection, base, link.goodput_bps)
+        return store.estimate_s(full, choice[0], selection, base, link.goodput_bps) + decode_s(choice[0])
+
+    def decode_s(encoding: int) -> float:
+        """The client's decode + apply, as its acks measured it (0 until measured; a streamed patch's
+        decode overlaps its transfer)."""
+        bps = link.decode_bps.get(encoding, 0.0)
+        return store.selected_bytes(full, selection) / bps if bps > 0 and not CODECS[encoding].stream else 0.0
 
     best = min(lossless, key=cost)
     if link.allow_lossy and cost(best) > link.freshness_s:
@@ -775,6 +784,10 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         sample = packed.encoded_bytes / net_s
         link.goodput_bps = sample if link.goodput_bps <= 0 else 0.5 * link.goodput_bps + 0.5 * sample
         link.rtt_s = max(0.0, net_s - ack.transfer_ns / 1e9)
+        if ack.apply_ns > 0:
+            enc = packed.header.weight_encoding or WE.WEIGHT_ENCODING_FP32
+            rate, seen = packed.nbytes / (ack.apply_ns / 1e9), link.decode_bps.get(enc, 0.0)
+            link.decode_bps[enc] = rate if seen <= 0 else 0.5 * seen + 0.5 * rate
         if ack.applied:
             link.applied_version = int(ack.version)
             link.sync_latency_s = max(0.0, (time.time_ns() - packed.header.created_at_ns) / 1e9)
