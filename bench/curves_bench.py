@@ -42,6 +42,8 @@ PEER = "random policy"
 WINDOW = 20  # episodes in the rolling success rate
 EVAL_EVERY = 4  # Panda: every 4th episode acts with the mean action and no expert
 PRETRAIN_UPDATES = 300  # Panda: offline updates on the demos before the first env step (actor warm start)
+# SO-101: plain BC on its demos needs ~1,000-2,000 updates to fit the grasp (at 300 the clone still blurs it)
+SO101_PRETRAIN_UPDATES = 1500
 OUT = Path("runs/bench/curves")
 # Panda from pixels, sized for 2 CPU cores: at 128x128, batch 64, UTD 2 and 10 critics an update cost ~0.9 CPU s
 # and a 12-minute run made 234 env steps. Frames are rendered at 64x64 (the cube is still ~2x2 px in the front
@@ -263,7 +265,7 @@ def expert_state(obs: Observation) -> np.ndarray:
 class ScriptedInterventions:
     """Takes over an episode the policy has not finished by `after_steps`, in a share of episodes that
     decays linearly from `start_share` to 0 over `decay_steps` env steps (as a human helps less).
-    `act(obs, first)` is the expert; `first` marks the first step of a takeover (a stateful expert resets)."""
+    `act(obs, first)` is the expert; `first` marks the first step of a takeover (a stateful one resets)."""
 
     def __init__(
         self,
@@ -289,7 +291,7 @@ class ScriptedInterventions:
 
 
 def so101_expert(robot: Robot) -> Callable[[Observation, bool], np.ndarray]:
-    """lerobot-env-so101's scripted pick controller (edge_agent's scripted_expert), reset when it starts."""
+    """edge_agent's scripted_expert for the SO-101 (stateless: `first` needs no reset, kept for the interface)."""
     from edge_agent.teleoperators.scripted_expert import SO101PickExpert
 
     expert = SO101PickExpert(robot.spec)
@@ -364,7 +366,7 @@ def pick(
     env_steps = 30 if quick else 1_000_000
     expert = ScriptedInterventions(start_share=0.5, after_steps=30, decay_steps=20_000, seed=seed, act=act)
     name = f"{arm}_pick_rlpd_{'pixels' if pixels else 'state'}"
-    pretrain = PIXEL_PRETRAIN_UPDATES if pixels else PRETRAIN_UPDATES
+    pretrain = PIXEL_PRETRAIN_UPDATES if pixels else SO101_PRETRAIN_UPDATES if arm == "so101" else PRETRAIN_UPDATES
 
     def progress(curve: Curve) -> None:  # a long run on a shared machine: keep the curve so far on disk
         if len(curve.success) % 10 == 0:

@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -46,12 +47,17 @@ RLPD = {
     "init_alpha": 0.01,
     "bc_weight": 1.0,
 }
+# experiment -> offline updates on its scripted demos before the stack starts (the in-process curve's recipe)
+PRETRAIN = {"so101": 1500}
 TELEOP = {"kind": "scripted_expert", "params": {"takeover": "on_stray", "patience": 8, "max_takeover_steps": 40}}
+# An SO-101 pick has stretches without 5 mm of progress (aligning above the cube, ~4 ticks closing the jaw): with
+# patience 8 its expert took over all 87 episodes of a 10-minute run, leaving the policy none of its own.
+PATIENCE = {"so101": 20}
 
 
-def state_stats(kind: str, episodes: int) -> tuple[dict[str, Any], float, float]:
-    """({state_mean, state_std}) from `episodes` scripted demos, their success rate, and a random
-    policy's success rate (the peer) on the same robot."""
+def state_stats(kind: str, episodes: int) -> tuple[dict[str, Any], float, float, Any, Any]:
+    """({state_mean, state_std}) from `episodes` successful scripted demos, the expert's success rate, a random
+    policy's success rate (the peer) on the same robot, the demos (a Table) and the robot's spec."""
     from bench.curves_bench import panda_pick_expert, random_success, so101_expert
     from cloud_learner.local import Buffer, record_episodes
     from edge_agent.robot import make_robot
@@ -59,15 +65,37 @@ def state_stats(kind: str, episodes: int) -> tuple[dict[str, Any], float, float]
     robot = make_robot(kind, f"stats-{kind}", params={"reward_type": "sparse"}, seed=0)
     act = so101_expert(robot) if kind == "so101" else (lambda o, _first: panda_pick_expert(o.features["state"]))
     demos = Buffer().table("demos")
-    success = record_episodes(robot, lambda o, s: act(o, s == 0), episodes, demos, seed=1000)
+    success = record_episodes(robot, lambda o, s: act(o, s == 0), episodes, demos, seed=1000, only_successes=True)
     peer = random_success(robot, 1000, 0)
+    spec = robot.spec
     robot.close()
     state = np.stack(demos.rows["obs/state"])
     stats = {
         "state_mean": {"state": [round(float(x), 5) for x in state.mean(0)]},
         "state_std": {"state": [round(float(x), 5) for x in np.maximum(state.std(0), 1e-2)]},
     }
-    return stats, float(np.mean(success)), peer
+    return stats, float(np.mean(success)), peer, demos, spec
+
+
+def pretrain_checkpoint(cfg: Any, name: str, spec: Any, demos: Any, updates: int, ckpt_dir: Path) -> None:
+    """`updates` offline updates of experiment `name`'s algorithm on its demos, built as the learner builds it,
+    saved as the checkpoint the learner resumes from: the stack's policy starts where the in-process curve's does
+    (the SO-101's on_stray expert otherwise rescues nearly every episode of a random policy)."""
+    import torch
+
+    from cloud_learner.checkpoint import save_checkpoint
+    from cloud_learner.learner import build_algorithm, checkpoint_state
+    from cloud_learner.local import Buffer
+    from user.experiments import layout_for
+
+    index, exp = next((i, e) for i, e in enumerate(cfg.experiments) if e.name == name)
+    layout = layout_for(exp, [spec])
+    torch.manual_seed(0)
+    algo = build_algorithm(index, exp, layout, "cpu")
+    buffer, rng = Buffer({"online": demos}), np.random.default_rng(0)  # every batch from the demos (human rows)
+    for _ in range(updates):
+        algo.update(buffer.sample(algo.batch_request(), rng, algo.device))
+    save_checkpoint(ckpt_dir / name, checkpoint_state(algo, exp.algorithm.kind, 1, layout))
 
 
 def overrides(stats: dict[str, dict[str, Any]], budget_s: float, quick: bool) -> list[str]:
@@ -78,7 +106,8 @@ def overrides(stats: dict[str, dict[str, Any]], budget_s: float, quick: bool) ->
         algo = {**params, **stats[name], "tables": {"online": 0.5, "interventions": 0.5}}
         experiments.append({"name": name, "robots": {"kinds": [kind]}, "algorithm": {"kind": "rlpd", "params": algo}})
         robot_params = {"reward_type": "sparse", "max_episode_steps": 100}
-        robots.append({"id": robot_id, "kind": kind, "params": robot_params, "teleop": TELEOP})
+        teleop = {**TELEOP, "params": {**TELEOP["params"], "patience": PATIENCE.get(name, 8)}}
+        robots.append({"id": robot_id, "kind": kind, "params": robot_params, "teleop": teleop})
     return [
         f"experiments={json.dumps(experiments)}",
         f"edge.robots={json.dumps(robots)}",
@@ -155,16 +184,22 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print, minutes: f
 
     minutes = minutes if minutes is not None else (1.5 if quick else 20.0)
     load_at_start = os.getloadavg()
-    stats, demo_success, peer = {}, {}, {}
+    stats, demo_success, peer, demos, specs = {}, {}, {}, {}, {}
     for name, (kind, _, _) in ARMS.items():
         try:
-            stats[name], demo_success[name], peer[name] = state_stats(kind, 3 if quick else 20)
+            stats[name], demo_success[name], peer[name], demos[name], specs[name] = state_stats(
+                kind, 3 if quick else 20
+            )
         except (ValueError, ImportError) as exc:  # lerobot-env-so101 / gym-hil missing
             log(f"two_arms skipped: {exc}")
             return []
     over = overrides(stats, minutes * 60 + 120, quick)
     cfg = load_config(CONFIG, over)
-    stack = Stack(cfg, str(CONFIG), over, Path(workdir) / "two_arms_stack")
+    run_dir = Path(workdir) / "two_arms_stack"
+    shutil.rmtree(run_dir, ignore_errors=True)  # a fresh stack: a kept one would resume the last run's policies
+    for name, updates in PRETRAIN.items():
+        pretrain_checkpoint(cfg, name, specs[name], demos[name], 5 if quick else updates, run_dir / "checkpoints")
+    stack = Stack(cfg, str(CONFIG), over, run_dir)
     mon, snap = None, None
     try:
         stack.start()
@@ -192,7 +227,9 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print, minutes: f
         "algorithm": "rlpd",
         "params": {k: v for k, v in (RLPD if not quick else {}).items()},
         "teleop": TELEOP,
+        "patience": PATIENCE,
         "demo_success_for_stats": demo_success,
+        "pretrain_updates": PRETRAIN,
         "random_policy_success": peer,
         "updates": {n: int(s.updates) for n, s in statuses.items()},
         "arms": {n: curve_of([e for e in episodes if e.experiment == n], snap.t if snap else 0.0) for n in ARMS},

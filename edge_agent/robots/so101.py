@@ -124,10 +124,15 @@ class SO101(Robot):
         block = base.data.sensor("block_pos").data
         if not self.params.observe_command:
             return np.concatenate([base.get_robot_state(), block]).astype(np.float32)
-        jaw = base.data.qpos[base.model.jnt_qposadr[base.model.joint("gripper").id]]
+        jaw = self._jaw()
         # the package keeps its accumulated IK target private; it is the controller state a policy must see
         command = np.asarray(base._target_ee_pos) - base.ik_point_pos
         return np.concatenate([base.get_robot_state(), [jaw], command, block]).astype(np.float32)
+
+    def _jaw(self) -> float:
+        """The measured jaw angle (rad): ~1.74 open, ~0.4 closed on the cube, ~-0.17 closed on nothing."""
+        base = self._base
+        return float(base.data.qpos[base.model.jnt_qposadr[base.model.joint("gripper").id]])
 
     def observe(self) -> Observation:
         features = {"state": self._state()}
@@ -143,6 +148,8 @@ class SO101(Robot):
                 "block_pos": self._base.data.sensor("block_pos").data.copy(),
                 "block_z_init": float(getattr(self._base, "_z_init", 0.0)),
                 "gripper": self._grasp,
+                "jaw": self._jaw(),
+                "ik_target_offset": np.asarray(self._base._target_ee_pos) - self._base.ik_point_pos,
             },
         )
 

@@ -91,25 +91,54 @@ class PandaPickExpert:
 
 
 class SO101PickExpert:
-    """lerobot-env-so101's own scripted pick-and-place controller, with the goal 12 cm above the cube."""
+    """SO-101 pick: above the cube, down, close, lift 12 cm; a function of the observation alone.
 
-    LIFT_M = 0.12
+    lerobot-env-so101 ships a phased controller (hover, descend, close for 10 steps, lift), but its phase
+    and step counter are hidden state: a jaw resting closed on the cube answers "hold" for six steps and
+    "lift" after, so a policy cloned from it averages the two and lifts at a crawl, and from any state
+    its demos did not pass through (a grasp a centimetre low) it has no answer. This expert reads the
+    phase off what a policy also sees (gripper command, measured jaw angle, grasp point, cube): every
+    state has one action, it can take over from wherever the policy left, and its demos are clonable.
+    """
+
+    HOVER_M, GRASP_M, LIFT_M = 0.07, 0.015, 0.12  # grasp point above the cube's resting centre
+    ALIGN_TOL_M, GOAL_TOL_M, HELD_TOL_M = 0.01, 0.004, 0.05
+    BLOCKED_M = 0.015  # IK target this far below the grasp point: the arm cannot go down
+    CAREFUL = 0.4  # action units near the cube (the package's careful speed)
+    JAW_OPEN, JAW_ON_CUBE, JAW_EMPTY = 1.5, 0.6, 0.1  # rad: open; settled on a 4 cm cube (~0.4); shut (-0.17)
 
     def __init__(self, spec: robot_pb2.RobotSpec) -> None:
-        from lerobot_env_so101.scripted.pick_place import PickPlaceController
-
-        self.controller = PickPlaceController(action_scale=float(spec.labels["ee_step_m"]))
-        self.goal: np.ndarray | None = None
+        self.step_m = float(spec.labels["ee_step_m"])
 
     def reset(self) -> None:
-        self.controller.reset()
-        self.goal = None
+        pass  # stateless
+
+    def _move(self, target: np.ndarray, grasp: np.ndarray, limit: float) -> np.ndarray:
+        return np.clip((target - grasp) / self.step_m, -limit, limit)
 
     def action(self, observation: Observation) -> np.ndarray:
-        block = np.asarray(observation.info["block_pos"])
-        if self.goal is None:
-            self.goal = block + np.array([0.0, 0.0, self.LIFT_M])
-        return self.controller.act(np.asarray(observation.info["grasp_pos"]), block, self.goal)
+        info = observation.info
+        grasp, block = np.asarray(info["grasp_pos"], np.float64), np.asarray(info["block_pos"], np.float64)
+        table_z = float(info.get("block_z_init", block[2]))
+        jaw, closing = float(info["jaw"]), float(info["gripper"]) < 0.5
+        above = np.array([block[0], block[1], table_z + self.HOVER_M])
+        if closing:
+            if jaw > self.JAW_ON_CUBE:  # still closing: wait (an exact zero holds the arm where it is)
+                return np.array([0.0, 0.0, 0.0, 0.0], np.float32)
+            if jaw > self.JAW_EMPTY and np.linalg.norm(grasp - block) < self.HELD_TOL_M:  # holding it: lift
+                goal = np.array([grasp[0], grasp[1], table_z + self.GRASP_M + self.LIFT_M])
+                return np.array([*self._move(goal, grasp, self.CAREFUL), 0.0], np.float32)
+            return np.array([*self._move(above, grasp, 1.0), 1.0], np.float32)  # missed: open, back up
+        low = np.array([block[0], block[1], table_z + self.GRASP_M])
+        if np.linalg.norm(grasp[:2] - block[:2]) > self.ALIGN_TOL_M:
+            if grasp[2] < table_z + self.HOVER_M - self.GOAL_TOL_M and np.linalg.norm(grasp[:2] - block[:2]) < 0.04:
+                return np.array([0.0, 0.0, 1.0, 1.0], np.float32)  # beside the cube and low: up first
+            return np.array([*self._move(above, grasp, 1.0), 1.0], np.float32)
+        # at the grasp point, or resting on the cube (the IK target runs away below: a pad on its top), jaws open
+        blocked = float(info["ik_target_offset"][2]) < -self.BLOCKED_M
+        if (np.linalg.norm(grasp - low) < self.GOAL_TOL_M or blocked) and jaw > self.JAW_OPEN:
+            return np.array([0.0, 0.0, 0.0, 0.0], np.float32)  # close
+        return np.array([*self._move(low, grasp, self.CAREFUL), 1.0], np.float32)
 
     def progress(self, observation: Observation) -> float:
         grasp, block = np.asarray(observation.info["grasp_pos"]), np.asarray(observation.info["block_pos"])
@@ -163,7 +192,7 @@ class ScriptedExpert(Teleoperator):
                 return None
             self._driving_left = self.params.max_takeover_steps
             self.takeovers += 1
-            self.expert.reset()  # a phased expert (SO-101's controller) starts over from where the policy left
+            self.expert.reset()  # an expert with memory (the Panda's close counter) starts over from here
         self._driving_left -= 1
         if self._driving_left == 0:  # hand back, and judge the policy afresh from here
             self._best, self._stalled = progress, 0
