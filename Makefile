@@ -10,7 +10,7 @@ STUBS := user/v1/.generated
 FIND_PY312 := for c in python3.12 $$HOME/.pyenv/versions/3.12*/bin/python3.12 /usr/local/bin/python3.12 /usr/bin/python3.12; do \
 	if "$$c" -c 'import sys; assert sys.version_info[:2] == (3, 12)' 2>/dev/null; then echo "$$c"; break; fi; done
 
-.PHONY: install proto demo test test-fast lint bench load clean help fuzz compose-test
+.PHONY: install proto demo test test-fast lint bench load clean help fuzz compose-test gpu
 
 help:
 	@echo "make demo   install + train two embodiments at once (2 sim arms reach, a Panda picks) through the five services"
@@ -18,6 +18,7 @@ help:
 	@echo "make fuzz   long property-based run over every RPC (10k examples per test)"
 	@echo "make load   64 simulated robots at 10 Hz for 10 min against one local stack (LOAD_ARGS=\"--duration 30 --edges 8\")"
 	@echo "make compose-test  build the image, run docker-compose.yml, kill replay and learner, check, tear down"
+	@echo "make gpu    on a CUDA machine: the CUDA tests and the GPU timings (learner, flow_vla, inference service)"
 	@echo "make proto | lint | bench | clean"
 
 $(STAMP): pyproject.toml constraints.txt
@@ -55,6 +56,12 @@ fuzz: install
 # Debian bases from deploy/docker/build-base.sh when they exist (no public registry needed).
 compose-test: install
 	$(PY) deploy/compose_test.py
+
+# On a machine with a CUDA GPU: the CUDA tests (skipped elsewhere, as in CI) and the GPU timings.
+gpu: install
+	$(PY) -m pytest -q -rs tests/test_cuda.py
+	USER_INFERENCE_VLA_PROFILES=vla $(PY) -m bench --only gpu,inference_vla --set inference.device=cuda \
+		--json runs/bench/gpu.json --markdown runs/bench/gpu.md
 
 lint: install
 	$(VENV)/bin/ruff check .

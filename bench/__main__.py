@@ -37,10 +37,12 @@ BENCHES = {
     "curves": "bench.curves_bench",
     "load": "bench.load_bench",
     "two_arms": "bench.two_arms_bench",
+    "gpu": "bench.gpu_bench",
 }
 SLOW = {"learning"}  # whole stacks as processes: minutes, not part of the --quick smoke run unless named
 # run only when named in --only: 10-20 minutes of whole stacks each (load; two HG-DAgger stacks; two arms at once)
-OPT_IN = {"load", "hgdagger_stack", "two_arms"}
+OPT_IN = {"load", "hgdagger_stack", "two_arms", "gpu"}
+TAKES_OVERRIDES = {"load", "inference_vla"}  # --set reaches their stack config (e.g. inference.device=cuda)
 
 
 DEFAULT_OUT = Path("runs/bench")
@@ -84,6 +86,9 @@ LEGEND = {
     "robot at its control rate), two experiments each with its own RLPD instance and replay table, from state, "
     "scripted expert taking over stalled episodes; success without help per arm vs a uniform random policy; curves in "
     "runs/bench/two_arms/so101_panda.json|png.",
+    "gpu": "gpu: on a CUDA machine, the learner's algorithms (update rate through the learner's own batch path, "
+    "host-to-device copies included) and flow_vla's forward on the GPU vs the same code on all the machine's CPU "
+    "cores; rows say 'not run' where torch sees no GPU.",
     "load": "load: one stack as processes on 127.0.0.1 (control, replay, learner training SAC, inference; token auth) "
     "and state-only sim arms in edge agent processes of 8 robots (the real `userctl edge`: registration, heartbeats, "
     "Inference.Act within 40 ms, LMDB spool -> Replay.Insert); window after warm-up; latencies from the edges' "
@@ -187,11 +192,9 @@ def main(argv: list[str] | None = None) -> int:
             console.log(f"bench {name} ...")
             try:
                 module = importlib.import_module(BENCHES[name])
-                extra = (
-                    {"duration_s": args.duration, "robots": args.edges, "hz": args.hz, "overrides": args.overrides}
-                    if name == "load"
-                    else {}
-                )
+                extra: dict = {"overrides": args.overrides} if name in TAKES_OVERRIDES else {}
+                if name == "load":
+                    extra |= {"duration_s": args.duration, "robots": args.edges, "hz": args.hz}
                 rows += module.run(quick=args.quick, workdir=workdir / name, log=console.log, **extra)
             except Exception:
                 failed.append(name)

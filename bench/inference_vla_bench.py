@@ -32,6 +32,7 @@ our single-robot p99.
 from __future__ import annotations
 
 import multiprocessing
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -45,7 +46,7 @@ import numpy as np
 from bench import Row, median
 from bench.inference_bench import serve_peer, start_ours
 from user import rpc, wire
-from user.config import AuthConfig, ServerConfig, StackConfig
+from user.config import AuthConfig, ServerConfig, StackConfig, load_config
 from user.v1 import inference_pb2, inference_pb2_grpc
 
 PEER = "one-request-at-a-time server (openpi / lerobot policy-server style)"
@@ -133,7 +134,8 @@ class OneAtATimeServicer(inference_pb2_grpc.InferenceServicer):
 def start_peer(cfg: StackConfig, weights: Any) -> tuple[str, Callable[[], None]]:
     from user.policy import build_policy
 
-    servicer = OneAtATimeServicer(build_policy(weights.policy, weights.tensors, weights.version))
+    device = cfg.inference.device  # the same device as ours
+    servicer = OneAtATimeServicer(build_policy(weights.policy, weights.tensors, weights.version, device))
     return serve_peer(cfg, servicer, "one-at-a-time-inference")
 
 
@@ -253,8 +255,15 @@ def _batch_note(windows: list[Window]) -> str:
     )
 
 
-def _group(profile: Profile, n_params: int, what: str) -> str:
-    return f"inference flow_vla ({n_params / 1e6:.2f}M params, {profile.label}), {what}"
+def _group(profile: Profile, n_params: int, what: str, device: str = "cpu") -> str:
+    on = "" if device == "cpu" else f" on {_device_name(device)}"
+    return f"inference flow_vla ({n_params / 1e6:.2f}M params, {profile.label}){on}, {what}"
+
+
+def _device_name(device: str) -> str:
+    import torch
+
+    return f"{device} ({torch.cuda.get_device_name(torch.device(device))})" if device.startswith("cuda") else device
 
 
 def _closed_rows(group: str, windows: dict[str, list[Window]], seconds: float) -> list[Row]:
@@ -353,8 +362,9 @@ def _targets(
     p99: dict[int, float],
     paced_p99: float | None,
     top: int,
+    device: str = "cpu",
 ) -> list[Row]:
-    group = _group(profile, n_params, f"issue #9 targets at {top} robots")
+    group = _group(profile, n_params, f"issue #9 targets at {top} robots", device)
     note = "target >= 4x" if top == TOP else f"target at {TOP} robots >= 4x"
     rows = [
         Row(
@@ -416,7 +426,9 @@ def run_profile(pool: Any, profile: Profile, cfg: StackConfig, quick: bool, log:
             for _ in range(rounds):
                 for side, (addr, _stop) in servers.items():
                     windows[side].append(drive(pool, addr, profile, c, seconds))
-            rows += _closed_rows(_group(profile, n_params, f"closed loop, {c} robots"), windows, rounds * seconds)
+            rows += _closed_rows(
+                _group(profile, n_params, f"closed loop, {c} robots", cfg.inference.device), windows, rounds * seconds
+            )
             for side, ws in windows.items():
                 rate[(side, c)] = sum(w.calls for w in ws) / (rounds * seconds)
                 if c == 1:
@@ -434,14 +446,14 @@ def run_profile(pool: Any, profile: Profile, cfg: StackConfig, quick: bool, log:
             paced_s = seconds if quick else 2 * seconds  # one window, long enough for a few calls per robot
             for side, (addr, _stop) in servers.items():
                 windows[side].append(drive(pool, addr, profile, top, paced_s, 1.0 / hz))
-            group = _group(profile, n_params, f"paced, {top} robots x {hz:.2f} Hz ({why})")
+            group = _group(profile, n_params, f"paced, {top} robots x {hz:.2f} Hz ({why})", cfg.inference.device)
             rows += _paced_rows(group, windows, paced_s, top * hz, single_p99, 1e3 / hz)
             if paced_p99 is None:
                 paced_p99 = _p99([x for w in windows["ours"] for x in w.latencies])
     finally:
         for _addr, stop in servers.values():
             stop()
-    return rows + _targets(profile, n_params, rate, p99, paced_p99, top)
+    return rows + _targets(profile, n_params, rate, p99, paced_p99, top, cfg.inference.device)
 
 
 def lerobot_peer_rows(pool: Any, cfg: StackConfig, workdir: Path, quick: bool, log: Callable[..., None]) -> list[Row]:
@@ -459,8 +471,10 @@ def lerobot_peer_rows(pool: Any, cfg: StackConfig, workdir: Path, quick: bool, l
     return inference_lerobot_peer.run(pool, cfg, TOKEN, workdir, quick, log)
 
 
-def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Row]:
-    cfg = StackConfig(auth=AuthConfig(token=TOKEN))
+def run(quick: bool, workdir: Path, log: Callable[..., None] = print, overrides: list[str] | None = None) -> list[Row]:
+    """`overrides` (`--set`) reach the inference section, e.g. inference.device=cuda on a GPU machine (both sides)."""
+    cfg = load_config(None, list(overrides or []))
+    cfg.auth = AuthConfig(token=TOKEN)
     cfg.inference.server = ServerConfig(host="127.0.0.1", port=0, metrics_port=0, grace_s=0.5, max_workers=64)
     cfg.inference.max_batch = 32
     cfg.inference.max_wait_ms = 5.0
@@ -473,8 +487,8 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
     try:
         with multiprocessing.get_context("spawn").Pool(workers) as pool:
             pool.map(_warm, range(workers), chunksize=1)
-            for profile in PROFILES.values():
-                rows += run_profile(pool, profile, cfg, quick, log)
+            for name in os.environ.get("USER_INFERENCE_VLA_PROFILES", ",".join(PROFILES)).split(","):
+                rows += run_profile(pool, PROFILES[name.strip()], cfg, quick, log)
             rows += lerobot_peer_rows(pool, cfg, workdir, quick, log)
     finally:
         torch.set_num_threads(threads)
