@@ -42,7 +42,7 @@ class BC(Algorithm):
         self.p = params
         self.actor = GaussianActor(make_encoder(layout, params), params.hidden, layout.action_low, layout.action_high)
         self.actor.to(self.device)
-        self.optimizer = torch.optim.Adam(self.actor.parameters(), lr=params.lr)
+        self.optimizer = torch.optim.Adam(self.actor.parameters(), lr=params.lr, fused=self.device.type == "cuda")
 
     def batch_request(self) -> BatchRequest:
         return BatchRequest(batch_size=self.p.batch_size, tables=dict(self.p.tables))

@@ -91,7 +91,9 @@ class FlowBc(Algorithm):
         torch.manual_seed(params.seed)
         self.config = config_for(layout, params)
         self.model = FlowVla(self.config).to(device)
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=params.lr)
+        self.optimizer = torch.optim.Adam(
+            self.model.parameters(), lr=params.lr, fused=torch.device(device).type == "cuda"
+        )
         self.prep = Preprocessor(self.config, device)
         self.scaler = ActionScaler(self.config, device)
 

@@ -238,9 +238,14 @@ class SAC(Algorithm):
         self.target_entropy = -p.target_entropy_scale * float(action_dim)
         self.log_alpha = torch.tensor(math.log(p.init_alpha), device=self.device, requires_grad=True)
         # The actor optimizer owns only the head: the encoder learns from the critic loss alone.
-        self.actor_optimizer = torch.optim.Adam(self.actor.head.parameters(), lr=p.actor_lr)
-        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=p.critic_lr)
-        self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=p.alpha_lr)
+        # On a GPU the fused Adam is one kernel per step instead of several per parameter (the small MLPs of
+        # state-based SAC are bound by kernel launches there, not by arithmetic).
+        fused = self.device.type == "cuda"
+        self.actor_optimizer = torch.optim.Adam(self.actor.head.parameters(), lr=p.actor_lr, fused=fused)
+        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=p.critic_lr, fused=fused)
+        self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=p.alpha_lr, fused=fused)
+        self._critic_params = list(self.critic.parameters())
+        self._target_params = list(self.critic_target.parameters())
 
     @property
     def alpha(self) -> float:
@@ -269,7 +274,7 @@ class SAC(Algorithm):
         discount = batch.discount if batch.discount is not None else self.p.gamma
         return batch.reward + discount * (1.0 - batch.terminated) * next_v
 
-    def update_critic(self, batch: Batch) -> tuple[torch.Tensor, dict[str, float]]:
+    def update_critic(self, batch: Batch) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """One critic (and encoder) step; returns the batch's features, detached, for the actor."""
         pad = self.p.image_pad
         obs, next_obs = (
@@ -283,10 +288,9 @@ class SAC(Algorithm):
         self.critic_optimizer.zero_grad(set_to_none=True)
         critic_loss.backward()
         self.critic_optimizer.step()
-        with torch.no_grad():
-            for param, target_param in zip(self.critic.parameters(), self.critic_target.parameters(), strict=True):
-                target_param.lerp_(param, self.p.tau)
-        return features.detach(), {"critic_loss": float(critic_loss.detach()), "q": float(q.detach().mean())}
+        with torch.no_grad():  # Polyak averaging of every target parameter in one batched call
+            torch._foreach_lerp_(self._target_params, self._critic_params, self.p.tau)
+        return features.detach(), {"critic_loss": critic_loss.detach(), "q": q.detach().mean()}
 
     def bc_weight(self) -> float:
         """The BC term's weight now: bc_weight, decaying linearly to 0 over bc_decay_updates updates."""
@@ -294,7 +298,7 @@ class SAC(Algorithm):
             return self.p.bc_weight
         return self.p.bc_weight * max(0.0, 1.0 - self.updates / self.p.bc_decay_updates)
 
-    def update_actor(self, features: torch.Tensor, batch: Batch | None = None) -> dict[str, float]:
+    def update_actor(self, features: torch.Tensor, batch: Batch | None = None) -> dict[str, torch.Tensor]:
         """Maximize Q minus the entropy cost of fresh samples (plus a BC term on rows a human or script
         chose, when bc_weight > 0: SAC+BC / IBRL-style use of demos); then tune alpha toward the target entropy."""
         alpha = self.log_alpha.detach().exp()
@@ -303,7 +307,7 @@ class SAC(Algorithm):
         q = self.critic(features, masked(action, mask))
         q_pi = q.min(dim=0).values if self.p.actor_q == "min" else q.mean(dim=0)
         actor_loss = (alpha * log_prob - q_pi).mean()
-        bc_weight, bc_loss = self.bc_weight(), torch.zeros(())
+        bc_weight, bc_loss = self.bc_weight(), torch.zeros((), device=self.device)
         if bc_weight > 0 and batch is not None:
             human = batch.intervention.float()
             error = (mean_action - batch.action).pow(2)
@@ -324,11 +328,11 @@ class SAC(Algorithm):
         alpha_loss.backward()
         self.alpha_optimizer.step()
         return {
-            "actor_loss": float(actor_loss.detach()),
-            "bc_loss": float(bc_loss.detach()),
-            "alpha_loss": float(alpha_loss.detach()),
-            "alpha": self.alpha,
-            "entropy": float(-log_prob.detach().mean()),
+            "actor_loss": actor_loss.detach(),
+            "bc_loss": bc_loss.detach(),
+            "alpha_loss": alpha_loss.detach(),
+            "alpha": self.log_alpha.detach().exp(),
+            "entropy": -log_prob.detach().mean(),
         }
 
     def update(self, batch: Batch) -> dict[str, float]:
@@ -336,7 +340,8 @@ class SAC(Algorithm):
             features, critic_info = self.update_critic(minibatch)
         info = {**critic_info, **self.update_actor(features, minibatch)}
         self.updates += 1
-        return info
+        # One device-to-host copy for all scalars: each float() of a GPU tensor would wait for the GPU.
+        return dict(zip(info, torch.stack(list(info.values())).tolist(), strict=True))
 
     # --- what the learner publishes and checkpoints ---------------------------------------------
 
