@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -166,6 +166,131 @@ def act_rate(batch: int, device: str, seconds: float) -> tuple[float, int]:
     return rate(lambda _: policy.forward(policy.preprocess(obs, texts), True), device, seconds)
 
 
+def _spec(case: Case) -> Any:
+    from user.v1 import robot_pb2
+    from user.v1 import tensor_pb2 as tpb
+
+    spec = robot_pb2.RobotSpec(robot_id="bench-0", kind="gpu_bench", control_rate_hz=20, max_episode_steps=100)
+    spec.action.shape.append(case.action_dim)
+    spec.action.low.extend([-1.0] * case.action_dim)
+    spec.action.high.extend([1.0] * case.action_dim)
+    spec.observation.add(name="state", dtype=tpb.DTYPE_FLOAT32, shape=[case.state_dim])
+    for key in CAMERAS[: case.cameras]:
+        spec.observation.add(name=key, dtype=tpb.DTYPE_UINT8, shape=[128, 128, 3], is_image=True)
+    return spec
+
+
+def _steps(case: Case, episodes: int, length: int) -> Iterator[Any]:
+    """Random transitions as an edge sends them (raw uint8 frames)."""
+    from user import wire
+    from user.v1 import replay_pb2, step_pb2
+
+    rng = np.random.default_rng(0)
+
+    def obs() -> Any:
+        features: dict[str, np.ndarray] = {"state": rng.normal(size=case.state_dim).astype(np.float32)}
+        for key in CAMERAS[: case.cameras]:
+            features[key] = rng.integers(0, 256, (128, 128, 3), dtype=np.uint8)
+        return wire.to_tensor_map(features)
+
+    seq = 0
+    for e in range(episodes):
+        for t in range(length):
+            step = step_pb2.Step(
+                robot_id="bench-0",
+                episode_id=f"e{e}",
+                step_index=t,
+                observation=obs(),
+                action=wire.to_tensor(rng.uniform(-1, 1, case.action_dim).astype(np.float32)),
+                reward=float(rng.normal()),
+                truncated=t == length - 1,
+            )
+            if t == length - 1:
+                step.final_observation.CopyFrom(obs())
+            yield replay_pb2.InsertRequest(seq=seq, step=step)
+            seq += 1
+
+
+def _loop_seconds(experiment: str) -> dict[str, float]:
+    from prometheus_client import REGISTRY
+
+    out = {}
+    for phase in ("update", "wait_batch", "publish", "capped"):
+        value = REGISTRY.get_sample_value("user_learner_loop_seconds_total", {"experiment": experiment, "phase": phase})
+        out[phase] = value or 0.0
+    return out
+
+
+def pipeline_rate(case: Case, device: str, seconds: float, workdir: Path, transitions: int = 2000) -> dict[str, float]:
+    """The learner service on `device` training from a real replay service over loopback gRPC (control gives the
+    robot's spec): updates/s once training runs, and the training thread's time by phase."""
+    import queue as queue_module
+
+    from cloud_learner.server import LearnerService
+    from services.control.server import ControlService
+    from services.replay.server import ReplayService
+    from user.config import StackConfig
+    from user.rpc import make_channel
+    from user.v1 import control_pb2, control_pb2_grpc, learner_pb2, learner_pb2_grpc, replay_pb2_grpc
+
+    name = f"bench-{case.kind}-{case.cameras}"
+    cfg = StackConfig.model_validate(
+        {
+            "auth": {"token": "bench-token"},
+            "experiments": [
+                {
+                    "name": name,
+                    "robots": {"kinds": ["gpu_bench"]},
+                    "algorithm": {"kind": case.kind, "params": case.params},
+                }
+            ],
+        }
+    )
+    for section in (cfg.control, cfg.replay, cfg.learner):
+        section.server.port, section.server.metrics_port, section.server.grace_s = 0, 0, 0.5
+    cfg.replay.path, cfg.replay.map_size_mb = workdir / name / "replay", 4096
+    lc = cfg.learner
+    lc.device, lc.checkpoint_dir, lc.min_transitions = device, workdir / name / "ckpt", 100
+    lc.publish_every, lc.checkpoint_every, lc.max_updates_per_transition = 100, 10**9, 1e6
+    control = ControlService(cfg, start_metrics=False).start()
+    cfg.replay.control_addr = lc.control_addr = control.address
+    up: queue_module.Queue = queue_module.Queue()
+    register = control_pb2.RegisterRequest(agent_id="gpu-bench", hostname="bench", robots=[_spec(case)])
+    up.put(control_pb2.EdgeMessage(register=register))
+    link = control_pb2_grpc.ControlStub(make_channel(control.address, cfg.auth)).Connect(iter(up.get, None))
+    next(link)  # registered
+    replay = ReplayService(cfg, start_metrics=False).start()
+    lc.replay_addr = replay.address
+    learner = None
+    try:
+        stub = replay_pb2_grpc.ReplayStub(make_channel(replay.address, cfg.auth))
+        length = 100
+        for _ack in stub.Insert(_steps(case, max(1, transitions // length), length), timeout=600):
+            pass
+        learner = LearnerService(cfg, start_metrics=False).start()
+        status = learner_pb2_grpc.LearnerStub(make_channel(learner.address, cfg.auth))
+
+        def updates() -> int:
+            exps = status.GetStatus(learner_pb2.LearnerStatusRequest(), timeout=10).experiments
+            return int(exps[0].updates) if exps else 0
+
+        deadline = time.monotonic() + 300
+        while updates() < 20 and time.monotonic() < deadline:
+            time.sleep(0.2)
+        u0, p0, t0 = updates(), _loop_seconds(name), time.perf_counter()
+        time.sleep(seconds)
+        u1, p1, t1 = updates(), _loop_seconds(name), time.perf_counter()
+    finally:
+        if learner is not None:
+            learner.stop()
+        replay.stop()
+        up.put(None)
+        link.cancel()
+        control.stop()
+    spent = {k: p1[k] - p0[k] for k in p0}
+    return {"updates_per_s": (u1 - u0) / (t1 - t0), **{f"{k}_share": v / (t1 - t0) for k, v in spent.items()}}
+
+
 def _not_run(why: str) -> list[Row]:
     return [Row("gpu timings", "CUDA device", "not run", why, peer_name=PEER)]
 
@@ -195,6 +320,23 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
                     True,
                     f"{n_gpu} / {n_cpu} updates timed; host-to-device copies of each batch included",
                     peer_name=PEER,
+                )
+            )
+        for case in [CASES[0]] if quick else [CASES[0], CASES[2]]:
+            log(f"gpu: learner service from replay, {case.label}")
+            alone, _ = update_rate(case, device, seconds)
+            served = pipeline_rate(case, device, 2 * seconds, workdir, 500 if quick else 2000)
+            rows.append(
+                Row(
+                    f"learner service on {name} sampling a replay service over loopback gRPC, {case.label}",
+                    "updates/s, fed by replay vs fed from memory",
+                    served["updates_per_s"],
+                    alone,
+                    "updates/s",
+                    True,
+                    f"training thread: update {served['update_share']:.0%}, waiting for a batch "
+                    f"{served['wait_batch_share']:.0%}, publish {served['publish_share']:.0%} of the window",
+                    peer_name="the same algorithm fed from memory (no replay, no gRPC)",
                 )
             )
         for batch in (1,) if quick else (1, 16, 32):
