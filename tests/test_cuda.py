@@ -224,7 +224,17 @@ def test_learner_on_the_gpu_trains_from_replay_and_inference_on_the_gpu_follows(
     from tests.test_replay_store import episode, spec
     from user.config import StackConfig
     from user.rpc import make_channel
-    from user.v1 import inference_pb2, inference_pb2_grpc, learner_pb2, learner_pb2_grpc, replay_pb2, replay_pb2_grpc
+    from user.v1 import (
+        control_pb2,
+        control_pb2_grpc,
+        inference_pb2,
+        inference_pb2_grpc,
+        learner_pb2,
+        learner_pb2_grpc,
+        replay_pb2,
+        replay_pb2_grpc,
+    )
+    from user.worker import report_worker
 
     cfg = StackConfig.model_validate(
         {
@@ -284,6 +294,19 @@ def test_learner_on_the_gpu_trains_from_replay_and_inference_on_the_gpu_follows(
 
         resp = wait_for(served, "inference on the GPU to serve the learner's weights")
         assert resp.policy_version >= 1
+        # The learner reports the device it computes on to control, with the machine's GPUs as resources.
+        control_stub = control_pb2_grpc.ControlStub(make_channel(control.address, cfg.auth))
+        with report_worker(learner, "learner", control.address, cfg.auth, lc.device, ["reach"]):
+
+            def registered():
+                listed = control_stub.ListWorkers(control_pb2.ListWorkersRequest(), timeout=5).workers
+                return listed[0] if listed else None
+
+            worker = wait_for(registered, "the learner to register as a worker")
+        assert worker.kind == "learner" and worker.device == DEVICE and worker.online
+        if DEVICE.startswith("cuda"):
+            gpus = [d for d in worker.devices if d.name.startswith("cuda")]
+            assert gpus and gpus[0].memory_bytes > 0 and gpus[0].model, worker
     finally:
         for svc in (inference, learner, replay):
             if svc is not None:
