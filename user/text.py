@@ -8,6 +8,7 @@ torch here: edges import it.
 
 from __future__ import annotations
 
+import functools
 import re
 import zlib
 
@@ -36,10 +37,17 @@ def decode_instruction(array: np.ndarray) -> str:
 
 def word_ids(text: str, vocab_size: int, max_words: int) -> np.ndarray:
     """(max_words,) int64 ids in [1, vocab_size), 0 = padding. Words are hashed (crc32), so any text
-    maps to ids without a vocabulary file; rare collisions only merge two words' embeddings."""
+    maps to ids without a vocabulary file; rare collisions only merge two words' embeddings.
+    Read-only: a robot repeats its instruction every call, so the ids of recent texts are cached."""
     if vocab_size < 2:
         raise ValueError("vocab_size must be >= 2")
+    return _cached_word_ids(text, vocab_size, max_words)
+
+
+@functools.lru_cache(maxsize=4096)
+def _cached_word_ids(text: str, vocab_size: int, max_words: int) -> np.ndarray:
     ids = np.zeros(max_words, dtype=np.int64)
     for i, word in enumerate(_WORD.findall(text.lower())[:max_words]):
         ids[i] = 1 + zlib.crc32(word.encode()) % (vocab_size - 1)
+    ids.flags.writeable = False
     return ids
