@@ -359,6 +359,7 @@ class LoadRun:
         result.update(
             cpu_share={k: (cpu1[k] - cpu0[k]) / window for k in cpu1},
             learner={"updates": updates1 - updates0, "versions": version1 - version0, "version_end": version1},
+            cpu_ms_per_step=cpu_per_step(cpu0, cpu1, sum(result["rate_hz"].values()) * window),
             loadavg_start=load_start,
             loadavg_end=load_end,
             exit_codes=codes,
@@ -447,6 +448,16 @@ class LoadRun:
         }
 
 
+def cpu_per_step(cpu0: dict[str, float], cpu1: dict[str, float], steps: float) -> dict[str, float]:
+    """CPU milliseconds per robot step (`steps`: every robot's steps in the window), by process kind (the
+    edges summed) and in all: on a CPU-bound machine this, not the rate, says what a tick costs and where."""
+    out: dict[str, float] = defaultdict(float)
+    for name in cpu1:
+        out["edge" if name.startswith("edge-") else name] += 1e3 * (cpu1[name] - cpu0[name]) / max(steps, 1.0)
+    out["all"] = sum(out.values())
+    return dict(out)
+
+
 # --------------------------------------------------------------------------- rows
 
 
@@ -472,6 +483,9 @@ def rows(result: dict[str, Any]) -> list[Row]:
             f"min {min(rates):.2f}, max {max(rates):.2f} Hz over {result['window_s']:.0f} s; "
             f"{result['overruns']:.0f} ticks skipped; the stack used {sum(result['cpu_share'].values()):.2f} of "
             f"{os.cpu_count()} cores; load avg {la0:.1f} -> {la1:.1f}", PEER),
+        fact("CPU per robot step, all processes", result.get("cpu_ms_per_step", {}).get("all", math.nan), "ms",
+             ", ".join(f"{k} {v:.3f}" for k, v in sorted(result.get("cpu_ms_per_step", {}).items()) if k != "all")
+             + " ms (the learner takes what is left)"),
         fact("steps held (no action in deadline)", 100 * result["held_share"], "%",
              f"deadline {opts['action_deadline_ms']:g} ms"),
         fact("Act p50", result["act_p50_s"] * ms, "ms", f"{result['acts']:.0f} answered, edge histogram"),
