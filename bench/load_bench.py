@@ -332,7 +332,11 @@ class LoadRun:
             control, learner, replay = self._stubs()
             self._warm_up(control, learner)
             # The window is timed between the two edge scrapes (the counters it divides).
+            # Each scrape reads the edges one after another (~0.1 s each under load): the window runs from the
+            # middle of the first scrape to the middle of the last, not from the start of one to the end of the
+            # other (that read 1-2 % low rates).
             t0, edges0 = time.monotonic(), self._scrape_edges()
+            t0_mid = (t0 + time.monotonic()) / 2
             services0, cpu0 = self._scrape_services(), self._cpu()
             updates0, version0 = self._learner(learner)
             self._sample_rss(0.0)
@@ -344,8 +348,10 @@ class LoadRun:
                 if time.monotonic() >= next_log:
                     next_log += 60
                     self.log(f"load: {time.monotonic() - t0:.0f}/{opts.duration_s:.0f} s, load {os.getloadavg()}")
+            t1 = time.monotonic()
             edges1 = self._scrape_edges()
-            window = time.monotonic() - t0
+            window = (t1 + time.monotonic()) / 2 - t0_mid
+            scrape_s = [2 * (t0_mid - t0), time.monotonic() - t1]
             services1, cpu1 = self._scrape_services(), self._cpu()
             updates1, version1 = self._learner(learner)
             load_end = os.getloadavg()
@@ -359,6 +365,7 @@ class LoadRun:
         result.update(
             cpu_share={k: (cpu1[k] - cpu0[k]) / window for k in cpu1},
             learner={"updates": updates1 - updates0, "versions": version1 - version0, "version_end": version1},
+            edge_scrape_s=scrape_s,  # how long each of the window's two edge scrapes took
             cpu_ms_per_step=cpu_per_step(cpu0, cpu1, sum(result["rate_hz"].values()) * window),
             loadavg_start=load_start,
             loadavg_end=load_end,
