@@ -259,7 +259,16 @@ class LoadRun:
         return [c for c in self.stack.children if c.name.startswith("edge-")]
 
     def _scrape_edges(self) -> Samples:
-        return merged([scrape(f"http://127.0.0.1:{c.info['metrics_port']}/metrics") for c in self.edges])
+        return self._scrape_edges_timed()[0]
+
+    def _scrape_edges_timed(self) -> tuple[Samples, dict[str, float]]:
+        """The edges' samples merged, and when each edge was read (the middle of its request, monotonic)."""
+        pages, when = [], {}
+        for c in self.edges:
+            start = time.monotonic()
+            pages.append(scrape(f"http://127.0.0.1:{c.info['metrics_port']}/metrics"))
+            when[c.name] = (start + time.monotonic()) / 2
+        return merged(pages), when
 
     def _scrape_services(self) -> dict[str, Samples]:
         return {name: scrape(self.stack.child(name).metrics_url) for name in SERVICES}
@@ -331,12 +340,12 @@ class LoadRun:
             self._start()
             control, learner, replay = self._stubs()
             self._warm_up(control, learner)
-            # The window is timed between the two edge scrapes (the counters it divides).
-            # Each scrape reads the edges one after another (~0.1 s each under load): the window runs from the
-            # middle of the first scrape to the middle of the last, not from the start of one to the end of the
-            # other (that read 1-2 % low rates).
-            t0, edges0 = time.monotonic(), self._scrape_edges()
-            t0_mid = (t0 + time.monotonic()) / 2
+            # The window is timed between the two edge scrapes (the counters it divides), per edge: a scrape
+            # reads the edges one after another and the first one takes seconds under load, so each robot's
+            # rate divides by the time between its own edge's two reads (start-to-end of the scrapes read
+            # 1-2 % low, their middles up to 1 % high).
+            t0 = time.monotonic()
+            edges0, read0 = self._scrape_edges_timed()
             services0, cpu0 = self._scrape_services(), self._cpu()
             updates0, version0 = self._learner(learner)
             self._sample_rss(0.0)
@@ -349,9 +358,10 @@ class LoadRun:
                     next_log += 60
                     self.log(f"load: {time.monotonic() - t0:.0f}/{opts.duration_s:.0f} s, load {os.getloadavg()}")
             t1 = time.monotonic()
-            edges1 = self._scrape_edges()
-            window = (t1 + time.monotonic()) / 2 - t0_mid
-            scrape_s = [2 * (t0_mid - t0), time.monotonic() - t1]
+            edges1, read1 = self._scrape_edges_timed()
+            scrape_s = [max(read0.values()) - t0, time.monotonic() - t1]
+            edge_windows = {name: read1[name] - read0[name] for name in read0}
+            window = statistics.fmean(edge_windows.values())
             services1, cpu1 = self._scrape_services(), self._cpu()
             updates1, version1 = self._learner(learner)
             load_end = os.getloadavg()
@@ -361,7 +371,7 @@ class LoadRun:
             stats = replay.Stats(replay_pb2.StatsRequest(), timeout=30)
         finally:
             codes = self.stack.stop()
-        result = self._result(edges0, edges1, services0, services1, window, final, stats)
+        result = self._result(edges0, edges1, services0, services1, edge_windows, final, stats)
         result.update(
             cpu_share={k: (cpu1[k] - cpu0[k]) / window for k in cpu1},
             learner={"updates": updates1 - updates0, "versions": version1 - version0, "version_end": version1},
@@ -380,14 +390,15 @@ class LoadRun:
         edges1: Samples,
         services0: dict[str, Samples],
         services1: dict[str, Samples],
-        window: float,
+        edge_windows: dict[str, float],
         final: Samples,
         stats: Any,
     ) -> dict[str, Any]:
         d = delta(edges1, edges0)
         steps = by_label(d, "user_edge_env_steps_total", "robot_id")
         held = by_label(d, "user_edge_held_steps_total", "robot_id")
-        rates = {rid: n / window for (rid,), n in steps.items()}
+        window = statistics.fmean(edge_windows.values())
+        rates = {rid: n / edge_windows.get(self.robot_agent.get(rid, ""), window) for (rid,), n in steps.items()}
         collected = {rid: int(n) for (rid,), n in by_label(final, "user_edge_env_steps_total", "robot_id").items()}
         # with replay.capacity_mb, whole episodes leave by design: stored + evicted is what replay took
         evicted = {rid: int(stats.evicted_steps_per_robot.get(rid, 0)) for rid in collected}
