@@ -401,8 +401,38 @@ def test_sender_survives_replay_restart_on_the_same_port_and_dir(tmp_path: Path)
         assert stats.rejected == 0
         assert sender.acked == 300 and sender.unacked == 0 and sender.dropped == 0
         assert sender.reconnects >= 1
+        assert sender._batched  # this replay has InsertBatch: steps went several a message
     finally:
         sender.close()
+        replay.stop()
+
+
+def test_sender_falls_back_to_insert_for_a_replay_without_insert_batch(tmp_path: Path) -> None:
+    """A replay from before InsertBatch (here: the real servicer with only Insert registered) answers
+    UNIMPLEMENTED; the sender goes on one step a message and nothing is lost or stored twice."""
+    from concurrent import futures
+
+    import grpc
+
+    replay = start_replay(stack_cfg(tmp_path))
+    old = grpc.server(futures.ThreadPoolExecutor(max_workers=4))
+    insert_only = grpc.stream_stream_rpc_method_handler(
+        replay.servicer.Insert, replay_pb2.InsertRequest.FromString, replay_pb2.InsertAck.SerializeToString
+    )
+    old.add_generic_rpc_handlers([grpc.method_handlers_generic_handler("user.v1.Replay", {"Insert": insert_only})])
+    port = old.add_insecure_port("127.0.0.1:0")
+    old.start()
+    sender = ReplaySender(f"127.0.0.1:{port}", AUTH, backoff=Backoff(0.05, 0.5))
+    try:
+        for step in sim_steps(50):
+            sender.send(step)
+        assert sender.flush(30)
+        assert not sender._batched and sender.acked == 50
+        stats = replay_stats(replay.address)
+        assert stats.steps == 50 and stats.duplicates == 0
+    finally:
+        sender.close()
+        old.stop(0)
         replay.stop()
 
 
