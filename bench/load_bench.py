@@ -259,7 +259,16 @@ class LoadRun:
         return [c for c in self.stack.children if c.name.startswith("edge-")]
 
     def _scrape_edges(self) -> Samples:
-        return merged([scrape(f"http://127.0.0.1:{c.info['metrics_port']}/metrics") for c in self.edges])
+        return self._scrape_edges_timed()[0]
+
+    def _scrape_edges_timed(self) -> tuple[Samples, dict[str, float]]:
+        """The edges' samples merged, and when each edge was read (the middle of its request, monotonic)."""
+        pages, when = [], {}
+        for c in self.edges:
+            start = time.monotonic()
+            pages.append(scrape(f"http://127.0.0.1:{c.info['metrics_port']}/metrics"))
+            when[c.name] = (start + time.monotonic()) / 2
+        return merged(pages), when
 
     def _scrape_services(self) -> dict[str, Samples]:
         return {name: scrape(self.stack.child(name).metrics_url) for name in SERVICES}
@@ -331,8 +340,12 @@ class LoadRun:
             self._start()
             control, learner, replay = self._stubs()
             self._warm_up(control, learner)
-            # The window is timed between the two edge scrapes (the counters it divides).
-            t0, edges0 = time.monotonic(), self._scrape_edges()
+            # The window is timed between the two edge scrapes (the counters it divides), per edge: a scrape
+            # reads the edges one after another and the first one takes seconds under load, so each robot's
+            # rate divides by the time between its own edge's two reads (start-to-end of the scrapes read
+            # 1-2 % low, their middles up to 1 % high).
+            t0 = time.monotonic()
+            edges0, read0 = self._scrape_edges_timed()
             services0, cpu0 = self._scrape_services(), self._cpu()
             updates0, version0 = self._learner(learner)
             self._sample_rss(0.0)
@@ -344,8 +357,11 @@ class LoadRun:
                 if time.monotonic() >= next_log:
                     next_log += 60
                     self.log(f"load: {time.monotonic() - t0:.0f}/{opts.duration_s:.0f} s, load {os.getloadavg()}")
-            edges1 = self._scrape_edges()
-            window = time.monotonic() - t0
+            t1 = time.monotonic()
+            edges1, read1 = self._scrape_edges_timed()
+            scrape_s = [max(read0.values()) - t0, time.monotonic() - t1]
+            edge_windows = {name: read1[name] - read0[name] for name in read0}
+            window = statistics.fmean(edge_windows.values())
             services1, cpu1 = self._scrape_services(), self._cpu()
             updates1, version1 = self._learner(learner)
             load_end = os.getloadavg()
@@ -355,10 +371,12 @@ class LoadRun:
             stats = replay.Stats(replay_pb2.StatsRequest(), timeout=30)
         finally:
             codes = self.stack.stop()
-        result = self._result(edges0, edges1, services0, services1, window, final, stats)
+        result = self._result(edges0, edges1, services0, services1, edge_windows, final, stats)
         result.update(
             cpu_share={k: (cpu1[k] - cpu0[k]) / window for k in cpu1},
             learner={"updates": updates1 - updates0, "versions": version1 - version0, "version_end": version1},
+            edge_scrape_s=scrape_s,  # how long each of the window's two edge scrapes took
+            cpu_ms_per_step=cpu_per_step(cpu0, cpu1, sum(result["rate_hz"].values()) * window),
             loadavg_start=load_start,
             loadavg_end=load_end,
             exit_codes=codes,
@@ -372,14 +390,15 @@ class LoadRun:
         edges1: Samples,
         services0: dict[str, Samples],
         services1: dict[str, Samples],
-        window: float,
+        edge_windows: dict[str, float],
         final: Samples,
         stats: Any,
     ) -> dict[str, Any]:
         d = delta(edges1, edges0)
         steps = by_label(d, "user_edge_env_steps_total", "robot_id")
         held = by_label(d, "user_edge_held_steps_total", "robot_id")
-        rates = {rid: n / window for (rid,), n in steps.items()}
+        window = statistics.fmean(edge_windows.values())
+        rates = {rid: n / edge_windows.get(self.robot_agent.get(rid, ""), window) for (rid,), n in steps.items()}
         collected = {rid: int(n) for (rid,), n in by_label(final, "user_edge_env_steps_total", "robot_id").items()}
         # with replay.capacity_mb, whole episodes leave by design: stored + evicted is what replay took
         evicted = {rid: int(stats.evicted_steps_per_robot.get(rid, 0)) for rid in collected}
@@ -447,6 +466,16 @@ class LoadRun:
         }
 
 
+def cpu_per_step(cpu0: dict[str, float], cpu1: dict[str, float], steps: float) -> dict[str, float]:
+    """CPU milliseconds per robot step (`steps`: every robot's steps in the window), by process kind (the
+    edges summed) and in all: on a CPU-bound machine this, not the rate, says what a tick costs and where."""
+    out: dict[str, float] = defaultdict(float)
+    for name in cpu1:
+        out["edge" if name.startswith("edge-") else name] += 1e3 * (cpu1[name] - cpu0[name]) / max(steps, 1.0)
+    out["all"] = sum(out.values())
+    return dict(out)
+
+
 # --------------------------------------------------------------------------- rows
 
 
@@ -472,6 +501,9 @@ def rows(result: dict[str, Any]) -> list[Row]:
             f"min {min(rates):.2f}, max {max(rates):.2f} Hz over {result['window_s']:.0f} s; "
             f"{result['overruns']:.0f} ticks skipped; the stack used {sum(result['cpu_share'].values()):.2f} of "
             f"{os.cpu_count()} cores; load avg {la0:.1f} -> {la1:.1f}", PEER),
+        fact("CPU per robot step, all processes", result.get("cpu_ms_per_step", {}).get("all", math.nan), "ms",
+             ", ".join(f"{k} {v:.3f}" for k, v in sorted(result.get("cpu_ms_per_step", {}).items()) if k != "all")
+             + " ms (the learner takes what is left)"),
         fact("steps held (no action in deadline)", 100 * result["held_share"], "%",
              f"deadline {opts['action_deadline_ms']:g} ms"),
         fact("Act p50", result["act_p50_s"] * ms, "ms", f"{result['acts']:.0f} answered, edge histogram"),

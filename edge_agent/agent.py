@@ -73,6 +73,20 @@ EPISODE_RETURN = prometheus_client.Gauge("user_edge_last_episode_return", "Retur
 RATE_WINDOW_S = 5.0
 PERIOD_WINDOW = 1000  # recent tick periods kept for percentiles
 PAUSED_POLL_S = 0.05  # fast mode: how often a paused loop re-checks
+START_ALIGN_S = 0.1  # realtime: the robots' common first tick, this long after the agent starts them
+
+
+class _RobotMetrics:
+    """One robot's labelled metric children, looked up once: labels() per tick costs a dict lookup under a lock."""
+
+    def __init__(self, robot_id: str) -> None:
+        self.period = LOOP_PERIOD.labels(robot_id)
+        self.jitter = LOOP_JITTER.labels(robot_id)
+        self.overruns = LOOP_OVERRUNS.labels(robot_id)
+        self.steps = ENV_STEPS.labels(robot_id)
+        self.held = HELD_STEPS.labels(robot_id)
+        self.interventions = INTERVENTION_STEPS.labels(robot_id)
+        self.version = POLICY_VERSION.labels(robot_id)
 
 
 class StepSink(Protocol):
@@ -101,6 +115,11 @@ class TickScheduler:
         self._next: float | None = None
         self.ticks = 0
         self.overruns = 0  # ticks skipped
+
+    def start_at(self, first: float) -> None:
+        """Put the grid's first tick at `first` (clock time) instead of the first wait(): loops started
+        at one `first` tick together, so their robots' Acts can go out as one call."""
+        self._next = first
 
     def wait(self) -> float:
         """Sleep until the next tick and return its scheduled time (the first tick is now)."""
@@ -167,13 +186,17 @@ class RobotLoop:
         self._rate_samples: deque[tuple[float, int]] = deque()
         self._new_episodes: list[control_pb2.EpisodeSummary] = []
         self._labels = {"robot_id": self.robot_id}
+        self._metrics = _RobotMetrics(self.robot_id)
         # Replay keys steps by (robot, episode, step) and the spool re-sends an earlier life's steps after a
         # restart: a per-life tag keeps episode ids unique even if the wall clock steps back meanwhile.
         self._life = secrets.token_hex(3)
 
     # ------------------------------------------------------------------ lifecycle and commands
 
-    def start(self) -> None:
+    def start(self, first_tick: float | None = None) -> None:
+        """`first_tick` (time.monotonic()): the realtime grid's first tick; default: when the loop is ready."""
+        if first_tick is not None:
+            self.scheduler.start_at(first_tick)
         self._thread = threading.Thread(target=self._run, name=f"loop-{self.robot_id}", daemon=True)
         self._thread.start()
 
@@ -258,16 +281,16 @@ class RobotLoop:
     def _record_period(self, last_tick: float | None, now: float) -> float:
         if last_tick is not None:
             period = now - last_tick
-            LOOP_PERIOD.labels(**self._labels).observe(period)
+            self._metrics.period.observe(period)
             with self._lock:
                 self._periods.append(period)
                 if self.mode == "realtime":
                     jitter = abs(period - self.period_s)
                     self._jitters.append(jitter)
-                    LOOP_JITTER.labels(**self._labels).observe(jitter)
+                    self._metrics.jitter.observe(jitter)
         overruns = self.scheduler.overruns - self._overruns_seen
         if overruns:
-            LOOP_OVERRUNS.labels(**self._labels).inc(overruns)
+            self._metrics.overruns.inc(overruns)
             self._overruns_seen = self.scheduler.overruns
         return now
 
@@ -379,14 +402,14 @@ class RobotLoop:
         self._return += float(outcome.reward)
         self._success = self._success or bool(outcome.success)
         self._episode_interventions += int(human)
-        ENV_STEPS.labels(**self._labels).inc()
+        self._metrics.steps.inc()
         if held:
-            HELD_STEPS.labels(**self._labels).inc()
+            self._metrics.held.inc()
         elif human:
-            INTERVENTION_STEPS.labels(**self._labels).inc()
+            self._metrics.interventions.inc()
         else:
             self._episode_version = max(self._episode_version, version)
-            POLICY_VERSION.labels(**self._labels).set(version)
+            self._metrics.version.set(version)
         now = time.monotonic()
         with self._lock:
             self.env_steps += 1
@@ -554,8 +577,11 @@ class EdgeAgent:
         # Control names this agent's replay shard on registration: wait briefly so the first steps go there.
         self.control.wait_registered(self.cfg.edge.rpc_timeout_s)
         self.sender.start()
+        # One grid for every robot: they tick together (their Acts share a call) and the first tick
+        # leaves each loop time to reset its robot.
+        first_tick = time.monotonic() + START_ALIGN_S
         for loop in self.loops.values():
-            loop.start()
+            loop.start(first_tick)
         log.info(
             "edge agent started",
             extra=kv(

@@ -13,6 +13,7 @@ import threading
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import grpc
@@ -40,6 +41,8 @@ ACTION_LATENCY = prometheus_client.Histogram(
     ["source"],
     buckets=(*_LATENCY_BUCKETS, 0.04, 0.05, 0.06, 0.08, 0.1, 0.16, 0.5, 1.0),
 )
+_REMOTE_LATENCY = ACTION_LATENCY.labels("remote")
+ACT_METHOD = "/user.v1.Inference/Act"  # errors of ActBatch calls count here too, per robot: one request each
 ACTION_TIMEOUTS = prometheus_client.Counter(
     "user_edge_action_timeouts_total",
     "Action requests without a usable answer in time (the robot held), by reason",
@@ -99,15 +102,105 @@ class _Chunked:
             executor.reset()
 
 
-class RemotePolicy(PolicySource):
-    """Inference.Act with timeout=deadline: DEADLINE_EXCEEDED, UNAVAILABLE ("no policy yet") -> None."""
+ACT_BATCH_WINDOW_S = 0.005  # longest a robot waits for the others of its agent before its batch goes out
+ACTIVE_S = 1.0  # a robot that asked this recently is expected in the next batch
+_CODES = {code.value[0]: code for code in grpc.StatusCode}
 
-    def __init__(self, addr: str, auth: AuthConfig, deterministic: bool = False, instruction: str = "") -> None:
+
+@dataclass
+class _Ask:
+    request: inference_pb2.ActRequest
+    end: float  # monotonic deadline of this robot's answer
+    done: threading.Event = field(default_factory=threading.Event)
+    result: inference_pb2.ActResult | None = None
+
+
+class ActBatcher:
+    """One Inference.ActBatch call for the robots of an agent that ask together, instead of a call each.
+
+    The robots of one agent tick on one grid (EdgeAgent starts them at the same instant), so they ask
+    within a millisecond or so of each other. The first to ask opens a batch and waits until every
+    robot active in the last second is in, or ACT_BATCH_WINDOW_S (at most a quarter of its deadline);
+    then it makes the call for all of them and hands each its result. A gRPC call costs the edge and
+    inference far more CPU than the observation it carries: one call per tick instead of one per robot
+    is most of the control path's CPU on a loaded machine."""
+
+    def __init__(self, stub: inference_pb2_grpc.InferenceStub, window_s: float = ACT_BATCH_WINDOW_S) -> None:
+        self._stub, self.window_s = stub, window_s
+        self._cond = threading.Condition()
+        self._open: list[_Ask] | None = None
+        self._asked: dict[str, float] = {}  # robot id -> last ask (monotonic)
+        self.calls = 0
+
+    def act(self, request: inference_pb2.ActRequest, deadline_s: float) -> inference_pb2.ActResult:
+        """This robot's result (code 0 = answered); DEADLINE_EXCEEDED when it did not come in time."""
+        now = time.monotonic()
+        ask = _Ask(request, now + deadline_s)
+        with self._cond:
+            self._asked[request.robot_id] = now
+            leader = self._open is None
+            if leader:
+                self._open = [ask]
+            else:
+                self._open.append(ask)
+                self._cond.notify_all()
+        if leader:
+            self._send(self._gather(now, deadline_s))
+        elif not ask.done.wait(max(0.0, ask.end - time.monotonic())):
+            return inference_pb2.ActResult(code=grpc.StatusCode.DEADLINE_EXCEEDED.value[0], message="batch too late")
+        assert ask.result is not None
+        return ask.result
+
+    def _gather(self, now: float, deadline_s: float) -> list[_Ask]:
+        until = now + min(self.window_s, deadline_s / 4)
+        with self._cond:
+            for rid in [r for r, t in self._asked.items() if now - t > ACTIVE_S]:
+                del self._asked[rid]
+            expected = len(self._asked)
+            while self._open is not None and len(self._open) < expected:
+                left = until - time.monotonic()
+                if left <= 0:
+                    break
+                self._cond.wait(left)
+            batch, self._open = self._open or [], None
+        return batch
+
+    def _send(self, batch: list[_Ask]) -> None:
+        timeout = max(0.0, min(a.end for a in batch) - time.monotonic())
+        self.calls += 1
+        try:
+            resp = self._stub.ActBatch(
+                inference_pb2.ActBatchRequest(requests=[a.request for a in batch]), timeout=timeout
+            )
+            results = list(resp.results)
+            if len(results) != len(batch):
+                raise ValueError(f"{len(results)} results for {len(batch)} requests")
+        except grpc.RpcError as err:
+            code = err.code() if hasattr(err, "code") else grpc.StatusCode.UNKNOWN
+            failed = inference_pb2.ActResult(code=code.value[0], message=err.details() or "")
+            results = [failed] * len(batch)
+        except Exception as err:  # a closed channel, a short answer: every robot of the batch holds, none hangs
+            results = [inference_pb2.ActResult(code=grpc.StatusCode.INTERNAL.value[0], message=str(err))] * len(batch)
+        for ask, result in zip(batch, results, strict=True):
+            ask.result = result
+            ask.done.set()
+
+
+class RemotePolicy(PolicySource):
+    """Inference.Act with timeout=deadline: DEADLINE_EXCEEDED, UNAVAILABLE ("no policy yet") -> None.
+
+    With `robots` > 1 the robots' requests go out together as ActBatch calls (ActBatcher); an inference
+    server without ActBatch (UNIMPLEMENTED) gets one Act per robot from then on."""
+
+    def __init__(
+        self, addr: str, auth: AuthConfig, deterministic: bool = False, instruction: str = "", robots: int = 1
+    ) -> None:
         self.addr = addr
         self.instruction = instruction  # sent with every request; "" = the policy's default
         self._chunks = _Chunked(self._fetch)
         self._channel = make_channel(addr, auth)
         self._stub = inference_pb2_grpc.InferenceStub(self._channel)
+        self.batcher = ActBatcher(self._stub) if robots > 1 else None
         # Connect now (a cheap Status call, result unused), so the first action does not pay the
         # TCP/HTTP2 handshake inside its deadline.
         self._warmup = self._stub.Status.future(inference_pb2.InferenceStatusRequest(), timeout=5.0)
@@ -124,6 +217,25 @@ class RemotePolicy(PolicySource):
     ) -> tuple[np.ndarray, int] | None:
         return self._chunks.act(robot_id, observation, deadline_s)
 
+    def _call(self, request: inference_pb2.ActRequest, deadline_s: float) -> inference_pb2.ActResponse | None:
+        """The answer, or None after counting and (on a change) logging why there is none."""
+        if self.batcher is not None:
+            result = self.batcher.act(request, deadline_s)
+            if result.code == 0:
+                return result.response
+            code = _CODES.get(result.code, grpc.StatusCode.UNKNOWN)
+            if code == grpc.StatusCode.UNIMPLEMENTED:  # an older inference server: one Act per robot
+                log.warning("inference has no ActBatch; one Act per robot", extra=kv(addr=self.addr))
+                self.batcher = None
+            self._note_error(code, result.message)
+            return None
+        try:
+            return self._stub.Act(request, timeout=deadline_s)
+        except grpc.RpcError as err:
+            code = err.code() if hasattr(err, "code") else grpc.StatusCode.UNKNOWN
+            self._note_error(code, err.details() if hasattr(err, "details") else str(err))
+            return None
+
     def _fetch(
         self, robot_id: str, observation: dict[str, np.ndarray], deadline_s: float
     ) -> tuple[np.ndarray, int] | None:
@@ -134,17 +246,16 @@ class RemotePolicy(PolicySource):
             instruction=self.instruction,
         )
         start = time.perf_counter()
-        try:
-            resp = self._stub.Act(request, timeout=deadline_s)
-            action = _as_chunk(wire.from_tensor(resp.action))
-        except grpc.RpcError as err:
-            self._note_error(err.code() if hasattr(err, "code") else grpc.StatusCode.UNKNOWN, err)
+        resp = self._call(request, deadline_s)
+        if resp is None:
             return None
+        try:
+            action = _as_chunk(wire.from_tensor(resp.action))
         except wire.WireError as err:
             ACTION_TIMEOUTS.labels("remote", "bad_action").inc()
             log.warning("undecodable action from inference", extra=kv(error=str(err)))
             return None
-        ACTION_LATENCY.labels("remote").observe(time.perf_counter() - start)
+        _REMOTE_LATENCY.observe(time.perf_counter() - start)
         if self._last_error is not None:
             log.info("inference answers again", extra=kv(addr=self.addr, version=resp.policy_version))
             self._last_error = None
@@ -154,11 +265,10 @@ class RemotePolicy(PolicySource):
     def reset(self, robot_id: str) -> None:
         self._chunks.reset(robot_id)
 
-    def _note_error(self, code: grpc.StatusCode, err: grpc.RpcError) -> None:
+    def _note_error(self, code: grpc.StatusCode, details: str) -> None:
         ACTION_TIMEOUTS.labels("remote", code.name.lower()).inc()
-        CLIENT_ERRORS.labels("/user.v1.Inference/Act", code.name).inc()
+        CLIENT_ERRORS.labels(ACT_METHOD, code.name).inc()
         if code != self._last_error:  # log transitions, not every held tick
-            details = err.details() if hasattr(err, "details") else str(err)
             log.warning("no action from inference; holding", extra=kv(addr=self.addr, code=code.name, details=details))
             self._last_error = code
 
@@ -307,4 +417,4 @@ def make_policy_source(
             for n in names
         }
         return RoutedPolicy({rid: sources[name] for rid, name in routes.items()})
-    return RemotePolicy(cfg.edge.inference_addr, cfg.auth)
+    return RemotePolicy(cfg.edge.inference_addr, cfg.auth, robots=len(specs) if specs else len(cfg.edge.robots))

@@ -49,6 +49,7 @@ INSERT_METHOD = "/user.v1.Replay/Insert"
 _SEQ_IN_MESSAGE = re.compile(r"\bseq\s*[=:]?\s*(\d+)")
 _POLL_S = 0.2  # how often an idle request iterator re-checks for shutdown or a stream change
 _READ_CHUNK = 64  # steps read from the outbox at a time
+_BATCH_BYTES = 4 << 20  # an InsertBatch message stays far below gRPC's message limit (camera steps are big)
 _ACK_TIMES_KEPT = 200_000  # put times remembered for the ack-latency histogram (dropped steps never ack)
 
 
@@ -74,6 +75,7 @@ class ReplaySender:
         self._next_addr: str | None = None  # set by retarget(), taken between streams
         self._stopping = threading.Event()
         self._call: grpc.Call | None = None
+        self._batched = True  # InsertBatch until a replay answers UNIMPLEMENTED
         # per-instance counters (the Prometheus ones are process-wide)
         self.sent = self.acked = self.rejected = self.reconnects = self.retargets = 0
         self._put_at: dict[int, float] = {}  # seq -> monotonic time of send(), until its ack
@@ -178,8 +180,8 @@ class ReplaySender:
             code = self._stream_once()
             if self._stopping.is_set():
                 return
-            if self._next_addr is not None or code == grpc.StatusCode.INVALID_ARGUMENT:
-                continue  # a new shard, or the bad step is gone: resume at once
+            if self._next_addr is not None or code in (grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.UNIMPLEMENTED):
+                continue  # a new shard, the bad step is gone, or one step a message from now on: resume at once
             if code == grpc.StatusCode.UNAUTHENTICATED:
                 log.error("replay rejects our token; retrying", extra=kv(addr=self.addr))
             self._backoff.sleep(self._stopping)
@@ -189,7 +191,8 @@ class ReplaySender:
         with self._cond:
             self._stream_gen += 1
             gen = self._stream_gen
-        call = self._stub.Insert(self._requests(gen))
+        # InsertBatch: several steps a message, one message's overhead per batch on both ends
+        call = self._stub.InsertBatch(self._batches(gen)) if self._batched else self._stub.Insert(self._requests(gen))
         with self._cond:
             self._call = call
         try:
@@ -200,7 +203,10 @@ class ReplaySender:
             code = err.code() if hasattr(err, "code") else grpc.StatusCode.UNKNOWN
             if not self._stopping.is_set():
                 CLIENT_ERRORS.labels(INSERT_METHOD, code.name).inc()
-            if code == grpc.StatusCode.INVALID_ARGUMENT:
+            if code == grpc.StatusCode.UNIMPLEMENTED and self._batched:
+                log.warning("replay has no InsertBatch; one step a message", extra=kv(addr=self.addr))
+                self._batched = False
+            elif code == grpc.StatusCode.INVALID_ARGUMENT:
                 self._drop_rejected(err.details() or "")
             elif not self._stopping.is_set():
                 log.warning(
@@ -214,7 +220,8 @@ class ReplaySender:
                 self._stream_gen += 1  # ends this stream's request iterator
                 self._cond.notify_all()
 
-    def _requests(self, gen: int) -> Iterator[replay_pb2.InsertRequest]:
+    def _unsent(self, gen: int) -> Iterator[list[replay_pb2.InsertRequest]]:
+        """Kept steps in seq order, as many as are waiting (up to _READ_CHUNK) at a time, until the stream changes."""
         cursor = 0  # the newest seq written on this stream
         while True:
             with self._cond:
@@ -226,13 +233,40 @@ class ReplaySender:
             batch = self.outbox.read(cursor, _READ_CHUNK)
             if not batch:  # everything up to `last` was acked or dropped meanwhile
                 cursor = last
+                continue
+            if gen != self._stream_gen:
+                return
+            cursor = batch[-1].seq
+            yield batch
+
+    def _requests(self, gen: int) -> Iterator[replay_pb2.InsertRequest]:
+        for batch in self._unsent(gen):
             for req in batch:
                 if gen != self._stream_gen:
                     return
-                cursor = req.seq
-                self.sent += 1
-                STEPS_SENT.inc()
+                self._count_sent(1)
                 yield req
+
+    def _batches(self, gen: int) -> Iterator[replay_pb2.InsertBatchRequest]:
+        for batch in self._unsent(gen):
+            part: list[replay_pb2.InsertRequest] = []
+            size = 0
+            for req in batch:
+                nbytes = req.ByteSize()
+                if part and size + nbytes > _BATCH_BYTES:
+                    yield self._batch_message(part)
+                    part, size = [], 0
+                part.append(req)
+                size += nbytes
+            yield self._batch_message(part)
+
+    def _batch_message(self, part: list[replay_pb2.InsertRequest]) -> replay_pb2.InsertBatchRequest:
+        self._count_sent(len(part))
+        return replay_pb2.InsertBatchRequest(requests=part)
+
+    def _count_sent(self, n: int) -> None:
+        self.sent += n
+        STEPS_SENT.inc(n)
 
     def _on_ack(self, ack: replay_pb2.InsertAck) -> None:
         n = self.outbox.ack(ack.seqs)

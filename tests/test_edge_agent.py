@@ -149,6 +149,19 @@ def test_scheduler_ticks_on_a_fixed_grid_without_drift() -> None:
     assert sched.ticks == 1000 and sched.overruns == 0
 
 
+def test_scheduler_started_at_a_common_first_tick() -> None:
+    """Loops given one first tick share a grid: their robots ask for actions together."""
+    clock = FakeClock()
+    a, b = (TickScheduler(0.1, clock=clock, sleep=clock.sleep) for _ in range(2))
+    for sched in (a, b):
+        sched.start_at(100.5)
+    first_a = a.wait()
+    clock.t += 0.003  # b's loop gets the CPU a little later
+    first_b = b.wait()
+    assert first_a == first_b == 100.5 and a.wait() == b.wait() == pytest.approx(100.6)
+    assert a.overruns == b.overruns == 0
+
+
 def test_scheduler_skips_missed_ticks_and_counts_overruns() -> None:
     clock = FakeClock()
     sched = TickScheduler(0.05, clock=clock, sleep=clock.sleep)
@@ -200,6 +213,51 @@ def test_loop_holds_when_the_policy_never_answers() -> None:
     assert status.state == control_pb2.ROBOT_STATE_HOLDING
     assert status.held_steps == status.env_steps == len(steps)
     robot.close()
+
+
+def test_robots_asking_together_share_one_act_batch_call(inference: InferenceService) -> None:
+    """RemotePolicy for 3 robots: once each has asked, a round of all three is one ActBatch call, and
+    every robot gets the action the policy gives its own observation."""
+    inference.load_weights(random_weights(4))
+    policy = RemotePolicy(inference.address, AUTH, deterministic=True, robots=3)
+    assert policy.batcher is not None
+    policy.batcher.window_s = 30.0  # wait for all three however slow this machine is (capped at deadline / 4)
+    states = {f"arm-{i}": np.random.default_rng(i).normal(size=15).astype(np.float32) for i in range(3)}
+    answers: dict[str, list] = {rid: [] for rid in states}
+    barrier = threading.Barrier(3)
+
+    def robot(rid: str) -> None:
+        for _ in range(3):
+            barrier.wait()
+            answers[rid].append(policy.act(rid, {"state": states[rid]}, 20.0))
+
+    threads = [threading.Thread(target=robot, args=(rid,)) for rid in states]
+    try:
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(60)
+    finally:
+        policy.close()
+    # Round 1 may go out in pieces (no robot is known yet); rounds 2 and 3 are one call each.
+    assert 3 <= policy.batcher.calls <= 5
+    from user.policy import build_policy, policy_spec_for
+
+    reference = build_policy(policy_spec_for(ACTOR), random_weights(4).tensors, 4)
+    for rid, got in answers.items():
+        assert len(got) == 3 and all(a is not None and a[1] == 4 for a in got)
+        want = reference.act({"state": states[rid][None]}, deterministic=True)[0]
+        for action, _ in got:
+            np.testing.assert_allclose(action, want, rtol=1e-5, atol=1e-6)
+
+
+def test_act_batch_without_a_server_holds() -> None:
+    policy = RemotePolicy(f"127.0.0.1:{free_port()}", AUTH, robots=2)  # nothing listens there
+    try:
+        assert policy.act("arm-0", {"state": np.zeros(15, np.float32)}, 0.2) is None
+        assert policy.batcher is not None  # UNAVAILABLE is not UNIMPLEMENTED: still batching
+    finally:
+        policy.close()
 
 
 def test_loop_episodes_steps_and_final_observation(inference: InferenceService) -> None:
@@ -343,8 +401,38 @@ def test_sender_survives_replay_restart_on_the_same_port_and_dir(tmp_path: Path)
         assert stats.rejected == 0
         assert sender.acked == 300 and sender.unacked == 0 and sender.dropped == 0
         assert sender.reconnects >= 1
+        assert sender._batched  # this replay has InsertBatch: steps went several a message
     finally:
         sender.close()
+        replay.stop()
+
+
+def test_sender_falls_back_to_insert_for_a_replay_without_insert_batch(tmp_path: Path) -> None:
+    """A replay from before InsertBatch (here: the real servicer with only Insert registered) answers
+    UNIMPLEMENTED; the sender goes on one step a message and nothing is lost or stored twice."""
+    from concurrent import futures
+
+    import grpc
+
+    replay = start_replay(stack_cfg(tmp_path))
+    old = grpc.server(futures.ThreadPoolExecutor(max_workers=4))
+    insert_only = grpc.stream_stream_rpc_method_handler(
+        replay.servicer.Insert, replay_pb2.InsertRequest.FromString, replay_pb2.InsertAck.SerializeToString
+    )
+    old.add_generic_rpc_handlers([grpc.method_handlers_generic_handler("user.v1.Replay", {"Insert": insert_only})])
+    port = old.add_insecure_port("127.0.0.1:0")
+    old.start()
+    sender = ReplaySender(f"127.0.0.1:{port}", AUTH, backoff=Backoff(0.05, 0.5))
+    try:
+        for step in sim_steps(50):
+            sender.send(step)
+        assert sender.flush(30)
+        assert not sender._batched and sender.acked == 50
+        stats = replay_stats(replay.address)
+        assert stats.steps == 50 and stats.duplicates == 0
+    finally:
+        sender.close()
+        old.stop(0)
         replay.stop()
 
 

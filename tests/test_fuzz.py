@@ -387,6 +387,12 @@ def test_replay_unary(stack: dict[str, Any], sample: Any, stats: Any) -> None:
 def test_inference(stack: dict[str, Any], act: Any, status: Any) -> None:
     unary(stack["inference"].Act, act)
     unary(stack["inference"].Status, status)
+    try:  # the same request inside ActBatch: a defined status for the call, and for each robot in it
+        batch = inference_pb2.ActBatchRequest(requests=[act, act])
+        results = stack["inference"].ActBatch(batch, timeout=CALL_S).results
+        assert len(results) == 2 and all(r.code != grpc.StatusCode.UNKNOWN.value[0] for r in results)
+    except grpc.RpcError as err:
+        assert_defined(err)
 
 
 # --------------------------------------------------------------------------- Learner

@@ -134,6 +134,30 @@ def test_bad_observation_is_invalid_argument(
     assert stub.Act(act_request(0), timeout=5).policy_version == 1  # still serving
 
 
+def test_act_batch_answers_each_robot_in_order(
+    service: InferenceService, stub: inference_pb2_grpc.InferenceStub
+) -> None:
+    """One ActBatch: each robot gets its own action or its own status; one bad observation fails only itself."""
+    batch = inference_pb2.ActBatchRequest(
+        requests=[act_request(0, "arm-0"), act_request(1, "arm-1", state=np.zeros(5, np.float32)), act_request(2)]
+    )
+    results = stub.ActBatch(batch, timeout=5).results  # no policy yet: every robot is told so
+    assert [r.code for r in results] == [grpc.StatusCode.UNAVAILABLE.value[0]] * 3
+    service.load_weights(weight_set(version=2))
+    reference = build_policy(policy_spec_for(CONFIG), weight_set(2).tensors, 2)
+    results = stub.ActBatch(batch, timeout=5).results
+    assert [r.code for r in results] == [0, grpc.StatusCode.INVALID_ARGUMENT.value[0], 0]
+    assert results[1].message.startswith("bad observation") and not results[1].HasField("response")
+    for result, seed in ((results[0], 0), (results[2], 2)):
+        expected = reference.act({"state": obs(seed)["state"][None]}, deterministic=True)[0]
+        assert result.response.policy_version == 2
+        np.testing.assert_allclose(wire.from_tensor(result.response.action), expected, rtol=1e-5, atol=1e-6)
+    for bad in (inference_pb2.ActBatchRequest(), inference_pb2.ActBatchRequest(requests=[act_request(0)] * 257)):
+        with pytest.raises(grpc.RpcError) as err:
+            stub.ActBatch(bad, timeout=5)
+        assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+
+
 def test_undecodable_tensor_is_invalid_argument(
     service: InferenceService, stub: inference_pb2_grpc.InferenceStub
 ) -> None:

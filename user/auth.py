@@ -7,7 +7,8 @@ Roles:
             workers' (RegisterWorker): commands, experiments.
   reader    read-only methods (List*, Get*, Stats, Status, Sample, SubscribeWeights) for dashboards and tools.
   edge      what an edge agent needs: Control.Connect (as its own agent_id, only its robots), Replay.Insert
-            (steps of its robots), Inference.Act, Learner.SubscribeWeights. Nothing else: it cannot read the fleet.
+            and InsertBatch (steps of its robots), Inference.Act and ActBatch, Learner.SubscribeWeights. Nothing
+            else: it cannot read the fleet.
   worker    Control.RegisterWorker (learner and inference hosts reporting their devices) plus reads.
 
 The tokens file (auth.tokens_file) is a YAML list, re-read when it changes, so tokens rotate without
@@ -42,11 +43,13 @@ EDGE_METHODS = frozenset(
     {
         "/user.v1.Control/Connect",
         "/user.v1.Replay/Insert",
+        "/user.v1.Replay/InsertBatch",
         "/user.v1.Inference/Act",
+        "/user.v1.Inference/ActBatch",
         "/user.v1.Learner/SubscribeWeights",
     }
 )
-EDGE_WRITES = frozenset({"/user.v1.Control/Connect", "/user.v1.Replay/Insert"})
+EDGE_WRITES = frozenset({"/user.v1.Control/Connect", "/user.v1.Replay/Insert", "/user.v1.Replay/InsertBatch"})
 WORKER_WRITES = frozenset({"/user.v1.Control/RegisterWorker"})
 RELOAD_CHECK_S = 1.0  # how often the tokens file's mtime is looked at
 

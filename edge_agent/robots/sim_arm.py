@@ -224,8 +224,7 @@ class SimReachArm(Robot):
         return np.clip(self.data.ctrl + dq, self._qlow, self._qhigh)
 
     def _advance(self) -> None:
-        for _ in range(self.substeps):
-            mujoco.mj_step(self.model, self.data)
+        mujoco.mj_step(self.model, self.data, nstep=self.substeps)  # one call: the substeps loop in C
 
     def act(self, action: np.ndarray) -> np.ndarray:
         applied = clip_action(self._spec, action)

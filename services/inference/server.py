@@ -15,6 +15,7 @@ import socket
 import threading
 import time
 from collections.abc import Mapping
+from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from typing import Literal
 
@@ -36,9 +37,11 @@ log = logging.getLogger(__name__)
 
 SERVICE_NAME = inference_pb2.DESCRIPTOR.services_by_name["Inference"].full_name
 MAX_INSTRUCTION_CHARS = 1024  # a task in words, not a document
+MAX_ACT_BATCH = 256  # robots in one ActBatch: an edge process's robots, with room to spare
 MAX_ACT_WAIT_S = 10.0  # a caller without a deadline still gets an answer (or an error) in bounded time
 
 REQUESTS = prometheus_client.Counter("user_inference_requests_total", "Act requests by status code", ["code"])
+_REQUESTS_OK = REQUESTS.labels("OK")  # looked up once: every answered Act counts here
 BATCH_SIZE = prometheus_client.Histogram(
     "user_inference_batch_size", "Requests per policy forward", buckets=(1, 2, 4, 8, 16, 32, 64, 128, 256)
 )
@@ -200,6 +203,17 @@ class Router:
             self._channel.close()
 
 
+class _ActError(Exception):
+    """One robot's Act failed with this status (Act aborts with it; ActBatch answers it in that robot's slot)."""
+
+    def __init__(self, code: grpc.StatusCode, message: str) -> None:
+        super().__init__(message)
+        self.code, self.message = code, message
+
+
+_Pending = tuple[Future, Policy, str]  # a queued Act: its future, the policy it was validated against, robot kind
+
+
 class InferenceServicer(inference_pb2_grpc.InferenceServicer):
     def __init__(self, service: InferenceService) -> None:
         self.service = service
@@ -209,40 +223,49 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
         REQUESTS.labels(code.name).inc()
         context.abort(code, message)
 
-    def Act(self, request: inference_pb2.ActRequest, context: grpc.ServicerContext) -> inference_pb2.ActResponse:
+    @staticmethod
+    def _wait_s(context: grpc.ServicerContext) -> float:
+        remaining = context.time_remaining()
+        return MAX_ACT_WAIT_S if remaining is None else max(0.0, min(remaining, MAX_ACT_WAIT_S))
+
+    def _queue(self, request: inference_pb2.ActRequest) -> _Pending:
+        """Route, validate and queue one robot's observation on its experiment's batcher."""
         try:
             experiment, kind = self.service.router.route(request.robot_id)
         except RoutingError as exc:
-            self._abort(context, exc.code, str(exc))
+            raise _ActError(exc.code, str(exc)) from None
         slot = self.service.slots[experiment]
         policy = slot.policy
         if policy is None:
-            self._abort(context, grpc.StatusCode.UNAVAILABLE, "no policy yet")
+            raise _ActError(grpc.StatusCode.UNAVAILABLE, "no policy yet")
         try:
             raw = embodiment_inputs(policy, kind, wire.from_tensor_map(request.observation))
             obs = validate_observation(raw, policy)
         except ValueError as exc:  # WireError is a ValueError
-            self._abort(context, grpc.StatusCode.INVALID_ARGUMENT, f"bad observation: {exc}")
+            raise _ActError(grpc.StatusCode.INVALID_ARGUMENT, f"bad observation: {exc}") from None
         if len(request.instruction) > MAX_INSTRUCTION_CHARS:
-            self._abort(context, grpc.StatusCode.INVALID_ARGUMENT, f"instruction over {MAX_INSTRUCTION_CHARS} chars")
+            raise _ActError(grpc.StatusCode.INVALID_ARGUMENT, f"instruction over {MAX_INSTRUCTION_CHARS} chars")
         try:
             future = slot.batcher.submit(
                 obs, request.deterministic, key=request.robot_id, instruction=request.instruction
             )
         except NoPolicyError:
-            self._abort(context, grpc.StatusCode.UNAVAILABLE, "no policy yet")
-        remaining = context.time_remaining()
-        wait_s = MAX_ACT_WAIT_S if remaining is None else max(0.0, min(remaining, MAX_ACT_WAIT_S))
+            raise _ActError(grpc.StatusCode.UNAVAILABLE, "no policy yet") from None
+        return future, policy, kind
+
+    @staticmethod
+    def _answer(pending: _Pending, wait_s: float) -> inference_pb2.ActResponse:
+        """Wait up to wait_s for the queued Act's row of its batch and build the response."""
+        future, policy, kind = pending
         try:
             result: ActResult = future.result(timeout=wait_s)
         except FutureTimeout:
             future.cancel()  # the worker skips it if it has not started
-            self._abort(context, grpc.StatusCode.DEADLINE_EXCEEDED, f"no action within {wait_s * 1000:.0f} ms")
+            raise _ActError(grpc.StatusCode.DEADLINE_EXCEEDED, f"no action within {wait_s * 1000:.0f} ms") from None
         except NoPolicyError:
-            self._abort(context, grpc.StatusCode.UNAVAILABLE, "no policy yet")
+            raise _ActError(grpc.StatusCode.UNAVAILABLE, "no policy yet") from None
         except Exception as exc:
-            self._abort(context, grpc.StatusCode.INTERNAL, f"policy forward failed: {exc}")
-        REQUESTS.labels("OK").inc()
+            raise _ActError(grpc.StatusCode.INTERNAL, f"policy forward failed: {exc}") from None
         QUEUE_SECONDS.observe(result.queue_us / 1e6)
         action = np.asarray(result.action, dtype=np.float32)
         return inference_pb2.ActResponse(
@@ -256,6 +279,42 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
             postprocess_us=result.postprocess_us,
             horizon=action.shape[0] if action.ndim == 2 else 1,
         )
+
+    def Act(self, request: inference_pb2.ActRequest, context: grpc.ServicerContext) -> inference_pb2.ActResponse:
+        try:
+            response = self._answer(self._queue(request), self._wait_s(context))
+        except _ActError as exc:
+            self._abort(context, exc.code, exc.message)
+        _REQUESTS_OK.inc()
+        return response
+
+    def ActBatch(
+        self, request: inference_pb2.ActBatchRequest, context: grpc.ServicerContext
+    ) -> inference_pb2.ActBatchResponse:
+        count = len(request.requests)
+        if not 0 < count <= MAX_ACT_BATCH:
+            self._abort(context, grpc.StatusCode.INVALID_ARGUMENT, f"ActBatch takes 1 to {MAX_ACT_BATCH} requests")
+        # Every robot is queued before any is waited for, so they can share one forward.
+        queued: list[_Pending | _ActError] = []
+        for req in request.requests:
+            try:
+                queued.append(self._queue(req))
+            except _ActError as exc:
+                queued.append(exc)
+        end = time.monotonic() + self._wait_s(context)
+        results = []
+        for item in queued:
+            try:
+                if isinstance(item, _ActError):
+                    raise item
+                response = self._answer(item, max(0.0, end - time.monotonic()))
+            except _ActError as exc:
+                REQUESTS.labels(exc.code.name).inc()
+                results.append(inference_pb2.ActResult(code=exc.code.value[0], message=exc.message))
+                continue
+            _REQUESTS_OK.inc()
+            results.append(inference_pb2.ActResult(code=0, response=response))
+        return inference_pb2.ActBatchResponse(results=results)
 
     def Status(
         self, request: inference_pb2.InferenceStatusRequest, context: grpc.ServicerContext

@@ -346,6 +346,12 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             inbox.close()
             self._stream_delta(-1)
 
+    def InsertBatch(
+        self, request_iterator: Iterator[replay_pb2.InsertBatchRequest], context: grpc.ServicerContext
+    ) -> Iterator[replay_pb2.InsertAck]:
+        """Insert, several steps a message: unpacked in the stream's reader thread, handled step by step."""
+        return self.Insert((req for batch in request_iterator for req in batch.requests), context)
+
     def _insert(
         self, inbox: _Inbox, context: grpc.ServicerContext, who: Identity | None = None
     ) -> Iterator[replay_pb2.InsertAck]:
