@@ -45,7 +45,9 @@ from user.weight_codec import (
     MAX_CHUNK_BYTES,
     MAX_WEIGHT_BYTES,
     MIN_CHUNK_BYTES,
+    PATCH_FAST_LEVEL,
     WE,
+    ZSTD_LEVEL,
     BufferPool,
     PackedWeights,
     PatchError,
@@ -96,6 +98,10 @@ DEFAULT_HISTORY = 4
 # anyway (each is taken against what the subscriber holds); the resync makes it bit-exact again, e.g.
 # for evaluation at a known version. At publish_every = 100 updates: one exact set per 3,200 updates.
 DEFAULT_KEYFRAME_EVERY = 32
+# Above this measured goodput a streamed patch goes out stored (int8 values, not zstd-compressed):
+# compressing a body saves ~half its bytes at ~2 ms per MiB plus ~1 ms to decompress, which pays
+# only below ~150 MB/s (measured on loopback, docs/notes/weights.md).
+FAST_LINK_BPS = 100e6
 # What the adaptive choice sends as a patch: streamed (encode, transfer and apply overlap). The one-shot
 # FP32_PATCH_ZSTD stays for subscribers that pin it.
 PATCH = WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD
@@ -387,19 +393,23 @@ class WeightStore:
         prefixes: tuple[str, ...],
         base_version: int = 0,
         base_digest: bytes = b"",
+        fast_link: bool = False,
     ) -> PackedWeights | StreamedPatch:
         """`full` in `encoding` (a delta against base_version if nonzero), built once and shared.
 
         Patches name their base by digest (the exact state the subscriber holds): KeyError if it is no
-        longer kept, PatchError if a patch cannot carry this version."""
+        longer kept, PatchError if a patch cannot carry this version. fast_link: a streamed patch goes
+        out stored (PATCH_FAST_LEVEL), where compressing costs more time than the bytes it saves."""
         experiment = full.header.experiment
         codec = CODECS[encoding]
+        fast_link = fast_link and codec.stream
         key = (experiment, full.version, "enc", encoding, prefixes, base_digest if codec.patch else base_version)
+        key += ("fast",) if fast_link else ()
 
         def build() -> PackedWeights | StreamedPatch:
             start = time.perf_counter()
             if codec.stream:
-                return self._stream_patch(full, encoding, prefixes, base_digest)
+                return self._stream_patch(full, encoding, prefixes, base_digest, fast_link)
             if codec.patch:
                 held = self.state(base_digest, experiment)
                 if held is None:
@@ -435,7 +445,7 @@ class WeightStore:
         return self._once(key, build)
 
     def _stream_patch(
-        self, full: PackedWeights, encoding: int, prefixes: tuple[str, ...], base_digest: bytes
+        self, full: PackedWeights, encoding: int, prefixes: tuple[str, ...], base_digest: bytes, fast_link: bool
     ) -> StreamedPatch:
         """Start a streamed patch on its own thread and return it at once: every stream that wants it
         sends its pieces as they come, none waits for another subscriber's flow control."""
@@ -457,15 +467,17 @@ class WeightStore:
                 # the reached state is kept before the last chunk goes out: the subscriber's ack may come
                 # back at once, naming it as the base of its next patch
                 keep = lambda st: self._keep_state(experiment, st, patched=True)  # noqa: E731
-                encode_patch_stream(full, wire, held, sink, buf, keep)
+                level = PATCH_FAST_LEVEL if fast_link else ZSTD_LEVEL
+                encode_patch_stream(full, wire, held, sink, buf, keep, level)
             except PatchError as exc:  # its trailer sends the subscribers back for a full set
                 log.warning("no patch for this version", extra=kv(version=full.version, error=str(exc)))
                 return
             except Exception:
                 log.exception("streamed patch failed; its subscribers get a full set", extra=kv(version=full.version))
                 return
-            ratio = sink.encoded_bytes / max(1, full_bytes)
-            self._stats[encoding].observe(ratio, full_bytes, time.perf_counter() - start)
+            if not fast_link:  # the stats say what a compressed patch costs (slow links' choice)
+                ratio = sink.encoded_bytes / max(1, full_bytes)
+                self._stats[encoding].observe(ratio, full_bytes, time.perf_counter() - start)
 
         threading.Thread(target=run, daemon=True, name=f"patch-v{full.version}").start()
         return sink
@@ -511,6 +523,9 @@ class Link:
     patches_in_row: int = 0
     applied_version: int = 0
     goodput_bps: float = 0.0  # effective: encoded bytes / (send start -> ack, less the client's apply time)
+    # the same, from versions sent whole (not streamed while encoding, which would count encode time):
+    # what the link itself moves, for the choice of a streamed patch's compression
+    wire_bps: float = 0.0
     rtt_s: float = 0.0
     sync_latency_s: float = 0.0
     encoding: int = 0
@@ -748,8 +763,9 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
     def _encode(self, link: Link, full: PackedWeights) -> PackedWeights | StreamedPatch:
         prefixes = link.prefixes or (full.header.policy.tensor_prefix,)  # none asked: what the policy needs
         encoding, base = choose_encoding(self.store, link, full, prefixes, self.keyframe_every)
+        fast = link.wire_bps >= FAST_LINK_BPS
         try:
-            return self.store.encoded(full, encoding, prefixes, base, link.base_digest)
+            return self.store.encoded(full, encoding, prefixes, base, link.base_digest, fast)
         except (KeyError, PatchError):  # the base left the history meanwhile, or no patch fits: full set
             full_encoding = FULL_OF.get(encoding, encoding)
             return self.store.encoded(full, full_encoding, prefixes, 0)
@@ -799,6 +815,8 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         net_s = max(1e-6, elapsed_s - ack.apply_ns / 1e9)
         sample = packed.encoded_bytes / net_s
         link.goodput_bps = sample if link.goodput_bps <= 0 else 0.5 * link.goodput_bps + 0.5 * sample
+        if not codec.stream:
+            link.wire_bps = sample if link.wire_bps <= 0 else 0.5 * link.wire_bps + 0.5 * sample
         link.rtt_s = max(0.0, net_s - ack.transfer_ns / 1e9)
         if ack.apply_ns > 0:
             enc = packed.header.weight_encoding or WE.WEIGHT_ENCODING_FP32
