@@ -449,6 +449,37 @@ def test_one_streamed_patch_fans_out_to_every_subscriber_holding_its_base(framed
         srv.close()
 
 
+@pytest.mark.parametrize("fast", [True, False], ids=["fast-link", "slow-link"])
+def test_streamed_patch_is_stored_on_a_fast_link_and_compressed_on_a_slow_one(
+    fast: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The link's goodput measured on whole versions decides; both decode to the sender's exact state."""
+    from user import weights as weights_mod
+
+    monkeypatch.setattr(weights_mod, "FAST_LINK_BPS", 0.0 if fast else float("inf"))
+    store = WeightStore()
+    srv = Server(store)
+    stream = WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD
+    sub, got = subscribe(srv, "edge", encoding=stream, allow_lossy=True)
+    calls: list[bool] = []
+    real = store._stream_patch
+    store._stream_patch = lambda *a: calls.append(a[-1]) or real(*a)  # fast_link, per encode
+    try:
+        t = tensors(0, n=1 << 16)
+        for v in range(1, 4):
+            store.publish(v, SPEC, t)
+            assert sub.wait_version(v, 30)
+            helpers.wait_for(lambda v=v: srv.servicer.subscriber_status()[0].applied_version == v, f"ack of v{v}")
+            t = trained(t, v, lr=1e-3)
+        assert [w.encoding for w in got] == [WE.WEIGHT_ENCODING_FP32_ZSTD, stream, stream]
+        assert calls == [fast, fast]
+        held = store.state(sub._assembler.base_digest)
+        assert held is not None and np.array_equal(held.payload, sub._assembler.held.payload)
+    finally:
+        sub.stop()
+        srv.close()
+
+
 def test_one_encode_per_version_encoding_and_base() -> None:
     store = WeightStore()
     store.publish(1, SPEC, tensors(0))
