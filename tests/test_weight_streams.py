@@ -282,13 +282,14 @@ def test_patches_flow_with_periodic_exact_resyncs_and_fall_back_on_a_lost_base(p
         srv.close()
 
 
-def _streamed(full, wire, base, chunk: int = 4096) -> tuple[list[bytes], object]:
+def _streamed(full, wire, base, chunk: int = 4096, level: int = 1) -> tuple[list[bytes], object]:
     """A streamed patch's frames as a subscriber receives them, and the state the sender reached."""
     from user.weight_codec import StreamedPatch, encode_patch_stream, iter_weight_frames, patch_header
 
     sink = StreamedPatch(patch_header(full, wire, base))
     reached = []
-    encoder = threading.Thread(target=lambda: reached.append(encode_patch_stream(full, wire, base, sink)))
+    encode = lambda: reached.append(encode_patch_stream(full, wire, base, sink, level=level))  # noqa: E731
+    encoder = threading.Thread(target=encode)
     encoder.start()  # frames are read while later slices are still being quantized
     frames = list(iter_weight_frames(sink, chunk))
     encoder.join()
@@ -304,10 +305,13 @@ def _feed(frames: list[bytes], receiver: WeightAssembler) -> WeightSet | None:
     return out
 
 
-@pytest.mark.parametrize("pipelined", [False, True], ids=["one-thread", "pipelined"])
+@pytest.mark.parametrize(
+    ("pipelined", "level"), [(False, 1), (True, 1), (False, -1)], ids=["one-thread", "pipelined", "stored"]
+)
 def test_streamed_patch_leads_to_the_same_bits_as_the_one_shot_patch_within_its_bound(
-    pipelined: bool, monkeypatch: pytest.MonkeyPatch
+    pipelined: bool, level: int, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    """stored: zstd's fast level (PATCH_FAST_LEVEL, for fast links), every slice its own piece."""
     from user import weight_codec
     from user.weight_codec import PATCH_BLOCK, PATCH_SLICE_BLOCKS, encode_patch, patch_body_bytes
 
@@ -323,7 +327,7 @@ def test_streamed_patch_leads_to_the_same_bits_as_the_one_shot_patch_within_its_
     base, wire2 = wire_payload(full1, fp32, prefixes), wire_payload(full2, fp32, prefixes)
     receiver = WeightAssembler()
     decode(full1, receiver)
-    frames, reached = _streamed(full2, wire2, base)
+    frames, reached = _streamed(full2, wire2, base, level=level)
     assert len(frames) > 3  # header, chunks, trailer
     got = _feed(frames, receiver)
     assert got is not None and got.version == 2 and got.encoding == WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD
@@ -334,7 +338,7 @@ def test_streamed_patch_leads_to_the_same_bits_as_the_one_shot_patch_within_its_
     err = np.abs(_f32(got.tensors).astype(np.float64) - _f32(v2))
     assert (err <= _patch_bound(v2, v1)).all() and err.max() > 0
     assert np.array_equal(got.tensors["actor.steps"], v2["actor.steps"])
-    assert got.encoded_bytes < 0.5 * patch_body_bytes(wire2.tensors)
+    assert got.encoded_bytes < (0.5 if level > 0 else 1.01) * patch_body_bytes(wire2.tensors)
 
 
 def test_streamed_patch_corrupt_truncated_aborted_or_on_a_wrong_base_is_rejected() -> None:
@@ -442,6 +446,37 @@ def test_one_streamed_patch_fans_out_to_every_subscriber_holding_its_base(framed
     finally:
         for sub, _ in subs:
             sub.stop()
+        srv.close()
+
+
+@pytest.mark.parametrize("fast", [True, False], ids=["fast-link", "slow-link"])
+def test_streamed_patch_is_stored_on_a_fast_link_and_compressed_on_a_slow_one(
+    fast: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The link's goodput measured on whole versions decides; both decode to the sender's exact state."""
+    from user import weights as weights_mod
+
+    monkeypatch.setattr(weights_mod, "FAST_LINK_BPS", 0.0 if fast else float("inf"))
+    store = WeightStore()
+    srv = Server(store)
+    stream = WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD
+    sub, got = subscribe(srv, "edge", encoding=stream, allow_lossy=True)
+    calls: list[bool] = []
+    real = store._stream_patch
+    store._stream_patch = lambda *a: calls.append(a[-1]) or real(*a)  # fast_link, per encode
+    try:
+        t = tensors(0, n=1 << 16)
+        for v in range(1, 4):
+            store.publish(v, SPEC, t)
+            assert sub.wait_version(v, 30)
+            helpers.wait_for(lambda v=v: srv.servicer.subscriber_status()[0].applied_version == v, f"ack of v{v}")
+            t = trained(t, v, lr=1e-3)
+        assert [w.encoding for w in got] == [WE.WEIGHT_ENCODING_FP32_ZSTD, stream, stream]
+        assert calls == [fast, fast]
+        held = store.state(sub._assembler.base_digest)
+        assert held is not None and np.array_equal(held.payload, sub._assembler.held.payload)
+    finally:
+        sub.stop()
         srv.close()
 
 

@@ -191,6 +191,28 @@ def test_store_skips_to_latest_and_rejects_old_versions() -> None:
     assert result[1] is None
 
 
+def test_publish_at_capacity_packs_into_the_departing_buffer() -> None:
+    """The oldest version leaves before the new one is packed, so its buffer is reused (no fresh pages);
+    one still in use (a stream sending it) is not."""
+    big = {"w": np.arange(1 << 19, dtype=np.float32)}  # 2 MiB: pooled
+    store = WeightStore(history=2)
+    store.publish(1, SPEC, big)
+    first = store.get(1)
+    assert first is not None
+    address = first.payload.__array_interface__["data"][0]  # type: ignore[union-attr]
+    del first
+    store.publish(2, SPEC, {"w": big["w"] + 1})
+    store.publish(3, SPEC, {"w": big["w"] + 2})
+    third = store.get(3)
+    assert third is not None and third.payload.__array_interface__["data"][0] == address  # type: ignore[union-attr]
+    assert [store.get(v) is not None for v in (1, 2, 3)] == [False, True, True]
+    np.testing.assert_array_equal(np.frombuffer(third.payload, np.float32), big["w"] + 2)
+    held = store.get(2)  # a stream still sending v2: v4 must not land in its buffer
+    store.publish(4, SPEC, {"w": big["w"] + 3})
+    assert held is not None
+    np.testing.assert_array_equal(np.frombuffer(held.payload, np.float32), big["w"] + 1)
+
+
 # --------------------------------------------------------------------------- real gRPC
 
 

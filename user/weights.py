@@ -45,7 +45,9 @@ from user.weight_codec import (
     MAX_CHUNK_BYTES,
     MAX_WEIGHT_BYTES,
     MIN_CHUNK_BYTES,
+    PATCH_FAST_LEVEL,
     WE,
+    ZSTD_LEVEL,
     BufferPool,
     PackedWeights,
     PatchError,
@@ -96,6 +98,10 @@ DEFAULT_HISTORY = 4
 # anyway (each is taken against what the subscriber holds); the resync makes it bit-exact again, e.g.
 # for evaluation at a known version. At publish_every = 100 updates: one exact set per 3,200 updates.
 DEFAULT_KEYFRAME_EVERY = 32
+# Above this measured goodput a streamed patch goes out stored (int8 values, not zstd-compressed):
+# compressing a body saves ~half its bytes at ~2 ms per MiB plus ~1 ms to decompress, which pays
+# only below ~150 MB/s (measured on loopback, docs/notes/weights.md).
+FAST_LINK_BPS = 100e6
 # What the adaptive choice sends as a patch: streamed (encode, transfer and apply overlap). The one-shot
 # FP32_PATCH_ZSTD stays for subscribers that pin it.
 PATCH = WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD
@@ -209,11 +215,41 @@ class WeightStore:
         *,
         experiment: str = "",
     ) -> PackedWeights:
+        self._make_room(version, experiment)
         packed = pack_weights(  # outside the lock
             version, policy, tensors, learner_updates, experiment=experiment, alloc=self._take_payload_buffer
         )
         self.publish_packed(packed)
         return packed
+
+    def _make_room(self, version: int, experiment: str) -> None:
+        """At capacity, the oldest version leaves before the new one is packed (not after), so the pack
+        can reuse its buffer: a fresh 400 MB payload spent ~1.4 s in page faults here, a reused one
+        ~0.17 s. The history is one short while packing; the latest version always stays."""
+        with self._cond:
+            versions = self._versions.get(experiment)
+            if not versions or version <= next(reversed(versions)) or len(versions) < max(2, self.history):
+                return
+            self._evict(experiment, versions, self.history - 1)
+
+    def _evict(self, experiment: str, versions: OrderedDict[int, PackedWeights], keep: int) -> None:
+        """Drop all but the newest `keep` versions (caller holds _cond), their encodings and states; their
+        payload buffers go to the pool, handed out again once nothing views them."""
+        while len(versions) > keep:
+            _, gone_packed = versions.popitem(last=False)
+            if isinstance(gone_packed.payload, np.ndarray):
+                with self._pool_lock:  # reused by a later publish once nothing views it
+                    self._payload_pool.give(gone_packed.payload)
+        kept = {(experiment, v) for v in versions}
+        with self._cache_lock:  # encodings of versions that left the history go with them
+            for key in [k for k in self._cache if k[0] == experiment and (k[0], k[1]) not in kept]:
+                del self._cache[key]
+            gone = [k for k, st in self._states.items() if k[0] == experiment and (k[0], st[0].version) not in kept]
+            for key in gone:
+                state, patched = self._states.pop(key)
+                if patched:
+                    with self._pool_lock:
+                        self._state_pool.give(state.payload)
 
     def publish_packed(self, packed: PackedWeights) -> None:
         if packed.header.encoding != ENCODING_RAW:
@@ -226,22 +262,8 @@ class WeightStore:
             if versions and packed.version <= next(reversed(versions)):
                 raise ValueError(f"weight version {packed.version} is not newer than {next(reversed(versions))}")
             versions[packed.version] = packed
-            while len(versions) > self.history:
-                _, gone_packed = versions.popitem(last=False)
-                if isinstance(gone_packed.payload, np.ndarray):
-                    with self._pool_lock:  # reused by a later publish once nothing views it
-                        self._payload_pool.give(gone_packed.payload)
-            kept = {(experiment, v) for v in versions}
+            self._evict(experiment, versions, self.history)
             self._cond.notify_all()
-        with self._cache_lock:  # encodings of versions that left the history go with them
-            for key in [k for k in self._cache if k[0] == experiment and (k[0], k[1]) not in kept]:
-                del self._cache[key]
-            gone = [k for k, st in self._states.items() if k[0] == experiment and (k[0], st[0].version) not in kept]
-            for key in gone:
-                state, patched = self._states.pop(key)
-                if patched:
-                    with self._pool_lock:
-                        self._state_pool.give(state.payload)
 
     def _take_payload_buffer(self, nbytes: int) -> np.ndarray:
         with self._pool_lock:
@@ -371,19 +393,23 @@ class WeightStore:
         prefixes: tuple[str, ...],
         base_version: int = 0,
         base_digest: bytes = b"",
+        fast_link: bool = False,
     ) -> PackedWeights | StreamedPatch:
         """`full` in `encoding` (a delta against base_version if nonzero), built once and shared.
 
         Patches name their base by digest (the exact state the subscriber holds): KeyError if it is no
-        longer kept, PatchError if a patch cannot carry this version."""
+        longer kept, PatchError if a patch cannot carry this version. fast_link: a streamed patch goes
+        out stored (PATCH_FAST_LEVEL), where compressing costs more time than the bytes it saves."""
         experiment = full.header.experiment
         codec = CODECS[encoding]
+        fast_link = fast_link and codec.stream
         key = (experiment, full.version, "enc", encoding, prefixes, base_digest if codec.patch else base_version)
+        key += ("fast",) if fast_link else ()
 
         def build() -> PackedWeights | StreamedPatch:
             start = time.perf_counter()
             if codec.stream:
-                return self._stream_patch(full, encoding, prefixes, base_digest)
+                return self._stream_patch(full, encoding, prefixes, base_digest, fast_link)
             if codec.patch:
                 held = self.state(base_digest, experiment)
                 if held is None:
@@ -419,7 +445,7 @@ class WeightStore:
         return self._once(key, build)
 
     def _stream_patch(
-        self, full: PackedWeights, encoding: int, prefixes: tuple[str, ...], base_digest: bytes
+        self, full: PackedWeights, encoding: int, prefixes: tuple[str, ...], base_digest: bytes, fast_link: bool
     ) -> StreamedPatch:
         """Start a streamed patch on its own thread and return it at once: every stream that wants it
         sends its pieces as they come, none waits for another subscriber's flow control."""
@@ -441,15 +467,17 @@ class WeightStore:
                 # the reached state is kept before the last chunk goes out: the subscriber's ack may come
                 # back at once, naming it as the base of its next patch
                 keep = lambda st: self._keep_state(experiment, st, patched=True)  # noqa: E731
-                encode_patch_stream(full, wire, held, sink, buf, keep)
+                level = PATCH_FAST_LEVEL if fast_link else ZSTD_LEVEL
+                encode_patch_stream(full, wire, held, sink, buf, keep, level)
             except PatchError as exc:  # its trailer sends the subscribers back for a full set
                 log.warning("no patch for this version", extra=kv(version=full.version, error=str(exc)))
                 return
             except Exception:
                 log.exception("streamed patch failed; its subscribers get a full set", extra=kv(version=full.version))
                 return
-            ratio = sink.encoded_bytes / max(1, full_bytes)
-            self._stats[encoding].observe(ratio, full_bytes, time.perf_counter() - start)
+            if not fast_link:  # the stats say what a compressed patch costs (slow links' choice)
+                ratio = sink.encoded_bytes / max(1, full_bytes)
+                self._stats[encoding].observe(ratio, full_bytes, time.perf_counter() - start)
 
         threading.Thread(target=run, daemon=True, name=f"patch-v{full.version}").start()
         return sink
@@ -495,6 +523,9 @@ class Link:
     patches_in_row: int = 0
     applied_version: int = 0
     goodput_bps: float = 0.0  # effective: encoded bytes / (send start -> ack, less the client's apply time)
+    # the same, from versions sent whole (not streamed while encoding, which would count encode time):
+    # what the link itself moves, for the choice of a streamed patch's compression
+    wire_bps: float = 0.0
     rtt_s: float = 0.0
     sync_latency_s: float = 0.0
     encoding: int = 0
@@ -732,8 +763,9 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
     def _encode(self, link: Link, full: PackedWeights) -> PackedWeights | StreamedPatch:
         prefixes = link.prefixes or (full.header.policy.tensor_prefix,)  # none asked: what the policy needs
         encoding, base = choose_encoding(self.store, link, full, prefixes, self.keyframe_every)
+        fast = link.wire_bps >= FAST_LINK_BPS
         try:
-            return self.store.encoded(full, encoding, prefixes, base, link.base_digest)
+            return self.store.encoded(full, encoding, prefixes, base, link.base_digest, fast)
         except (KeyError, PatchError):  # the base left the history meanwhile, or no patch fits: full set
             full_encoding = FULL_OF.get(encoding, encoding)
             return self.store.encoded(full, full_encoding, prefixes, 0)
@@ -783,6 +815,8 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         net_s = max(1e-6, elapsed_s - ack.apply_ns / 1e9)
         sample = packed.encoded_bytes / net_s
         link.goodput_bps = sample if link.goodput_bps <= 0 else 0.5 * link.goodput_bps + 0.5 * sample
+        if not codec.stream:
+            link.wire_bps = sample if link.wire_bps <= 0 else 0.5 * link.wire_bps + 0.5 * sample
         link.rtt_s = max(0.0, net_s - ack.transfer_ns / 1e9)
         if ack.apply_ns > 0:
             enc = packed.header.weight_encoding or WE.WEIGHT_ENCODING_FP32
