@@ -265,10 +265,7 @@ class _Inbox:
                 frames = _frames(req.step)
                 if not frames:
                     verdict: Any = True
-                elif self._handed - self._checked < _HELPER_BACKLOG:
-                    if self._helper is None:
-                        self._helper = threading.Thread(target=self._help, name="replay-insert-check", daemon=True)
-                        self._helper.start()
+                elif self._handed - self._checked < _HELPER_BACKLOG and self._helper_started():
                     self._handed += 1
                     self._to_helper.put(frames)
                     verdict = _HELPER
@@ -282,6 +279,18 @@ class _Inbox:
         finally:
             self._to_helper.put(None)
         self._offer(end)
+
+    def _helper_started(self) -> bool:
+        """Start the check helper once; False if no thread can be started (the reader then checks every step)."""
+        if self._helper is None:
+            self._helper = threading.Thread(target=self._help, name="replay-insert-check", daemon=True)
+            try:
+                self._helper.start()
+            except RuntimeError as exc:  # "can't start new thread": out of threads or memory
+                log.warning("insert check helper not started", extra=kv(error=str(exc)))
+                self._checked = self._handed - _HELPER_BACKLOG  # never hand a step over
+                return False
+        return True
 
     def _help(self) -> None:
         while (frames := self._to_helper.get()) is not None:
