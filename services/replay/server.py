@@ -246,8 +246,7 @@ class _Inbox:
     checks it itself otherwise, so on a busy stream they share the checks (a camera step's two 128x128 checks,
     ~70-110 us, were the reader's whole budget and capped one stream below the peer's add() rate). Items are
     (request, frames passed check_image), in stream order; a step handed over carries _HELPER, and its verdict
-    is the next one the helper returns
-    (both queues are FIFO and the stream thread takes items in order)."""
+    is the next one the helper returns (both queues are FIFO and the stream thread takes items in order)."""
 
     def __init__(self, requests: Iterator[replay_pb2.InsertRequest], maxsize: int) -> None:
         self._queue: queue.Queue = queue.Queue(maxsize=maxsize)  # bounded: backpressure on the client
