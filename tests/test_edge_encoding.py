@@ -18,7 +18,7 @@ from edge_agent.replay_client import ReplaySender
 from edge_agent.robot import Robot, make_robot
 from edge_agent.spool import open_outbox
 from services.replay.disk import step_key
-from services.replay.server import ReplayService
+from services.replay.server import _END, ReplayService, _Inbox
 from tests.helpers import wait_for
 from user import wire
 from user.config import AuthConfig, RobotConfig, StackConfig
@@ -173,6 +173,29 @@ def test_a_bad_edge_jpeg_is_invalid_argument_and_stores_nothing(replay: ReplaySe
     assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
     assert "camera.front" in (err.value.details() or "")
     assert replay.store.stats()["steps"] == 1  # the good step before it only
+
+
+def test_insert_frame_checks_on_two_threads_keep_stream_order_and_verdicts() -> None:
+    """The Insert reader shares the frame checks with a helper thread: items still come out in stream order,
+    each with its own step's verdict (every 7th step has a truncated frame), and the helper took part."""
+    rng = np.random.default_rng(2)
+    requests, bad = [], set()
+    for seq in range(40):
+        frame = wire.to_tensor(rng.integers(0, 256, (64, 64, 3), dtype=np.uint8), tpb.ENCODING_JPEG)
+        if seq % 7 == 3:
+            frame.data = frame.data[: len(frame.data) // 2]
+            bad.add(seq)
+        requests.append(replay_pb2.InsertRequest(seq=seq, step=_step(frame, seq)))
+    inbox = _Inbox(iter(requests), maxsize=4)  # small: the reader also waits for the stream thread
+    items = []
+    while (item := inbox.get(timeout=10)) is not _END:
+        assert item is not None, "the inbox stalled"
+        items.append(item)
+    inbox.close()
+    assert [req.seq for req, _ in items] == list(range(40))
+    assert {req.seq for req, passed in items if not passed} == bad
+    assert all(passed in (True, False) for _, passed in items)
+    assert inbox._handed >= 1  # the first step with frames always goes to the idle helper
 
 
 def _spec() -> robot_pb2.RobotSpec:

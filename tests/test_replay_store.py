@@ -17,6 +17,7 @@ from services.replay.store import (
 )
 from services.replay.validate import StepError, validate_step
 from user import wire
+from user.spec import step_check
 from user.v1 import robot_pb2, step_pb2
 from user.v1 import tensor_pb2 as tpb
 
@@ -251,7 +252,9 @@ def _set_obs(step: step_pb2.Step, array: np.ndarray) -> None:
 def test_validation_names_what_does_not_match(mutate, reason: str, message: str) -> None:
     step = make_step("arm-0", "e", 0)
     validate_step(step, spec())
+    assert step_check(spec()).passes(step, images_checked=False)  # the compiled fast path says yes to it...
     mutate(step)
+    assert not step_check(spec()).passes(step, images_checked=False)  # ...and never to a step the full check refuses
     with pytest.raises(StepError, match=message) as err:
         validate_step(step, spec())
     assert err.value.reason == reason

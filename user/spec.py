@@ -270,9 +270,119 @@ def action_check(spec: robot_pb2.RobotSpec) -> ActionCheck:
     return check
 
 
+class StepCheck:
+    """What one spec implies for a step, computed once per spec: a fast yes for a step that matches it.
+
+    `passes` answers True only when every check of validate_step holds; anything it does not prove (an odd
+    dtype or encoding, a bad value, an error to name) goes to the full check, which raises with the message.
+    It checks the same things without the per-step work of the full one (key sets, messages, generic decode):
+    ~27 -> ~10 us for a camera step, where the frames are checked apart.
+    """
+
+    _RAW_DTYPES = frozenset((tpb.DTYPE_FLOAT32, tpb.DTYPE_FLOAT64, tpb.DTYPE_UINT8, tpb.DTYPE_INT32, tpb.DTYPE_INT64))
+    _IMAGE = (tpb.ENCODING_JPEG, tpb.ENCODING_PNG)
+
+    def __init__(self, spec: robot_pb2.RobotSpec) -> None:
+        self.robot_id = spec.robot_id
+        # (name, dtype code, shape, numpy dtype or None when only the full check knows it, bytes, check finite)
+        self.features = [self._feature(f) for f in spec.observation]
+        # duplicate names (validate_spec refuses them): a key count cannot prove the key set, so no fast path
+        self.unique = len({f.name for f in spec.observation}) == len(self.features)
+        self.action = action_check(spec)
+        act = self.action
+        self.action_dtype = wire.dtype_from_proto(act.dtype) if act.dtype in self._RAW_DTYPES else None
+        size = math.prod(act.shape)  # as wire.from_tensor counts it (a scalar is one value)
+        ok = self.action_dtype is not None and all(d >= 0 for d in act.shape)
+        self.action_bytes = size * self.action_dtype.itemsize if ok else -1  # type: ignore[union-attr]
+        # finite limits: one range test also refuses NaN and Inf
+        self.action_limits = (
+            (act.low_limit, act.high_limit)
+            if act.bounded and np.isfinite(act.low_limit).all() and np.isfinite(act.high_limit).all()
+            else None
+        )
+
+    @classmethod
+    def _feature(cls, f: robot_pb2.FeatureSpec) -> tuple[str, int, tuple[int, ...], np.dtype | None, int, bool]:
+        shape = tuple(int(d) for d in f.shape)
+        dtype = wire.dtype_from_proto(f.dtype) if f.dtype in cls._RAW_DTYPES else None
+        nbytes = math.prod(shape) * dtype.itemsize if dtype is not None else -1
+        if min(shape, default=0) < 0 or nbytes > wire.MAX_TENSOR_BYTES:  # what wire.from_tensor refuses
+            dtype, nbytes = None, -1
+        return f.name, f.dtype, shape, dtype, nbytes, not f.allow_nan and dtype is not None and dtype.kind == "f"
+
+    def _tensors(self, tmap: tpb.TensorMap, images_checked: bool) -> bool:
+        tensors = tmap.tensors
+        if len(tensors) != len(self.features):
+            return False
+        for name, code, shape, dtype, nbytes, finite in self.features:
+            if name not in tensors:
+                return False
+            t = tensors[name]
+            if t.dtype != code or tuple(t.shape) != shape:
+                return False
+            enc = t.encoding
+            if enc in self._IMAGE:
+                if not images_checked:
+                    try:
+                        wire.check_image(t)
+                    except wire.WireError:
+                        return False
+                continue
+            if dtype is None or enc != tpb.ENCODING_RAW or len(t.data) != nbytes:
+                return False
+            if finite and not np.isfinite(np.frombuffer(t.data, dtype)).all():
+                return False
+        return True
+
+    def _action(self, tensor: tpb.Tensor) -> bool:
+        act = self.action
+        if self.action_limits is None or tensor.dtype != act.dtype or tuple(tensor.shape) != act.shape:
+            return False
+        if tensor.encoding != tpb.ENCODING_RAW or len(tensor.data) != self.action_bytes:
+            return False
+        values = np.frombuffer(tensor.data, self.action_dtype)
+        low, high = self.action_limits
+        return bool(((values >= low) & (values <= high)).all())  # NaN fails both
+
+    def passes(self, step: step_pb2.Step, images_checked: bool) -> bool:
+        rid, eid = step.robot_id, step.episode_id
+        if not self.unique or rid != self.robot_id or not _id_ok(rid, MAX_ROBOT_ID_BYTES):
+            return False
+        if not _id_ok(eid, MAX_EPISODE_ID_BYTES):
+            return False
+        if step.step_index >= MAX_INT64 or step.policy_version > MAX_INT64 or not math.isfinite(step.reward):
+            return False
+        has_final = step.HasField("final_observation")
+        if has_final != (step.terminated or step.truncated):
+            return False
+        if not self._tensors(step.observation, images_checked) or not self._action(step.action):
+            return False
+        return not has_final or self._tensors(step.final_observation, images_checked)
+
+
+def _id_ok(value: str, limit: int) -> bool:
+    return bool(value) and "/" not in value and "\0" not in value and len(value.encode()) <= limit
+
+
+# Compiled step checks keyed by the serialized spec (~1 us), so a spec edited in place is recompiled.
+_STEP_CHECKS: dict[bytes, StepCheck] = {}
+
+
+def step_check(spec: robot_pb2.RobotSpec) -> StepCheck:
+    key = spec.SerializeToString()
+    check = _STEP_CHECKS.get(key)
+    if check is None:
+        if len(_STEP_CHECKS) >= _COMPILED_MAX:
+            _STEP_CHECKS.clear()
+        check = _STEP_CHECKS[key] = StepCheck(spec)
+    return check
+
+
 def validate_step(step: step_pb2.Step, spec: robot_pb2.RobotSpec, images_checked: bool = False) -> None:
     """Raise StepError naming the first thing in `step` that does not match `spec` (images_checked: see
     check_tensor_map)."""
+    if step_check(spec).passes(step, images_checked):
+        return
     _check_id("robot_id", step.robot_id, MAX_ROBOT_ID_BYTES)
     if step.robot_id != spec.robot_id:
         raise StepError("robot_id", f"robot_id {step.robot_id!r} does not match the spec's {spec.robot_id!r}")

@@ -205,12 +205,13 @@ def check_image(tensor: tpb.Tensor) -> None:
     still read, no colour conversion, no full inverse DCT), a PNG in full. So a stored frame
     always decodes in the sampler; user_replay_undecodable_frames_total counts any that still fail there.
     """
-    shape = tuple(int(d) for d in tensor.shape)
-    if tensor.encoding not in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG):
-        raise WireError(f"not an image encoding: {tensor.encoding}")
+    shape = tuple(tensor.shape)  # ints (repeated int64)
+    encoding = tensor.encoding
+    if encoding not in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG):
+        raise WireError(f"not an image encoding: {encoding}")
     data = tensor.data
-    _check_image_header(data, shape, dtype_from_proto(tensor.dtype))
-    if tensor.encoding == tpb.ENCODING_PNG:
+    _check_image_header(data, shape, _UINT8 if tensor.dtype == tpb.DTYPE_UINT8 else dtype_from_proto(tensor.dtype))
+    if encoding == tpb.ENCODING_PNG:
         _decode_image(data, shape, np.dtype(np.uint8))
         return
     if data[-2:] != b"\xff\xd9":
@@ -239,6 +240,7 @@ def _decode_image(data: bytes, shape: tuple[int, ...], dtype: np.dtype) -> np.nd
     return img
 
 
+_UINT8 = np.dtype(np.uint8)
 _JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
 
 
