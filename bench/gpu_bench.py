@@ -14,6 +14,7 @@ The serving path end to end (gRPC, batching, robots as processes) on the GPU is 
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -221,14 +222,25 @@ def _loop_seconds(experiment: str) -> dict[str, float]:
     return out
 
 
+def _serve_replay(cfg_json: str, conn: Any) -> None:
+    """Child process: a replay service for the pipeline rows; sends its address, stops on any message."""
+    from services.replay.server import ReplayService
+    from user.config import StackConfig
+
+    service = ReplayService(StackConfig.model_validate_json(cfg_json), start_metrics=False).start()
+    conn.send(service.address)
+    conn.recv()
+    service.stop()
+
+
 def pipeline_rate(case: Case, device: str, seconds: float, workdir: Path, transitions: int = 2000) -> dict[str, float]:
-    """The learner service on `device` training from a real replay service over loopback gRPC (control gives the
-    robot's spec): updates/s once training runs, and the training thread's time by phase."""
+    """The learner service on `device` (this process) training from a real replay service (its own process) over
+    loopback gRPC, control giving the robot's spec: updates/s once training runs, the training thread's time by
+    phase."""
     import queue as queue_module
 
     from cloud_learner.server import LearnerService
     from services.control.server import ControlService
-    from services.replay.server import ReplayService
     from user.config import StackConfig
     from user.rpc import make_channel
     from user.v1 import control_pb2, control_pb2_grpc, learner_pb2, learner_pb2_grpc, replay_pb2_grpc
@@ -259,11 +271,17 @@ def pipeline_rate(case: Case, device: str, seconds: float, workdir: Path, transi
     up.put(control_pb2.EdgeMessage(register=register))
     link = control_pb2_grpc.ControlStub(make_channel(control.address, cfg.auth)).Connect(iter(up.get, None))
     next(link)  # registered
-    replay = ReplayService(cfg, start_metrics=False).start()
-    lc.replay_addr = replay.address
+    # Replay in its own process, as deployed: its Sample assembly must not share the learner's GIL.
+    ctx = multiprocessing.get_context("spawn")
+    to_replay, replay_end = ctx.Pipe()
+    replay = ctx.Process(target=_serve_replay, args=(cfg.model_dump_json(), replay_end), daemon=True)
+    replay.start()
+    if not to_replay.poll(120):
+        raise RuntimeError("replay process did not start")
+    lc.replay_addr = to_replay.recv()
     learner = None
     try:
-        stub = replay_pb2_grpc.ReplayStub(make_channel(replay.address, cfg.auth))
+        stub = replay_pb2_grpc.ReplayStub(make_channel(lc.replay_addr, cfg.auth))
         length = 100
         for _ack in stub.Insert(_steps(case, max(1, transitions // length), length), timeout=600):
             pass
@@ -283,7 +301,8 @@ def pipeline_rate(case: Case, device: str, seconds: float, workdir: Path, transi
     finally:
         if learner is not None:
             learner.stop()
-        replay.stop()
+        to_replay.send("stop")
+        replay.join(30)
         up.put(None)
         link.cancel()
         control.stop()
