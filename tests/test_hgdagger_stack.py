@@ -93,8 +93,13 @@ def test_an_intervention_from_the_edge_changes_the_served_policy(tmp_path: Path)
             replay_pb2.SampleRequest(batch_size=32, tables={"interventions": 1.0}, robot_ids=["arm-0"]), timeout=10
         ).batch
         assert wire.from_tensor(batch.intervention).all()
-        robots = control.ListRobots(control_pb2.ListRobotsRequest(), timeout=10).robots
-        assert sum(r.status.intervention_steps for r in robots) > 0
+        # The edge's counters reach control with its next heartbeat (later than the steps, on a busy machine).
+
+        def counted() -> int:
+            robots = control.ListRobots(control_pb2.ListRobotsRequest(), timeout=10).robots
+            return sum(r.status.intervention_steps for r in robots)
+
+        assert wait_for(counted, "the edge's intervention count in control") > 0
     finally:
         codes = stack.stop()
     assert codes == {name: 0 for name in codes}, f"unclean exits: {codes}"
