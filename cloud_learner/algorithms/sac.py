@@ -183,6 +183,15 @@ def split(batch: Batch, parts: int) -> list[Batch]:
     return [Batch(**{f: cut(getattr(batch, f), i) for f in Batch.__dataclass_fields__}) for i in range(parts)]
 
 
+def bc_mse(mean_action: torch.Tensor, batch: Batch) -> torch.Tensor:
+    """MSE of the deterministic action to the stored one, over the rows a human or script chose (real
+    action dims only with a padded layout); 0 when the batch has none."""
+    mask, human = batch.action_mask, batch.intervention.float()
+    error = (mean_action - batch.action).pow(2)
+    per_row = error.mean(dim=-1) if mask is None else (error * mask).sum(-1) / mask.sum(-1).clamp(min=1)
+    return (per_row * human).sum() / human.sum().clamp(min=1.0)
+
+
 def publish(
     actor: GaussianActor, layout: Layout, p: EncoderParams
 ) -> tuple[learner_pb2.PolicySpec, dict[str, np.ndarray]]:
@@ -305,10 +314,7 @@ class SAC(Algorithm):
         actor_loss = (alpha * log_prob - q_pi).mean()
         bc_weight, bc_loss = self.bc_weight(), torch.zeros(())
         if bc_weight > 0 and batch is not None:
-            human = batch.intervention.float()
-            error = (mean_action - batch.action).pow(2)
-            per_row = error.mean(dim=-1) if mask is None else (error * mask).sum(-1) / mask.sum(-1).clamp(min=1)
-            bc_loss = (per_row * human).sum() / human.sum().clamp(min=1.0)
+            bc_loss = bc_mse(mean_action, batch)
             actor_loss = actor_loss + bc_weight * bc_loss
         self.actor_optimizer.zero_grad(set_to_none=True)
         actor_loss.backward()  # also leaves grads on the critic; its optimizer clears them before its step
@@ -326,6 +332,9 @@ class SAC(Algorithm):
         return {
             "actor_loss": float(actor_loss.detach()),
             "bc_loss": float(bc_loss.detach()),
+            # the two pulls on the actor, for curves: how big the Q term is against the weighted BC term
+            "q_pi": float(q_pi.detach().mean()),
+            "bc_term": bc_weight * float(bc_loss.detach()),
             "alpha_loss": float(alpha_loss.detach()),
             "alpha": self.alpha,
             "entropy": float(-log_prob.detach().mean()),
