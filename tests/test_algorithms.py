@@ -140,6 +140,23 @@ def test_termination_stops_bootstrapping_truncation_does_not() -> None:
     assert not torch.allclose(algo.td_target(batch, batch.next_observation), batch.reward)
 
 
+@pytest.mark.parametrize("backup_entropy", [True, False])
+def test_backup_entropy_puts_the_entropy_bonus_in_the_td_target_or_not(backup_entropy: bool) -> None:
+    """Off, the target is r + discount * min Q whatever alpha is (a peaked actor's log-densities of ~+10 per
+    step would otherwise drive the soft value of a 0/1 task far below 0)."""
+    algo = _algorithm("rlpd", pixels=False, backup_entropy=backup_entropy)
+    batch = _batch(0, 8, pixels=False)
+    batch.terminated = torch.zeros(8)
+
+    def target(alpha: float) -> torch.Tensor:
+        with torch.no_grad():
+            algo.log_alpha.fill_(float(np.log(alpha)))
+        torch.manual_seed(3)  # the same next actions and target heads both times
+        return algo.td_target(batch, batch.next_observation)
+
+    assert torch.allclose(target(0.01), target(5.0)) is not backup_entropy
+
+
 def test_only_the_critic_trains_the_shared_image_encoder() -> None:
     algo = _algorithm("sac", pixels=True)
     assert isinstance(algo, SAC) and algo.actor.encoder is algo.critic.encoder

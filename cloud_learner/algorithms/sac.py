@@ -77,6 +77,11 @@ class SACParams(EncoderParams):
     utd: int = Field(default=1, ge=1, description="critic steps per actor step (update-to-data ratio)")
     tables: dict[str, float] = Field(default={"online": 1.0}, description="replay table -> share of each batch")
     n_step: int = Field(default=1, ge=1, description="n-step returns, summed by the replay service")
+    backup_entropy: bool = Field(
+        default=True,
+        description="TD targets include the entropy bonus -alpha*log pi (off: a near-deterministic policy's large "
+        "log-densities do not swamp a 0/1 reward; off is SERL's SAC default)",
+    )
     bc_weight: float = Field(
         default=0.0, ge=0, description="weight of a BC term (MSE to the human action) on intervention/demo rows"
     )
@@ -265,7 +270,8 @@ class SAC(Algorithm):
 
     @torch.no_grad()
     def td_target(self, batch: Batch, next_obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """r + discount * (min over a random subset of target heads - alpha * log pi), unless terminated.
+        """r + discount * (min over a random subset of target heads - alpha * log pi), unless terminated
+        (without the entropy term when backup_entropy is off).
 
         Only termination stops bootstrapping; a truncated episode still has a future. The target
         encoder's features of the next observations serve both the next action and the target heads
@@ -274,7 +280,9 @@ class SAC(Algorithm):
         next_action, next_log_prob, _ = self.actor.head(next_features, batch.action_mask)
         target_q = self.critic_target(next_features, masked(next_action, batch.action_mask))
         subset = torch.randperm(self.p.num_critics, device=self.device)[: self.p.target_subset]
-        next_v = target_q[subset].min(dim=0).values - self.log_alpha.exp() * next_log_prob
+        next_v = target_q[subset].min(dim=0).values
+        if self.p.backup_entropy:
+            next_v = next_v - self.log_alpha.exp() * next_log_prob
         discount = batch.discount if batch.discount is not None else self.p.gamma
         return batch.reward + discount * (1.0 - batch.terminated) * next_v
 
