@@ -42,8 +42,15 @@ PEER = "random policy"
 WINDOW = 20  # episodes in the rolling success rate
 EVAL_EVERY = 4  # Panda: every 4th episode acts with the mean action and no expert
 PRETRAIN_UPDATES = 300  # Panda: offline updates on the demos before the first env step (actor warm start)
-# SO-101: plain BC on its demos needs ~1,000-2,000 updates to fit the grasp (at 300 the clone still blurs it)
-SO101_PRETRAIN_UPDATES = 1500
+# SO-101: plain BC on its demos needs ~1,000-2,000 updates to fit the grasp (at 300 the clone still blurs it).
+# The RLPD actor first becomes that clone by BC alone (with the Q term from the start it picked 0 of 15 after
+# 1,500 updates, the clone 16 of 20), then the critics alone learn on the demos with the clone frozen: 6,000
+# updates, as a 30-step pick needs many Polyak-lagged bootstraps (after 1,000 the demos' Q was still -0.1).
+# No entropy bonus in the TD target: the clone's log-densities (entropy -12) made the demos' soft Q -0.8.
+# BC weight 5 (was 1): with 1 the actor left the clone for the critics' optimism (Q 0.76 on 0 % success).
+SO101_WARM_START = {"actor_pretrain_updates": 2000, "critic_warmup_updates": 6000}
+SO101_PARAMS = {"utd": 1, "num_critics": 4, "backup_entropy": False, "bc_weight": 5.0, **SO101_WARM_START}
+SO101_PRETRAIN_UPDATES = sum(SO101_WARM_START.values())
 OUT = Path("runs/bench/curves")
 # Panda from pixels, sized for 2 CPU cores: at 128x128, batch 64, UTD 2 and 10 critics an update cost ~0.9 CPU s
 # and a 12-minute run made 234 env steps. Frames are rendered at 64x64 (the cube is still ~2x2 px in the front
@@ -79,6 +86,19 @@ def first_reaching(curve: Curve, target: float) -> tuple[int, float, float] | No
         if counted[i] >= WINDOW and value >= target:
             return curve.env_steps[i], curve.wall_s[i], curve.cpu_s[i]
     return None
+
+
+def blocks(curve: Curve, size: int = WINDOW) -> list[str]:
+    """Per block of `size` episodes: "successes/episodes" over the unhelped ones, then the CPU minutes
+    at the block's end and the deterministic evaluations ("3/5") in brackets."""
+    out = []
+    for start in range(0, len(curve.success), size):
+        part = range(start, min(start + size, len(curve.success)))
+        alone = [curve.success[i] for i in part if not curve.interventions[i]]
+        evals = [curve.success[i] for i in part if curve.evaluation[i]]
+        cpu = curve.cpu_s[part[-1]] / 60
+        out.append(f"{sum(alone)}/{len(alone)} ({cpu:.1f} CPU min, eval {sum(evals)}/{len(evals)})")
+    return out
 
 
 def random_success(robot: Robot, env_steps: int, seed: int) -> float:
@@ -312,15 +332,28 @@ ARMS = {  # arm -> (robot kind, display name, camera param)
 
 
 def pick(
-    arm: str, quick: bool, minutes: float, out_dir: Path, log: Callable[..., None], pixels: bool = False
+    arm: str,
+    quick: bool,
+    minutes: float,
+    out_dir: Path,
+    log: Callable[..., None],
+    pixels: bool = False,
+    overrides: dict[str, Any] | None = None,
+    tag: str = "",
+    pretrain_updates: int | None = None,
+    cpu_minutes: float | None = None,
+    seed: int = 0,
 ) -> list[Row]:
-    """From state (target 80 %), or from the cameras + proprioception (target: success rising, 20 %)."""
+    """From state (target 80 %), or from the cameras + proprioception (target: success rising, 20 %).
+    A variant to compare: `overrides` replace RLPD params, `pretrain_updates` the offline updates, `tag`
+    suffixes the curve's name, `seed` (robot, trainer, interventions; the demos stay seeds 1000+) gives a replicate;
+    `cpu_minutes` stops at that much process CPU time (besides `minutes` of wall)."""
     kind, arm_name, camera_param = ARMS[arm]
     load_at_start = os.getloadavg()
     camera_params = PIXEL_ROBOT if arm == "panda" else {camera_param: True}
     robot_params: dict[str, Any] = {"reward_type": "sparse", **(camera_params if pixels else {})}
     try:
-        robot = make_robot(kind, f"bench-{arm}", params=robot_params, seed=0)
+        robot = make_robot(kind, f"bench-{arm}", params=robot_params, seed=seed)
     except (ValueError, ImportError) as exc:  # gym-hil / lerobot-env-so101 missing: the kind is not registered
         log(f"{arm} skipped: {exc}")
         return []
@@ -329,7 +362,7 @@ def pick(
         log(f"{arm} from pixels skipped: this {kind} robot has no cameras")
         robot.close()
         return []
-    seed, target = 0, 0.2 if pixels else 0.8
+    target = 0.2 if pixels else 0.8
     views = " + ".join(c.removeprefix("camera.") for c in cameras)
     source = f"from the {views} cameras and proprioception" if pixels else "from state"
     act = so101_expert(robot) if arm == "so101" else (lambda o, _first: panda_pick_expert(expert_state(o)))
@@ -351,9 +384,10 @@ def pick(
         "bc_weight": 1.0,
     }
     if arm == "so101":  # half the update cost (the two-arms stack's setting, where the Panda reached 80 %)
-        params |= {"utd": 1, "num_critics": 4}
+        params |= SO101_PARAMS
     if quick:
         params = {"hidden": [32, 32], "batch_size": 16, "utd": 2, "num_critics": 4, "bc_weight": 1.0}
+    params |= overrides or {}
     if pixels:  # cameras + proprioception (no cube position): the cube must be found in the images
         params |= {"features": [*cameras, "state"], **(PIXEL_PARAMS if not quick else {"utd": 1})}
     # standardize the state with the demos' statistics (raw: metres, radians and velocities mixed)
@@ -365,8 +399,11 @@ def pick(
     algorithm = make_algorithm("rlpd", params, robot.spec)
     env_steps = 30 if quick else 1_000_000
     expert = ScriptedInterventions(start_share=0.5, after_steps=30, decay_steps=20_000, seed=seed, act=act)
-    name = f"{arm}_pick_rlpd_{'pixels' if pixels else 'state'}"
+    name = f"{arm}_pick_rlpd_{'pixels' if pixels else 'state'}{tag}"
     pretrain = PIXEL_PRETRAIN_UPDATES if pixels else SO101_PRETRAIN_UPDATES if arm == "so101" else PRETRAIN_UPDATES
+    # the offline phase covers the algorithm's own warm start (BC-only actor, critics alone), if longer
+    pretrain = max(pretrain, params.get("actor_pretrain_updates", 0) + params.get("critic_warmup_updates", 0))
+    pretrain = pretrain if pretrain_updates is None else pretrain_updates
 
     def progress(curve: Curve) -> None:  # a long run on a shared machine: keep the curve so far on disk
         if len(curve.success) % 10 == 0:
@@ -389,6 +426,7 @@ def pick(
         random_steps=0,
         policy_every=10,
         max_seconds=None if quick else minutes * 60,
+        max_cpu_seconds=None if quick or cpu_minutes is None else cpu_minutes * 60,
         pretrain_updates=5 if quick else pretrain,
         eval_every=EVAL_EVERY,
         on_episode=None if quick else progress,
@@ -401,13 +439,17 @@ def pick(
         "algorithm": "rlpd",
         "params": {k: v for k, v in params.items() if not k.startswith("state_")},
         "pretrain_updates": 5 if quick else pretrain,
+        "seed": seed,
         "robot_params": robot_params,
         "demo_success": float(np.mean(demo_success)),
         "load_average_at_start": load_at_start,
         "load_average_at_end": os.getloadavg(),
+        "pretrain_last": out["pretrain_last"],
+        "unhelped_blocks": blocks(out["curve"]),
     }
     save_curve(name, out["curve"], target, meta, out_dir)
     log(f"{arm}: {len(out['curve'].success)} episodes, demos {np.mean(demo_success):.2f} successful")
+    log(f"{name}: unhelped successes per block of {WINDOW} episodes: {meta['unhelped_blocks']}")
     rows = rows_for(f"{arm} pick-cube", f"{source}, RLPD + demos + interventions", out, target, minutes, peer, quick)
     rows.append(
         Row(
@@ -430,8 +472,8 @@ def panda_pixels(quick: bool, minutes: float, out_dir: Path, log: Callable[..., 
     return pick("panda", quick, minutes, out_dir, log, pixels=True)
 
 
-def so101(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None]) -> list[Row]:
-    return pick("so101", quick, minutes, out_dir, log)
+def so101(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None], **variant: Any) -> list[Row]:
+    return pick("so101", quick, minutes, out_dir, log, **variant)
 
 
 EXPERIMENTS = {
@@ -448,14 +490,18 @@ def run(
     log: Callable[..., None] = print,
     only: list[str] | None = None,
     minutes: dict[str, float] | None = None,
+    so101_variant: dict[str, Any] | None = None,
 ) -> list[Row]:
+    """`so101_variant`: keyword arguments of `pick` for the SO-101 curve (overrides, tag, pretrain_updates,
+    cpu_minutes)."""
     torch.set_num_threads(1)
     out_dir = Path(workdir) / "curves" if quick else OUT
     rows: list[Row] = []
     for name in only or list(EXPERIMENTS):
         fn, default_minutes = EXPERIMENTS[name]
         start = time.perf_counter()
-        rows += fn(quick, (minutes or {}).get(name, default_minutes), out_dir, log)
+        variant = (so101_variant or {}) if name == "so101" else {}
+        rows += fn(quick, (minutes or {}).get(name, default_minutes), out_dir, log, **variant)
         log(f"curves {name}: {time.perf_counter() - start:.0f} s, curves in {out_dir}")
     return rows
 
@@ -468,6 +514,11 @@ def main() -> None:
     parser.add_argument("--panda-minutes", type=float, default=30.0)
     parser.add_argument("--panda-pixels-minutes", type=float, default=30.0)
     parser.add_argument("--so101-minutes", type=float, default=30.0)
+    parser.add_argument("--so101-params", default="{}", help="JSON object of RLPD params replacing the SO-101's")
+    parser.add_argument("--tag", default="", help="suffix of the SO-101 curve's file name (a variant)")
+    parser.add_argument("--so101-pretrain-updates", type=int, default=None, help="offline updates (default: recipe)")
+    parser.add_argument("--so101-cpu-minutes", type=float, default=None, help="stop at this much process CPU time")
+    parser.add_argument("--so101-seed", type=int, default=0, help="robot, trainer and intervention seed (replicates)")
     parser.add_argument("--workdir", default="runs/bench")
     args = parser.parse_args()
     os.environ.setdefault("MUJOCO_GL", "egl")
@@ -480,6 +531,13 @@ def main() -> None:
             "panda": args.panda_minutes,
             "panda_pixels": args.panda_pixels_minutes,
             "so101": args.so101_minutes,
+        },
+        so101_variant={
+            "overrides": json.loads(args.so101_params),
+            "tag": args.tag,
+            "pretrain_updates": args.so101_pretrain_updates,
+            "cpu_minutes": args.so101_cpu_minutes,
+            "seed": args.so101_seed,
         },
     )
     for row in rows:

@@ -124,6 +124,9 @@ class Curve:
     episode_return: list[float] = field(default_factory=list)
     interventions: list[int] = field(default_factory=list)
     evaluation: list[bool] = field(default_factory=list)  # acted with the mean action, no expert
+    # per episode, the mean of each scalar the updates during it returned (alpha, q, q_pi, bc_term, ...):
+    # what the learner was doing while the success rate moved; {} for an episode without updates
+    learner: list[dict[str, float]] = field(default_factory=list)
 
     def autonomous_success(self) -> list[bool]:
         """Successes of the episodes nobody intervened in: what the policy does on its own."""
@@ -155,6 +158,7 @@ def train_local(
     on_episode: Callable[[Curve], None] | None = None,
     max_seconds: float | None = None,
     pretrain_updates: int = 0,
+    max_cpu_seconds: float | None = None,
     eval_every: int = 0,
 ) -> dict[str, Any]:
     """Collect with the published stochastic policy and update after every step.
@@ -165,7 +169,8 @@ def train_local(
     pre-filled (e.g. a "demos" table); `pretrain_updates` updates run on it before the first step
     (the offline phase: critic and, with a BC term, actor warm-start on the demos). Every
     `eval_every`-th episode (0: none) acts with the mean action and no expert: an evaluation episode,
-    flagged in the curve (its transitions are still stored). Stops early after `max_seconds` of wall time.
+    flagged in the curve (its transitions are still stored). Stops early after `max_seconds` of wall time
+    or `max_cpu_seconds` of this process's CPU time (comparable between runs on a shared machine).
     """
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
@@ -179,8 +184,10 @@ def train_local(
     start, cpu_start = time.perf_counter(), time.process_time()
     if pretrain_updates and not any(t.size for t in buffer.tables.values()):
         raise ValueError("pretrain_updates needs a pre-filled buffer (e.g. a demos table)")
+    pretrain_info: list[dict[str, float]] = []
     for _ in range(pretrain_updates):
-        algorithm.update(buffer.sample(algorithm.batch_request(), rng, algorithm.device))
+        pretrain_info.append(algorithm.update(buffer.sample(algorithm.batch_request(), rng, algorithm.device)))
+    scalars: dict[str, list[float]] = {}  # update scalars since the last episode ended
     policy = build_policy(*algorithm.policy(), version=algorithm.updates)
     evaluating = False
 
@@ -214,6 +221,8 @@ def train_local(
             curve.episode_return.append(ep_return)
             curve.interventions.append(ep_interventions)
             curve.evaluation.append(evaluating)
+            curve.learner.append({k: float(np.mean(v)) for k, v in scalars.items()})
+            scalars = {}
             evaluating = eval_every > 0 and (len(curve.success) + 1) % eval_every == 0
             if on_episode is not None:
                 on_episode(curve)
@@ -225,15 +234,27 @@ def train_local(
         if online.size >= min_transitions:
             credit += updates_per_step
             while credit >= 1.0:
-                algorithm.update(buffer.sample(algorithm.batch_request(), rng, algorithm.device))
+                info = algorithm.update(buffer.sample(algorithm.batch_request(), rng, algorithm.device))
+                for k, v in info.items():
+                    scalars.setdefault(k, []).append(v)
                 credit -= 1.0
             if (step + 1) % policy_every == 0:
                 policy = build_policy(*algorithm.policy(), version=algorithm.updates)
 
         if max_seconds is not None and time.perf_counter() - start > max_seconds:
             break
+        if max_cpu_seconds is not None and time.process_time() - cpu_start > max_cpu_seconds:
+            break
 
-    return {"curve": curve, "updates": algorithm.updates, "env_steps": step + 1, "buffer": buffer}
+    # the offline phase's last scalars (e.g. the BC loss the actor reached, the critics' Q after their warm-up)
+    last = pretrain_info[-1] if pretrain_info else {}
+    return {
+        "curve": curve,
+        "updates": algorithm.updates,
+        "env_steps": step + 1,
+        "buffer": buffer,
+        "pretrain_last": {k: float(v) for k, v in last.items()},
+    }
 
 
 def record_episodes(

@@ -140,6 +140,23 @@ def test_termination_stops_bootstrapping_truncation_does_not() -> None:
     assert not torch.allclose(algo.td_target(batch, batch.next_observation), batch.reward)
 
 
+@pytest.mark.parametrize("backup_entropy", [True, False])
+def test_backup_entropy_puts_the_entropy_bonus_in_the_td_target_or_not(backup_entropy: bool) -> None:
+    """Off, the target is r + discount * min Q whatever alpha is (a peaked actor's log-densities of ~+10 per
+    step would otherwise drive the soft value of a 0/1 task far below 0)."""
+    algo = _algorithm("rlpd", pixels=False, backup_entropy=backup_entropy)
+    batch = _batch(0, 8, pixels=False)
+    batch.terminated = torch.zeros(8)
+
+    def target(alpha: float) -> torch.Tensor:
+        with torch.no_grad():
+            algo.log_alpha.fill_(float(np.log(alpha)))
+        torch.manual_seed(3)  # the same next actions and target heads both times
+        return algo.td_target(batch, batch.next_observation)
+
+    assert torch.allclose(target(0.01), target(5.0)) is not backup_entropy
+
+
 def test_only_the_critic_trains_the_shared_image_encoder() -> None:
     algo = _algorithm("sac", pixels=True)
     assert isinstance(algo, SAC) and algo.actor.encoder is algo.critic.encoder
@@ -288,6 +305,79 @@ def test_bc_term_pulls_the_rlpd_actor_to_human_actions_and_decays() -> None:
     assert algo.bc_weight() == 0.0
     scalars = algo.update(_request_batch(algo, 0, pixels=False))
     assert scalars["bc_loss"] == 0.0  # decayed away: no BC term
+
+
+def _snapshot(module: torch.nn.Module) -> list[torch.Tensor]:
+    return [x.detach().clone() for x in module.parameters()]
+
+
+def _moved(before: list[torch.Tensor], module: torch.nn.Module) -> bool:
+    return any(not torch.equal(a, b) for a, b in zip(before, module.parameters(), strict=True))
+
+
+def test_rlpd_warm_start_clones_the_demos_then_warms_the_critics_then_runs_rl() -> None:
+    """actor_pretrain_updates: BC alone (critics and alpha untouched, the actor's mean reaches the demo
+    actions at actor_pretrain_lr); critic_warmup_updates: critics alone (actor and alpha frozen); then RLPD,
+    with the BC decay counted from there."""
+    target = torch.tensor([0.5, -1.0])
+    warm = {"actor_pretrain_updates": 60, "critic_warmup_updates": 5, "actor_pretrain_lr": 3e-3}
+    algo = _algorithm("rlpd", False, **warm, init_alpha=0.1, bc_weight=2.0, bc_decay_updates=10)
+    probe = _batch(999, 64, pixels=False)
+
+    def bc_error() -> float:
+        with torch.no_grad():
+            return float((algo.actor(probe.observation)[2] - target).pow(2).mean())
+
+    def demo_batch(i: int) -> Batch:
+        batch = _request_batch(algo, i, pixels=False)
+        batch.intervention[:] = True
+        batch.action[:] = target
+        return batch
+
+    start, critic, log_alpha = bc_error(), _snapshot(algo.critic), algo.log_alpha.detach().clone()
+    assert algo.phase() == "actor_bc" and algo.bc_weight() == 2.0  # no decay before RL starts
+    for i in range(60):
+        scalars = algo.update(demo_batch(i))
+    assert algo.actor_optimizer.param_groups[0]["lr"] == 3e-3
+    assert set(scalars) == {"bc_loss", "alpha"} and bc_error() < 0.05 * start, (start, bc_error())
+    assert not _moved(critic, algo.critic) and torch.equal(algo.log_alpha.detach(), log_alpha)
+
+    assert algo.phase() == "critic_warmup"
+    actor = _snapshot(algo.actor)
+    for i in range(5):
+        scalars = algo.update(demo_batch(100 + i))
+    assert "critic_loss" in scalars and "actor_loss" not in scalars
+    assert _moved(critic, algo.critic) and not _moved(actor, algo.actor)
+    assert torch.equal(algo.log_alpha.detach(), log_alpha)
+
+    assert algo.phase() == "rl" and algo.bc_weight() == 2.0  # the decay starts here, not at update 0
+    scalars = algo.update(demo_batch(200))
+    assert algo.actor_optimizer.param_groups[0]["lr"] == algo.p.actor_lr
+    assert {"actor_loss", "q_pi", "bc_term"} <= set(scalars) and _moved(actor, algo.actor)
+    assert not torch.equal(algo.log_alpha.detach(), log_alpha)
+    algo.updates = 65 + 5
+    assert algo.bc_weight() == pytest.approx(1.0)
+
+
+def test_rlpd_warm_start_resumes_in_its_phase() -> None:
+    """The phase follows the checkpointed update count: a learner resumed mid-warm-start stays in it."""
+    algo = _algorithm("rlpd", False, actor_pretrain_updates=2, critic_warmup_updates=2)
+    for i in range(3):
+        algo.update(_request_batch(algo, i, pixels=False))
+    buf = io.BytesIO()  # through bytes, as a checkpoint goes: a live state_dict shares Adam's moment tensors
+    torch.save(algo.state_dict(), buf)
+    buf.seek(0)
+    restored = _algorithm("rlpd", False, seed=1, actor_pretrain_updates=2, critic_warmup_updates=2)
+    restored.load_state_dict(torch.load(buf, weights_only=True))
+    assert restored.phase() == algo.phase() == "critic_warmup"
+    batch = _request_batch(algo, 9, pixels=False)
+    torch.manual_seed(7)
+    a = algo.update(batch)
+    torch.manual_seed(7)
+    assert restored.update(batch) == pytest.approx(a, rel=1e-5, abs=1e-6)
+    assert restored.phase() == "rl"
+    with pytest.raises(PluginError, match="actor_pretrain_updates"):
+        ALGORITHMS.params("rlpd", {"actor_pretrain_updates": -1})
 
 
 def test_state_normalization_is_published_and_checked() -> None:

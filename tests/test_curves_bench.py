@@ -71,6 +71,32 @@ def test_evaluation_episodes_act_alone_and_helped_episodes_do_not_count() -> Non
     assert list(curves_bench.rolling_success(curve, autonomous=False))[-1] == pytest.approx(4 / 6)
 
 
+def test_curve_records_what_the_learner_did_per_episode_and_cpu_budget_stops() -> None:
+    """Per episode the mean of the update scalars during it (alpha, Q, the BC term: why a curve moves), none
+    before updates start; the offline phase's last scalars come back; a CPU budget ends the run."""
+    robot = make_robot("sim_reach_arm", "t", params={"max_episode_steps": 20}, seed=0)
+    params = {"hidden": [16], "batch_size": 8, "num_critics": 2, "utd": 1, "bc_weight": 1.0}
+    algorithm = make_algorithm("rlpd", {**params, "actor_pretrain_updates": 2, "critic_warmup_updates": 1}, robot.spec)
+    buffer = Buffer()
+    record_episodes(robot, lambda obs, ep_step: np.zeros(3, np.float32), 1, buffer.table("demos"))
+    out = train_local(robot, algorithm, 100, min_transitions=30, pretrain_updates=3, buffer=buffer)
+    curve = out["curve"]
+    assert len(curve.learner) == len(curve.success) == 5
+    assert curve.learner[0] == {}  # 20 steps, updates start at 30
+    assert {"alpha", "q", "q_pi", "bc_term", "bc_loss"} <= set(curve.learner[-1])
+    assert curve.learner[-1]["bc_term"] == pytest.approx(curve.learner[-1]["bc_loss"])  # weight 1
+    assert set(out["pretrain_last"]) == {"critic_loss", "q", "alpha"}  # the last offline update warmed the critics
+    assert json.loads(json.dumps(curve.to_json()))["learner"][-1]["alpha"] == curve.learner[-1]["alpha"]
+    stopped = train_local(robot, algorithm, 100, min_transitions=30, max_cpu_seconds=0.0)
+    robot.close()
+    assert stopped["env_steps"] == 1
+    curve.interventions = [0, 3, 0, 0, 0]
+    curve.evaluation = [False, False, False, True, False]
+    curve.success = [True, True, False, True, False]
+    assert [b.split(" (")[0] for b in curves_bench.blocks(curve, size=3)] == ["1/2", "1/2"]
+    assert "eval 1/1" in curves_bench.blocks(curve, size=3)[1]
+
+
 @pytest.mark.skipif("gym_hil_panda" not in known_robot_kinds(), reason="gym-hil not installed")
 def test_scripted_pick_expert_succeeds_and_records_demos() -> None:
     robot = make_robot("gym_hil_panda", "t", params={"reward_type": "sparse"}, seed=0)

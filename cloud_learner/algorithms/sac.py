@@ -77,6 +77,11 @@ class SACParams(EncoderParams):
     utd: int = Field(default=1, ge=1, description="critic steps per actor step (update-to-data ratio)")
     tables: dict[str, float] = Field(default={"online": 1.0}, description="replay table -> share of each batch")
     n_step: int = Field(default=1, ge=1, description="n-step returns, summed by the replay service")
+    backup_entropy: bool = Field(
+        default=True,
+        description="TD targets include the entropy bonus -alpha*log pi (off: a near-deterministic policy's large "
+        "log-densities do not swamp a 0/1 reward; off is SERL's SAC default)",
+    )
     bc_weight: float = Field(
         default=0.0, ge=0, description="weight of a BC term (MSE to the human action) on intervention/demo rows"
     )
@@ -183,6 +188,15 @@ def split(batch: Batch, parts: int) -> list[Batch]:
     return [Batch(**{f: cut(getattr(batch, f), i) for f in Batch.__dataclass_fields__}) for i in range(parts)]
 
 
+def bc_mse(mean_action: torch.Tensor, batch: Batch) -> torch.Tensor:
+    """MSE of the deterministic action to the stored one, over the rows a human or script chose (real
+    action dims only with a padded layout); 0 when the batch has none."""
+    mask, human = batch.action_mask, batch.intervention.float()
+    error = (mean_action - batch.action).pow(2)
+    per_row = error.mean(dim=-1) if mask is None else (error * mask).sum(-1) / mask.sum(-1).clamp(min=1)
+    return (per_row * human).sum() / human.sum().clamp(min=1.0)
+
+
 def publish(
     actor: GaussianActor, layout: Layout, p: EncoderParams
 ) -> tuple[learner_pb2.PolicySpec, dict[str, np.ndarray]]:
@@ -261,7 +275,8 @@ class SAC(Algorithm):
 
     @torch.no_grad()
     def td_target(self, batch: Batch, next_obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """r + discount * (min over a random subset of target heads - alpha * log pi), unless terminated.
+        """r + discount * (min over a random subset of target heads - alpha * log pi), unless terminated
+        (without the entropy term when backup_entropy is off).
 
         Only termination stops bootstrapping; a truncated episode still has a future. The target
         encoder's features of the next observations serve both the next action and the target heads
@@ -270,7 +285,9 @@ class SAC(Algorithm):
         next_action, next_log_prob, _ = self.actor.head(next_features, batch.action_mask)
         target_q = self.critic_target(next_features, masked(next_action, batch.action_mask))
         subset = torch.randperm(self.p.num_critics, device=self.device)[: self.p.target_subset]
-        next_v = target_q[subset].min(dim=0).values - self.log_alpha.exp() * next_log_prob
+        next_v = target_q[subset].min(dim=0).values
+        if self.p.backup_entropy:
+            next_v = next_v - self.log_alpha.exp() * next_log_prob
         discount = batch.discount if batch.discount is not None else self.p.gamma
         return batch.reward + discount * (1.0 - batch.terminated) * next_v
 
@@ -309,10 +326,7 @@ class SAC(Algorithm):
         actor_loss = (alpha * log_prob - q_pi).mean()
         bc_weight, bc_loss = self.bc_weight(), torch.zeros((), device=self.device)
         if bc_weight > 0 and batch is not None:
-            human = batch.intervention.float()
-            error = (mean_action - batch.action).pow(2)
-            per_row = error.mean(dim=-1) if mask is None else (error * mask).sum(-1) / mask.sum(-1).clamp(min=1)
-            bc_loss = (per_row * human).sum() / human.sum().clamp(min=1.0)
+            bc_loss = bc_mse(mean_action, batch)
             actor_loss = actor_loss + bc_weight * bc_loss
         self.actor_optimizer.zero_grad(set_to_none=True)
         actor_loss.backward()  # also leaves grads on the critic; its optimizer clears them before its step
@@ -330,6 +344,9 @@ class SAC(Algorithm):
         return {
             "actor_loss": actor_loss.detach(),
             "bc_loss": bc_loss.detach(),
+            # the two pulls on the actor, for curves: how big the Q term is against the weighted BC term
+            "q_pi": q_pi.detach().mean(),
+            "bc_term": bc_loss.detach() * bc_weight,
             "alpha_loss": alpha_loss.detach(),
             "alpha": self.log_alpha.detach().exp(),
             "entropy": -log_prob.detach().mean(),
