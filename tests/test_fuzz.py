@@ -365,6 +365,15 @@ def test_replay_insert(stack: dict[str, Any], reqs: list[replay_pb2.InsertReques
         assert_defined(err)
     # Only acknowledged steps changed the store: a rejected one left nothing behind.
     assert stub.Stats(replay_pb2.StatsRequest(), timeout=CALL_S).steps == before + stored
+    # The same steps through InsertBatch (all in one message, then an empty one): the same rule.
+    before, stored = before + stored, 0
+    try:
+        batches = [replay_pb2.InsertBatchRequest(requests=reqs), replay_pb2.InsertBatchRequest()]
+        for ack in stub.InsertBatch(iter(batches), timeout=CALL_S):
+            stored += ack.stored
+    except grpc.RpcError as err:
+        assert_defined(err)
+    assert stub.Stats(replay_pb2.StatsRequest(), timeout=CALL_S).steps == before + stored
 
 
 @FUZZ
