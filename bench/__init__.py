@@ -66,7 +66,8 @@ def repeat_ms(fn: Callable[[], Any], repeats: int, warmup: int = 1) -> list[floa
 
 
 def median(values: list[float]) -> float:
-    return float(statistics.median(values))
+    """NaN for no values: a window in which a slow model answered nothing still makes its row."""
+    return float(statistics.median(values)) if values else float("nan")
 
 
 def fmt_value(value: float | str, unit: str) -> str:

@@ -42,7 +42,7 @@ BENCHES = {
 SLOW = {"learning"}  # whole stacks as processes: minutes, not part of the --quick smoke run unless named
 # run only when named in --only: 10-20 minutes of whole stacks each (load; two HG-DAgger stacks; two arms at once)
 OPT_IN = {"load", "hgdagger_stack", "two_arms", "gpu"}
-TAKES_OVERRIDES = {"load", "inference_vla"}  # --set reaches their stack config (e.g. inference.device=cuda)
+TAKES_OVERRIDES = {"load", "inference_vla", "learning"}  # --set reaches their stack config (e.g. inference.device=cuda)
 
 
 DEFAULT_OUT = Path("runs/bench")

@@ -74,6 +74,7 @@ class Profile:
     seconds: float  # per window
     paced_every: tuple[int, ...]  # paced rows: a robot asks for a chunk every this many control ticks
     concurrency: tuple[int, ...] = (1, 4, 16, 32)
+    model: str = "flow_vla"  # or "smolvla": lerobot's SmolVLA at smolvla_base's size, random weights
 
 
 # The issue's toy: forward ~1 ms, so the per-call gRPC/Python path is most of the cost.
@@ -84,7 +85,24 @@ TOY = Profile("64x64 camera, chunk 8x3", ("camera.front",), 64, 3, 8, 128, 5, 2.
 VLA = Profile(
     "two 128x128 cameras, chunk 16x7, 10 flow steps", ("camera.front", "camera.wrist"), 128, 7, 16, 1536, 10, 4.0, (8,)
 )
-PROFILES = {"toy": TOY, "vla": VLA}
+# lerobot's SmolVLA at its real size (450M: SmolVLM2-500M's architecture cut to 16 layers, chunks of
+# 50 in 10 flow steps, images resized to 512 px) from a local folder built here with random weights:
+# a GPU-class model (10 s per chunk on 2 CPU cores), so it is only run where asked for by name.
+SMOLVLA = Profile(
+    "smolvla_base size, two 128x128 cameras, chunk 50x7",
+    ("camera.front", "camera.wrist"),
+    128,
+    7,
+    50,
+    0,
+    10,
+    4.0,
+    (8,),
+    (1, 4, 16),
+    "smolvla",
+)
+PROFILES = {"toy": TOY, "vla": VLA, "smolvla": SMOLVLA}
+DEFAULT_PROFILES = "toy,vla"
 
 
 def vla_config(profile: Profile) -> Any:
@@ -104,12 +122,43 @@ def vla_config(profile: Profile) -> Any:
     )
 
 
-def make_weights(profile: Profile) -> Any:
-    from user.policies.flow_vla import policy_spec, random_weights
+def make_weights(profile: Profile, workdir: Path | None = None) -> Any:
     from user.weights import WeightSet
+
+    if profile.model == "smolvla":
+        if workdir is None:
+            raise ValueError("the smolvla profile builds its checkpoint folder in a workdir")
+        return smolvla_weights(profile, workdir / "smolvla")
+    from user.policies.flow_vla import policy_spec, random_weights
 
     cfg = vla_config(profile)
     return WeightSet(1, policy_spec(cfg), random_weights(cfg))
+
+
+def smolvla_weights(profile: Profile, folder: Path) -> Any:
+    """A smolvla_base-sized checkpoint folder (random weights) and its weight set, as a learner streams it."""
+    import torch
+    from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
+
+    from user.policies.smolvla import SmolVlaSpec, make_backbone, policy_spec, save_checkpoint, smolvla_base_config
+    from user.policy import module_tensors
+    from user.weights import WeightSet
+
+    words = {w for text in INSTRUCTIONS for w in text.split()}
+    backbone = make_backbone(folder / "backbone", sorted(words), image_size=512, size="smolvlm2_500m")
+    cameras = {key: key.split(".")[-1] for key in profile.cameras}
+    torch.manual_seed(0)
+    model = SmolVLAPolicy(smolvla_base_config(backbone, list(cameras.values()), STATE_DIM, profile.action_dim))
+    save_checkpoint(model, folder / "checkpoint")
+    spec = SmolVlaSpec(
+        checkpoint=str(folder / "checkpoint"),
+        image_keys=cameras,
+        state_keys=["state"],
+        action_dim=profile.action_dim,
+        action_low=[-1.0] * profile.action_dim,
+        action_high=[1.0] * profile.action_dim,
+    )
+    return WeightSet(1, policy_spec(spec), module_tensors(model))
 
 
 class OneAtATimeServicer(inference_pb2_grpc.InferenceServicer):
@@ -257,7 +306,7 @@ def _batch_note(windows: list[Window]) -> str:
 
 def _group(profile: Profile, n_params: int, what: str, device: str = "cpu") -> str:
     on = "" if device == "cpu" else f" on {_device_name(device)}"
-    return f"inference flow_vla ({n_params / 1e6:.2f}M params, {profile.label}){on}, {what}"
+    return f"inference {profile.model} ({n_params / 1e6:.2f}M params, {profile.label}){on}, {what}"
 
 
 def _device_name(device: str) -> str:
@@ -404,14 +453,16 @@ def _targets(
     return rows
 
 
-def run_profile(pool: Any, profile: Profile, cfg: StackConfig, quick: bool, log: Callable[..., None]) -> list[Row]:
+def run_profile(
+    pool: Any, profile: Profile, cfg: StackConfig, quick: bool, log: Callable[..., None], workdir: Path
+) -> list[Row]:
     rounds, seconds = (1, min(1.0, profile.seconds)) if quick else (2, profile.seconds)
     concurrency = [1, 4] if quick else list(profile.concurrency)
     paced_every = profile.paced_every[:1] if quick else profile.paced_every
     if quick:  # the smoke run checks the rows' shape: a small stand-in keeps it inside the suite's time limit
         profile = replace(profile, hidden=min(profile.hidden, 256), image=min(profile.image, 64))
     top = max(c for c in concurrency if c <= TOP)
-    weights = make_weights(profile)
+    weights = make_weights(profile, workdir)
     n_params = sum(int(v.size) for v in weights.tensors.values())
     rows: list[Row] = []
     rate: dict[tuple[str, int], float] = {}
@@ -487,9 +538,10 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print, overrides:
     try:
         with multiprocessing.get_context("spawn").Pool(workers) as pool:
             pool.map(_warm, range(workers), chunksize=1)
-            for name in os.environ.get("USER_INFERENCE_VLA_PROFILES", ",".join(PROFILES)).split(","):
-                rows += run_profile(pool, PROFILES[name.strip()], cfg, quick, log)
-            rows += lerobot_peer_rows(pool, cfg, workdir, quick, log)
+            for name in os.environ.get("USER_INFERENCE_VLA_PROFILES", DEFAULT_PROFILES).split(","):
+                rows += run_profile(pool, PROFILES[name.strip()], cfg, quick, log, workdir)
+            if os.environ.get("USER_INFERENCE_VLA_LEROBOT_PEER", "1") != "0":  # 0: skip it (a short device run)
+                rows += lerobot_peer_rows(pool, cfg, workdir, quick, log)
     finally:
         torch.set_num_threads(threads)
     return rows

@@ -351,14 +351,19 @@ def _spread(values: list[float]) -> str:
 
 
 def measure(
-    config: str, quick: bool, workdir: Path, log: Callable[..., None], reps: int | None = None
+    config: str,
+    quick: bool,
+    workdir: Path,
+    log: Callable[..., None],
+    reps: int | None = None,
+    overrides: list[str] | None = None,
 ) -> tuple[list[Window], float]:
     """Both modes' stacks up side by side, windows alternating A S S A ...; returns them and the window."""
     setup = SETUPS[config]
     window_s = {"cnn": 45.0, "state": 30.0, "hgdagger": 40.0}[config] if not quick else 15.0
-    reps = reps or (1 if quick else 3)
+    reps = reps or (1 if quick else int(os.environ.get("USER_LEARNING_REPS", "3")))
     prep = _HgDaggerPrep(quick, log) if config == "hgdagger" else None
-    stacks = {m: ModeStack(m, setup, workdir / config, []) for m in ("async", "sync")}
+    stacks = {m: ModeStack(m, setup, workdir / config, list(overrides or [])) for m in ("async", "sync")}
     windows: list[Window] = []
     try:
         for ms in stacks.values():
@@ -381,11 +386,12 @@ def measure(
     return windows, window_s
 
 
-def rows_for(config: str, windows: list[Window], window_s: float) -> list[Row]:
+def rows_for(config: str, windows: list[Window], window_s: float, overrides: list[str] | None = None) -> list[Row]:
     setup = SETUPS[config]
     reps = len({w.rep for w in windows})
+    on = "".join(f"; {o}" for o in overrides or [])
     group = (
-        f"learning async vs sync ({setup.what}; 2 arms at 20 Hz; {reps} x {window_s:.0f} s windows per mode, "
+        f"learning async vs sync ({setup.what}{on}; 2 arms at 20 Hz; {reps} x {window_s:.0f} s windows per mode, "
         "alternating)"
     )
     loads = [x for w in windows for x in w.load]
@@ -473,10 +479,11 @@ def rows_for(config: str, windows: list[Window], window_s: float) -> list[Row]:
     return rows
 
 
-def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Row]:
+def run(quick: bool, workdir: Path, log: Callable[..., None] = print, overrides: list[str] | None = None) -> list[Row]:
+    """`overrides` (`--set`) reach both stacks alike, e.g. learner.device=cuda on a GPU machine."""
     configs = ["cnn"] if quick else [c for c in os.environ.get("USER_LEARNING_CONFIGS", "cnn,hgdagger").split(",")]
     rows = []
     for config in configs:
-        windows, window_s = measure(config, quick, workdir, log)
-        rows += rows_for(config, windows, window_s)
+        windows, window_s = measure(config, quick, workdir, log, overrides=overrides)
+        rows += rows_for(config, windows, window_s, overrides or [])
     return rows

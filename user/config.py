@@ -137,6 +137,10 @@ class InferenceConfig(_ServerSection):
         default=1, ge=1, description="batches in their forward at once per policy (CPU: up to the cores left over)"
     )
     device: str = DEVICE
+    matmul_precision: Literal["highest", "high"] = Field(
+        default="highest",
+        description="float32 matrix products: highest (true fp32) or high (TF32 on GPUs that have it; this process)",
+    )
     weights_lossy: bool = Field(
         default=False,
         description="accept lossy weights (error-bounded patches, bf16) when lossless ones cannot stay fresh",

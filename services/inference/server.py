@@ -22,6 +22,7 @@ from typing import Literal
 import grpc
 import numpy as np
 import prometheus_client
+import torch
 
 from services.inference.batcher import ActResult, MicroBatcher, NoPolicyError
 from user import rpc, wire
@@ -360,6 +361,7 @@ class InferenceService(rpc.GrpcService):
             check_device(cfg.inference.device)
         except ValueError as exc:
             raise ConfigError(f"inference.device: {exc}") from None
+        torch.set_float32_matmul_precision(cfg.inference.matmul_precision)  # process-wide, as torch keeps it
 
     @property
     def policy(self) -> Policy | None:

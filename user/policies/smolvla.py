@@ -63,8 +63,46 @@ def policy_spec(spec: SmolVlaSpec) -> learner_pb2.PolicySpec:
 # --- folders --------------------------------------------------------------------------------------
 
 
-def make_tiny_backbone(folder: str | Path, words: Sequence[str], image_size: int = 64) -> Path:
-    """A SmolVLM backbone folder at test size (~100k parameters): config, word-level tokenizer, processor.
+# Architectures a backbone folder can be built at (random weights). "smolvlm2_500m" is
+# HuggingFaceTB/SmolVLM2-500M-Video-Instruct's shape (SmolLM2-360M text model, SigLIP-B/16 at 512 px,
+# pixel shuffle 4), what lerobot/smolvla_base fine-tunes: for timing the real model where no hub is
+# reachable. A user's downloaded folder is used as it is.
+BACKBONES: dict[str, dict[str, Any]] = {
+    "tiny": {
+        "text": {
+            "hidden_size": 32,
+            "intermediate_size": 64,
+            "num_hidden_layers": 2,
+            "num_attention_heads": 2,
+            "num_key_value_heads": 1,
+            "head_dim": 16,
+            "max_position_embeddings": 256,
+        },
+        "vision": {"hidden_size": 32, "intermediate_size": 64, "num_hidden_layers": 1, "num_attention_heads": 2},
+        "scale_factor": 2,
+        "vocab_size": None,  # the word-level tokenizer's
+    },
+    "smolvlm2_500m": {
+        "text": {
+            "hidden_size": 960,
+            "intermediate_size": 2560,
+            "num_hidden_layers": 32,
+            "num_attention_heads": 15,
+            "num_key_value_heads": 5,
+            "head_dim": 64,
+            "max_position_embeddings": 8192,
+            "rope_theta": 100000.0,
+            "rms_norm_eps": 1e-5,
+        },
+        "vision": {"hidden_size": 768, "intermediate_size": 3072, "num_hidden_layers": 12, "num_attention_heads": 12},
+        "scale_factor": 4,
+        "vocab_size": 49280,
+    },
+}
+
+
+def make_backbone(folder: str | Path, words: Sequence[str], image_size: int = 64, size: str = "tiny") -> Path:
+    """A SmolVLM backbone folder (config, word-level tokenizer, processor) with a `BACKBONES` shape.
 
     Stands in for HuggingFaceTB/SmolVLM2-500M-Video-Instruct, which cannot be downloaded here; the
     real one is used by pointing the SmolVLA config's vlm_model_name at its local folder.
@@ -72,10 +110,12 @@ def make_tiny_backbone(folder: str | Path, words: Sequence[str], image_size: int
     from tokenizers import Tokenizer, models, pre_tokenizers
     from transformers import Idefics3ImageProcessor, Idefics3Processor, PreTrainedTokenizerFast, SmolVLMConfig
 
+    shape = BACKBONES[size]
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     tokens = ["<pad>", "<unk>", *SPECIAL_TOKENS.values(), *dict.fromkeys(w.lower() for w in words), "\n"]
     vocab = {t: i for i, t in enumerate(tokens)}
+    vocab_size = shape["vocab_size"] or len(vocab)
     backend = Tokenizer(models.WordLevel(vocab=vocab, unk_token="<unk>"))
     backend.pre_tokenizer = pre_tokenizers.Whitespace()
     tokenizer = PreTrainedTokenizerFast(
@@ -87,34 +127,40 @@ def make_tiny_backbone(folder: str | Path, words: Sequence[str], image_size: int
         max_image_size={"longest_edge": image_size},
         do_image_splitting=False,
     )
-    Idefics3Processor(image_processor=images, tokenizer=tokenizer, image_seq_len=4).save_pretrained(folder)
+    seq_len = (image_size // 16 // shape["scale_factor"]) ** 2
+    Idefics3Processor(image_processor=images, tokenizer=tokenizer, image_seq_len=max(seq_len, 1)).save_pretrained(
+        folder
+    )
     SmolVLMConfig(
-        text_config={
-            "model_type": "llama",
-            "vocab_size": len(vocab),
-            "hidden_size": 32,
-            "intermediate_size": 64,
-            "num_hidden_layers": 2,
-            "num_attention_heads": 2,
-            "num_key_value_heads": 1,
-            "head_dim": 16,
-            "max_position_embeddings": 256,
-            "pad_token_id": 0,
-        },
-        vision_config={
-            "model_type": "smolvlm_vision",
-            "hidden_size": 32,
-            "intermediate_size": 64,
-            "num_hidden_layers": 1,
-            "num_attention_heads": 2,
-            "image_size": image_size,
-            "patch_size": 16,
-        },
-        scale_factor=2,
+        text_config={"model_type": "llama", "vocab_size": vocab_size, "pad_token_id": 0, **shape["text"]},
+        vision_config={"model_type": "smolvlm_vision", "image_size": image_size, "patch_size": 16, **shape["vision"]},
+        scale_factor=shape["scale_factor"],
         image_token_id=vocab["<image>"],
-        vocab_size=len(vocab),
+        vocab_size=vocab_size,
     ).save_pretrained(folder)
     return folder
+
+
+def make_tiny_backbone(folder: str | Path, words: Sequence[str], image_size: int = 64) -> Path:
+    """A SmolVLM backbone folder at test size (~100k parameters)."""
+    return make_backbone(folder, words, image_size, "tiny")
+
+
+def smolvla_base_config(backbone: str | Path, cameras: Sequence[str], state_dim: int, action_dim: int) -> Any:
+    """lerobot's SmolVLAConfig at smolvla_base's sizes (16 VLM layers, chunks of 50 in 10 flow steps,
+    512 px images) over `backbone` (a `make_backbone(..., size="smolvlm2_500m")` folder or a real one)."""
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.policies.smolvla.configuration_smolvla import SmolVLAConfig
+
+    inputs = {f"observation.images.{c}": PolicyFeature(FeatureType.VISUAL, (3, 512, 512)) for c in cameras}
+    inputs["observation.state"] = PolicyFeature(FeatureType.STATE, (state_dim,))
+    return SmolVLAConfig(
+        vlm_model_name=str(backbone),
+        load_vlm_weights=False,
+        device="cpu",
+        input_features=inputs,
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (action_dim,))},
+    )
 
 
 def tiny_smolvla_config(
