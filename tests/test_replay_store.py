@@ -273,3 +273,22 @@ def test_validation_accepts_edges_of_the_contract() -> None:
     nan_ok.observation[0].allow_nan = True
     _set_obs(step, np.full(6, np.nan, np.float32))
     validate_step(step, nan_ok)
+
+
+def _rss_bytes() -> int:
+    return int(Path("/proc/self/statm").read_text().split()[1]) * 4096
+
+
+@pytest.mark.skipif(not Path("/proc/self/statm").exists(), reason="needs Linux /proc")
+def test_hot_group_prefault_maps_its_columns_up_front() -> None:
+    """replay.cache_prefault: the RAM tier's columns cost their RSS when the layout arrives, not over hours."""
+    from services.replay.hot import HotGroup
+
+    layout = ((("state", np.dtype(np.float32), (64,)),), (np.dtype(np.float32), (8,)))
+    group = HotGroup(layout, 96 << 20)
+    columns = sum(c.nbytes for c in group.frames.values()) + group.action.nbytes + group.t_rows.nbytes
+    before = _rss_bytes()
+    group.prefault()
+    assert _rss_bytes() - before >= 0.8 * columns
+    seq = group.write_frame({"state": np.ones(64, np.float32)})  # still a working ring afterwards
+    assert group.frames["state"][seq % group.frame_capacity].sum() == 64

@@ -120,6 +120,10 @@ class ReplayConfig(_ServerSection):
     decoded_mb: int = Field(
         default=0, ge=0, description="RAM for the newest JPEG/PNG camera frames kept decoded after a sample; 0 = off"
     )
+    cache_prefault: bool = Field(
+        default=True,
+        description="touch the RAM tier's column pages when a layout first arrives, so RSS is at its plateau early",
+    )
     attach: dict[str, Path] = Field(
         default={}, description="read-only tables from other buffers, e.g. {prior: runs/old/replay}"
     )

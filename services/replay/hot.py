@@ -65,6 +65,13 @@ def _decoder_pool() -> ThreadPoolExecutor:
     return _pool
 
 
+@functools.cache
+def mmap_page() -> int:
+    import mmap
+
+    return mmap.PAGESIZE
+
+
 def frame_nbytes(layout: Layout) -> int:
     return sum(np.dtype(dt).itemsize * math.prod(sh) for _, dt, sh in layout[0])
 
@@ -124,6 +131,15 @@ class HotGroup:
         self.t_rows = np.zeros((2, cap + 1), np.int32 if self.frame_capacity < 2**31 else np.int64)
         self.action = np.empty((cap, *act_shape), act_dtype)
         self.rows_written = 0
+
+    def prefault(self) -> None:
+        """Touch every page of the fixed-size columns now: the ring then costs its whole RSS from its first row
+        instead of growing into it over hours, so a long-running replay's memory is flat and what an operator
+        budgets (np.empty/np.zeros pages are only mapped when first written). Encoded frames' bytes still grow."""
+        columns = [*self.frames.values(), *self.decoded.values(), self.t_first, self.t_rows, self.action]
+        columns += list(self.blob_enc.values())
+        for column in columns:
+            column.reshape(-1).view(np.uint8)[:: mmap_page()] = 0  # one write per page maps it
 
     def write_frame(self, arrays: dict[str, np.ndarray]) -> int:
         """Copy one observation in; returns its sequence number."""

@@ -796,6 +796,7 @@ class ReplayService(rpc.GrpcService):
             durability=rc.durability,
             image_encoding=rc.image_encoding,
             decoded_mb=rc.decoded_mb,
+            cache_prefault=rc.cache_prefault,
         )
         try:
             for table, path in rc.attach.items():

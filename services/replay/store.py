@@ -207,8 +207,10 @@ class ReplayStore:
         readonly: bool = False,
         image_encoding: dict[str, str] | None = None,
         decoded_mb: int = 0,
+        cache_prefault: bool = False,
     ) -> None:
         self.path = Path(path)
+        self.cache_prefault = cache_prefault  # hot groups touch their columns' pages when made
         self.decoded_bytes = int(decoded_mb) << 20  # per hot group: newest JPEG/PNG frames kept decoded
         # observation feature -> how its uint8 images are stored in LMDB ("raw", "jpeg", "png"); "*" = every camera
         self.image_encoding = {k: ENCODINGS[v] for k, v in (image_encoding or {}).items() if ENCODINGS[v]}
@@ -419,7 +421,10 @@ class ReplayStore:
             if self.capacity_bytes:
                 max_rows = int(self.capacity_bytes * 1.25 // max(1, step.ByteSize() + len(step.robot_id) + 32))
             encoded = self._encoded_features(layout, step)
-            self._groups.append(HotGroup(layout, self.hot_bytes, encoded, max_rows, self.decoded_bytes))
+            group = HotGroup(layout, self.hot_bytes, encoded, max_rows, self.decoded_bytes)
+            if self.cache_prefault:
+                group.prefault()
+            self._groups.append(group)
         return gid
 
     def _encoded_features(self, layout: Layout, step: step_pb2.Step) -> frozenset[str]:
