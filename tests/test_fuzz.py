@@ -190,7 +190,16 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Any]]:
     ctx = multiprocessing.get_context("spawn")
     here, there = ctx.Pipe()
     child = ctx.Process(target=serve_stack, args=(there, tmp_path_factory.mktemp("fuzz")), daemon=True)
-    child.start()
+    # the services' environment as deployed (Dockerfile, systemd unit, userctl up): glibc reads it at start
+    previous = os.environ.get("MALLOC_ARENA_MAX")
+    os.environ["MALLOC_ARENA_MAX"] = "2"
+    try:
+        child.start()
+    finally:
+        if previous is None:
+            os.environ.pop("MALLOC_ARENA_MAX")
+        else:
+            os.environ["MALLOC_ARENA_MAX"] = previous
     assert here.poll(120), "the services did not start"
     addresses = here.recv()
     channels = {name: make_channel(addr, AUTH) for name, addr in addresses.items()}

@@ -196,7 +196,24 @@ def policy_spec_for(actor_config: Mapping[str, Any]) -> learner_pb2.PolicySpec:
 
 def module_tensors(module: nn.Module) -> dict[str, np.ndarray]:
     """A module's weights as named numpy copies: what a weight set carries (the inverse of load_tensors)."""
-    return {k: v.detach().cpu().numpy().copy() for k, v in module.state_dict().items()}
+    state = module.state_dict()
+    if any(v.is_cuda for v in state.values()):
+        return _from_gpu(state)
+    return {k: v.detach().cpu().numpy().copy() for k, v in state.items()}
+
+
+def _from_gpu(state: Mapping[str, torch.Tensor]) -> dict[str, np.ndarray]:
+    """Every tensor copied into pinned host memory without waiting, then one wait for all of them: `.cpu()` per
+    tensor would wait for the GPU once per tensor from a pageable buffer."""
+    host = {}
+    for name, tensor in state.items():
+        if tensor.is_cuda:
+            buffer = torch.empty(tensor.shape, dtype=tensor.dtype, pin_memory=True)
+            host[name] = buffer.copy_(tensor.detach(), non_blocking=True)
+        else:
+            host[name] = tensor.detach().clone()
+    torch.cuda.synchronize()
+    return {name: t.numpy() for name, t in host.items()}
 
 
 def load_tensors(module: nn.Module, tensors: Mapping[str, np.ndarray]) -> None:
