@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from bench import Row
+from bench.curves_bench import SO101_PARAMS, SO101_PRETRAIN_UPDATES
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "demo.yaml"
 OUT = Path("runs/bench/two_arms")
@@ -47,8 +48,17 @@ RLPD = {
     "init_alpha": 0.01,
     "bc_weight": 1.0,
 }
-# experiment -> offline updates on its scripted demos before the stack starts (the in-process curve's recipe)
-PRETRAIN = {"so101": 1500}
+# SO-101: the in-process curve's warm start (curves_bench.SO101_PARAMS, notes of 2026-11-25): 2,000 BC-only
+# actor updates, then 6,000 critic-only ones, no entropy backup, BC weight 5. Without it (1,500 plain RLPD updates)
+# its policy stalled so often that the expert rescued nearly every episode and its own success was not measurable.
+# Panda keeps the shared params: it reached 80 % unhelped with them on this stack.
+ARM_PARAMS: dict[str, dict[str, Any]] = {"so101": SO101_PARAMS}
+QUICK_ARM_PARAMS: dict[str, dict[str, Any]] = {
+    "so101": {**SO101_PARAMS, "actor_pretrain_updates": 2, "critic_warmup_updates": 3}
+}
+# experiment -> offline updates on its scripted demos before the stack starts: the whole warm start, so the
+# learner resumes in the RL phase (phases follow the checkpointed update count)
+PRETRAIN = {"so101": SO101_PRETRAIN_UPDATES}
 TELEOP = {"kind": "scripted_expert", "params": {"takeover": "on_stray", "patience": 8, "max_takeover_steps": 40}}
 # An SO-101 pick has stretches without 5 mm of progress (aligning above the cube, ~4 ticks closing the jaw): with
 # patience 8 its expert took over all 87 episodes of a 10-minute run, leaving the policy none of its own.
@@ -103,7 +113,8 @@ def overrides(stats: dict[str, dict[str, Any]], budget_s: float, quick: bool) ->
     experiments, robots = [], []
     for name, (kind, robot_id, _) in ARMS.items():
         # Each experiment samples only its own robots' rows (replay filters by robot id): its own table in effect.
-        algo = {**params, **stats[name], "tables": {"online": 0.5, "interventions": 0.5}}
+        arm_params = (QUICK_ARM_PARAMS if quick else ARM_PARAMS).get(name, {})
+        algo = {**params, **arm_params, **stats[name], "tables": {"online": 0.5, "interventions": 0.5}}
         experiments.append({"name": name, "robots": {"kinds": [kind]}, "algorithm": {"kind": "rlpd", "params": algo}})
         robot_params = {"reward_type": "sparse", "max_episode_steps": 100}
         teleop = {**TELEOP, "params": {**TELEOP["params"], "patience": PATIENCE.get(name, 8)}}
@@ -199,6 +210,7 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print, minutes: f
     shutil.rmtree(run_dir, ignore_errors=True)  # a fresh stack: a kept one would resume the last run's policies
     for name, updates in PRETRAIN.items():
         pretrain_checkpoint(cfg, name, specs[name], demos[name], 5 if quick else updates, run_dir / "checkpoints")
+        log(f"two_arms: {name} warm start done ({updates} updates), CPU {time.process_time() / 60:.1f} min")
     stack = Stack(cfg, str(CONFIG), over, run_dir)
     mon, snap = None, None
     try:
@@ -226,6 +238,7 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print, minutes: f
         "load_at_end": os.getloadavg(),
         "algorithm": "rlpd",
         "params": {k: v for k, v in (RLPD if not quick else {}).items()},
+        "arm_params": ARM_PARAMS if not quick else QUICK_ARM_PARAMS,
         "teleop": TELEOP,
         "patience": PATIENCE,
         "demo_success_for_stats": demo_success,

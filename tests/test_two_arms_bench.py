@@ -17,7 +17,8 @@ def test_overrides_build_one_rlpd_experiment_per_arm() -> None:
     cfg = load_config(bench.CONFIG, bench.overrides(stats, 60.0, quick=False))
     assert [e.name for e in cfg.experiments] == ["so101", "pick"]
     for exp in cfg.experiments:
-        assert exp.algorithm.kind == "rlpd" and exp.algorithm.params["bc_weight"] == 1.0
+        assert exp.algorithm.kind == "rlpd"
+        assert exp.algorithm.params["bc_weight"] == (5.0 if exp.name == "so101" else 1.0)
         assert exp.algorithm.params["state_std"] == stats[exp.name]["state_std"]
     assert [(r.id, r.kind, r.teleop.kind) for r in cfg.edge.robots] == [
         ("so101-0", "so101", "scripted_expert"),
