@@ -843,3 +843,18 @@ def test_read_varint_matches_protobuf_and_refuses_truncated_or_overlong_bytes() 
         wire.read_varint(b"\x80\x80", 0)
     with pytest.raises(wire.WireError, match="10 bytes"):
         wire.read_varint(b"\xff" * 11 + b"\x01", 0)
+
+
+def test_link_rate_for_patch_compression_leaves_out_the_round_trip() -> None:
+    """A small full set's send -> ack time is mostly the fixed round trip and the client's apply: the link's
+    wire rate (which picks stored vs compressed streamed patches) comes from the client's transfer time."""
+    store = WeightStore()
+    store.publish(1, SPEC, tensors(0, n=1 << 18))
+    full = store.latest()
+    servicer = WeightServicer(store)
+    link = Link("c", "", ("",), True, 0, 1.0, True)
+    ack = learner_pb2.WeightAck(version=1, applied=True, transfer_ns=1_000_000, apply_ns=1_000_000)
+    assert servicer._on_ack(link, full, ack, elapsed_s=0.1)
+    assert link.wire_bps == pytest.approx(full.encoded_bytes / 1e-3)  # 1 MiB in 1 ms of transfer
+    assert link.goodput_bps == pytest.approx(full.encoded_bytes / 0.099)  # end to end, less the apply
+    store.close()

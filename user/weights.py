@@ -816,7 +816,10 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         sample = packed.encoded_bytes / net_s
         link.goodput_bps = sample if link.goodput_bps <= 0 else 0.5 * link.goodput_bps + 0.5 * sample
         if not codec.stream:
-            link.wire_bps = sample if link.wire_bps <= 0 else 0.5 * link.wire_bps + 0.5 * sample
+            # the client's header -> last chunk time: a small version's send -> ack time is mostly the
+            # fixed round trip, which made fast loopback links look slow (and got them compressed patches)
+            wire = packed.encoded_bytes / (ack.transfer_ns / 1e9) if ack.transfer_ns > 0 else sample
+            link.wire_bps = wire if link.wire_bps <= 0 else 0.5 * link.wire_bps + 0.5 * wire
         link.rtt_s = max(0.0, net_s - ack.transfer_ns / 1e9)
         if ack.apply_ns > 0:
             enc = packed.header.weight_encoding or WE.WEIGHT_ENCODING_FP32
