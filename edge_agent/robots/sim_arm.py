@@ -12,6 +12,7 @@ carries the same reach reward as the simulator's own, so code that steps the arm
 
 from __future__ import annotations
 
+import math
 import os
 
 # Headless rendering for the optional camera; must be set before mujoco is imported.
@@ -31,6 +32,7 @@ KIND = "sim_reach_arm"
 TIMESTEP = 0.002  # physics step (s)
 MAX_SPEED = 0.3  # m/s of end-effector motion for |action| = 1
 IK_DAMPING = 0.02
+_IK_DAMPING_EYE = IK_DAMPING**2 * np.eye(3)  # made once: the IK solve runs every step
 SHOULDER = np.array([0.0, 0.0, 0.15])  # shoulder pitch axis position in the world
 HOME_QPOS = np.array([0.0, -0.6, 1.4])
 INIT_NOISE = 0.15  # rad, uniform per joint around HOME_QPOS
@@ -174,7 +176,8 @@ class SimReachArm(Robot):
         return self._target.copy()
 
     def distance(self) -> float:
-        return float(np.linalg.norm(self._target - self.data.site_xpos[self._site]))
+        # math.dist over the two 3-vectors: ~7x cheaper than np.linalg.norm's dispatch, and it runs 3x a step
+        return math.dist(self._target, self.data.site_xpos[self._site])
 
     def _state(self) -> np.ndarray:
         ee = self.data.site_xpos[self._site]
@@ -208,7 +211,7 @@ class SimReachArm(Robot):
         # A target already within reach would be a free success; resample it.
         while True:
             self._target = sample_target(self._rng)
-            if np.linalg.norm(self._target - self.data.site_xpos[self._site]) > 0.1:
+            if self.distance() > 0.1:
                 break
         self.data.mocap_pos[0] = self._target
         self._reward, self._terminated, self._success = 0.0, False, False
@@ -220,7 +223,7 @@ class SimReachArm(Robot):
         mujoco.mj_jacSite(self.model, self.data, self._jacp, None, self._site)
         jac = self._jacp
         dx = ee_velocity * self.period
-        dq = jac.T @ np.linalg.solve(jac @ jac.T + IK_DAMPING**2 * np.eye(3), dx)
+        dq = jac.T @ np.linalg.solve(jac @ jac.T + _IK_DAMPING_EYE, dx)
         return np.clip(self.data.ctrl + dq, self._qlow, self._qhigh)
 
     def _advance(self) -> None:
