@@ -151,7 +151,9 @@ def _step(frame: tpb.Tensor, index: int = 0) -> step_pb2.Step:
     return step
 
 
-@pytest.mark.parametrize("fault", ["wrong_size", "truncated", "not_an_image", "damaged_inside"])
+@pytest.mark.parametrize(
+    "fault", ["wrong_size", "truncated", "not_an_image", "damaged_inside", "grey_as_colour", "garbage"]
+)
 def test_a_bad_edge_jpeg_is_invalid_argument_and_stores_nothing(replay: ReplayService, fault: str) -> None:
     rng = np.random.default_rng(1)
     frame = wire.to_tensor(rng.integers(0, 256, (64, 64, 3), dtype=np.uint8), tpb.ENCODING_JPEG)
@@ -164,6 +166,10 @@ def test_a_bad_edge_jpeg_is_invalid_argument_and_stores_nothing(replay: ReplaySe
         table = data.find(b"\xff\xc4")
         data[table + 5 : table + 25] = b"\xff" * 20
         frame.data = bytes(data)
+    elif fault == "grey_as_colour":  # a valid 64x64 one-component JPEG declared (64, 64, 3)
+        frame.data = wire.to_tensor(rng.integers(0, 256, (64, 64), dtype=np.uint8), tpb.ENCODING_JPEG).data
+    elif fault == "garbage":
+        frame.data = rng.integers(0, 256, 2000, dtype=np.uint8).tobytes()
     else:
         frame.data = b"\xff\xd8" + bytes(100)
     good = _step(wire.to_tensor(rng.integers(0, 256, (64, 64, 3), dtype=np.uint8), tpb.ENCODING_JPEG))
@@ -266,3 +272,14 @@ def test_the_encoder_keeps_send_order_and_passes_unplanned_robots_through() -> N
     assert all(s.observation.tensors["camera.front"].encoding == tpb.ENCODING_JPEG for s in mine)
     assert all(s.observation.tensors["camera.depth"].encoding == tpb.ENCODING_RAW for s in mine)
     assert encoder.encoded == 40 and encoder.pending == 0
+
+
+@pytest.mark.xfail(strict=True, reason="libjpeg only warns on a scan cut short before an end marker (cv2 fills)")
+def test_a_jpeg_cut_short_with_an_end_marker_appended_is_refused() -> None:
+    """Known gap: a JPEG whose entropy-coded scan is cut short but still ends in FF D9 decodes (libjpeg warns,
+    fills the rest), so check_image and the sampler's decode both accept it; a strict pass means it got fixed."""
+    rng = np.random.default_rng(3)
+    frame = wire.to_tensor(rng.integers(0, 256, (64, 64, 3), dtype=np.uint8), tpb.ENCODING_JPEG)
+    frame.data = frame.data[: len(frame.data) // 2] + b"\xff\xd9"
+    with pytest.raises(wire.WireError):
+        wire.check_image(frame)

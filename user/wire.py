@@ -194,9 +194,14 @@ def _check_image_header(data: bytes, shape: tuple[int, ...], dtype: np.dtype) ->
         raise WireError("JPEG/PNG tensors must be uint8")
     if not is_image_shape(shape):
         raise WireError(f"JPEG/PNG tensors are images (H, W), (H, W, 1) or (H, W, 3), got shape {shape}")
-    size = _image_size(data, shape)
+    found = _image_size(data, shape)
+    size, components = (found[:2], found[2]) if found else (None, None)
     if size != shape[:2]:  # checked before decoding: a tiny payload may claim a huge image
         raise WireError(f"image header says {size} (H, W), declared shape is {shape}")
+    # cv2 would turn a grey JPEG into 3 equal channels (or colour into grey) without a word: refuse the mismatch
+    channels = 1 if len(shape) == 2 else shape[2]
+    if components is not None and components != channels:
+        raise WireError(f"JPEG has {components} colour components, declared shape {shape} has {channels}")
 
 
 def check_image(tensor: tpb.Tensor) -> None:
@@ -244,11 +249,12 @@ _UINT8 = np.dtype(np.uint8)
 _JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
 
 
-def _image_size(data: bytes, shape: tuple[int, ...]) -> tuple[int, int] | None:
-    """(height, width) from a PNG IHDR or a JPEG SOF header, without decoding; None if not found."""
+def _image_size(data: bytes, shape: tuple[int, ...]) -> tuple[int, int, int | None] | None:
+    """(height, width, components) from a PNG IHDR (components None) or a JPEG SOF header, without decoding;
+    None if not found."""
     if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24:
         width, height = int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
-        return height, width
+        return height, width, None
     if data[:2] != b"\xff\xd8":
         return None
     i = 2
@@ -259,8 +265,8 @@ def _image_size(data: bytes, shape: tuple[int, ...]) -> tuple[int, int] | None:
         if marker == 0xFF:  # fill byte
             i += 1
             continue
-        if marker in _JPEG_SOF and i + 9 <= len(data):
-            return int.from_bytes(data[i + 5 : i + 7], "big"), int.from_bytes(data[i + 7 : i + 9], "big")
+        if marker in _JPEG_SOF and i + 10 <= len(data):  # length, precision, height, width, components
+            return int.from_bytes(data[i + 5 : i + 7], "big"), int.from_bytes(data[i + 7 : i + 9], "big"), data[i + 9]
         if marker == 0xDA:  # start of scan before any frame header
             return None
         i += 2 + int.from_bytes(data[i + 2 : i + 4], "big")
