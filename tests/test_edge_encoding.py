@@ -274,10 +274,9 @@ def test_the_encoder_keeps_send_order_and_passes_unplanned_robots_through() -> N
     assert encoder.encoded == 40 and encoder.pending == 0
 
 
-@pytest.mark.xfail(strict=True, reason="libjpeg only warns on a scan cut short before an end marker (cv2 fills)")
 def test_a_jpeg_cut_short_with_an_end_marker_appended_is_refused() -> None:
-    """Known gap: a JPEG whose entropy-coded scan is cut short but still ends in FF D9 decodes (libjpeg warns,
-    fills the rest), so check_image and the sampler's decode both accept it; a strict pass means it got fixed."""
+    """A JPEG whose entropy-coded scan is cut short but still ends in FF D9 decodes with only a libjpeg warning
+    (cv2 and PIL fill the rest with grey): the check treats the warning as an error."""
     rng = np.random.default_rng(3)
     frame = wire.to_tensor(rng.integers(0, 256, (64, 64, 3), dtype=np.uint8), tpb.ENCODING_JPEG)
     frame.data = frame.data[: len(frame.data) // 2] + b"\xff\xd9"
