@@ -59,3 +59,59 @@ def test_a_child_that_exits_with_an_error_is_not_restarted(tmp_path: Path) -> No
     with pytest.raises(RuntimeError, match="worker exited with 3"):
         Stack._wait_ready(Stack.__new__(Stack), child)
     assert _starts(tmp_path) == 1
+
+
+@pytest.mark.slow
+def test_a_learner_killed_mid_run_comes_back_on_its_port_and_resumes_from_its_checkpoint(tmp_path: Path) -> None:
+    """Real processes: control, replay, learner, inference and one sim arm. SIGKILL the learner after a
+    checkpoint; the supervisor starts it again on the same port, it resumes from the checkpoint (no version
+    reused, updates counted on from the checkpoint's) and the arm's new weights keep coming."""
+    import os
+    import signal
+
+    from tests import helpers
+    from user.config import load_config
+    from user.rpc import make_channel
+    from user.v1 import learner_pb2, learner_pb2_grpc
+
+    config = str(Path(__file__).resolve().parents[1] / "configs" / "demo.yaml")
+    overrides = [
+        "experiments=[{name: reach, robots: {kinds: [sim_reach_arm]}, algorithm: {kind: sac}}]",
+        "edge.mode=fast",
+        "learner.min_transitions=100",
+        "learner.publish_every=20",
+        "learner.checkpoint_every=40",
+        "up.edge_agents=1",
+    ]
+    cfg = load_config(config, overrides)
+    stack = Stack(cfg, config, overrides, tmp_path)
+    try:
+        stack.start()
+        learner_child = stack.child("learner")
+        port = learner_child.info["grpc_port"]
+        stub = learner_pb2_grpc.LearnerStub(make_channel(learner_child.grpc_addr, stack.auth))
+
+        def status(min_version: int) -> learner_pb2.LearnerStatus | None:
+            try:
+                st = stub.GetStatus(learner_pb2.LearnerStatusRequest(), timeout=5)
+            except Exception:  # noqa: BLE001 - down while it restarts
+                return None
+            exp = st.experiments[0] if st.experiments else None
+            return exp if exp is not None and exp.weight_version >= min_version else None
+
+        helpers.wait_for(lambda: status(4), "weight version 4 (checkpoints every 40 updates)", limit_s=180)
+        checkpoints = list((tmp_path / "checkpoints").rglob("*"))
+        assert checkpoints, "no checkpoint written before the kill"
+        before = status(0)
+        os.kill(learner_child.proc.pid, signal.SIGKILL)
+        learner_child.proc.wait()
+        assert stack.restart_dead(max_restarts=1) is None
+        assert learner_child.info["grpc_port"] == port and learner_child.crashes == 1
+        after = helpers.wait_for(lambda: status(before.weight_version + 1), "a version after the restart", limit_s=180)
+        assert after.updates >= 40, "the restarted learner started from zero instead of its checkpoint"
+        assert not [c for c in stack.dead_children() if c is not learner_child]
+        os.kill(learner_child.proc.pid, signal.SIGKILL)  # a second death beyond max_restarts stops the run
+        learner_child.proc.wait()
+        assert stack.restart_dead(max_restarts=1) is learner_child
+    finally:
+        stack.stop()

@@ -360,6 +360,12 @@ class UpConfig(Strict):
     )
     console: bool = Field(default=True, description="live table; false prints only the summary")
     target_experiment: str = Field(default="", description="whose success stops the run; empty = the first")
+    max_restarts: int = Field(
+        default=3,
+        ge=0,
+        description="a child that dies mid-run starts again on its ports (learner and replay resume from their "
+        "checkpoint and LMDB) up to this many times each; 0 = the run stops",
+    )
 
 
 class StackConfig(Strict):

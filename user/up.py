@@ -42,6 +42,7 @@ from user.v1 import (
 
 READY_TIMEOUT_S = 120.0
 START_RESTARTS = 2  # a child killed by a signal while starting is started again this many times
+SERVICES = ("control", "replay", "learner", "inference")  # servers: restarted on their previous ports
 STOP_TIMEOUT_S = 20.0
 PR_SET_PDEATHSIG = 1
 
@@ -65,7 +66,8 @@ class Child:
     info: dict[str, Any] = field(default_factory=dict)
     cmd: list[str] = field(default_factory=list)
     env: dict[str, str] | None = None
-    restarts: int = 0
+    restarts: int = 0  # while starting
+    crashes: int = 0  # mid-run deaths the supervisor started it again after
 
     def launch(self) -> None:
         with open(self.log_path, "ab") as log_file:
@@ -258,6 +260,34 @@ class Stack:
 
     def dead_children(self) -> list[Child]:
         return [c for c in self.children if c.proc.poll() is not None]
+
+    def restart(self, child: Child) -> None:
+        """Start a dead child again where the others expect it: a service on its previous gRPC and metrics ports
+        (edges and the other services keep their addresses and reconnect), with its state where it left it
+        (control's SQLite, replay's LMDB, the learner's checkpoints, an edge's spool)."""
+        if child.name in SERVICES and "grpc_port" in child.info:
+            at = child.cmd.index("--ready-file")
+            pinned = [f"{child.name}.server.port={child.info['grpc_port']}"]
+            if child.info.get("metrics_port"):
+                pinned.append(f"{child.name}.server.metrics_port={child.info['metrics_port']}")
+            child.cmd = [*child.cmd[:at], *(x for p in pinned for x in ("--set", p)), *child.cmd[at:]]
+        child.crashes += 1
+        log.warning(
+            "child died mid-run; starting it again",
+            extra=kv(child=child.name, code=child.proc.returncode, crashes=child.crashes),
+        )
+        child.ready_file.unlink(missing_ok=True)
+        child.launch()
+        self._wait_ready(child)
+
+    def restart_dead(self, max_restarts: int) -> Child | None:
+        """Start every dead child again; the first that has died more than max_restarts times is returned (the
+        run should stop), else None."""
+        for child in self.dead_children():
+            if child.crashes >= max_restarts:
+                return child
+            self.restart(child)
+        return None
 
     def stop(self) -> dict[str, int | None]:
         """SIGTERM in reverse start order (edges flush first), SIGKILL stragglers; returns exit codes."""
@@ -598,10 +628,12 @@ def run_up(cfg: StackConfig, config_path: str | None, overrides: list[str], fres
                 if snap.t >= budget_s:
                     reason = "budget exhausted"
                     break
-                dead = stack.dead_children()
-                if dead:
-                    reason = f"{dead[0].name} exited with {dead[0].proc.returncode}"
-                    console.print(f"[red]{reason}:\n{dead[0].log_tail()}")
+                for child in stack.dead_children():
+                    console.print(f"[yellow]{child.name} exited with {child.proc.returncode}; starting it again")
+                failed = stack.restart_dead(cfg.up.max_restarts)
+                if failed is not None:
+                    reason = f"{failed.name} exited with {failed.proc.returncode} ({failed.crashes} restarts)"
+                    console.print(f"[red]{reason}:\n{failed.log_tail()}")
                     break
     except RuntimeError as exc:
         reason = f"start failed: {exc}"
