@@ -629,7 +629,8 @@ def run_up(cfg: StackConfig, config_path: str | None, overrides: list[str], fres
                     reason = "budget exhausted"
                     break
                 for child in stack.dead_children():
-                    console.print(f"[yellow]{child.name} exited with {child.proc.returncode}; starting it again")
+                    if child.crashes < cfg.up.max_restarts:
+                        console.print(f"[yellow]{child.name} exited with {child.proc.returncode}; starting it again")
                 failed = stack.restart_dead(cfg.up.max_restarts)
                 if failed is not None:
                     reason = f"{failed.name} exited with {failed.proc.returncode} ({failed.crashes} restarts)"
