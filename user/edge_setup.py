@@ -143,7 +143,7 @@ User={user}
 SupplementaryGroups=dialout video
 ExecStart={userctl} edge --config {config}
 EnvironmentFile=-{env_file}
-Environment=MUJOCO_GL=egl PYTHONUNBUFFERED=1
+Environment=MUJOCO_GL=egl PYTHONUNBUFFERED=1 MALLOC_ARENA_MAX=2
 Restart=on-failure
 RestartSec=2
 # SIGTERM: the agent holds the robots still, flushes unacknowledged steps and deregisters.
