@@ -60,6 +60,9 @@ def test_no_file_gives_the_defaults() -> None:
         ("edge.robots=[{id: 'no spaces allowed'}]", "edge.robots.0.id"),
         ("edge.robots=[{id: arm-0}, {kind: sim_reach_arm}]", "edge.robots.1.id"),
         ("log_level=LOUD", "log_level"),
+        ("inference.matmul_precision=medium", "inference.matmul_precision"),
+        ("replay.cache_prefault=sometimes", "replay.cache_prefault"),
+        ("up.max_restarts=-1", "up.max_restarts"),
         ("experiments=[{name: a, table: 'lab a'}]", "experiments.0.table"),  # replay would refuse every step
     ],
 )

@@ -69,6 +69,8 @@ def test_a_learner_killed_mid_run_comes_back_on_its_port_and_resumes_from_its_ch
     import os
     import signal
 
+    import grpc
+
     from tests import helpers
     from user.config import load_config
     from user.rpc import make_channel
@@ -94,7 +96,7 @@ def test_a_learner_killed_mid_run_comes_back_on_its_port_and_resumes_from_its_ch
         def status(min_version: int) -> learner_pb2.LearnerStatus | None:
             try:
                 st = stub.GetStatus(learner_pb2.LearnerStatusRequest(), timeout=5)
-            except Exception:  # noqa: BLE001 - down while it restarts
+            except grpc.RpcError:  # down while it restarts
                 return None
             exp = st.experiments[0] if st.experiments else None
             return exp if exp is not None and exp.weight_version >= min_version else None

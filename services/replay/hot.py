@@ -12,6 +12,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
+import mmap
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -63,13 +64,6 @@ def _decoder_pool() -> ThreadPoolExecutor:
         single_threaded_cv2()
         _pool = ThreadPoolExecutor(max_workers=_WORKERS, thread_name_prefix="replay-decode")
     return _pool
-
-
-@functools.cache
-def mmap_page() -> int:
-    import mmap
-
-    return mmap.PAGESIZE
 
 
 def frame_nbytes(layout: Layout) -> int:
@@ -139,7 +133,7 @@ class HotGroup:
         columns = [*self.frames.values(), *self.decoded.values(), self.t_first, self.t_rows, self.action]
         columns += list(self.blob_enc.values())
         for column in columns:
-            column.reshape(-1).view(np.uint8)[:: mmap_page()] = 0  # one write per page maps it
+            column.reshape(-1).view(np.uint8)[:: mmap.PAGESIZE] = 0  # one write per page maps it
 
     def write_frame(self, arrays: dict[str, np.ndarray]) -> int:
         """Copy one observation in; returns its sequence number."""
