@@ -14,11 +14,13 @@ commands.
 from __future__ import annotations
 
 import logging
+import math
 import secrets
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -35,7 +37,7 @@ from edge_agent.teleop import TELEOPERATORS, Teleoperator
 from user import rpc, wire
 from user.config import RobotConfig, StackConfig
 from user.log import kv
-from user.v1 import control_pb2, step_pb2
+from user.v1 import control_pb2, robot_pb2, step_pb2
 
 log = logging.getLogger(__name__)
 
@@ -70,9 +72,20 @@ POLICY_VERSION = prometheus_client.Gauge(
 )
 EPISODE_RETURN = prometheus_client.Gauge("user_edge_last_episode_return", "Return of the latest episode", ["robot_id"])
 
+ATTACHED = prometheus_client.Gauge(
+    "user_edge_robot_attached", "1 while the robot is connected and its loop runs; 0 while absent", ["robot_id"]
+)
+DETACHES = prometheus_client.Counter(
+    "user_edge_robot_detaches_total",
+    "Robots taken offline because their loop failed (unplugged, bus error)",
+    ["robot_id"],
+)
+
 RATE_WINDOW_S = 5.0
 PERIOD_WINDOW = 1000  # recent tick periods kept for percentiles
 PAUSED_POLL_S = 0.05  # fast mode: how often a paused loop re-checks
+WATCH_POLL_S = 0.25  # hot-plug: how often the agent looks for failed loops and retries absent robots
+REPLUG_MAX_S = 60.0  # hot-plug: the longest wait between connect tries of an absent robot
 START_ALIGN_S = 0.1  # realtime: the robots' common first tick, this long after the agent starts them
 
 
@@ -510,8 +523,23 @@ def encoding_plans(cfg: StackConfig, robots: list[Robot]) -> dict[str, Plan]:
     return plans
 
 
+@dataclass
+class _Absent:
+    """A configured robot that is not connected (not plugged in at start, or unplugged since)."""
+
+    robot: Robot
+    failures: int = 0
+    next_try: float = 0.0  # monotonic
+
+
 class EdgeAgent:
-    """Robots from cfg.edge.robots, one RobotLoop each, plus the replay sender, policy source and control client."""
+    """Robots from cfg.edge.robots, one RobotLoop each, plus the replay sender, policy source and control client.
+
+    Hot-plug (edge.replug_s > 0): a robot that does not connect at start, or whose loop fails later (a
+    pulled USB cable ends in a bus error), is absent: control hears the agent's new robot set (it goes
+    offline there and its lease is released) and the agent retries connecting it, with backoff, on a
+    fresh instance built from its config entry. When it connects it gets a new loop and registers again.
+    """
 
     def __init__(
         self,
@@ -530,18 +558,16 @@ class EdgeAgent:
         self.encoder = FrameEncoder(self.sender, plans, edge.encode_threads) if plans else None
         self.sink: StepSink = self.encoder if self.encoder is not None else self.sender
         self.policy = policy or make_policy_source(cfg, edge.agent_id, [r.spec for r in self.robots])
-        self.loops = {
-            r.spec.robot_id: RobotLoop(
-                r,
-                self.policy,
-                self.sink,
-                edge.mode,
-                edge.action_deadline_ms / 1000.0,
-                task=self.tasks[r.spec.robot_id],
-                teleop=self.teleops.get(r.spec.robot_id),
-            )
-            for r in self.robots
-        }
+        # Robots attached now. Replaced whole on every hot-plug change, never mutated: other threads iterate it.
+        self.loops = {r.spec.robot_id: self._make_loop(r) for r in self.robots}
+        self._absent: dict[str, _Absent] = {}  # touched by start() and then the watcher thread only
+        self._leaving: list[RobotLoop] = []  # detached loops whose last status goes out with the next heartbeat
+        self._leaving_lock = threading.Lock()
+        self._grid0: float | None = None  # the realtime grid's first tick, for robots that attach later
+        self._attached_at: dict[str, float] = {}  # robot_id -> when its loop started (monotonic)
+        self._flaps: dict[str, int] = {}  # robot_id -> loops in a row that failed within REPLUG_MAX_S
+        self._watch_stop = threading.Event()
+        self._watcher: threading.Thread | None = None
         self.control = ControlClient(
             edge.control_addr,
             cfg.auth,
@@ -568,32 +594,162 @@ class EdgeAgent:
             raise
         return robots
 
+    def _make_loop(self, robot: Robot) -> RobotLoop:
+        edge, rid = self.cfg.edge, robot.spec.robot_id
+        return RobotLoop(
+            robot,
+            self.policy,
+            self.sink,
+            edge.mode,
+            edge.action_deadline_ms / 1000.0,
+            task=self.tasks[rid],
+            teleop=self.teleops.get(rid),
+        )
+
     def start(self) -> None:
         for robot in self.robots:
-            robot.connect()
+            self._connect_at_start(robot)
         for teleop in self.teleops.values():
             teleop.connect()
+        self.control.set_robots(self._attached_specs())
         self.control.start()
         # Control names this agent's replay shard on registration: wait briefly so the first steps go there.
         self.control.wait_registered(self.cfg.edge.rpc_timeout_s)
         self.sender.start()
         # One grid for every robot: they tick together (their Acts share a call) and the first tick
         # leaves each loop time to reset its robot.
-        first_tick = time.monotonic() + START_ALIGN_S
+        self._grid0 = first_tick = time.monotonic() + START_ALIGN_S
         for loop in self.loops.values():
             loop.start(first_tick)
+        if self.cfg.edge.replug_s > 0:
+            self._watcher = threading.Thread(target=self._watch, name="edge-hotplug", daemon=True)
+            self._watcher.start()
         log.info(
             "edge agent started",
             extra=kv(
                 agent_id=self.cfg.edge.agent_id,
                 robots=list(self.loops),
+                absent=list(self._absent),
                 mode=self.cfg.edge.mode,
                 policy_source=self.cfg.edge.policy_source,
             ),
         )
 
+    # ------------------------------------------------------------------ hot-plug
+
+    def _connect_at_start(self, robot: Robot) -> None:
+        rid = robot.spec.robot_id
+        if self.cfg.edge.replug_s <= 0:
+            robot.connect()  # no hot-plug: a robot that is not there stops the agent
+            ATTACHED.labels(rid).set(1)
+            return
+        try:
+            robot.connect()
+        except Exception as exc:
+            log.warning(
+                "robot not connected at start; retrying in the background",
+                extra=kv(robot_id=rid, error=repr(exc), retry_s=self.cfg.edge.replug_s),
+            )
+            self.loops = {k: v for k, v in self.loops.items() if k != rid}
+            self._absent[rid] = _Absent(robot, failures=1, next_try=time.monotonic() + self.cfg.edge.replug_s)
+            ATTACHED.labels(rid).set(0)
+            return
+        ATTACHED.labels(rid).set(1)
+        self._attached_at[rid] = time.monotonic()
+
+    def _attached_specs(self) -> list[robot_pb2.RobotSpec]:
+        return [r.spec for r in self.robots if r.spec.robot_id in self.loops]
+
+    def _watch(self) -> None:
+        while not self._watch_stop.wait(WATCH_POLL_S):
+            try:
+                for rid, loop in list(self.loops.items()):
+                    if not loop.alive and loop.error is not None:
+                        self._detach(rid, loop)
+                now = time.monotonic()
+                for rid, absent in list(self._absent.items()):
+                    if now >= absent.next_try and not self._watch_stop.is_set():
+                        self._try_attach(rid, absent)
+            except Exception:  # the watcher must outlive any one robot's trouble
+                log.exception("hot-plug watcher step failed")
+
+    def _detach(self, rid: str, loop: RobotLoop) -> None:
+        """The loop failed (unplugged, bus error): release the robot, tell control, retry it later."""
+        DETACHES.labels(rid).inc()
+        ATTACHED.labels(rid).set(0)
+        log.warning(
+            "robot detached: its loop failed; it goes offline until it connects again",
+            extra=kv(robot_id=rid, error=loop.error, retry_s=self.cfg.edge.replug_s),
+        )
+        with self._leaving_lock:
+            self._leaving.append(loop)
+        self.loops = {k: v for k, v in self.loops.items() if k != rid}
+        self.control.set_robots(self._attached_specs())
+        self.policy.reset(rid)  # chunks planned for the lost episode must not run after it comes back
+        # A loop that fails soon after every attach (a bug, a broken arm) backs off like a failed connect.
+        quick = time.monotonic() - self._attached_at.pop(rid, 0.0) < REPLUG_MAX_S
+        flaps = self._flaps[rid] = self._flaps.get(rid, 0) + 1 if quick else 0
+        fresh = self._fresh_instance(loop.robot)
+        self._absent[rid] = _Absent(fresh, next_try=time.monotonic() + self._retry_s(flaps + 1))
+
+    def _retry_s(self, failures: int) -> float:
+        return min(REPLUG_MAX_S, self.cfg.edge.replug_s * 2 ** min(failures - 1, 8))
+
+    def _fresh_instance(self, robot: Robot) -> Robot:
+        """A new instance from the robot's config entry (a device object after a bus error may be stuck
+        half-open); robots handed to the agent without an entry are reused."""
+        rid = robot.spec.robot_id
+        for closer in (robot.disconnect, robot.close):
+            try:
+                closer()
+            except Exception as exc:  # expected after an unplug: the device is gone
+                log.debug("release of a detached robot failed", extra=kv(robot_id=rid, error=repr(exc)))
+        index = next((i for i, rc in enumerate(self.cfg.edge.robots) if rc.id == rid), None)
+        if index is None:
+            return robot
+        rc = self.cfg.edge.robots[index]
+        try:
+            fresh = make_robot(
+                rc.kind, rc.id, rc.params, seed=self.cfg.edge.seed + index, where=f"edge.robots[{index}].params"
+            )
+        except Exception:  # keep trying the old instance rather than lose the robot
+            log.exception("rebuilding a detached robot failed; retrying its old instance", extra=kv(robot_id=rid))
+            return robot
+        self.robots = [fresh if r is robot else r for r in self.robots]
+        return fresh
+
+    def _try_attach(self, rid: str, absent: _Absent) -> None:
+        try:
+            absent.robot.connect()
+        except Exception as exc:
+            absent.failures += 1
+            wait = self._retry_s(absent.failures)
+            absent.next_try = time.monotonic() + wait
+            log.info("robot still absent", extra=kv(robot_id=rid, error=repr(exc), retry_s=round(wait, 2)))
+            return
+        loop = self._make_loop(absent.robot)
+        if self.control.registered is not None:  # act only once control has leased it (its experiment may be stopped)
+            loop.set_lease(control_pb2.RobotLease(robot_id=rid, hold=True, reason="attached; waiting for a lease"))
+        del self._absent[rid]
+        self.loops = {**self.loops, rid: loop}  # before control hears of it: its lease must find the loop
+        self.control.set_robots(self._attached_specs())
+        loop.start(self._next_tick(loop.period_s))
+        self._attached_at[rid] = time.monotonic()
+        ATTACHED.labels(rid).set(1)
+        log.info("robot attached", extra=kv(robot_id=rid, tries=absent.failures + 1))
+
+    def _next_tick(self, period_s: float) -> float:
+        """The next tick of the agent's grid a little ahead: a late robot ticks with the others."""
+        earliest = time.monotonic() + START_ALIGN_S
+        if self._grid0 is None or self.cfg.edge.mode != "realtime":
+            return earliest
+        return self._grid0 + math.ceil((earliest - self._grid0) / period_s) * period_s
+
     def stop(self, flush_timeout_s: float = 10.0) -> None:
         """Finish the current steps, hold, flush unacked steps to replay (bounded), close everything."""
+        self._watch_stop.set()
+        if self._watcher is not None:
+            self._watcher.join(10.0)
         for loop in self.loops.values():
             loop.stop(wait=False)  # every robot finishes its step at once
         for loop in self.loops.values():
@@ -619,7 +775,9 @@ class EdgeAgent:
         log.info("edge agent stopped", extra=kv(agent_id=self.cfg.edge.agent_id, flushed=flushed))
 
     def status(self) -> list[control_pb2.RobotStatus]:
-        statuses = [loop.status() for loop in self.loops.values()]
+        with self._leaving_lock:  # episodes a robot finished before it was unplugged still reach control
+            leaving, self._leaving = self._leaving, []
+        statuses = [loop.status() for loop in [*leaving, *self.loops.values()]]
         outbox = self.sender.outbox
         for st in statuses:  # one outbox per agent: every robot reports it
             st.spool_steps, st.spool_bytes, st.spool_dropped = outbox.count, outbox.nbytes, outbox.dropped

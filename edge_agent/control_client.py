@@ -3,6 +3,8 @@
 One background thread owns the Control.Connect stream. Heartbeats carry a RobotStatus per robot
 from `status_fn()`; the finished-episode summaries inside them are not lost when a stream breaks:
 the ones of the last heartbeat written on a broken stream go out again with the next one.
+`set_robots` (hot-plug) sends the agent's new robot set on the live stream, and every later
+registration carries it.
 """
 
 from __future__ import annotations
@@ -90,6 +92,7 @@ class ControlClient:
         self._stream_gen = 0
         self._registered: control_pb2.Registered | None = None
         self._registered_event = threading.Event()
+        self._robots_changed = threading.Event()  # set_robots since the stream last told control
         self.heartbeats = self.reconnects = 0
         self.last_error: grpc.StatusCode | None = None
         self._thread = threading.Thread(target=self._run, name="control-client", daemon=True)
@@ -106,6 +109,18 @@ class ControlClient:
 
     def wait_registered(self, timeout: float) -> bool:
         return self._registered_event.wait(timeout)
+
+    def set_robots(self, specs: list[robot_pb2.RobotSpec]) -> None:
+        """The robots attached now (hot-plug): told to control on the live stream, and on every reconnect."""
+        with self._lock:
+            del self._register.robots[:]
+            self._register.robots.extend(specs)
+            self._robots_changed.set()
+
+    def _robot_set(self) -> list[robot_pb2.RobotSpec]:
+        with self._lock:
+            self._robots_changed.clear()
+            return list(self._register.robots)
 
     def close(self, final_heartbeat_timeout_s: float = 2.0) -> None:
         """Send a last heartbeat (the latest episodes), hang up cleanly, stop the thread."""
@@ -233,7 +248,11 @@ class ControlClient:
         self._results.put(control_pb2.CommandResult(command_id=cmd.command_id, ok=ok, message=message))
 
     def _requests(self, gen: int) -> Iterator[control_pb2.EdgeMessage]:
-        yield control_pb2.EdgeMessage(register=self._register)
+        with self._lock:  # a copy: set_robots may change the set while gRPC serializes this one
+            self._robots_changed.clear()
+            register = control_pb2.RegisterRequest()
+            register.CopyFrom(self._register)
+        yield control_pb2.EdgeMessage(register=register)
         seq = 0
         next_beat = 0.0
         while True:
@@ -241,7 +260,8 @@ class ControlClient:
                 return
             reg = self._registered
             final = self._final.is_set()
-            if reg is not None and (final or time.monotonic() >= next_beat):
+            changed = reg is not None and self._robots_changed.is_set() and not final
+            if reg is not None and (final or changed or time.monotonic() >= next_beat):
                 interval = reg.heartbeat_interval_s if reg.heartbeat_interval_s > 0 else 1.0
                 next_beat = time.monotonic() + interval
                 seq += 1
@@ -255,6 +275,8 @@ class ControlClient:
                 yield control_pb2.EdgeMessage(heartbeat=beat)
                 if final:
                     return  # half-close: control sees the end of our stream and closes its side
+                if changed:  # after that heartbeat: the last episodes of a robot leaving the set still count
+                    yield control_pb2.EdgeMessage(robots=control_pb2.RobotsUpdate(robots=self._robot_set()))
                 continue
             wait = _POLL_S if reg is None else max(0.0, min(_POLL_S, next_beat - time.monotonic()))
             try:

@@ -8,12 +8,16 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from pydantic import Field
 
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
+from edge_agent.robot import ROBOTS, Observation
+from edge_agent.robots.sim_arm import SimReachArm
 from user.policy import POLICIES, Policy
 from user.registry import PluginParams
 from user.v1 import learner_pb2
@@ -80,3 +84,36 @@ class MeanAction(Algorithm):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.action = state["action"].clone()
         self.updates = int(state["updates"])
+
+
+@ROBOTS.register("test_pluggable", description="test: a sim arm on a cable (a file): it is there while the file is")
+class PluggableArm(SimReachArm):
+    """Hot-plug stand-in for a USB arm: connect fails and the bus calls raise while the cable file is missing."""
+
+    class Params(SimReachArm.Params):
+        cable: str = Field(min_length=1, description="a file that exists while the arm is plugged in")
+
+    def __init__(self, params: Params, robot_id: str, seed: int = 0) -> None:
+        self.cable = Path(params.cable)
+        self._built = False  # building touches no hardware (a lerobot robot's constructor does not either)
+        super().__init__(params, robot_id, seed)
+        self._built = True
+
+    def _bus(self) -> None:
+        if self._built and not self.cable.exists():
+            raise ConnectionError(f"{self.robot_id}: no device (cable {self.cable} pulled)")
+
+    def connect(self) -> None:
+        self._bus()
+
+    def observe(self) -> Observation:
+        self._bus()
+        return super().observe()
+
+    def act(self, action: np.ndarray) -> np.ndarray:
+        self._bus()
+        return super().act(action)
+
+    def hold(self) -> None:  # a real arm's hold writes to its bus too
+        self._bus()
+        super().hold()

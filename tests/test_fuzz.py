@@ -252,8 +252,11 @@ def unary(method: Any, request: Any) -> None:
 def edge_messages() -> st.SearchStrategy[control_pb2.EdgeMessage]:
     reg = control_pb2.RegisterRequest(agent_id="fuzz-agent", hostname="h", robots=[robot_spec("fuzz-arm")])
     beat = control_pb2.Heartbeat(seq=1, robots=[control_pb2.RobotStatus(robot_id="fuzz-arm")])
+    plugged = control_pb2.RobotsUpdate(robots=[robot_spec("fuzz-arm"), robot_spec("fuzz-arm-2")])  # hot-plug
     return st.one_of(
-        any_or_near(control_pb2.EdgeMessage(register=reg)), any_or_near(control_pb2.EdgeMessage(heartbeat=beat))
+        any_or_near(control_pb2.EdgeMessage(register=reg)),
+        any_or_near(control_pb2.EdgeMessage(heartbeat=beat)),
+        any_or_near(control_pb2.EdgeMessage(robots=plugged)),
     )
 
 

@@ -338,6 +338,13 @@ class EdgeConfig(Strict):
         default=False,
         description="local policy: accept lossy weights (error-bounded patches, bf16) when the link is too slow",
     )
+    replug_s: float = Field(
+        default=2.0,
+        ge=0,
+        description="hot-plug: retry a robot absent at start or unplugged (its loop failed) after this many seconds, "
+        "doubling per failed try up to 60 s; it registers when it connects. 0 = off: a robot that does not connect "
+        "stops the agent",
+    )
 
     @model_validator(mode="after")
     def _unique_ids(self) -> EdgeConfig:

@@ -1,8 +1,9 @@
 """Control service: the registry of robots, their leases and heartbeats, experiments, and cloud-to-edge commands.
 
 An edge agent opens one long-lived Connect stream: `register` first (validated specs -> a lease),
-then heartbeats that renew the lease and report each robot's status and finished episodes.
-Commands from SendCommand travel down the same stream. A robot goes offline when its stream ends
+then heartbeats that renew the lease and report each robot's status and finished episodes, and a
+`robots` update whenever a robot is plugged in or unplugged (hot-plug: the new set, validated like a
+registration). Commands from SendCommand travel down the same stream. A robot goes offline when its stream ends
 or when no heartbeat arrives for lease_ttl_s (a reaper thread); its spec stays queryable so replay
 can keep validating steps that arrive late.
 """
@@ -26,6 +27,7 @@ import prometheus_client
 
 from services.control.state import ControlState
 from user import rpc
+from user.auth import Identity
 from user.config import ExperimentConfig, ReplayShard, StackConfig
 from user.experiments import experiment_for
 from user.log import kv
@@ -64,19 +66,23 @@ EPISODES = prometheus_client.Counter(
 
 
 def validate_register(req: control_pb2.RegisterRequest) -> None:
+    """An agent may register with no robot attached yet: they arrive later as `robots` updates."""
     if not ROBOT_ID_RE.fullmatch(req.agent_id):
         raise SpecError(f"agent_id {req.agent_id!r} must match {ROBOT_ID_RE.pattern}")
     for name in ("hostname", "software_version"):
         if len(getattr(req, name).encode()) > MAX_TEXT_BYTES:
             raise SpecError(f"{name} is longer than {MAX_TEXT_BYTES} bytes")
-    if not req.robots:
-        raise SpecError("register needs at least one robot")
-    if len(req.robots) > MAX_ROBOTS_PER_AGENT:
-        raise SpecError(f"one agent registers at most {MAX_ROBOTS_PER_AGENT} robots, got {len(req.robots)}")
-    ids = [spec.robot_id for spec in req.robots]
+    validate_robot_set(req.robots)
+
+
+def validate_robot_set(specs: Iterable[robot_pb2.RobotSpec]) -> None:
+    specs = list(specs)
+    if len(specs) > MAX_ROBOTS_PER_AGENT:
+        raise SpecError(f"one agent registers at most {MAX_ROBOTS_PER_AGENT} robots, got {len(specs)}")
+    ids = [spec.robot_id for spec in specs]
     if len(ids) != len(set(ids)):
         raise SpecError(f"robot ids must be unique within a registration, got {ids}")
-    for spec in req.robots:
+    for spec in specs:
         validate_spec(spec)
 
 
@@ -302,13 +308,7 @@ class Registry:
         """Take the robots for this agent; returns the new connection and the ones it replaced."""
         now_ns = time.time_ns()
         with self._lock:
-            for spec in req.robots:
-                rec = self._robots.get(spec.robot_id)
-                if rec is not None and rec.online and rec.agent_id != req.agent_id:
-                    raise AlreadyRegistered(
-                        f"robot {spec.robot_id} is registered by live agent {rec.agent_id!r} "
-                        f"({rec.hostname}); a robot belongs to one agent at a time"
-                    )
+            self._check_free_locked(req.robots, req.agent_id)
             # One stream per agent: a re-registration (reconnect) supersedes the old one.
             replaced = [c for c in self._conns.values() if c.agent_id == req.agent_id]
             for old in replaced:  # leases are recomputed below, so a reconnect keeps its max_robots places
@@ -322,23 +322,71 @@ class Registry:
             )
             self._conns[conn.lease_id] = conn
             for spec in req.robots:
-                old_rec = self._robots.get(spec.robot_id)
-                rec = RobotRecord(
-                    spec=spec,
-                    agent_id=req.agent_id,
-                    hostname=req.hostname,
-                    registered_at_ns=now_ns,
-                    conn=conn,
-                    last_heartbeat_ns=now_ns,
-                    lease_expires_ns=now_ns + int(self.lease_ttl_s * 1e9),
-                    status=control_pb2.RobotStatus(robot_id=spec.robot_id, state=control_pb2.ROBOT_STATE_RUNNING),
-                    episodes=old_rec.episodes if old_rec else EpisodeHistory(self.episodes_kept),
-                )
-                self._robots[spec.robot_id] = rec
-                self._save_locked(rec)
+                self._take_locked(spec, conn, now_ns)
             self._update_gauge_locked()
             self._relay_leases_locked(skip=conn)  # robots of other agents may lose a max_robots place
         return conn, replaced
+
+    def update_robots(self, conn: Connection, specs: list[robot_pb2.RobotSpec]) -> tuple[list[str], list[str]]:
+        """Hot-plug: `specs` is the agent's whole robot set now. New robots come online on this stream,
+        missing ones go offline (their lease is released and relayed to the others); returns (added, removed).
+        Leases of the new robots go down the stream as a LeaseUpdate."""
+        now_ns = time.time_ns()
+        with self._lock:
+            if not conn.live:
+                return [], []
+            self._check_free_locked(specs, conn.agent_id)
+            wanted = {s.robot_id: s for s in specs}
+            removed = [rid for rid in conn.robot_ids if rid not in wanted]
+            added = [rid for rid in wanted if rid not in conn.robot_ids]
+            self._release_locked(conn, removed)
+            for spec in specs:
+                rec = self._robots.get(spec.robot_id)
+                if spec.robot_id in added or rec is None or rec.conn is not conn:
+                    self._take_locked(spec, conn, now_ns)
+                elif rec.spec != spec:  # re-plugged with another spec between two updates
+                    rec.spec = spec
+                    self._save_locked(rec)
+            conn.robot_ids = list(wanted)
+            self._update_gauge_locked()
+            self._relay_leases_locked()
+        return added, removed
+
+    def _check_free_locked(self, specs: Iterable[robot_pb2.RobotSpec], agent_id: str) -> None:
+        for spec in specs:
+            rec = self._robots.get(spec.robot_id)
+            if rec is not None and rec.online and rec.agent_id != agent_id:
+                raise AlreadyRegistered(
+                    f"robot {spec.robot_id} is registered by live agent {rec.agent_id!r} "
+                    f"({rec.hostname}); a robot belongs to one agent at a time"
+                )
+
+    def _take_locked(self, spec: robot_pb2.RobotSpec, conn: Connection, now_ns: int) -> None:
+        """Put `spec` online on `conn`, keeping the robot's episode history."""
+        old_rec = self._robots.get(spec.robot_id)
+        rec = RobotRecord(
+            spec=spec,
+            agent_id=conn.agent_id,
+            hostname=conn.hostname,
+            registered_at_ns=now_ns,
+            conn=conn,
+            last_heartbeat_ns=now_ns,
+            lease_expires_ns=now_ns + int(self.lease_ttl_s * 1e9),
+            status=control_pb2.RobotStatus(robot_id=spec.robot_id, state=control_pb2.ROBOT_STATE_RUNNING),
+            episodes=old_rec.episodes if old_rec else EpisodeHistory(self.episodes_kept),
+        )
+        self._robots[spec.robot_id] = rec
+        self._save_locked(rec)
+
+    def _release_locked(self, conn: Connection, robot_ids: Iterable[str]) -> None:
+        """These robots of `conn` go offline; their leases are free for others (caller relays)."""
+        for rid in robot_ids:
+            rec = self._robots.get(rid)
+            if rec is not None and rec.conn is conn:
+                rec.conn = None
+                rec.lease = None  # released: its experiment goes on with the others
+                rec.status.state = control_pb2.ROBOT_STATE_OFFLINE
+                self._save_locked(rec)
 
     def leases_of(self, conn: Connection) -> list[control_pb2.RobotLease]:
         """The leases of a connection's robots, for its Registered message."""
@@ -426,13 +474,7 @@ class Registry:
     def _end_locked(self, conn: Connection, relay: bool = True) -> None:
         conn.live = False
         self._conns.pop(conn.lease_id, None)
-        for rid in conn.robot_ids:
-            rec = self._robots.get(rid)
-            if rec is not None and rec.conn is conn:
-                rec.conn = None
-                rec.lease = None  # released: its experiment goes on with the others
-                rec.status.state = control_pb2.ROBOT_STATE_OFFLINE
-                self._save_locked(rec)
+        self._release_locked(conn, conn.robot_ids)
         self._update_gauge_locked()
         if relay:
             self._relay_leases_locked()  # a place it held at max_robots goes to a waiting robot
@@ -815,7 +857,10 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
         )
         reader_done = threading.Event()
         reader = threading.Thread(
-            target=self._read, args=(conn, request_iterator, reader_done), name=f"control-{req.agent_id}", daemon=True
+            target=self._read,
+            args=(conn, request_iterator, reader_done, who),
+            name=f"control-{req.agent_id}",
+            daemon=True,
         )
         reader.start()
         try:
@@ -839,11 +884,22 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
                 context.abort(item.code, item.message)
             yield item
 
-    def _read(self, conn: Connection, requests: Iterator[control_pb2.EdgeMessage], done: threading.Event) -> None:
+    def _read(
+        self,
+        conn: Connection,
+        requests: Iterator[control_pb2.EdgeMessage],
+        done: threading.Event,
+        who: Identity | None = None,
+    ) -> None:
         try:
             for msg in requests:
                 kind = msg.WhichOneof("msg")
-                if kind == "heartbeat":
+                if kind == "robots":
+                    refusal = self._update_robots(conn, msg.robots, who)
+                    if refusal is not None:  # like a refused registration: the stream ends with its status
+                        conn.outbox.put(refusal)
+                        return
+                elif kind == "heartbeat":
                     HEARTBEATS.inc()
                     foreign = self.registry.heartbeat(conn, msg.heartbeat)
                     if foreign:
@@ -876,6 +932,24 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
             log.debug("edge stream read ended", extra=kv(agent_id=conn.agent_id, error=repr(exc)))
         finally:
             done.set()
+
+    def _update_robots(self, conn: Connection, update: control_pb2.RobotsUpdate, who: Identity | None) -> Abort | None:
+        """A hot-plug update: the agent's new robot set, checked as a registration would be."""
+        if who is not None and not all(who.owns_robot(s.robot_id) for s in update.robots):
+            return Abort(
+                grpc.StatusCode.PERMISSION_DENIED,
+                f"{who.role} token of {who.name!r} may not register these robots for agent {conn.agent_id!r}",
+            )
+        try:
+            validate_robot_set(update.robots)
+            added, removed = self.registry.update_robots(conn, list(update.robots))
+        except SpecError as exc:
+            return Abort(grpc.StatusCode.INVALID_ARGUMENT, f"bad robots update: {exc}")
+        except AlreadyRegistered as exc:
+            return Abort(grpc.StatusCode.ALREADY_EXISTS, str(exc))
+        if added or removed:
+            log.info("agent robots changed", extra=kv(agent_id=conn.agent_id, added=added, removed=removed))
+        return None
 
     def ListRobots(
         self, request: control_pb2.ListRobotsRequest, context: grpc.ServicerContext
