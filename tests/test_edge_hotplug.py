@@ -22,7 +22,7 @@ from services.replay.server import ReplayService
 from tests.helpers import wait_for
 from tests.test_control import spec as robot_spec
 from tests.test_edge_agent import control, control_stub, edge_cfg, random_weights, replay_stats, robot_info, stack_cfg
-from user.config import ExperimentConfig, RobotConfig, RobotSelector, StackConfig
+from user.config import AuthConfig, ExperimentConfig, RobotConfig, RobotSelector, StackConfig
 from user.v1 import control_pb2, robot_pb2
 
 __all__ = ["control"]  # a fixture
@@ -151,3 +151,27 @@ def test_control_checks_a_robots_update_like_a_registration(control: ControlServ
         up_b.put(None)
         call_a.cancel()
         call_b.cancel()
+
+
+def test_a_late_robot_joins_the_agents_tick_grid_and_retries_back_off() -> None:
+    import time
+
+    from edge_agent.agent import REPLUG_MAX_S
+    from tests.test_edge_plugins import ConstantPolicy, ListSink
+
+    cfg = StackConfig(auth=AuthConfig(token="test-token"))
+    cfg.edge.mode, cfg.edge.replug_s = "realtime", 0.5
+    cfg.edge.robots = [RobotConfig(id="arm-0", kind="sim_reach_arm")]
+    agent = EdgeAgent(cfg, policy=ConstantPolicy(), sender=ListSink())  # type: ignore[arg-type]
+    try:
+        agent._grid0 = time.monotonic() - 10.0
+        before = time.monotonic()
+        tick = agent._next_tick(0.05)
+        assert tick > before  # ahead of now, on the grid the first robots tick on (20 Hz: whole periods)
+        assert abs((tick - agent._grid0) / 0.05 - round((tick - agent._grid0) / 0.05)) < 1e-6
+        assert [agent._retry_s(n) for n in (1, 2, 3)] == [0.5, 1.0, 2.0]
+        assert agent._retry_s(50) == REPLUG_MAX_S
+    finally:
+        agent.control.close(0)
+        for robot in agent.robots:
+            robot.close()
