@@ -524,10 +524,10 @@ def encoding_plans(cfg: StackConfig, robots: list[Robot]) -> dict[str, Plan]:
 
 
 @dataclass
-class _Absent:
-    """A configured robot that is not connected (not plugged in at start, or unplugged since)."""
+class _Absent[D: (Robot, Teleoperator)]:
+    """A configured device that is not connected (not plugged in at start, or unplugged since)."""
 
-    robot: Robot
+    device: D
     failures: int = 0
     next_try: float = 0.0  # monotonic
 
@@ -558,9 +558,10 @@ class EdgeAgent:
         self.encoder = FrameEncoder(self.sender, plans, edge.encode_threads) if plans else None
         self.sink: StepSink = self.encoder if self.encoder is not None else self.sender
         self.policy = policy or make_policy_source(cfg, edge.agent_id, [r.spec for r in self.robots])
+        self._absent_teleops: dict[str, _Absent[Teleoperator]] = {}  # not connected yet, by their robot's id
         # Robots attached now. Replaced whole on every hot-plug change, never mutated: other threads iterate it.
         self.loops = {r.spec.robot_id: self._make_loop(r) for r in self.robots}
-        self._absent: dict[str, _Absent] = {}  # touched by start() and then the watcher thread only
+        self._absent: dict[str, _Absent[Robot]] = {}  # touched by start() and then the watcher thread only
         self._leaving: list[RobotLoop] = []  # detached loops whose last status goes out with the next heartbeat
         self._leaving_lock = threading.Lock()
         self._grid0: float | None = None  # the realtime grid's first tick, for robots that attach later
@@ -603,14 +604,14 @@ class EdgeAgent:
             edge.mode,
             edge.action_deadline_ms / 1000.0,
             task=self.tasks[rid],
-            teleop=self.teleops.get(rid),
+            teleop=None if rid in self._absent_teleops else self.teleops.get(rid),
         )
 
     def start(self) -> None:
         for robot in self.robots:
             self._connect_at_start(robot)
-        for teleop in self.teleops.values():
-            teleop.connect()
+        for rid, teleop in self.teleops.items():
+            self._connect_teleop_at_start(rid, teleop)
         self.control.set_robots(self._attached_specs())
         self.control.start()
         # Control names this agent's replay shard on registration: wait briefly so the first steps go there.
@@ -657,6 +658,36 @@ class EdgeAgent:
         ATTACHED.labels(rid).set(1)
         self._attached_at[rid] = time.monotonic()
 
+    def _connect_teleop_at_start(self, rid: str, teleop: Teleoperator) -> None:
+        """A teleoperator not plugged in yet (a gamepad) leaves its robot to the policy until it connects."""
+        if self.cfg.edge.replug_s <= 0:
+            teleop.connect()
+            return
+        try:
+            teleop.connect()
+        except Exception as exc:
+            log.warning(
+                "teleoperator not connected at start; the policy drives until it connects",
+                extra=kv(robot_id=rid, error=repr(exc), retry_s=self.cfg.edge.replug_s),
+            )
+            self._absent_teleops[rid] = _Absent(teleop, failures=1, next_try=time.monotonic() + self.cfg.edge.replug_s)
+            if rid in self.loops:
+                self.loops[rid].teleop = None
+
+    def _try_attach_teleop(self, rid: str, absent: _Absent[Teleoperator]) -> None:
+        try:
+            absent.device.connect()
+        except Exception as exc:
+            absent.failures += 1
+            absent.next_try = time.monotonic() + self._retry_s(absent.failures)
+            log.info("teleoperator still absent", extra=kv(robot_id=rid, error=repr(exc)))
+            return
+        del self._absent_teleops[rid]
+        loop = self.loops.get(rid)
+        if loop is not None:
+            loop.teleop = self.teleops[rid]
+        log.info("teleoperator attached", extra=kv(robot_id=rid, tries=absent.failures + 1))
+
     def _attached_specs(self) -> list[robot_pb2.RobotSpec]:
         return [r.spec for r in self.robots if r.spec.robot_id in self.loops]
 
@@ -670,6 +701,9 @@ class EdgeAgent:
                 for rid, absent in list(self._absent.items()):
                     if now >= absent.next_try and not self._watch_stop.is_set():
                         self._try_attach(rid, absent)
+                for rid, absent in list(self._absent_teleops.items()):
+                    if now >= absent.next_try and not self._watch_stop.is_set():
+                        self._try_attach_teleop(rid, absent)
             except Exception:  # the watcher must outlive any one robot's trouble
                 log.exception("hot-plug watcher step failed")
 
@@ -718,16 +752,16 @@ class EdgeAgent:
         self.robots = [fresh if r is robot else r for r in self.robots]
         return fresh
 
-    def _try_attach(self, rid: str, absent: _Absent) -> None:
+    def _try_attach(self, rid: str, absent: _Absent[Robot]) -> None:
         try:
-            absent.robot.connect()
+            absent.device.connect()
         except Exception as exc:
             absent.failures += 1
             wait = self._retry_s(absent.failures)
             absent.next_try = time.monotonic() + wait
             log.info("robot still absent", extra=kv(robot_id=rid, error=repr(exc), retry_s=round(wait, 2)))
             return
-        loop = self._make_loop(absent.robot)
+        loop = self._make_loop(absent.device)
         if self.control.registered is not None:  # act only once control has leased it (its experiment may be stopped)
             loop.set_lease(control_pb2.RobotLease(robot_id=rid, hold=True, reason="attached; waiting for a lease"))
         del self._absent[rid]

@@ -18,6 +18,7 @@ from pydantic import Field
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
 from edge_agent.robot import ROBOTS, Observation
 from edge_agent.robots.sim_arm import SimReachArm
+from edge_agent.teleop import TELEOPERATORS, Teleoperator
 from user.policy import POLICIES, Policy
 from user.registry import PluginParams
 from user.v1 import learner_pb2
@@ -117,3 +118,18 @@ class PluggableArm(SimReachArm):
     def hold(self) -> None:  # a real arm's hold writes to its bus too
         self._bus()
         super().hold()
+
+
+@TELEOPERATORS.register("test_pluggable", description="test: a gamepad on a cable (a file) that always holds still")
+class PluggableGamepad(Teleoperator):
+    """Connect fails while the cable file is missing; once connected the "human" drives every tick (zero action)."""
+
+    class Params(PluginParams):
+        cable: str = Field(min_length=1, description="a file that exists while the gamepad is plugged in")
+
+    def connect(self) -> None:
+        if not Path(self.params.cable).exists():  # type: ignore[attr-defined]
+            raise ConnectionError("no gamepad")
+
+    def poll(self, observation: Observation) -> np.ndarray | None:
+        return np.zeros(len(self.spec.action.low), np.float32)

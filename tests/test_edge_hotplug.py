@@ -22,7 +22,7 @@ from services.replay.server import ReplayService
 from tests.helpers import wait_for
 from tests.test_control import spec as robot_spec
 from tests.test_edge_agent import control, control_stub, edge_cfg, random_weights, replay_stats, robot_info, stack_cfg
-from user.config import AuthConfig, ExperimentConfig, RobotConfig, RobotSelector, StackConfig
+from user.config import AuthConfig, ExperimentConfig, PluginConfig, RobotConfig, RobotSelector, StackConfig
 from user.v1 import control_pb2, robot_pb2
 
 __all__ = ["control"]  # a fixture
@@ -117,6 +117,34 @@ def test_robots_plugged_in_later_register_and_unplugged_ones_go_offline_and_free
         # Episodes a robot finished just before its cable was pulled still reached control.
         info = robot_info(control, rid)
         assert len({e.episode_id for e in info.recent_episodes}) == sum(loop.episodes for loop in loops)
+
+
+def test_a_teleoperator_plugged_in_later_takes_over(
+    one_place: tuple[StackConfig, ControlService], tmp_path: Path
+) -> None:
+    cloud, control = one_place
+    cable = tmp_path / "gamepad"
+    cloud.edge.replug_s = 0.2
+    cloud.edge.robots = [
+        RobotConfig(
+            id="arm-0",
+            kind="sim_reach_arm",
+            params={"max_episode_steps": 20},
+            teleop=PluginConfig(kind="test_pluggable", params={"cable": str(cable)}),
+        )
+    ]
+    agent = EdgeAgent(cloud)
+    agent.start()  # the gamepad is not there: the agent starts anyway and the policy drives
+    try:
+        loop = agent.loops["arm-0"]
+        wait_for(lambda: loop.env_steps >= 50, "the policy drives")
+        assert loop.intervention_steps == 0 and loop.teleop is None
+        cable.touch()
+        wait_for(lambda: loop.intervention_steps >= 20, "the human drives once the gamepad connects")
+        wait_for(lambda: robot_info(control, "arm-0").status.intervention_steps >= 20, "interventions at control")
+    finally:
+        agent.stop()
+    assert replay_stats(cloud.edge.replay_addr).rejected == 0
 
 
 def test_control_checks_a_robots_update_like_a_registration(control: ControlService) -> None:
