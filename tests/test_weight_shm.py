@@ -183,3 +183,18 @@ def test_a_client_that_asked_for_no_shared_memory_refuses_an_shm_header(tmp_path
     h.shm_name = "user-weights-x"
     with pytest.raises(WireError, match="not asked for"):
         WeightAssembler().feed(learner_pb2.WeightMessage(header=h))
+
+
+def test_files_of_a_learner_that_died_are_swept_at_start(tmp_path: Path) -> None:
+    dead = ShmWeights(str(tmp_path), host=HOST)
+    name = dead.file_for("a", 1, b"\x01", np.zeros(100, np.uint8))
+    gone_pid = 2**22 + 7  # above the kernel's pid_max: no such process
+    stale = name.replace(f"-{os.getpid()}-", f"-{gone_pid}-", 1)
+    os.rename(tmp_path / name, tmp_path / stale)
+    (tmp_path / "unrelated").write_bytes(b"x")
+    live = ShmWeights(str(tmp_path), host=HOST)
+    assert live.swept == 1
+    kept = live.file_for("a", 1, b"\x02", np.zeros(100, np.uint8))
+    assert ShmWeights(str(tmp_path), host=HOST).swept == 0  # a live learner's files (this pid) stay
+    assert files(tmp_path) == sorted([kept, "unrelated"])
+    live.close()

@@ -54,6 +54,19 @@ SHM_FALLBACK = prometheus_client.Counter(
 )
 
 
+_OWNER = re.compile(r"\.?user-weights-(\d+)-.*")  # file (or temporary file) of the learner with this pid
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:
+        return True  # exists, not ours to signal
+    return True
+
+
 def host_id() -> str:
     """This machine's identity for the same-host check: the boot id ("" where there is none: no shm)."""
     try:
@@ -141,10 +154,32 @@ class ShmWeights:
         self.keep = max(1, keep)
         self.max_bytes = max_bytes
         self.host = host_id() if host is None else host
-        self.token = secrets.token_hex(4)  # two learners on one host never share or remove each other's files
+        # the pid in every name: files of a learner that died without close() (kill -9) are swept by the next
+        # one; the random token keeps two learners on one host (or a restarted pid) apart
+        self.token = f"{os.getpid()}-{secrets.token_hex(4)}"
         self._lock = threading.Lock()
         self._files: OrderedDict[tuple[str, int, bytes], _Written] = OrderedDict()  # oldest first
         self._closed = False
+        self.swept = self._sweep()
+
+    def _sweep(self) -> int:
+        """Remove the files of learners (this user's) whose process is gone; the number removed."""
+        removed = 0
+        try:
+            names = os.listdir(self.directory)
+        except OSError:
+            return 0
+        for name in names:
+            match = _OWNER.fullmatch(name)
+            if match is None or _alive(int(match.group(1))):
+                continue
+            try:
+                if os.lstat(os.path.join(self.directory, name)).st_uid == os.getuid():
+                    os.unlink(os.path.join(self.directory, name))
+                    removed += 1
+            except OSError:
+                pass  # gone already, or not ours to remove
+        return removed
 
     def same_host(self, subscriber_host: str) -> bool:
         return bool(self.host) and hmac.compare_digest(self.host.encode(), subscriber_host.encode())
