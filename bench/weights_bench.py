@@ -12,6 +12,10 @@ subscriber holding the new version as numpy/torch tensors, for
            (FP32_PATCH_STREAM_ZSTD: sent while later slices are quantized, applied as they arrive);
   ours, adaptive: the server picks per subscriber and version (lossy allowed); the rows say what it
            picked (on loopback: fp32 for small models, where a patch's CPU costs more than the bytes it saves);
+  ours, same host, shared memory: the subscribers prove they share the learner's /dev/shm and get each
+           version as a file there (FP32_SHM: written once, a header on the stream, copied out and
+           digest-checked by each subscriber). Only for a subscriber on the learner's machine; the peers
+           beside it in those rows still go through loopback TCP, as they would on one machine;
   raw:     a bare gRPC server stream of the same fp32 bytes in 1 MiB chunks into a preallocated buffer
            (no manifest, no checksum, no auth): the floor for a full set.
 Plus the learner's updates/s with 0, 1 and 8 subscribers, and (bench.weights_link, in a private
@@ -22,6 +26,8 @@ from __future__ import annotations
 
 import multiprocessing
 import queue
+import shutil
+import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -39,6 +45,7 @@ from user.config import AuthConfig, LearnerConfig, ServerConfig
 from user.policy import actor_from_config, policy_spec_for
 from user.v1 import learner_pb2
 from user.weight_codec import WE, encoding_name
+from user.weight_shm import DEFAULT_KEEP, ShmWeights
 from user.weights import WeightServicer, WeightSet, WeightStore, WeightSubscriber, add_learner_servicer
 
 RECEIVE_TIMEOUT_S = 300.0
@@ -103,12 +110,21 @@ class OursFanout:
     """A real learner gRPC server (auth on) with our servicer, and n WeightSubscribers (own channels)."""
 
     def __init__(
-        self, spec: learner_pb2.PolicySpec, n: int, encoding: int, allow_lossy: bool = False, remote: int = 0
+        self,
+        spec: learner_pb2.PolicySpec,
+        n: int,
+        encoding: int,
+        allow_lossy: bool = False,
+        remote: int = 0,
+        shm: bool = False,
     ) -> None:
-        """remote: streams the server must also hold for subscribers in other processes."""
+        """remote: streams the server must also hold for subscribers in other processes; shm: same-host
+        shared memory (a private directory under /dev/shm, removed at close)."""
         self.spec, self.auth = spec, AuthConfig(token="bench-token")
         self.store = WeightStore(history=2)
-        self.servicer = servicer = WeightServicer(self.store)
+        self.shm_dir = tempfile.mkdtemp(prefix="user-bench-", dir="/dev/shm") if shm else None
+        self.shm = ShmWeights(self.shm_dir) if self.shm_dir else None
+        self.servicer = servicer = WeightServicer(self.store, shm=self.shm)
         name = learner_pb2.DESCRIPTOR.services_by_name["Learner"].full_name
         self.server = rpc.start_server(
             "bench-learner",
@@ -127,6 +143,7 @@ class OursFanout:
                 lambda ws: self.received.put((time.perf_counter(), ws)),
                 encoding=encoding,
                 allow_lossy=allow_lossy,
+                shm_dir=self.shm_dir,
             ).start()
             for i in range(n)
         ]
@@ -156,6 +173,9 @@ class OursFanout:
             s.stop()
         self.store.close()
         self.server.stop()
+        if self.shm is not None and self.shm_dir is not None:
+            self.shm.close()
+            shutil.rmtree(self.shm_dir, ignore_errors=True)
 
 
 # --------------------------------------------------------------------------- lerobot
@@ -362,6 +382,9 @@ def _check_same(module: torch.nn.Module, received: dict[str, Any]) -> None:
 FROZEN_HALF = ("net.4.", "net.6.")  # last hidden layer + head learn; the first layers stay frozen
 # Above this the adaptive side's store and buffers would push the 100M group (~13 GB) past free memory.
 ADAPTIVE_UP_TO_BYTES = 128 << 20
+# Versions more for the shared-memory link before measuring: the first `keep` files are fresh tmpfs pages
+# (~5 ms per 4 MiB here); from then on each version reuses the pages of the one that left, as in training.
+SHM_WARMUP = DEFAULT_KEEP
 
 
 def bench_fanout(
@@ -382,6 +405,8 @@ def bench_fanout(
     }
     if raw_bytes <= ADAPTIVE_UP_TO_BYTES:  # what a subscriber that lets the server choose gets on this link
         makers["adaptive"] = lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_ADAPTIVE, allow_lossy=True)
+        if not frozen:  # same host: the version through /dev/shm (its fallback, if ever: fp32 on the stream)
+            makers["shm"] = lambda: OursFanout(spec, n, WE.WEIGHT_ENCODING_FP32, shm=True)
     picked: dict[str, int] = {}
     times: dict[str, list[float]] = {k: [] for k in makers}
     wire: dict[str, int] = {}
@@ -393,6 +418,9 @@ def bench_fanout(
         trainer.step()
         for link in links.values():  # a second one: the first delta/patch fills the buffer pools on both ends
             link.send(module)
+        if "shm" in links:  # its steady state: each version written over the pages of the file that left
+            for _ in range(SHM_WARMUP):
+                links["shm"].send(module)
         for i in range(versions):
             trainer.step()
             for side, link in links.items():  # take turns, so background load hits all alike
@@ -403,7 +431,9 @@ def bench_fanout(
                 if side == "adaptive":
                     for enc in link.encodings:
                         picked[encoding_name(enc)] = picked.get(encoding_name(enc), 0) + 1
-                if i == versions - 1 and side in ("fp32", "delta"):
+                if side == "shm" and any(enc != WE.WEIGHT_ENCODING_FP32_SHM for enc in link.encodings):
+                    raise RuntimeError(f"shared-memory subscribers got {link.encodings}, not fp32_shm")
+                if i == versions - 1 and side in ("fp32", "delta", "shm"):
                     _check_same(module, received)
     finally:
         for link in links.values():
@@ -445,6 +475,16 @@ def bench_fanout(
             f"server's choice per subscriber and version (lossy allowed): {chose}; {wire['adaptive'] / 2**20:.1f} MiB"
         )
         rows.append(Row(group, f"{what}, adaptive encoding vs raw", ms["adaptive"], ms["raw"], "ms", False, note, RAW))
+    if "shm" in ms:
+        shm_group = f"{group}, SAME HOST (shared memory)"
+        note = (
+            "same host only: ours via /dev/shm (digest-checked; steady state, each version over the pages of the"
+            " file that left), the peer over loopback TCP"
+        )
+        rows += [
+            Row(shm_group, f"{what}, fp32 via shared memory vs lerobot", ms["shm"], ms["lerobot"], "ms", False, note),
+            Row(shm_group, f"{what}, fp32 via shared memory vs raw", ms["shm"], ms["raw"], "ms", False, note, RAW),
+        ]
     return rows
 
 

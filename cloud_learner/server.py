@@ -19,6 +19,7 @@ from user.log import kv
 from user.policy import check_device
 from user.registry import PluginError
 from user.v1 import learner_pb2
+from user.weight_shm import ShmWeights
 from user.weights import WeightServicer, WeightStore, add_learner_servicer
 from user.worker import report_worker
 
@@ -28,8 +29,15 @@ SERVICE_NAME = learner_pb2.DESCRIPTOR.services_by_name["Learner"].full_name
 
 
 class LearnerServicer(WeightServicer):
-    def __init__(self, learner: Learner, store: WeightStore, default_chunk_bytes: int, freshness_s: float) -> None:
-        super().__init__(store, default_chunk_bytes, freshness_s=freshness_s)
+    def __init__(
+        self,
+        learner: Learner,
+        store: WeightStore,
+        default_chunk_bytes: int,
+        freshness_s: float,
+        shm: ShmWeights | None = None,
+    ) -> None:
+        super().__init__(store, default_chunk_bytes, freshness_s=freshness_s, shm=shm)
         self.learner = learner
 
     def GetStatus(
@@ -85,7 +93,9 @@ class LearnerService(rpc.GrpcService):
         except PluginError as exc:  # a bad experiment entry fails at start, naming the field
             raise ConfigError(str(exc)) from None
         lc = cfg.learner
-        self.servicer = LearnerServicer(self.learner, self.store, lc.max_chunk_bytes, lc.weights_freshness_s)
+        # same-host subscribers (inference beside the learner, a stack on one box) read versions from here
+        self.shm = ShmWeights(lc.weights_shm_dir) if lc.weights_shm_dir else None
+        self.servicer = LearnerServicer(self.learner, self.store, lc.max_chunk_bytes, lc.weights_freshness_s, self.shm)
         self.running: rpc.RunningServer | None = None
 
     def start(self) -> LearnerService:
@@ -104,6 +114,8 @@ class LearnerService(rpc.GrpcService):
     def stop(self) -> None:
         self.learner.stop()  # training ends, final checkpoint written
         self.store.close()  # weight streams end cleanly; clients reconnect to the next learner
+        if self.shm is not None:
+            self.shm.close()  # its version files go with it
         if self.running is not None:
             self.running.stop()
             self.running = None

@@ -290,7 +290,9 @@ class LocalPolicy(PolicySource):
         experiment: str = "",
         kinds: dict[str, str] | None = None,
         allow_lossy: bool = False,
+        shm_dir: str | None = None,
     ) -> None:
+        """shm_dir: read weight versions from this shared-memory directory when the learner proves it shares it."""
         import user.policy  # noqa: F401 - torch loads now, not in the weight thread while robots run
         from user.weights import WeightSubscriber
 
@@ -300,7 +302,13 @@ class LocalPolicy(PolicySource):
         self._lock = threading.Lock()  # serialises forward passes of robots sharing this copy
         self._chunks = _Chunked(self._fetch)
         self._subscriber = WeightSubscriber(
-            learner_addr, auth, client_id, self._on_weights, experiment=experiment, allow_lossy=allow_lossy
+            learner_addr,
+            auth,
+            client_id,
+            self._on_weights,
+            experiment=experiment,
+            allow_lossy=allow_lossy,
+            shm_dir=shm_dir,
         )
         if start:
             self._subscriber.start()
@@ -403,16 +411,22 @@ def make_policy_source(
     if cfg.edge.policy_source == "local":
         routes = robot_experiments(cfg, specs)
         names = sorted(set(routes.values()))
-        lossy = cfg.edge.weights_lossy
+        lossy, shm = cfg.edge.weights_lossy, cfg.edge.weights_shm_dir or None
         kinds = {s.robot_id: s.kind for s in specs} if specs else {r.id: r.kind for r in cfg.edge.robots}
         if len(names) <= 1:
             name = names[0] if names else ""
             return LocalPolicy(
-                cfg.edge.learner_addr, cfg.auth, client_id, experiment=name, kinds=kinds, allow_lossy=lossy
+                cfg.edge.learner_addr, cfg.auth, client_id, experiment=name, kinds=kinds, allow_lossy=lossy, shm_dir=shm
             )
         sources = {
             n: LocalPolicy(
-                cfg.edge.learner_addr, cfg.auth, f"{client_id}-{n}", experiment=n, kinds=kinds, allow_lossy=lossy
+                cfg.edge.learner_addr,
+                cfg.auth,
+                f"{client_id}-{n}",
+                experiment=n,
+                kinds=kinds,
+                allow_lossy=lossy,
+                shm_dir=shm,
             )
             for n in names
         }

@@ -149,6 +149,11 @@ class InferenceConfig(_ServerSection):
         default=False,
         description="accept lossy weights (error-bounded patches, bf16) when lossless ones cannot stay fresh",
     )
+    weights_shm_dir: str | None = Field(
+        default="/dev/shm",
+        description="same host: read weight versions from this shared-memory directory when the learner "
+        "proves it is on this host and shares it; null = always over the stream",
+    )
 
 
 class LearnerConfig(_ServerSection):
@@ -191,6 +196,11 @@ class LearnerConfig(_ServerSection):
         default=1.0, gt=0, description="weight streams pick per link the encoding that delivers a version within this"
     )
     weights_history: int = Field(default=4, ge=1, description="published versions kept as delta bases")
+    weights_shm_dir: str | None = Field(
+        default="/dev/shm",
+        description="same-host subscribers that prove they share this directory get versions as files here "
+        "(the newest 3 per experiment, 0600); null = every version over the stream",
+    )
 
 
 class RobotSelector(Strict):
@@ -337,6 +347,11 @@ class EdgeConfig(Strict):
     weights_lossy: bool = Field(
         default=False,
         description="local policy: accept lossy weights (error-bounded patches, bf16) when the link is too slow",
+    )
+    weights_shm_dir: str | None = Field(
+        default="/dev/shm",
+        description="local policy, same host: read weight versions from this shared-memory directory when the learner "
+        "proves it is on this host and shares it; null = always over the stream",
     )
     replug_s: float = Field(
         default=2.0,

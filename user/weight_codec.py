@@ -36,6 +36,7 @@ import xxhash
 
 from user.v1 import learner_pb2
 from user.v1 import tensor_pb2 as tpb
+from user.weight_shm import read_payload, valid_name
 from user.wire import (
     WireError,
     dtype_from_proto,
@@ -76,6 +77,7 @@ class Codec:
     zstd: bool
     patch: bool = False  # quantized difference against the receiver's exact state (lossy)
     stream: bool = False  # sent while it is computed: the digest and size come last (StreamedPatch)
+    shm: bool = False  # same host: the raw payload lies in a shared-memory file (user.weight_shm)
 
     @property
     def lossy(self) -> bool:
@@ -92,6 +94,7 @@ CODECS: dict[int, Codec] = {
     WE.WEIGHT_ENCODING_BF16_DELTA_ZSTD: Codec(tpb.DTYPE_BFLOAT16, True, True),
     WE.WEIGHT_ENCODING_FP32_PATCH_ZSTD: Codec(tpb.DTYPE_FLOAT32, True, True, patch=True),
     WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD: Codec(tpb.DTYPE_FLOAT32, True, True, patch=True, stream=True),
+    WE.WEIGHT_ENCODING_FP32_SHM: Codec(tpb.DTYPE_FLOAT32, False, False, shm=True),
 }
 FULL_OF: dict[int, int] = {  # the full-set fallback of each delta encoding
     WE.WEIGHT_ENCODING_FP32_DELTA_ZSTD: WE.WEIGHT_ENCODING_FP32_ZSTD,
@@ -1018,7 +1021,15 @@ def _check_header(h: learner_pb2.WeightHeader) -> None:
         raise WireError(
             f"weight header: payload of {max(h.total_bytes, h.encoded_bytes)} bytes exceeds {MAX_WEIGHT_BYTES}"
         )
-    if h.encoding == ENCODING_RAW and h.encoded_bytes != h.total_bytes:
+    if h.weight_encoding == WE.WEIGHT_ENCODING_FP32_SHM:
+        # the payload is in a file: nothing follows on the stream, and the name cannot leave the shm dir
+        if h.encoding != ENCODING_RAW or h.encoded_bytes or h.base_version or not valid_name(h.shm_name):
+            raise WireError("weight header: a shared-memory set is raw, whole, with a weight file name")
+        if any(i.wire_dtype not in (0, i.dtype) for i in h.tensors):
+            raise WireError("weight header: a shared-memory set carries full-precision tensors only")
+    elif h.shm_name:
+        raise WireError("weight header: a shared-memory file name outside FP32_SHM")
+    elif h.encoding == ENCODING_RAW and h.encoded_bytes != h.total_bytes:
         raise WireError(
             f"weight header: raw payload with encoded_bytes {h.encoded_bytes} != total_bytes {h.total_bytes}"
         )
@@ -1069,7 +1080,9 @@ class WeightAssembler:
     is kept, so the caller can ack a rejection and carry on with the same stream.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, shm_dir: str | None = None) -> None:
+        """shm_dir: where FP32_SHM files are read (None: this client reads no shared memory)."""
+        self.shm_dir = shm_dir
         self.held: WirePayload | None = None
         self._header: learner_pb2.WeightHeader | None = None
         self._skip_version = 0  # chunks of a rejected version still in flight
@@ -1143,6 +1156,14 @@ class WeightAssembler:
             self._filled = 0
             self._stream = _PatchStreamDecoder(self.held, header.tensors, self._pool.take(header.total_bytes))
             return None
+        if header.weight_encoding == WE.WEIGHT_ENCODING_FP32_SHM:
+            if self.shm_dir is None:
+                raise WireError(f"weight v{header.version}: shared memory was not asked for")
+            # one copy out of the file into a reused buffer; _finish checks the digest like any full set
+            out = self._pool.take(header.total_bytes)
+            self._buf = read_payload(self.shm_dir, header.shm_name, header.total_bytes, out)
+            self._hash = None
+            return self._finish()
         # Preallocated (the header passed the size limit): one copy per chunk, no regrowth; numpy for
         # huge pages (see pack_weights).
         self._buf, self._filled = self._pool.take(header.encoded_bytes), 0

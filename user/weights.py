@@ -17,6 +17,7 @@ The codec (manifest, encodings, assembler) lives in user.weight_codec.
 
 from __future__ import annotations
 
+import hmac
 import logging
 import queue
 import threading
@@ -70,6 +71,7 @@ from user.weight_codec import (
     serialize_weight_message,
     wire_payload,
 )
+from user.weight_shm import SHM_FALLBACK, ShmWeights, host_id, read_probe
 from user.wire import WireError
 
 __all__ = [
@@ -105,6 +107,9 @@ FAST_LINK_BPS = 100e6
 # What the adaptive choice sends as a patch: streamed (encode, transfer and apply overlap). The one-shot
 # FP32_PATCH_ZSTD stays for subscribers that pin it.
 PATCH = WE.WEIGHT_ENCODING_FP32_PATCH_STREAM_ZSTD
+SHM = WE.WEIGHT_ENCODING_FP32_SHM
+PROBE_TIMEOUT_S = 10.0  # a same-host subscriber answers the shared-memory probe at once; else: the stream
+SHM_MAX_FAILURES = 3  # shared-memory versions rejected in a row before a link streams for good
 
 WEIGHTS_RECEIVED = prometheus_client.Counter("user_weights_received_total", "Weight versions received and applied")
 WEIGHTS_BYTES = prometheus_client.Counter("user_weights_bytes_total", "Weight payload bytes received (as encoded)")
@@ -535,6 +540,10 @@ class Link:
     # encoding -> bytes/s the client decodes + applies at (its acks' apply_ns): a delta that saves bytes
     # but costs the client more than it saves on a fast link loses to fp32
     decode_bps: dict[int, float] = field(default_factory=dict)
+    shm_host: str = ""  # the host identity the subscriber announced ("" = it reads no shared memory)
+    shm: bool = False  # it proved it reads our shared-memory files: versions go there
+    shm_skip: bool = False  # its last shared-memory version was rejected: the next goes over the stream
+    shm_failures: int = 0  # shared-memory versions rejected in a row
     published_version: Callable[[], int] = field(default=lambda: 0, repr=False)
 
     def status(self) -> learner_pb2.SubscriberStatus:
@@ -625,8 +634,11 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         poll_s: float = 1.0,
         freshness_s: float = DEFAULT_FRESHNESS_S,
         keyframe_every: int = DEFAULT_KEYFRAME_EVERY,
+        shm: ShmWeights | None = None,
     ) -> None:
+        """shm: the shared-memory directory for same-host subscribers (None: everything streams)."""
         self.store = store
+        self.shm = shm
         self.default_chunk_bytes = default_chunk_bytes
         self.poll_s = poll_s
         self.freshness_s = freshness_s
@@ -709,6 +721,7 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
             base_version=request.base_version if acked else 0,
             base_digest=request.base_digest if acked else b"",
             base_patched=acked and self.store.is_patched(request.base_digest, experiment),
+            shm_host=request.shm_host if acked else "",
             published_version=lambda: self.store.version_of(experiment),
         )
         return link, chunk_bytes
@@ -731,6 +744,8 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         SUB_STALENESS.labels(link.client_id).set_function(lambda: link.status().staleness)
         log.info("weight subscriber joined", extra=kv(client_id=link.client_id, have_version=have, acked=link.acked))
         try:
+            if acks is not None and link.shm_host and self.shm is not None and self.shm.same_host(link.shm_host):
+                yield from self._probe(link, acks, context)
             while context.is_active() and not self.store.closed:
                 full = self.store.wait_newer(have, self.poll_s, link.experiment)
                 if full is None:
@@ -760,8 +775,62 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
                     pass
             log.info("weight subscriber left", extra=kv(client_id=link.client_id, applied=link.applied_version))
 
+    def _probe(
+        self, link: Link, acks: queue.Queue[learner_pb2.WeightAck | None], context: grpc.ServicerContext
+    ) -> Iterator[learner_pb2.WeightMessage]:
+        """Same host by its word: prove it. The subscriber must read back a nonce file we write to our
+        shared-memory directory (same filesystem, same user); only then do versions go there."""
+        assert self.shm is not None
+        try:
+            name, nonce = self.shm.new_probe()
+        except OSError as exc:
+            log.warning("shared-memory probe not written; streaming", extra=kv(error=str(exc)))
+            return
+        try:
+            yield learner_pb2.WeightMessage(shm_probe=learner_pb2.WeightShmProbe(name=name))
+            ack = self._wait_ack(acks, 0, context, time.monotonic() + PROBE_TIMEOUT_S)
+            link.shm = ack is not None and hmac.compare_digest(ack.shm_proof, nonce)
+        finally:
+            self.shm.end_probe(name)
+        log.info("weight subscriber shared memory", extra=kv(client_id=link.client_id, shm=link.shm))
+
+    def _shm_set(self, full: PackedWeights, prefixes: tuple[str, ...]) -> PackedWeights | None:
+        """The version as an FP32_SHM header naming its file (written once for every same-host
+        subscriber); None if it could not be written."""
+        assert self.shm is not None
+        shm = self.shm
+
+        def build() -> PackedWeights | None:
+            wire = self.store.wire(full, tpb.DTYPE_FLOAT32, prefixes)
+            h = full.header
+            name = shm.file_for(h.experiment, full.version, wire.digest, wire.payload)
+            if not name:
+                return None
+            header = learner_pb2.WeightHeader(
+                version=h.version,
+                policy=h.policy,
+                tensors=wire.tensors,
+                total_bytes=wire.payload.nbytes,
+                digest=wire.digest,
+                encoding=ENCODING_RAW,
+                encoded_bytes=0,  # nothing follows on the stream
+                created_at_ns=h.created_at_ns,
+                learner_updates=h.learner_updates,
+                digest_kind=h.digest_kind,
+                experiment=h.experiment,
+                weight_encoding=SHM,
+                shm_name=name,
+            )
+            return PackedWeights(header, b"")
+
+        return self.store._once((full.header.experiment, full.version, "shm", prefixes), build)
+
     def _encode(self, link: Link, full: PackedWeights) -> PackedWeights | StreamedPatch:
         prefixes = link.prefixes or (full.header.policy.tensor_prefix,)  # none asked: what the policy needs
+        if link.shm and not link.shm_skip:
+            shared = self._shm_set(full, prefixes)
+            if shared is not None:
+                return shared
         encoding, base = choose_encoding(self.store, link, full, prefixes, self.keyframe_every)
         fast = link.wire_bps >= FAST_LINK_BPS
         try:
@@ -779,12 +848,17 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         WEIGHTS_SENT_BYTES.labels(encoding_name(link.encoding)).inc(packed.encoded_bytes)
 
     def _wait_ack(
-        self, acks: queue.Queue[learner_pb2.WeightAck | None], version: int, context: grpc.ServicerContext
+        self,
+        acks: queue.Queue[learner_pb2.WeightAck | None],
+        version: int,
+        context: grpc.ServicerContext,
+        deadline: float = float("inf"),
     ) -> learner_pb2.WeightAck | None:
-        """The ack of `version` (acks of older versions are dropped); None when the stream ends."""
-        while context.is_active() and not self.store.closed:
+        """The ack of `version` (acks of older versions are dropped); None when the stream ends or at
+        the deadline (time.monotonic())."""
+        while context.is_active() and not self.store.closed and time.monotonic() < deadline:
             try:
-                ack = acks.get(timeout=self.poll_s)
+                ack = acks.get(timeout=max(1e-3, min(self.poll_s, deadline - time.monotonic())))
             except queue.Empty:
                 continue
             if ack is None:
@@ -797,7 +871,11 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         self, link: Link, packed: PackedWeights | StreamedPatch, ack: learner_pb2.WeightAck, elapsed_s: float
     ) -> bool:
         """Update the link from an ack; False if the version was rejected (resend)."""
+        shared = packed.header.weight_encoding == SHM
         if ack.rejected:
+            if shared:  # its file was gone or did not match: this version goes over the stream
+                link.shm_skip, link.shm_failures = True, link.shm_failures + 1
+                link.shm = link.shm_failures < SHM_MAX_FAILURES
             link.rejects_in_row += 1
             link.base_version, link.base_digest = 0, b""  # the client dropped its base: a full set next
             log.warning(
@@ -806,12 +884,18 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
             )
             return False
         link.rejects_in_row = 0
+        link.shm_skip = False
+        if shared:
+            link.shm_failures = 0
         link.base_version = ack.base_version
         link.base_digest = ack.base_digest
         codec = CODECS[packed.header.weight_encoding or WE.WEIGHT_ENCODING_FP32]
         link.base_wire_dtype = codec.wire_dtype
         link.base_patched = codec.patch
         link.patches_in_row = link.patches_in_row + 1 if codec.patch else 0
+        if shared:  # no bytes crossed the link: nothing to measure it by
+            self._applied(link, packed, ack)
+            return True
         net_s = max(1e-6, elapsed_s - ack.apply_ns / 1e9)
         sample = packed.encoded_bytes / net_s
         link.goodput_bps = sample if link.goodput_bps <= 0 else 0.5 * link.goodput_bps + 0.5 * sample
@@ -825,13 +909,17 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
             enc = packed.header.weight_encoding or WE.WEIGHT_ENCODING_FP32
             rate, seen = packed.nbytes / (ack.apply_ns / 1e9), link.decode_bps.get(enc, 0.0)
             link.decode_bps[enc] = rate if seen <= 0 else 0.5 * seen + 0.5 * rate
+        self._applied(link, packed, ack)
+        SUB_GOODPUT.labels(link.client_id).set(link.goodput_bps)
+        return True
+
+    @staticmethod
+    def _applied(link: Link, packed: PackedWeights | StreamedPatch, ack: learner_pb2.WeightAck) -> None:
         if ack.applied:
             link.applied_version = int(ack.version)
             link.sync_latency_s = max(0.0, (time.time_ns() - packed.header.created_at_ns) / 1e9)
             WEIGHTS_SYNC.observe(link.sync_latency_s)
             SUB_SYNC.labels(link.client_id).set(link.sync_latency_s)
-        SUB_GOODPUT.labels(link.client_id).set(link.goodput_bps)
-        return True
 
 
 class _WeightFrames(grpc.GenericRpcHandler):
@@ -905,20 +993,28 @@ class WeightSubscriber:
         allow_lossy: bool = False,
         encoding: int = WE.WEIGHT_ENCODING_ADAPTIVE,
         freshness_target_s: float = 0.0,
+        shm_dir: str | None = None,
+        shm_host: str | None = None,
     ) -> None:
+        """shm_dir: a shared-memory directory this client reads (None: off); a learner on the same host
+        (shm_host: this host's identity, default the boot id) that proves it shares it sends versions
+        there instead of through the socket."""
         self.addr, self.auth, self.client_id = addr, auth, client_id
+        self.shm_dir = shm_dir
+        self.shm_host = (host_id() if shm_host is None else shm_host) if shm_dir else ""
         self.on_weights = on_weights
         self.max_chunk_bytes = max_chunk_bytes
         self.experiment, self.prefixes, self.allow_lossy = experiment, list(prefixes), allow_lossy
         self.encoding, self.freshness_target_s = encoding, freshness_target_s
         self._version = have_version
-        self._assembler = WeightAssembler()  # outlives streams: its payload is the base for deltas
+        self._assembler = WeightAssembler(shm_dir)  # outlives streams: its payload is the base for deltas
         self._cond = threading.Condition()
         self._stop = threading.Event()
         self._call: grpc.Future | None = None
         self._thread: threading.Thread | None = None
         self.connects = 0  # streams opened (first connect + reconnects)
         self.rejected = 0  # versions rejected (corrupt, unknown base) and re-fetched
+        self.shm_fallbacks = 0  # shared-memory versions that could not be used (re-fetched over the stream)
         self.last_sync_s = 0.0  # publish (learner clock) -> applied (ours) of the last version
 
     @property
@@ -975,6 +1071,7 @@ class WeightSubscriber:
             base_digest=self._assembler.base_digest,
             encoding=self.encoding,
             freshness_target_ms=int(self.freshness_target_s * 1e3),
+            shm_host=self.shm_host,
         )
 
     def _stream_once(self) -> bool:
@@ -1001,12 +1098,18 @@ class WeightSubscriber:
             first_ns, received, version = 0, 0, 0
             try:
                 for msg in call:
+                    if not isinstance(msg, RawChunk) and msg.HasField("shm_probe"):
+                        outbox.put(self._answer_probe(msg.shm_probe.name))
+                        continue
                     if not isinstance(msg, RawChunk) and msg.HasField("header"):
                         first_ns, received, version = time.perf_counter_ns(), 0, msg.header.version
                     done_ns = time.perf_counter_ns()
                     try:
                         weights = self._assembler.feed(msg)
                     except WireError as exc:
+                        if not isinstance(msg, RawChunk) and msg.header.weight_encoding == SHM:
+                            self.shm_fallbacks += 1
+                            SHM_FALLBACK.inc()
                         self._reject(outbox, version or (msg if isinstance(msg, RawChunk) else msg.chunk).version, exc)
                         continue
                     finally:  # counted by the assembler: each read of chunk.data copies it (upb)
@@ -1036,6 +1139,11 @@ class WeightSubscriber:
                 self._call = None
                 call.cancel()
         return got_any
+
+    def _answer_probe(self, name: str) -> learner_pb2.WeightAck:
+        """The learner's same-host proof: the probe file's bytes as we read them (nothing if we cannot)."""
+        proof = read_probe(self.shm_dir, name) if self.shm_dir else b""
+        return learner_pb2.WeightAck(version=0, shm_proof=proof)
 
     def _reject(self, outbox: queue.Queue[learner_pb2.WeightAck | None], version: int, exc: WireError) -> None:
         """Drop the version and its base; the server resends a full set."""

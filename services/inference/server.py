@@ -402,6 +402,7 @@ class InferenceService(rpc.GrpcService):
                     on_weights=slot.load_weights,
                     experiment=name,
                     allow_lossy=self.cfg.inference.weights_lossy,
+                    shm_dir=self.cfg.inference.weights_shm_dir or None,
                 ).start()
         return self
 
