@@ -638,39 +638,36 @@ class EdgeAgent:
 
     # ------------------------------------------------------------------ hot-plug
 
-    def _connect_at_start(self, robot: Robot) -> None:
-        rid = robot.spec.robot_id
+    def _first_connect[D: (Robot, Teleoperator)](self, rid: str, device: D, what: str) -> _Absent[D] | None:
+        """Connect a device at start. With hot-plug on, one that is not there comes back absent (retried later)."""
         if self.cfg.edge.replug_s <= 0:
-            robot.connect()  # no hot-plug: a robot that is not there stops the agent
-            ATTACHED.labels(rid).set(1)
-            return
+            device.connect()  # no hot-plug: a device that is not there stops the agent
+            return None
         try:
-            robot.connect()
+            device.connect()
         except Exception as exc:
             log.warning(
-                "robot not connected at start; retrying in the background",
+                f"{what} not connected at start; retrying in the background",
                 extra=kv(robot_id=rid, error=repr(exc), retry_s=self.cfg.edge.replug_s),
             )
+            return _Absent(device, failures=1, next_try=time.monotonic() + self.cfg.edge.replug_s)
+        return None
+
+    def _connect_at_start(self, robot: Robot) -> None:
+        rid = robot.spec.robot_id
+        absent = self._first_connect(rid, robot, "robot")
+        if absent is not None:
             self.loops = {k: v for k, v in self.loops.items() if k != rid}
-            self._absent[rid] = _Absent(robot, failures=1, next_try=time.monotonic() + self.cfg.edge.replug_s)
-            ATTACHED.labels(rid).set(0)
-            return
-        ATTACHED.labels(rid).set(1)
-        self._attached_at[rid] = time.monotonic()
+            self._absent[rid] = absent
+        else:
+            self._attached_at[rid] = time.monotonic()
+        ATTACHED.labels(rid).set(int(absent is None))
 
     def _connect_teleop_at_start(self, rid: str, teleop: Teleoperator) -> None:
         """A teleoperator not plugged in yet (a gamepad) leaves its robot to the policy until it connects."""
-        if self.cfg.edge.replug_s <= 0:
-            teleop.connect()
-            return
-        try:
-            teleop.connect()
-        except Exception as exc:
-            log.warning(
-                "teleoperator not connected at start; the policy drives until it connects",
-                extra=kv(robot_id=rid, error=repr(exc), retry_s=self.cfg.edge.replug_s),
-            )
-            self._absent_teleops[rid] = _Absent(teleop, failures=1, next_try=time.monotonic() + self.cfg.edge.replug_s)
+        absent = self._first_connect(rid, teleop, "teleoperator")
+        if absent is not None:
+            self._absent_teleops[rid] = absent
             if rid in self.loops:
                 self.loops[rid].teleop = None
 
