@@ -728,13 +728,8 @@ class EdgeAgent:
 
     def _fresh_instance(self, robot: Robot) -> Robot:
         """A new instance from the robot's config entry (a device object after a bus error may be stuck
-        half-open); robots handed to the agent without an entry are reused."""
+        half-open), the old one released; a robot handed to the agent without an entry is retried as it is."""
         rid = robot.spec.robot_id
-        for closer in (robot.disconnect, robot.close):
-            try:
-                closer()
-            except Exception as exc:  # expected after an unplug: the device is gone
-                log.debug("release of a detached robot failed", extra=kv(robot_id=rid, error=repr(exc)))
         index = next((i for i, rc in enumerate(self.cfg.edge.robots) if rc.id == rid), None)
         if index is None:
             return robot
@@ -746,6 +741,11 @@ class EdgeAgent:
         except Exception:  # keep trying the old instance rather than lose the robot
             log.exception("rebuilding a detached robot failed; retrying its old instance", extra=kv(robot_id=rid))
             return robot
+        for closer in (robot.disconnect, robot.close):
+            try:
+                closer()
+            except Exception as exc:  # expected after an unplug: the device is gone
+                log.debug("release of a detached robot failed", extra=kv(robot_id=rid, error=repr(exc)))
         self.robots = [fresh if r is robot else r for r in self.robots]
         return fresh
 
