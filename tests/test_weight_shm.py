@@ -198,3 +198,24 @@ def test_files_of_a_learner_that_died_are_swept_at_start(tmp_path: Path) -> None
     assert ShmWeights(str(tmp_path), host=HOST).swept == 0  # a live learner's files (this pid) stay
     assert files(tmp_path) == sorted([kept, "unrelated"])
     live.close()
+
+
+def test_shared_memory_cannot_be_pinned(shm_server: Server) -> None:
+    """FP32_SHM is the server's choice after the probe: a request pinning it is refused on both RPCs (found
+    by `make fuzz`: it ended in UNKNOWN)."""
+    import grpc
+
+    from user import rpc
+    from user.v1 import learner_pb2_grpc
+
+    shm_server.store.publish(1, SPEC, tensors(0))
+    req = learner_pb2.SubscribeWeightsRequest(client_id="x", encoding=SHM, shm_host=HOST)
+    with rpc.make_channel(shm_server.addr, AUTH) as channel:
+        stub = learner_pb2_grpc.LearnerStub(channel)
+        for call in (
+            stub.StreamWeights(iter([learner_pb2.WeightAck(subscribe=req)]), timeout=10),
+            stub.SubscribeWeights(req, timeout=10),
+        ):
+            with pytest.raises(grpc.RpcError) as err:
+                next(call)
+            assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT

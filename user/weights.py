@@ -702,6 +702,12 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
             )
         if request.encoding and request.encoding not in CODECS:
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"unknown weight encoding {request.encoding}")
+        if request.encoding and CODECS[request.encoding].shm:  # it needs the probe first: the server's choice
+            context.abort(
+                grpc.StatusCode.INVALID_ARGUMENT,
+                "WEIGHT_ENCODING_FP32_SHM cannot be pinned: set shm_host and the learner picks it once the "
+                "subscriber proved it reads the learner's shared memory",
+            )
         pinned = request.encoding
         if pinned and CODECS[pinned].lossy and not request.allow_lossy:
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"{encoding_name(pinned)} is lossy: set allow_lossy")
