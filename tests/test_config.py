@@ -63,6 +63,8 @@ def test_no_file_gives_the_defaults() -> None:
         ("inference.matmul_precision=medium", "inference.matmul_precision"),
         ("replay.cache_prefault=sometimes", "replay.cache_prefault"),
         ("up.max_restarts=-1", "up.max_restarts"),
+        ("edge.replug_s=-1", "edge.replug_s"),
+        ("learner.weights_shm_dir=[1]", "learner.weights_shm_dir"),
         ("experiments=[{name: a, table: 'lab a'}]", "experiments.0.table"),  # replay would refuse every step
     ],
 )

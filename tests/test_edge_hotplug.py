@@ -159,6 +159,9 @@ def test_control_checks_a_robots_update_like_a_registration(control: ControlServ
         assert next(call).WhichOneof("msg") == "registered"
         return up, call
 
+    from services.control.server import ROBOT_SET_UPDATES
+
+    updates_before = ROBOT_SET_UPDATES._value.get()
     up_a, call_a = stream("edge-a", [robot_spec("r1")])
     up_b, call_b = stream("edge-b", [])  # nothing plugged in yet
     try:
@@ -166,6 +169,7 @@ def test_control_checks_a_robots_update_like_a_registration(control: ControlServ
         leases = next(call_b)
         assert [lease.robot_id for lease in leases.leases.leases] == ["r2"]
         assert robot_info(control, "r2").online and robot_info(control, "r2").agent_id == "edge-b"
+        assert ROBOT_SET_UPDATES._value.get() == updates_before + 1  # the refused update below is not counted
         up_b.put(control_pb2.EdgeMessage(robots=control_pb2.RobotsUpdate(robots=[robot_spec("r1"), robot_spec("r2")])))
         with pytest.raises(grpc.RpcError) as err:
             next(call_b)

@@ -47,6 +47,9 @@ QUEUE_POLL_S = 0.25  # how often a Connect stream notices its client went away
 
 ROBOTS_ONLINE = prometheus_client.Gauge("user_control_robots_online", "Robots with a live lease")
 REGISTRATIONS = prometheus_client.Counter("user_control_registrations_total", "Accepted edge registrations")
+ROBOT_SET_UPDATES = prometheus_client.Counter(
+    "user_control_robot_set_updates_total", "Accepted hot-plug robot set updates from edges"
+)
 HEARTBEATS = prometheus_client.Counter("user_control_heartbeats_total", "Heartbeats received")
 LEASE_EXPIRATIONS = prometheus_client.Counter(
     "user_control_lease_expirations_total", "Leases ended because no heartbeat arrived within lease_ttl_s"
@@ -947,6 +950,7 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
             return Abort(grpc.StatusCode.INVALID_ARGUMENT, f"bad robots update: {exc}")
         except AlreadyRegistered as exc:
             return Abort(grpc.StatusCode.ALREADY_EXISTS, str(exc))
+        ROBOT_SET_UPDATES.inc()
         if added or removed:
             log.info("agent robots changed", extra=kv(agent_id=conn.agent_id, added=added, removed=removed))
         return None
