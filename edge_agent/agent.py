@@ -80,12 +80,21 @@ DETACHES = prometheus_client.Counter(
     "Robots taken offline because their loop failed (unplugged, bus error)",
     ["robot_id"],
 )
+TELEOP_ATTACHED = prometheus_client.Gauge(
+    "user_edge_teleop_attached", "1 while the robot's teleoperator is connected; 0 while absent", ["robot_id"]
+)
+TELEOP_DETACHES = prometheus_client.Counter(
+    "user_edge_teleop_detaches_total",
+    "Teleoperators released and reconnected because their polls kept failing (unplugged)",
+    ["robot_id"],
+)
 
 RATE_WINDOW_S = 5.0
 PERIOD_WINDOW = 1000  # recent tick periods kept for percentiles
 PAUSED_POLL_S = 0.05  # fast mode: how often a paused loop re-checks
 WATCH_POLL_S = 0.25  # hot-plug: how often the agent looks for failed loops and retries absent robots
 REPLUG_MAX_S = 60.0  # hot-plug: the longest wait between connect tries of an absent robot
+TELEOP_DETACH_S = 1.0  # hot-plug: a teleoperator whose polls fail this long is released and reconnected
 START_ALIGN_S = 0.1  # realtime: the robots' common first tick, this long after the agent starts them
 
 
@@ -170,8 +179,8 @@ class RobotLoop:
         self.robot, self.policy, self.sink = robot, policy, sink
         self.spec = robot.spec
         self.task = task if task is not None else TASKS.build("env", spec=self.spec)
-        self.teleop = teleop
-        self._teleop_failing = False
+        self.teleop = teleop  # replaced whole by the agent's hot-plug watcher; read once per use
+        self.teleop_failing_since: float | None = None  # monotonic start of the current streak of failed polls
         self.robot_id = self.spec.robot_id
         self.mode = mode
         self.deadline_s = action_deadline_s
@@ -228,6 +237,11 @@ class RobotLoop:
 
     def resume(self) -> None:
         self._paused.clear()
+
+    def set_teleop(self, teleop: Teleoperator | None) -> None:
+        """Swap the teleoperator (hot-plug); None lets the policy drive from the next tick."""
+        self.teleop_failing_since = None
+        self.teleop = teleop
 
     def set_lease(self, lease: control_pb2.RobotLease) -> None:
         """Control's lease: hold (no actions, no steps) while the robot's experiment is stopped or full.
@@ -317,22 +331,22 @@ class RobotLoop:
         self._episode_interventions = 0
         self.policy.reset(self.robot_id)  # a chunk left from the last episode must not act in this one
         self.task.reset(obs)
-        if self.teleop is not None:
-            self.teleop.reset(obs)
+        if (teleop := self.teleop) is not None:
+            teleop.reset(obs)
 
     def _poll_teleop(self, obs: Observation) -> np.ndarray | None:
         """The teleoperator's action this tick, or None. A failing device lets the policy drive, loudly."""
-        if self.teleop is None:
+        if (teleop := self.teleop) is None:
             return None
         try:
-            human = self.teleop.poll(obs)
+            human = teleop.poll(obs)
         except Exception:
             TELEOP_ERRORS.labels(**self._labels).inc()
-            if not self._teleop_failing:  # once per failure streak, not at the control rate
+            if self.teleop_failing_since is None:  # once per failure streak, not at the control rate
                 log.exception("teleoperator poll failed; the policy drives", extra=kv(robot_id=self.robot_id))
-            self._teleop_failing = True
+                self.teleop_failing_since = time.monotonic()
             return None
-        self._teleop_failing = False
+        self.teleop_failing_since = None
         if human is None:
             return None
         human = np.asarray(human, np.float32)
@@ -567,6 +581,8 @@ class EdgeAgent:
         self._grid0: float | None = None  # the realtime grid's first tick, for robots that attach later
         self._attached_at: dict[str, float] = {}  # robot_id -> when its loop started (monotonic)
         self._flaps: dict[str, int] = {}  # robot_id -> loops in a row that failed within REPLUG_MAX_S
+        self._teleop_attached_at: dict[str, float] = {}  # robot_id -> when its teleoperator connected (monotonic)
+        self._teleop_flaps: dict[str, int] = {}  # robot_id -> teleoperators in a row that failed within REPLUG_MAX_S
         self._watch_stop = threading.Event()
         self._watcher: threading.Thread | None = None
         self.control = ControlClient(
@@ -669,7 +685,10 @@ class EdgeAgent:
         if absent is not None:
             self._absent_teleops[rid] = absent
             if rid in self.loops:
-                self.loops[rid].teleop = None
+                self.loops[rid].set_teleop(None)
+        else:
+            self._teleop_attached_at[rid] = time.monotonic()
+        TELEOP_ATTACHED.labels(rid).set(int(absent is None))
 
     def _try_attach_teleop(self, rid: str, absent: _Absent[Teleoperator]) -> None:
         try:
@@ -682,8 +701,53 @@ class EdgeAgent:
         del self._absent_teleops[rid]
         loop = self.loops.get(rid)
         if loop is not None:
-            loop.teleop = self.teleops[rid]
+            loop.set_teleop(self.teleops[rid])
+        self._teleop_attached_at[rid] = time.monotonic()
+        TELEOP_ATTACHED.labels(rid).set(1)
         log.info("teleoperator attached", extra=kv(robot_id=rid, tries=absent.failures + 1))
+
+    def _detach_teleop(self, rid: str, loop: RobotLoop) -> None:
+        """Its polls kept failing (unplugged): the policy drives, and a fresh instance is connected when it can be."""
+        old = loop.teleop
+        if old is None:
+            return
+        loop.set_teleop(None)
+        TELEOP_DETACHES.labels(rid).inc()
+        TELEOP_ATTACHED.labels(rid).set(0)
+        log.warning(
+            "teleoperator detached: its polls kept failing; the policy drives until it connects again",
+            extra=kv(robot_id=rid, retry_s=self.cfg.edge.replug_s),
+        )
+        quick = time.monotonic() - self._teleop_attached_at.pop(rid, 0.0) < REPLUG_MAX_S
+        flaps = self._teleop_flaps[rid] = self._teleop_flaps.get(rid, 0) + 1 if quick else 0
+        fresh = self._fresh_teleop(rid, old)
+        self._absent_teleops[rid] = _Absent(fresh, next_try=time.monotonic() + self._retry_s(flaps + 1))
+
+    def _fresh_teleop(self, rid: str, old: Teleoperator) -> Teleoperator:
+        """A new instance from the config entry (the old device handle may be dead even once re-plugged), the
+        old one released and the robot's task re-attached to it; without an entry the old one is retried."""
+        index = next((i for i, rc in enumerate(self.cfg.edge.robots) if rc.id == rid), None)
+        entry = self.cfg.edge.robots[index].teleop if index is not None else None
+        if entry is None:
+            return old
+        try:
+            fresh = TELEOPERATORS.build(
+                entry.kind, entry.params, where=f"edge.robots[{index}].teleop.params", spec=old.spec
+            )
+            attach = getattr(self.tasks.get(rid), "attach_teleop", None)
+            if attach is not None:
+                attach(fresh)
+        except Exception:  # keep trying the old instance rather than lose the teleoperator
+            log.exception(
+                "rebuilding a detached teleoperator failed; retrying its old instance", extra=kv(robot_id=rid)
+            )
+            return old
+        try:
+            old.disconnect()
+        except Exception as exc:  # expected after an unplug: the device is gone
+            log.debug("release of a detached teleoperator failed", extra=kv(robot_id=rid, error=repr(exc)))
+        self.teleops[rid] = fresh
+        return fresh
 
     def _attached_specs(self) -> list[robot_pb2.RobotSpec]:
         return [r.spec for r in self.robots if r.spec.robot_id in self.loops]
@@ -691,10 +755,12 @@ class EdgeAgent:
     def _watch(self) -> None:
         while not self._watch_stop.wait(WATCH_POLL_S):
             try:
+                now = time.monotonic()
                 for rid, loop in list(self.loops.items()):
                     if not loop.alive and loop.error is not None:
                         self._detach(rid, loop)
-                now = time.monotonic()
+                    elif (since := loop.teleop_failing_since) is not None and now - since >= TELEOP_DETACH_S:
+                        self._detach_teleop(rid, loop)
                 for rid, absent in list(self._absent.items()):
                     if now >= absent.next_try and not self._watch_stop.is_set():
                         self._try_attach(rid, absent)

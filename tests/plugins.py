@@ -122,14 +122,22 @@ class PluggableArm(SimReachArm):
 
 @TELEOPERATORS.register("test_pluggable", description="test: a gamepad on a cable (a file) that always holds still")
 class PluggableGamepad(Teleoperator):
-    """Connect fails while the cable file is missing; once connected the "human" drives every tick (zero action)."""
+    """Connect fails while the cable file is missing; once connected the "human" drives every tick (zero action).
+    Like a USB handle, a connection lost to a pulled cable stays dead after re-plugging: only a new connect works."""
 
     class Params(PluginParams):
         cable: str = Field(min_length=1, description="a file that exists while the gamepad is plugged in")
 
+    connected = False
+
     def connect(self) -> None:
         if not Path(self.params.cable).exists():  # type: ignore[attr-defined]
             raise ConnectionError("no gamepad")
+        self.connected = True
 
     def poll(self, observation: Observation) -> np.ndarray | None:
+        if not Path(self.params.cable).exists():  # type: ignore[attr-defined]
+            self.connected = False
+        if not self.connected:
+            raise ConnectionError("gamepad handle lost (cable pulled)")
         return np.zeros(len(self.spec.action.low), np.float32)

@@ -15,7 +15,7 @@ import grpc
 import pytest
 
 import tests.plugins  # noqa: F401 - registers test_pluggable
-from edge_agent.agent import DETACHES, EdgeAgent, RobotLoop
+from edge_agent.agent import DETACHES, TELEOP_DETACHES, EdgeAgent, RobotLoop
 from services.control.server import ControlService
 from services.inference.server import InferenceService
 from services.replay.server import ReplayService
@@ -119,7 +119,7 @@ def test_robots_plugged_in_later_register_and_unplugged_ones_go_offline_and_free
         assert len({e.episode_id for e in info.recent_episodes}) == sum(loop.episodes for loop in loops)
 
 
-def test_a_teleoperator_plugged_in_later_takes_over(
+def test_a_teleoperator_plugged_in_later_takes_over_and_one_pulled_mid_run_reconnects(
     one_place: tuple[StackConfig, ControlService], tmp_path: Path
 ) -> None:
     cloud, control = one_place
@@ -142,6 +142,16 @@ def test_a_teleoperator_plugged_in_later_takes_over(
         cable.touch()
         wait_for(lambda: loop.intervention_steps >= 20, "the human drives once the gamepad connects")
         wait_for(lambda: robot_info(control, "arm-0").status.intervention_steps >= 20, "interventions at control")
+        first, detaches = loop.teleop, TELEOP_DETACHES.labels("arm-0")._value.get()
+        cable.unlink()  # pulled mid-run: polls fail, the policy drives, the gamepad is released
+        wait_for(lambda: loop.teleop is None, "the failing gamepad detached")
+        assert TELEOP_DETACHES.labels("arm-0")._value.get() == detaches + 1
+        helped, steps = loop.intervention_steps, loop.env_steps
+        wait_for(lambda: loop.env_steps >= steps + 20, "the policy drives without the gamepad")
+        assert loop.intervention_steps == helped and loop.alive
+        cable.touch()  # re-plugged: the old handle stays dead, a fresh instance connects and drives
+        wait_for(lambda: loop.intervention_steps >= helped + 20, "the human drives again after re-plugging")
+        assert loop.teleop is not None and loop.teleop is not first and agent.teleops["arm-0"] is loop.teleop
     finally:
         agent.stop()
     assert replay_stats(cloud.edge.replay_addr).rejected == 0
