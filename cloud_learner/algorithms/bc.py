@@ -17,7 +17,7 @@ import torch
 from pydantic import Field
 
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
-from cloud_learner.algorithms.sac import EncoderParams, augment, make_encoder, publish
+from cloud_learner.algorithms.sac import EncoderParams, augment, make_encoder, publish, trainable
 from user.policies.mlp import GaussianActor, log_prob_of
 from user.v1 import learner_pb2
 
@@ -42,7 +42,7 @@ class BC(Algorithm):
         self.p = params
         self.actor = GaussianActor(make_encoder(layout, params), params.hidden, layout.action_low, layout.action_high)
         self.actor.to(self.device)
-        self.optimizer = torch.optim.Adam(self.actor.parameters(), lr=params.lr, fused=self.device.type == "cuda")
+        self.optimizer = torch.optim.Adam(trainable(self.actor), lr=params.lr, fused=self.device.type == "cuda")
 
     def batch_request(self) -> BatchRequest:
         return BatchRequest(batch_size=self.p.batch_size, tables=dict(self.p.tables))

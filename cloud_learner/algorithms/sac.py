@@ -21,11 +21,12 @@ import copy
 import itertools
 import math
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 import torch
-from pydantic import Field
+from pydantic import Field, field_validator, model_validator
 from torch import nn
 
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
@@ -58,6 +59,30 @@ class EncoderParams(PluginParams):
     state_std: dict[str, list[float]] = Field(
         default={}, description="per state feature, divisors after state_mean (e.g. from the demos' statistics)"
     )
+    backbone: Literal["conv", "resnet18"] = Field(
+        default="conv",
+        description="camera encoder: small conv stacks per camera, or one torchvision ResNet-18 trunk for all",
+    )
+    pretrained: str = Field(
+        default="",
+        description="local safetensors file of torchvision resnet18 weights the trunk starts from (no download)",
+    )
+    freeze_backbone: bool = Field(
+        default=False, description="the ResNet trunk never trains (weights and batch-norm statistics stay)"
+    )
+
+    @field_validator("pretrained")
+    @classmethod
+    def _pretrained_file(cls, path: str) -> str:
+        if path and not Path(path).is_file():
+            raise ValueError(f"no such file: {path}")
+        return path
+
+    @model_validator(mode="after")
+    def _backbone_options(self) -> EncoderParams:
+        if self.backbone != "resnet18" and (self.pretrained or self.freeze_backbone):
+            raise ValueError("pretrained and freeze_backbone need backbone: resnet18")
+        return self
 
 
 class SACParams(EncoderParams):
@@ -150,8 +175,18 @@ def make_encoder(layout: Layout, p: EncoderParams) -> nn.Module:
     if not image_keys:
         return StateEncoder(state_keys, state_dims, mean, std)
     shapes = [list(layout.observation[k].shape) for k in image_keys]
-    args = (p.channels, p.strides, p.latent_dim, p.image_size, mean, std)
-    return ConvEncoder(image_keys, shapes, state_keys, state_dims, *args)
+    args = (p.channels, p.strides, p.latent_dim, p.image_size, mean, std, p.backbone)
+    encoder = ConvEncoder(image_keys, shapes, state_keys, state_dims, *args)
+    if encoder.trunk is not None and p.pretrained:
+        encoder.trunk.load_pretrained(p.pretrained)
+    if encoder.trunk is not None and p.freeze_backbone:
+        encoder.trunk.freeze()
+    return encoder
+
+
+def trainable(module: nn.Module) -> list[nn.Parameter]:
+    """The parameters an optimizer owns: a frozen backbone's are left out."""
+    return [q for q in module.parameters() if q.requires_grad]
 
 
 def masked(action: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
@@ -222,6 +257,8 @@ def publish(
         }
         if enc.image_size:
             config["image_size"] = enc.image_size
+        if enc.backbone != "conv":
+            config["backbone"] = enc.backbone
     return policy_spec(CNN_KIND if isinstance(enc, ConvEncoder) else MLP_KIND, config), module_tensors(actor)
 
 
@@ -247,7 +284,10 @@ class SAC(Algorithm):
         self.encoder = make_encoder(layout, p)
         self.actor = GaussianActor(self.encoder, p.hidden, self.low, self.high).to(self.device)
         self.critic = Critic(self.encoder, action_dim, p.hidden, p.num_critics, p.critic_layer_norm).to(self.device)
-        self.critic_target = copy.deepcopy(self.critic).requires_grad_(False)
+        # A frozen backbone is shared with the target, not copied: it is the same function either way
+        trunk = getattr(self.encoder, "trunk", None)
+        shared = {id(trunk): trunk} if trunk is not None and trunk.frozen else {}
+        self.critic_target = copy.deepcopy(self.critic, shared).requires_grad_(False)
 
         self.target_entropy = -p.target_entropy_scale * float(action_dim)
         self.log_alpha = torch.tensor(math.log(p.init_alpha), device=self.device, requires_grad=True)
@@ -256,10 +296,12 @@ class SAC(Algorithm):
         # state-based SAC are bound by kernel launches there, not by arithmetic).
         fused = self.device.type == "cuda"
         self.actor_optimizer = torch.optim.Adam(self.actor.head.parameters(), lr=p.actor_lr, fused=fused)
-        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=p.critic_lr, fused=fused)
+        self.critic_optimizer = torch.optim.Adam(trainable(self.critic), lr=p.critic_lr, fused=fused)
         self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=p.alpha_lr, fused=fused)
-        self._critic_params = list(self.critic.parameters())
-        self._target_params = list(self.critic_target.parameters())
+        # Polyak-averaged pairs; a frozen backbone's copy is already equal and stays so (11M params skipped)
+        pairs = zip(self.critic.parameters(), self.critic_target.parameters(), strict=True)
+        moving = [(q, t) for q, t in pairs if q.requires_grad]
+        self._critic_params, self._target_params = [q for q, _ in moving], [t for _, t in moving]
 
     @property
     def alpha(self) -> float:

@@ -14,8 +14,11 @@ The algorithms share this encoder between actor and critics (critic gradients tr
 
 (`image_size`, `state_mean` and `state_std` are optional: specs published without them still load.)
 
-Pretrained frozen encoders are not offered: torchvision's weights come from a model hub that cannot be
-reached here, and no installed package ships vision weights locally.
+`"backbone": "resnet18"` replaces the per-camera conv stacks with one torchvision ResNet-18 trunk (no
+classifier; ImageNet-normalized input) shared by every camera, each camera keeping its own projection.
+The learner can start it from a local pretrained file and freeze it (HIL-SERL's frozen pretrained
+encoder); its weights travel in the weight set like every other tensor, so edges and the inference
+service need no file. Nothing is downloaded: torchvision's hub weights are a file the user provides.
 """
 
 from __future__ import annotations
@@ -76,11 +79,71 @@ class CameraEncoder(nn.Module):
         self.convs = nn.Sequential(*layers, nn.Flatten())
         with torch.no_grad():
             flat = self.convs(torch.zeros(1, int(shape[2]), height, width)).shape[1]
-        self.project = nn.Sequential(nn.Linear(flat, int(latent_dim)), nn.LayerNorm(int(latent_dim)), nn.Tanh())
+        self.project = projection(flat, int(latent_dim))
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         x = downsample(image, self.image_size).float().permute(0, 3, 1, 2) / 255.0  # uint8 stays uint8 until here
         return self.project(self.convs(x - 0.5))
+
+
+BACKBONES = ("conv", "resnet18")
+_IMAGENET_MEAN, _IMAGENET_STD = (0.485, 0.456, 0.406), (0.229, 0.224, 0.225)
+
+
+class ResNetTrunk(nn.Module):
+    """torchvision's ResNet-18 without its classifier: (B, H, W, 3) pixels in 0..255 -> (B, 512).
+
+    Frozen (freeze()), it never trains: no gradients, and its batch-norm layers stay in eval mode
+    whatever mode the module around it is put in, so neither SGD nor batch statistics move it."""
+
+    out_dim = 512
+
+    def __init__(self) -> None:
+        super().__init__()
+        from torchvision.models import resnet18
+
+        net = resnet18(weights=None)
+        net.fc = nn.Identity()  # type: ignore[assignment]
+        self.net = net
+        self.frozen = False
+        self.register_buffer("mean", torch.tensor(_IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(_IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+
+    def freeze(self) -> ResNetTrunk:
+        self.frozen = True
+        self.requires_grad_(False)
+        return self.train(self.training)
+
+    def train(self, mode: bool = True) -> ResNetTrunk:
+        super().train(mode and not self.frozen)
+        self.training = mode  # what was asked: the batch-norm layers inside carry the frozen eval mode
+        return self
+
+    def load_pretrained(self, path: str) -> None:
+        """Weights from a local safetensors file of torchvision's resnet18 state dict (its `fc.*` are ignored).
+        ValueError naming what is missing or extra: a file of another architecture must not half-load."""
+        from safetensors.torch import load_file
+
+        state = {k: v for k, v in load_file(path).items() if not k.startswith("fc.")}
+        try:
+            missing, unexpected = self.net.load_state_dict(state, strict=False)
+        except RuntimeError as exc:  # a tensor of the wrong shape
+            raise ValueError(f"{path} is not a resnet18 state dict: {str(exc).splitlines()[-1].strip()}") from None
+        if missing or unexpected:
+            first = sorted(missing)[:5], sorted(unexpected)[:5]
+            raise ValueError(f"{path} is not a resnet18 state dict: missing {first[0]}, unexpected {first[1]}")
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        x = (image.float().permute(0, 3, 1, 2) / 255.0 - self.mean) / self.std
+        if self.frozen:
+            with torch.no_grad():
+                return self.net(x)
+        return self.net(x)
+
+
+def projection(in_dim: int, latent_dim: int) -> nn.Module:
+    """Features -> latent in [-1, 1] (the DrQ / SERL encoder's last layers)."""
+    return nn.Sequential(nn.Linear(in_dim, latent_dim), nn.LayerNorm(latent_dim), nn.Tanh())
 
 
 class ConvEncoder(nn.Module):
@@ -98,15 +161,26 @@ class ConvEncoder(nn.Module):
         image_size: int = 0,
         state_mean: Sequence[float] | None = None,
         state_std: Sequence[float] | None = None,
+        backbone: str = "conv",
     ) -> None:
         super().__init__()
         if not image_keys or len(image_keys) != len(image_shapes):
             raise ValueError(f"image_keys {list(image_keys)} and image_shapes must be non-empty, same length")
         if (state_mean is not None or state_std is not None) and not state_keys:
             raise ValueError("state_mean/state_std given but the encoder reads no state")
-        self.image_keys, self.image_size = list(image_keys), int(image_size)
-        pairs = zip(image_keys, image_shapes, strict=True)
-        encoders = {module_name(k): CameraEncoder(s, channels, strides, latent_dim, image_size) for k, s in pairs}
+        if backbone not in BACKBONES:
+            raise ValueError(f"backbone must be one of {BACKBONES}, got {backbone!r}")
+        self.image_keys, self.image_size, self.backbone = list(image_keys), int(image_size), backbone
+        # resnet18: one trunk for every camera (held once, so its weights travel once), a projection each
+        self.trunk = ResNetTrunk() if backbone == "resnet18" else None
+        if self.trunk is not None:
+            bad = [list(s) for s in image_shapes if int(s[-1]) != 3]
+            if bad:
+                raise ValueError(f"backbone resnet18 reads RGB cameras; got shapes {bad}")
+            encoders = {module_name(k): projection(ResNetTrunk.out_dim, int(latent_dim)) for k in image_keys}
+        else:
+            pairs = zip(image_keys, image_shapes, strict=True)
+            encoders = {module_name(k): CameraEncoder(s, channels, strides, latent_dim, image_size) for k, s in pairs}
         self.cameras = nn.ModuleDict(encoders)
         self.state = StateEncoder(state_keys, state_dims, state_mean, state_std) if state_keys else None
         self.out_dim = int(latent_dim) * len(self.image_keys) + (self.state.out_dim if self.state else 0)
@@ -117,7 +191,11 @@ class ConvEncoder(nn.Module):
         return {k: downsample(v, self.image_size) if k in self.image_keys else v for k, v in obs.items()}
 
     def forward(self, obs: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        parts = [self.cameras[module_name(k)](obs[k]) for k in self.image_keys]
+        if self.trunk is None:
+            parts = [self.cameras[module_name(k)](obs[k]) for k in self.image_keys]
+        else:
+            trunk = self.trunk
+            parts = [self.cameras[module_name(k)](trunk(downsample(obs[k], self.image_size))) for k in self.image_keys]
         if self.state is not None:
             parts.append(self.state(obs))
         return torch.cat(parts, dim=-1)
@@ -135,6 +213,7 @@ def encoder_from_config(config: Mapping[str, Any]) -> ConvEncoder:
         int(config.get("image_size", 0)),
         config.get("state_mean"),
         config.get("state_std"),
+        config.get("backbone", "conv"),
     )
 
 
