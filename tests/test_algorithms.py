@@ -183,6 +183,17 @@ def test_random_shift_moves_images_within_the_padding() -> None:
     assert all(2 <= r <= 6 and 2 <= c <= 6 for r, c in positions)
 
 
+def test_random_shift_by_gather_crops_exactly_as_the_slices_do() -> None:
+    """The GPU path (two gathers, no host sync) is the CPU path's crop, pixel for pixel, at every offset."""
+    g = torch.Generator().manual_seed(0)
+    image = torch.randint(0, 256, (50, 10, 7, 3), generator=g, dtype=torch.uint8)
+    offsets = torch.randint(0, 7, (50, 2), generator=g)  # pad 3: every offset, edges included
+    sliced = random_shift(image, pad=3, offsets=offsets, gather=False)
+    gathered = random_shift(image, pad=3, offsets=offsets, gather=True)
+    assert torch.equal(sliced, gathered) and gathered.shape == (50, 10, 7, 3)
+    assert not torch.equal(sliced, image.float())
+
+
 def test_rlpd_defaults_are_the_paper_recipe() -> None:
     algo = ALGORITHMS.build("rlpd", {}, layout=_layout(False), device=torch.device("cpu"))
     request = algo.batch_request()

@@ -217,13 +217,26 @@ def encoder_from_config(config: Mapping[str, Any]) -> ConvEncoder:
     )
 
 
-def random_shift(image: torch.Tensor, pad: int) -> torch.Tensor:
-    """DrQ augmentation: replicate-pad (B, H, W, C) pixels by `pad` and crop back at a random offset per image."""
+def random_shift(
+    image: torch.Tensor, pad: int, offsets: torch.Tensor | None = None, gather: bool | None = None
+) -> torch.Tensor:
+    """DrQ augmentation: replicate-pad (B, H, W, C) pixels by `pad` and crop back at a random offset per image.
+
+    offsets: (B, 2) row/column offsets in 0..2*pad (default random). On the CPU one slice per image is cheaper
+    than a gather over index tensors; on a GPU those B slices are B kernel launches and the offsets a host
+    sync, so there (gather None and a CUDA image, or gather=True) two gathers crop every image at once."""
     b, h, w, _ = image.shape
     padded = nn.functional.pad(image.float().permute(0, 3, 1, 2), (pad, pad, pad, pad), mode="replicate")
-    offsets = torch.randint(0, 2 * pad + 1, (b, 2)).tolist()
-    # One slice per image: cheaper on CPU than a gather over (B, H, W) index tensors.
-    crops = [padded[i, :, dy : dy + h, dx : dx + w] for i, (dy, dx) in enumerate(offsets)]
+    if offsets is None:
+        offsets = torch.randint(0, 2 * pad + 1, (b, 2), device=image.device)
+    if gather if gather is not None else image.is_cuda:
+        c, wide = padded.shape[1], padded.shape[3]
+        offsets = offsets.to(image.device)
+        rows = offsets[:, :1] + torch.arange(h, device=image.device)  # (B, h)
+        cols = offsets[:, 1:] + torch.arange(w, device=image.device)  # (B, w)
+        picked = padded.gather(2, rows[:, None, :, None].expand(b, c, h, wide))
+        return picked.gather(3, cols[:, None, None, :].expand(b, c, h, w)).permute(0, 2, 3, 1)
+    crops = [padded[i, :, dy : dy + h, dx : dx + w] for i, (dy, dx) in enumerate(offsets.tolist())]
     return torch.stack(crops).permute(0, 2, 3, 1)
 
 
