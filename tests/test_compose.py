@@ -139,7 +139,8 @@ def test_named_volumes_used_and_declared_match(compose: dict[str, Any], services
     used = {src for svc in services.values() for src, _ in _volumes(svc) if not src.startswith((".", "/"))}
     declared = set(compose.get("volumes") or {})
     assert used == declared
-    assert {"control-data", "replay-data", "checkpoints", "prometheus-data", "grafana-data"} == declared
+    state = {"control-data", "replay-data", "checkpoints", "prometheus-data", "grafana-data"}
+    assert state | {f"{edge}-spool" for edge in EDGES} == declared
 
 
 def test_state_lives_on_the_named_volumes(services: dict[str, dict[str, Any]], cfg: StackConfig) -> None:
@@ -158,6 +159,10 @@ def test_edges_spool_where_the_image_lets_them_write(services: dict[str, dict[st
         spool = _edge_cfg(services[name]).edge.spool_dir
         assert spool is not None and spool.is_absolute(), f"{name}: spool_dir {spool} (relative: under root-owned /app)"
         assert f" {spool} " in dockerfile or f" {spool}\n" in dockerfile, f"{name}: the Dockerfile must create {spool}"
+        # its own named volume: unacked steps outlive the container (`docker compose down`, a new image), and two
+        # agents never share one outbox
+        mounts = {t: s for s, t in _volumes(services[name])}
+        assert mounts.get(str(spool)) == f"{name}-spool", f"{name}: spool {spool} is not on its own volume"
 
 
 def test_token_comes_from_the_environment_and_is_required(
