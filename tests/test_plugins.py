@@ -24,3 +24,19 @@ def test_userctl_plugins_lists_every_interface(capsys: pytest.CaptureFixture[str
     assert expected <= kinds
     assert all(len(line.split(" ", 2)) == 3 for line in lines), "every line: interface kind description"
     assert lines == sorted(lines)
+
+
+def test_userctl_plugins_kind_shows_its_params(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["plugins", "algorithm", "sac"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("algorithm sac: ")
+    rows = {line.split()[0]: line for line in out[2:]}
+    assert "conv | resnet18" in rows["backbone"] and '"conv"' in rows["backbone"]
+    assert "[128, 128]" in rows["hidden"] and "MLP widths" in rows["hidden"]
+    assert len(rows) == int(out[1].split("(")[1].rstrip("):"))  # every field, one line each
+    assert main(["plugins", "robot", "no_such_arm"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown robot kind 'no_such_arm'" in err and "sim_reach_arm" in err
+    assert main(["plugins", "gadget", "x"]) == 2
+    assert "known: ['algorithm', 'policy', 'robot', 'task', 'teleoperator']" in capsys.readouterr().err
+    assert main(["plugins", "robot"]) == 2

@@ -4,6 +4,7 @@ userctl control|replay|inference|learner|edge --config configs/demo.yaml [--set 
 userctl up --config configs/demo.yaml      # the whole stack locally, with a live console
 userctl health HOST:PORT                   # exit 0 when SERVING (docker health checks)
 userctl plugins                            # every registered kind: `interface kind description` per line
+userctl plugins INTERFACE KIND             # the params that kind takes: name, type, default, description
 userctl replay ls|export|import ...        # a replay buffer's tables; LeRobotDataset out and in
 userctl reward train --frames DIR --out DIR  # success classifier for the `classifier` task
 userctl robots ls | workers ls | command pause|resume|reset [ROBOT]   # operators (see user/ops_cli.py)
@@ -42,7 +43,9 @@ def _parser() -> argparse.ArgumentParser:
             p.add_argument("--ready-file", help="write bound ports here as JSON once serving")
         else:
             p.add_argument("--fresh", action="store_true", help="delete runs/<name> first instead of resuming it")
-    sub.add_parser("plugins", help="list registered robots, tasks, teleoperators, policies, algorithms")
+    plugins = sub.add_parser("plugins", help="list registered robots, tasks, teleoperators, policies, algorithms")
+    plugins.add_argument("interface", nargs="?", help="with KIND: the params that kind takes (name type default)")
+    plugins.add_argument("kind", nargs="?")
     h = sub.add_parser("health", help="gRPC health check of HOST:PORT")
     h.add_argument("target")
     h.add_argument("--config", "-c")
@@ -63,9 +66,19 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _plugins() -> int:
-    from user.registry import Registry, plugin_lines
+def _plugins(interface: str | None = None, kind: str | None = None) -> int:
+    from user.registry import PluginError, Registry, params_lines, plugin_lines
 
+    if interface is not None:
+        if kind is None:
+            print("userctl plugins: give INTERFACE and KIND (e.g. `userctl plugins algorithm sac`)", file=sys.stderr)
+            return 2
+        try:
+            print("\n".join(params_lines(interface, kind)))
+        except PluginError as exc:
+            print(f"userctl plugins: {exc}", file=sys.stderr)
+            return 2
+        return 0
     print("\n".join(sorted(plugin_lines())))
     for reg in Registry._all.values():
         for module, error in sorted(reg.import_errors.items()):
@@ -85,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
         return edge_setup.main(argv[1:])
     args = _parser().parse_args(argv)
     if args.command == "plugins":
-        return _plugins()
+        return _plugins(args.interface, args.kind)
     if args.command == "reward":
         from user.reward_model import run_cli
 

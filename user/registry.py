@@ -19,9 +19,11 @@ from __future__ import annotations
 
 import importlib
 import importlib.metadata
+import json
 import logging
 import pkgutil
 import threading
+import typing
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -172,3 +174,36 @@ def plugin_lines() -> list[str]:
         for entry in reg.entries():
             lines.append(f"{reg.interface} {entry.kind} {entry.description}".rstrip())
     return lines
+
+
+def params_lines(interface: str, kind: str) -> list[str]:
+    """What a config entry of this kind may set: one `name  type  default  description` line per param.
+    PluginError naming the known interfaces or kinds when there is no such plug-in."""
+    found = {reg.interface: reg for reg in registries()}
+    if interface not in found:
+        raise PluginError(f"unknown interface {interface!r}; known: {sorted(found)}")
+    entry = found[interface].get(kind)
+    lines = [f"{interface} {kind}: {entry.description}", f"params ({len(entry.params.model_fields)}):"]
+    rows = [
+        (name, _type_name(field.annotation), _default(field), field.description or "")
+        for name, field in entry.params.model_fields.items()
+    ]
+    widths = [max((len(row[i]) for row in rows), default=0) for i in range(3)]
+    for row in rows:
+        lines.append("  " + "  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=False)) + "  " + row[3])
+    return [line.rstrip() for line in lines]
+
+
+def _type_name(annotation: Any) -> str:
+    if typing.get_origin(annotation) is typing.Literal:
+        return " | ".join(str(a) for a in typing.get_args(annotation))
+    if isinstance(annotation, type) and not typing.get_args(annotation):
+        return annotation.__name__
+    return str(annotation).replace("typing.", "")
+
+
+def _default(field: Any) -> str:
+    if field.is_required():
+        return "(required)"
+    value = field.get_default(call_default_factory=True)
+    return json.dumps(value) if isinstance(value, (dict, list, str)) else str(value)
