@@ -51,6 +51,24 @@ def weights(version: int, seed: int = 0) -> WeightSet:
     return WeightSet(version=version, policy=policy_spec(CFG), tensors=random_weights(CFG, seed))
 
 
+def test_sampling_in_parts_is_the_velocity_field_integrated_step_by_step() -> None:
+    """sample() splits the expert's first layer (context once per call); the result is the plain Euler loop."""
+    from user.policies.flow_vla import FlowVla
+
+    torch.manual_seed(0)
+    model = FlowVla(CFG).eval()
+    context = torch.randn(6, CFG.hidden)
+    for deterministic in (True, False):
+        torch.manual_seed(1)
+        got = model.sample(context, deterministic)
+        torch.manual_seed(1)
+        x = torch.zeros(6, H, A) if deterministic else torch.randn(6, H, A)
+        dt = 1.0 / CFG.flow_steps
+        for i in range(CFG.flow_steps):
+            x = x + dt * model.velocity(x, torch.full((6,), i * dt), context)
+        torch.testing.assert_close(got, x.clamp(-1.0, 1.0), rtol=1e-5, atol=1e-6)
+
+
 def test_chunks_in_bounds_and_instruction_matters() -> None:
     policy = build_policy(policy_spec(CFG), random_weights(CFG), version=3)
     assert policy.chunk_horizon == H and policy.action_shape == (A,)
