@@ -164,16 +164,17 @@ class FlowVla(nn.Module):
         The same function as `velocity` step by step, computed in parts: the expert's first layer is split
         by its inputs (chunk | time | context), the context's share is computed once per call instead of once
         per flow step (at the VLA size it is ~46 % of the expert's weights, which a batch-1 forward is bound
-        by reading), and the time's share once per step for the whole batch (every row is at the same t)."""
+        by reading), and the time's share for every step in one product (all rows of a step share its t)."""
         shape = (context.shape[0], self.cfg.horizon, self.cfg.action_dim)
         x = torch.zeros(shape, device=context.device) if deterministic else torch.randn(shape, device=context.device)
         first, rest = self.expert[0], self.expert[1:]
         w_chunk, w_time, w_context = first.weight.split([x[0].numel(), 32, context.shape[1]], dim=1)
         from_context = nn.functional.linear(context, w_context, first.bias)  # (B, hidden), once
         dt = 1.0 / self.cfg.flow_steps
+        times = torch.arange(self.cfg.flow_steps, device=context.device) * dt
+        from_time = _time_embedding(times) @ w_time.T  # (flow_steps, hidden): every step's, in one product
         for i in range(self.cfg.flow_steps):
-            from_time = _time_embedding(torch.full((1,), i * dt, device=context.device)) @ w_time.T  # (1, hidden)
-            hidden = torch.addmm(from_context + from_time, x.flatten(1), w_chunk.T)
+            hidden = torch.addmm(from_context + from_time[i], x.flatten(1), w_chunk.T)
             x = x + dt * rest(hidden).view_as(x)
         return x.clamp(-1.0, 1.0)
 
