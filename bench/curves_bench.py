@@ -59,6 +59,7 @@ OUT = Path("runs/bench/curves")
 PIXEL_ROBOT = {"cameras": True, "camera_size": 64, "block_in_state": False}
 PIXEL_PARAMS: dict[str, Any] = {"batch_size": 64, "utd": 1, "num_critics": 4, "hidden": [256, 256]}
 PIXEL_PRETRAIN_UPDATES = 300
+PIXEL_DEMOS = 20
 
 
 def rolling_success(curve: Curve, window: int = WINDOW, autonomous: bool = True) -> np.ndarray:
@@ -343,11 +344,13 @@ def pick(
     pretrain_updates: int | None = None,
     cpu_minutes: float | None = None,
     seed: int = 0,
+    demos: int | None = None,
 ) -> list[Row]:
     """From state (target 80 %), or from the cameras + proprioception (target: success rising, 20 %).
     A variant to compare: `overrides` replace RLPD params, `pretrain_updates` the offline updates, `tag`
     suffixes the curve's name, `seed` (robot, trainer, interventions; the demos stay seeds 1000+) gives a replicate;
-    `cpu_minutes` stops at that much process CPU time (besides `minutes` of wall)."""
+    `cpu_minutes` stops at that much process CPU time (besides `minutes` of wall), `demos` replaces the
+    demo count."""
     kind, arm_name, camera_param = ARMS[arm]
     load_at_start = os.getloadavg()
     camera_params = PIXEL_ROBOT if arm == "panda" else {camera_param: True}
@@ -369,7 +372,7 @@ def pick(
     demos = Buffer().table("demos")
     # Only successful expert episodes become demos (as one keeps a human's good ones): SO-101's controller misses
     # ~1 in 5 picks (a jaw pad lands on the cube), and BC on those rows learns the miss too.
-    n_demos = 1 if quick else DEMOS[arm]
+    n_demos = 1 if quick else demos or (PIXEL_DEMOS if pixels and arm == "panda" else DEMOS[arm])
     demo_success = record_episodes(robot, lambda o, s: act(o, s == 0), n_demos, demos, seed=1000, only_successes=True)
     buffer = Buffer({"online": Table(), "demos": demos})
     # SERL's starting temperature: with a 0/1 reward, RLPD's 1.0 keeps the policy near random for thousands of steps.
@@ -387,9 +390,9 @@ def pick(
         params |= SO101_PARAMS
     if quick:
         params = {"hidden": [32, 32], "batch_size": 16, "utd": 2, "num_critics": 4, "bc_weight": 1.0}
-    params |= overrides or {}
     if pixels:  # cameras + proprioception (no cube position): the cube must be found in the images
         params |= {"features": [*cameras, "state"], **(PIXEL_PARAMS if not quick else {"utd": 1})}
+    params |= overrides or {}
     # standardize the state with the demos' statistics (raw: metres, radians and velocities mixed)
     state = np.stack(demos.rows["obs/state"])
     params |= {
@@ -468,8 +471,8 @@ def panda(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None]) 
     return pick("panda", quick, minutes, out_dir, log)
 
 
-def panda_pixels(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None]) -> list[Row]:
-    return pick("panda", quick, minutes, out_dir, log, pixels=True)
+def panda_pixels(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None], **variant: Any) -> list[Row]:
+    return pick("panda", quick, minutes, out_dir, log, pixels=True, **variant)
 
 
 def so101(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None], **variant: Any) -> list[Row]:
@@ -491,16 +494,17 @@ def run(
     only: list[str] | None = None,
     minutes: dict[str, float] | None = None,
     so101_variant: dict[str, Any] | None = None,
+    pixels_variant: dict[str, Any] | None = None,
 ) -> list[Row]:
-    """`so101_variant`: keyword arguments of `pick` for the SO-101 curve (overrides, tag, pretrain_updates,
-    cpu_minutes)."""
+    """`so101_variant`, `pixels_variant`: keyword arguments of `pick` for the SO-101 and the Panda pixels
+    curves (overrides, tag, pretrain_updates, cpu_minutes, seed, demos)."""
     torch.set_num_threads(1)
     out_dir = Path(workdir) / "curves" if quick else OUT
     rows: list[Row] = []
     for name in only or list(EXPERIMENTS):
         fn, default_minutes = EXPERIMENTS[name]
         start = time.perf_counter()
-        variant = (so101_variant or {}) if name == "so101" else {}
+        variant = {"so101": so101_variant, "panda_pixels": pixels_variant}.get(name) or {}
         rows += fn(quick, (minutes or {}).get(name, default_minutes), out_dir, log, **variant)
         log(f"curves {name}: {time.perf_counter() - start:.0f} s, curves in {out_dir}")
     return rows
@@ -519,6 +523,11 @@ def main() -> None:
     parser.add_argument("--so101-pretrain-updates", type=int, default=None, help="offline updates (default: recipe)")
     parser.add_argument("--so101-cpu-minutes", type=float, default=None, help="stop at this much process CPU time")
     parser.add_argument("--so101-seed", type=int, default=0, help="robot, trainer and intervention seed (replicates)")
+    parser.add_argument("--pixels-params", default="{}", help="JSON object of RLPD params replacing panda_pixels'")
+    parser.add_argument("--pixels-tag", default="", help="suffix of the panda_pixels curve's file name (a variant)")
+    parser.add_argument("--pixels-pretrain-updates", type=int, default=None, help="offline updates (default: recipe)")
+    parser.add_argument("--pixels-demos", type=int, default=None, help="scripted demo episodes (default: recipe)")
+    parser.add_argument("--pixels-seed", type=int, default=0, help="robot, trainer and intervention seed")
     parser.add_argument("--workdir", default="runs/bench")
     args = parser.parse_args()
     os.environ.setdefault("MUJOCO_GL", "egl")
@@ -538,6 +547,13 @@ def main() -> None:
             "pretrain_updates": args.so101_pretrain_updates,
             "cpu_minutes": args.so101_cpu_minutes,
             "seed": args.so101_seed,
+        },
+        pixels_variant={
+            "overrides": json.loads(args.pixels_params),
+            "tag": args.pixels_tag,
+            "pretrain_updates": args.pixels_pretrain_updates,
+            "demos": args.pixels_demos,
+            "seed": args.pixels_seed,
         },
     )
     for row in rows:
