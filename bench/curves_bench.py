@@ -344,13 +344,13 @@ def pick(
     pretrain_updates: int | None = None,
     cpu_minutes: float | None = None,
     seed: int = 0,
-    demos: int | None = None,
+    demo_episodes: int | None = None,
 ) -> list[Row]:
     """From state (target 80 %), or from the cameras + proprioception (target: success rising, 20 %).
     A variant to compare: `overrides` replace RLPD params, `pretrain_updates` the offline updates, `tag`
     suffixes the curve's name, `seed` (robot, trainer, interventions; the demos stay seeds 1000+) gives a replicate;
-    `cpu_minutes` stops at that much process CPU time (besides `minutes` of wall), `demos` replaces the
-    demo count."""
+    `cpu_minutes` stops at that much process CPU time (besides `minutes` of wall), `demo_episodes` replaces
+    the demo count."""
     kind, arm_name, camera_param = ARMS[arm]
     load_at_start = os.getloadavg()
     camera_params = PIXEL_ROBOT if arm == "panda" else {camera_param: True}
@@ -372,7 +372,7 @@ def pick(
     demos = Buffer().table("demos")
     # Only successful expert episodes become demos (as one keeps a human's good ones): SO-101's controller misses
     # ~1 in 5 picks (a jaw pad lands on the cube), and BC on those rows learns the miss too.
-    n_demos = 1 if quick else demos or (PIXEL_DEMOS if pixels and arm == "panda" else DEMOS[arm])
+    n_demos = 1 if quick else demo_episodes or (PIXEL_DEMOS if pixels and arm == "panda" else DEMOS[arm])
     demo_success = record_episodes(robot, lambda o, s: act(o, s == 0), n_demos, demos, seed=1000, only_successes=True)
     buffer = Buffer({"online": Table(), "demos": demos})
     # SERL's starting temperature: with a 0/1 reward, RLPD's 1.0 keeps the policy near random for thousands of steps.
@@ -497,7 +497,7 @@ def run(
     pixels_variant: dict[str, Any] | None = None,
 ) -> list[Row]:
     """`so101_variant`, `pixels_variant`: keyword arguments of `pick` for the SO-101 and the Panda pixels
-    curves (overrides, tag, pretrain_updates, cpu_minutes, seed, demos)."""
+    curves (overrides, tag, pretrain_updates, cpu_minutes, seed, demo_episodes)."""
     torch.set_num_threads(1)
     out_dir = Path(workdir) / "curves" if quick else OUT
     rows: list[Row] = []
@@ -552,7 +552,7 @@ def main() -> None:
             "overrides": json.loads(args.pixels_params),
             "tag": args.pixels_tag,
             "pretrain_updates": args.pixels_pretrain_updates,
-            "demos": args.pixels_demos,
+            "demo_episodes": args.pixels_demos,
             "seed": args.pixels_seed,
         },
     )
