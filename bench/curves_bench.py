@@ -9,8 +9,9 @@
   Success is also reported over the episodes nobody intervened in.
 - panda_pixels: the same from the front and wrist cameras (64x64) plus proprioception (joints, gripper,
   TCP; the cube position is left out of the state, so the policy must find the cube in the images):
-  RLPD with one shared CNN encoder (critic gradients only, features computed once per critic step),
-  DrQ shift, standardized proprioception; settings sized for a 2-core CPU (see PIXEL_PARAMS);
+  RLPD with one shared CNN encoder (trained by the critic and the BC term, features computed once per
+  critic step), 40 demos, a BC-only then critic-only warm start, DrQ shift, standardized proprioception;
+  settings sized for a 2-core CPU (see PIXEL_PARAMS);
   target: success rising (20 %) within 30 minutes on CPU.
 
 All train in one process (cloud_learner.local.train_local: the algorithm the learner service runs,
@@ -57,8 +58,20 @@ OUT = Path("runs/bench/curves")
 # camera), one update is one critic step on 64 rows (UTD 1) with 4 critics, ~0.1 CPU s, near an env step's
 # rendering cost (~0.07 CPU s for the two cameras).
 PIXEL_ROBOT = {"cameras": True, "camera_size": 64, "block_in_state": False}
-PIXEL_PARAMS: dict[str, Any] = {"batch_size": 64, "utd": 1, "num_critics": 4, "hidden": [256, 256]}
-PIXEL_PRETRAIN_UPDATES = 300
+# The BC term also trains the encoder (bc_encoder; critic-only, 3 of 86 unhelped episodes succeeded in 30 minutes),
+# and the offline phase is RLPD's warm start: 500 BC-only updates (actor head and encoder), then 500 of the critics
+# alone, on 40 demos (docs/notes/algos.md, 2026-11-27).
+PIXEL_PARAMS: dict[str, Any] = {
+    "batch_size": 64,
+    "utd": 1,
+    "num_critics": 4,
+    "hidden": [256, 256],
+    "bc_encoder": True,
+    "actor_pretrain_updates": 500,
+    "critic_warmup_updates": 500,
+}
+PIXEL_PRETRAIN_UPDATES = 300  # the warm start above is longer, and wins (see pick)
+PIXEL_DEMOS = 40
 
 
 def rolling_success(curve: Curve, window: int = WINDOW, autonomous: bool = True) -> np.ndarray:
@@ -343,11 +356,13 @@ def pick(
     pretrain_updates: int | None = None,
     cpu_minutes: float | None = None,
     seed: int = 0,
+    demo_episodes: int | None = None,
 ) -> list[Row]:
     """From state (target 80 %), or from the cameras + proprioception (target: success rising, 20 %).
     A variant to compare: `overrides` replace RLPD params, `pretrain_updates` the offline updates, `tag`
     suffixes the curve's name, `seed` (robot, trainer, interventions; the demos stay seeds 1000+) gives a replicate;
-    `cpu_minutes` stops at that much process CPU time (besides `minutes` of wall)."""
+    `cpu_minutes` stops at that much process CPU time (besides `minutes` of wall), `demo_episodes` replaces
+    the demo count."""
     kind, arm_name, camera_param = ARMS[arm]
     load_at_start = os.getloadavg()
     camera_params = PIXEL_ROBOT if arm == "panda" else {camera_param: True}
@@ -369,7 +384,7 @@ def pick(
     demos = Buffer().table("demos")
     # Only successful expert episodes become demos (as one keeps a human's good ones): SO-101's controller misses
     # ~1 in 5 picks (a jaw pad lands on the cube), and BC on those rows learns the miss too.
-    n_demos = 1 if quick else DEMOS[arm]
+    n_demos = 1 if quick else demo_episodes or (PIXEL_DEMOS if pixels and arm == "panda" else DEMOS[arm])
     demo_success = record_episodes(robot, lambda o, s: act(o, s == 0), n_demos, demos, seed=1000, only_successes=True)
     buffer = Buffer({"online": Table(), "demos": demos})
     # SERL's starting temperature: with a 0/1 reward, RLPD's 1.0 keeps the policy near random for thousands of steps.
@@ -387,9 +402,9 @@ def pick(
         params |= SO101_PARAMS
     if quick:
         params = {"hidden": [32, 32], "batch_size": 16, "utd": 2, "num_critics": 4, "bc_weight": 1.0}
-    params |= overrides or {}
     if pixels:  # cameras + proprioception (no cube position): the cube must be found in the images
         params |= {"features": [*cameras, "state"], **(PIXEL_PARAMS if not quick else {"utd": 1})}
+    params |= overrides or {}
     # standardize the state with the demos' statistics (raw: metres, radians and velocities mixed)
     state = np.stack(demos.rows["obs/state"])
     params |= {
@@ -468,8 +483,8 @@ def panda(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None]) 
     return pick("panda", quick, minutes, out_dir, log)
 
 
-def panda_pixels(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None]) -> list[Row]:
-    return pick("panda", quick, minutes, out_dir, log, pixels=True)
+def panda_pixels(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None], **variant: Any) -> list[Row]:
+    return pick("panda", quick, minutes, out_dir, log, pixels=True, **variant)
 
 
 def so101(quick: bool, minutes: float, out_dir: Path, log: Callable[..., None], **variant: Any) -> list[Row]:
@@ -491,16 +506,17 @@ def run(
     only: list[str] | None = None,
     minutes: dict[str, float] | None = None,
     so101_variant: dict[str, Any] | None = None,
+    pixels_variant: dict[str, Any] | None = None,
 ) -> list[Row]:
-    """`so101_variant`: keyword arguments of `pick` for the SO-101 curve (overrides, tag, pretrain_updates,
-    cpu_minutes)."""
+    """`so101_variant`, `pixels_variant`: keyword arguments of `pick` for the SO-101 and the Panda pixels
+    curves (overrides, tag, pretrain_updates, cpu_minutes, seed, demo_episodes)."""
     torch.set_num_threads(1)
     out_dir = Path(workdir) / "curves" if quick else OUT
     rows: list[Row] = []
     for name in only or list(EXPERIMENTS):
         fn, default_minutes = EXPERIMENTS[name]
         start = time.perf_counter()
-        variant = (so101_variant or {}) if name == "so101" else {}
+        variant = {"so101": so101_variant, "panda_pixels": pixels_variant}.get(name) or {}
         rows += fn(quick, (minutes or {}).get(name, default_minutes), out_dir, log, **variant)
         log(f"curves {name}: {time.perf_counter() - start:.0f} s, curves in {out_dir}")
     return rows
@@ -519,6 +535,11 @@ def main() -> None:
     parser.add_argument("--so101-pretrain-updates", type=int, default=None, help="offline updates (default: recipe)")
     parser.add_argument("--so101-cpu-minutes", type=float, default=None, help="stop at this much process CPU time")
     parser.add_argument("--so101-seed", type=int, default=0, help="robot, trainer and intervention seed (replicates)")
+    parser.add_argument("--pixels-params", default="{}", help="JSON object of RLPD params replacing panda_pixels'")
+    parser.add_argument("--pixels-tag", default="", help="suffix of the panda_pixels curve's file name (a variant)")
+    parser.add_argument("--pixels-pretrain-updates", type=int, default=None, help="offline updates (default: recipe)")
+    parser.add_argument("--pixels-demos", type=int, default=None, help="scripted demo episodes (default: recipe)")
+    parser.add_argument("--pixels-seed", type=int, default=0, help="robot, trainer and intervention seed")
     parser.add_argument("--workdir", default="runs/bench")
     args = parser.parse_args()
     os.environ.setdefault("MUJOCO_GL", "egl")
@@ -538,6 +559,13 @@ def main() -> None:
             "pretrain_updates": args.so101_pretrain_updates,
             "cpu_minutes": args.so101_cpu_minutes,
             "seed": args.so101_seed,
+        },
+        pixels_variant={
+            "overrides": json.loads(args.pixels_params),
+            "tag": args.pixels_tag,
+            "pretrain_updates": args.pixels_pretrain_updates,
+            "demo_episodes": args.pixels_demos,
+            "seed": args.pixels_seed,
         },
     )
     for row in rows:

@@ -172,6 +172,34 @@ def test_only_the_critic_trains_the_shared_image_encoder() -> None:
     assert algo.critic_target.encoder is not algo.encoder
 
 
+@pytest.mark.parametrize("bc_encoder", [False, True])
+def test_bc_encoder_lets_the_bc_term_train_the_shared_image_encoder(bc_encoder: bool) -> None:
+    """With bc_encoder the critic step's loss carries the BC term into the encoder (same features, one conv
+    pass), and RLPD's BC-only warm start steps the encoder; without, neither reaches it. A critic step is
+    compared with a copy that skipped the BC term (zero weight) from the same start and random draws."""
+    batch = _batch(0, 8, pixels=True)
+
+    def after_critic_steps(bc_weight: float) -> list[torch.Tensor]:
+        algo = _algorithm("rlpd", True, bc_weight=bc_weight, bc_encoder=bc_encoder, utd=1)
+        torch.manual_seed(1)  # the same DrQ shifts and target subsets in both copies
+        for _ in range(3):
+            algo.update_critic(batch)
+        return _snapshot(algo.encoder)
+
+    with_bc, without_bc = after_critic_steps(3.0), after_critic_steps(0.0)
+    assert any(not torch.equal(a, b) for a, b in zip(with_bc, without_bc, strict=True)) is bc_encoder
+
+    algo = _algorithm("rlpd", True, bc_weight=1.0, bc_encoder=bc_encoder, utd=1, actor_pretrain_updates=1)
+    encoder, critic_heads = _snapshot(algo.encoder), _snapshot(algo.critic.layers)
+    assert algo.phase() == "actor_bc"
+    algo.update(batch)
+    assert _moved(encoder, algo.encoder) is bc_encoder and not _moved(critic_heads, algo.critic.layers)
+    _, info = algo.update_critic(batch)
+    assert ("encoder_bc_loss" in info) is bc_encoder
+    # The target encoder still follows by Polyak averaging only.
+    assert algo.critic_target.encoder is not algo.encoder
+
+
 def test_random_shift_moves_images_within_the_padding() -> None:
     torch.manual_seed(0)
     image = torch.zeros(64, 9, 9, 1, dtype=torch.uint8)

@@ -11,7 +11,8 @@ defaults differ. The published policy is the same "mlp" / "cnn" kind.
 
 Optional warm start from demos (both off by default), phases counted in updates:
 - `actor_pretrain_updates`: the first updates train the actor by BC alone (MSE of its mean action on
-  the rows a human or script chose, at `actor_pretrain_lr`), nothing else: RL starts from the clone.
+  the rows a human or script chose, at `actor_pretrain_lr`), nothing else (with `bc_encoder`, the
+  shared encoder too): RL starts from the clone.
   An RLPD actor trained on the demos with its Q term from the start did not become the clone
   (SO-101: 0 of 15 picks after 1,500 such updates, where plain BC picks 16 of 20).
 - `critic_warmup_updates`: then the critics alone train (actor and alpha frozen): they evaluate the
@@ -97,12 +98,17 @@ class RLPD(SAC):
 
     def pretrain_actor(self, batch: Batch) -> dict[str, float]:
         """One BC step on the whole batch (all utd minibatches' rows): the actor's mean toward the
-        demonstrated actions; the critics, the encoder and alpha are left alone."""
-        with torch.no_grad():
-            features = self.encoder(augment(batch.observation, self.encoder, self.p.image_pad))
+        demonstrated actions; the critics and alpha are left alone, and so is the encoder unless
+        bc_encoder (then the critic optimizer, which owns it, steps it on the BC loss too)."""
+        obs = augment(batch.observation, self.encoder, self.p.image_pad)
+        with torch.set_grad_enabled(self.p.bc_encoder):
+            features = self.encoder(obs)
         _, _, mean_action = self.actor.head(features, batch.action_mask)
         loss = bc_mse(mean_action, batch)
         self.actor_optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        if self.p.bc_encoder:
+            self.step_encoder(loss)  # backward, the encoder's step (critic heads get no gradient), Polyak
+        else:
+            loss.backward()
         self.actor_optimizer.step()
         return {"bc_loss": float(loss.detach())}

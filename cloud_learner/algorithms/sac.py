@@ -2,8 +2,10 @@
 
 From state, the float observation features are concatenated in sorted key order. From pixels, each
 camera has a small CNN (user.policies.cnn) shared by the actor and the critics: critic gradients train
-it, the actor sees its features detached (DrQ, SERL), and every sampled image is first downsampled to
-`image_size` (when set) and then randomly shifted by up to `image_pad` pixels (DrQ augmentation).
+it, the actor sees its features detached (DrQ, SERL); with `bc_encoder` the BC term on the rows a
+human or script chose trains it too (added to each critic step's loss, on the same features). Every
+sampled image is first downsampled to `image_size` (when set) and then randomly shifted by up to
+`image_pad` pixels (DrQ augmentation).
 Each critic step runs the convs twice, not three times: once with gradients on the observations, once
 (target encoder, no gradients) on the next observations, whose features serve both the next action
 and the target heads; the actor step reuses the critic step's features. The critic is an ensemble of
@@ -112,6 +114,11 @@ class SACParams(EncoderParams):
     )
     bc_decay_updates: int = Field(
         default=0, ge=0, description="the BC weight decays linearly to 0 over this many updates (0: constant)"
+    )
+    bc_encoder: bool = Field(
+        default=False,
+        description="the BC term also trains the shared encoder (added to each critic step's loss on its features); "
+        "off: critic gradients only",
     )
 
 
@@ -291,7 +298,8 @@ class SAC(Algorithm):
 
         self.target_entropy = -p.target_entropy_scale * float(action_dim)
         self.log_alpha = torch.tensor(math.log(p.init_alpha), device=self.device, requires_grad=True)
-        # The actor optimizer owns only the head: the encoder learns from the critic loss alone.
+        # The actor optimizer owns only the head: the encoder learns from the critic loss (and with bc_encoder
+        # the BC term), stepped by the critic optimizer.
         # On a GPU the fused Adam is one kernel per step instead of several per parameter (the small MLPs of
         # state-based SAC are bound by kernel launches there, not by arithmetic).
         fused = self.device.type == "cuda"
@@ -344,12 +352,31 @@ class SAC(Algorithm):
         features = self.encoder(obs)
         q = self.critic(features, masked(batch.action, batch.action_mask))
         critic_loss = (q - target).pow(2).mean(dim=1).sum()  # each head regresses on the same target
+        info = {"critic_loss": critic_loss.detach(), "q": q.detach().mean()}
+        loss = critic_loss
+        if self.p.bc_encoder:  # the same conv pass carries the BC gradient into the encoder
+            encoder_bc = bc_mse(self.frozen_head_mean(features), batch)
+            loss = loss + self.bc_weight() * encoder_bc
+            info["encoder_bc_loss"] = encoder_bc.detach()
+        self.step_encoder(loss)
+        return features.detach(), info
+
+    def step_encoder(self, loss: torch.Tensor) -> None:
+        """One step of the critic optimizer (critics and the shared encoder; parameters the loss did not
+        reach keep their values), then Polyak averaging of every target parameter in one batched call."""
         self.critic_optimizer.zero_grad(set_to_none=True)
-        critic_loss.backward()
+        loss.backward()
         self.critic_optimizer.step()
-        with torch.no_grad():  # Polyak averaging of every target parameter in one batched call
+        with torch.no_grad():
             torch._foreach_lerp_(self._target_params, self._critic_params, self.p.tau)
-        return features.detach(), {"critic_loss": critic_loss.detach(), "q": q.detach().mean()}
+
+    def frozen_head_mean(self, features: torch.Tensor) -> torch.Tensor:
+        """The actor's mean action with its head's parameters detached: a loss on it trains only what
+        produced `features` (the encoder); the head learns in the actor step."""
+        head = self.actor.head
+        params = {name: x.detach() for name, x in head.net.named_parameters()}
+        mean = torch.func.functional_call(head.net, params, (features,)).chunk(2, dim=-1)[0]
+        return torch.tanh(mean) * head.action_scale + head.action_bias  # the head's deterministic action
 
     def bc_weight(self) -> float:
         """The BC term's weight now: bc_weight, decaying linearly to 0 over bc_decay_updates updates."""
