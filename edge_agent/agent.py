@@ -718,15 +718,13 @@ class EdgeAgent:
             "teleoperator detached: its polls kept failing; the policy drives until it connects again",
             extra=kv(robot_id=rid, retry_s=self.cfg.edge.replug_s),
         )
-        quick = time.monotonic() - self._teleop_attached_at.pop(rid, 0.0) < REPLUG_MAX_S
-        flaps = self._teleop_flaps[rid] = self._teleop_flaps.get(rid, 0) + 1 if quick else 0
-        fresh = self._fresh_teleop(rid, old)
-        self._absent_teleops[rid] = _Absent(fresh, next_try=time.monotonic() + self._retry_s(flaps + 1))
+        wait = self._backoff_after_detach(rid, self._teleop_attached_at, self._teleop_flaps)
+        self._absent_teleops[rid] = _Absent(self._fresh_teleop(rid, old), next_try=time.monotonic() + wait)
 
     def _fresh_teleop(self, rid: str, old: Teleoperator) -> Teleoperator:
         """A new instance from the config entry (the old device handle may be dead even once re-plugged), the
         old one released and the robot's task re-attached to it; without an entry the old one is retried."""
-        index = next((i for i, rc in enumerate(self.cfg.edge.robots) if rc.id == rid), None)
+        index = self._entry_index(rid)
         entry = self.cfg.edge.robots[index].teleop if index is not None else None
         if entry is None:
             return old
@@ -784,10 +782,19 @@ class EdgeAgent:
         self.control.set_robots(self._attached_specs())
         self.policy.reset(rid)  # chunks planned for the lost episode must not run after it comes back
         # A loop that fails soon after every attach (a bug, a broken arm) backs off like a failed connect.
-        quick = time.monotonic() - self._attached_at.pop(rid, 0.0) < REPLUG_MAX_S
-        flaps = self._flaps[rid] = self._flaps.get(rid, 0) + 1 if quick else 0
-        fresh = self._fresh_instance(loop.robot)
-        self._absent[rid] = _Absent(fresh, next_try=time.monotonic() + self._retry_s(flaps + 1))
+        wait = self._backoff_after_detach(rid, self._attached_at, self._flaps)
+        self._absent[rid] = _Absent(self._fresh_instance(loop.robot), next_try=time.monotonic() + wait)
+
+    def _backoff_after_detach(self, rid: str, attached_at: dict[str, float], flaps: dict[str, int]) -> float:
+        """Seconds before the first retry of a detached device: longer each time it failed again within
+        REPLUG_MAX_S of attaching (`attached_at`, `flaps`: the robots' or the teleoperators' books)."""
+        quick = time.monotonic() - attached_at.pop(rid, 0.0) < REPLUG_MAX_S
+        flaps[rid] = flaps.get(rid, 0) + 1 if quick else 0
+        return self._retry_s(flaps[rid] + 1)
+
+    def _entry_index(self, rid: str) -> int | None:
+        """The index of the robot's entry in edge.robots (None: handed to the agent without one)."""
+        return next((i for i, rc in enumerate(self.cfg.edge.robots) if rc.id == rid), None)
 
     def _retry_s(self, failures: int) -> float:
         return min(REPLUG_MAX_S, self.cfg.edge.replug_s * 2 ** min(failures - 1, 8))
@@ -796,7 +803,7 @@ class EdgeAgent:
         """A new instance from the robot's config entry (a device object after a bus error may be stuck
         half-open), the old one released; a robot handed to the agent without an entry is retried as it is."""
         rid = robot.spec.robot_id
-        index = next((i for i, rc in enumerate(self.cfg.edge.robots) if rc.id == rid), None)
+        index = self._entry_index(rid)
         if index is None:
             return robot
         rc = self.cfg.edge.robots[index]
