@@ -245,7 +245,10 @@ class PeerFanout:
 
         def actor_loop() -> None:
             while not self.shutdown.is_set():
-                data = self.latest(blobs, block=True, timeout=0.1)
+                try:
+                    data = self.latest(blobs, block=True, timeout=0.1)
+                except (OSError, ValueError):
+                    return  # the queue went with its stream at close()
                 if data is not None:
                     self.received.put((time.perf_counter(), self.lt.bytes_to_state_dict(data)))  # torch.load
 

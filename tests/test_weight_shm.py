@@ -219,3 +219,66 @@ def test_shared_memory_cannot_be_pinned(shm_server: Server) -> None:
             with pytest.raises(grpc.RpcError) as err:
                 next(call)
             assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+
+
+def big(seed: int) -> dict[str, np.ndarray]:
+    return tensors(seed, n=1 << 18)  # 2 MiB of payload: packed into shared-memory buffers (>= MIN_BUFFER_BYTES)
+
+
+def test_a_payload_packed_in_shared_memory_is_published_by_a_link_not_a_copy(
+    shm_server: Server, tmp_path: Path
+) -> None:
+    shm_dir = tmp_path / "shm"
+    sub, got = subscribe(shm_server, shm_dir)
+    try:
+        t = big(0)
+        for v in range(1, 6):  # enough versions for the store's pool to pack into buffers that left
+            shm_server.store.publish(v, SPEC, t)
+            assert sub.wait_version(v, 30)
+            assert got[-1].encoding == SHM and same(got[-1], t)
+            t = trained(t, v)
+        assert sub.shm_fallbacks == 0 and sub.rejected == 0
+        names = files(shm_dir)
+        versions = [n for n in names if not n.startswith(".")]
+        buffers = {os.stat(shm_dir / n).st_ino for n in names if "-buf-" in n}
+        assert len(versions) == 2 and not any("-spare-" in n for n in names)
+        for n in versions:  # the payload's own pages under the version's name: a second link, no copy
+            st = os.stat(shm_dir / n)
+            assert st.st_nlink == 2 and st.st_ino in buffers and st.st_mode & 0o777 == 0o600
+    finally:
+        sub.stop()
+    shm_server.servicer.shm.close()
+    assert files(shm_dir) == []  # versions and buffers
+
+
+def test_a_full_shared_memory_directory_falls_back_to_ordinary_memory_and_copies(
+    shm_server: Server, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import errno
+
+    def full(fd: int, offset: int, length: int) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr("user.weight_shm.os.posix_fallocate", full)
+    shm_dir = tmp_path / "shm"
+    sub, got = subscribe(shm_server, shm_dir)
+    try:
+        t = big(0)
+        for v in (1, 2):
+            shm_server.store.publish(v, SPEC, t)
+            assert sub.wait_version(v, 30)
+            assert got[-1].encoding == SHM and same(got[-1], t)
+            t = trained(t, v)
+        names = files(shm_dir)
+        assert not any("-buf-" in n for n in names)  # none left behind by the failed tries
+        assert all(os.stat(shm_dir / n).st_nlink == 1 for n in names)  # written, not linked
+    finally:
+        sub.stop()
+
+
+def test_the_buffer_pool_never_hands_out_a_read_only_buffer() -> None:
+    from user.weight_codec import BufferPool
+
+    pool = BufferPool()
+    pool.give(np.frombuffer(bytes(2 << 20), np.uint8))  # e.g. a payload that arrived as bytes
+    assert pool.take(2 << 20).flags.writeable

@@ -189,18 +189,23 @@ class BufferPool:
         """keep: spare buffers held at most (each as big as a payload: memory traded for page faults)."""
         self.keep = keep
         self._free: list[np.ndarray] = []
+        # where fresh buffers come from when not np.empty (None from it: np.empty after all), e.g. shared memory
+        self.fresh: Callable[[int], np.ndarray | None] | None = None
 
     def take(self, nbytes: int) -> np.ndarray:
         for i in range(len(self._free)):
             # refs: the list and getrefcount's argument; every view of it would add one
             if nbytes <= self._free[i].nbytes <= nbytes + (nbytes >> 2) + 4096 and sys.getrefcount(self._free[i]) <= 2:
                 return self._free.pop(i)[:nbytes]
-        return np.empty(nbytes, dtype=np.uint8)
+        fresh = self.fresh(nbytes) if self.fresh is not None else None
+        return fresh if fresh is not None else np.empty(nbytes, dtype=np.uint8)
 
     def give(self, arr: np.ndarray) -> None:
         """Offer arr's buffer for reuse (it is reused only once nothing views it)."""
-        base = arr if arr.base is None else arr.base
-        if not isinstance(base, np.ndarray) or base.nbytes < 1 << 20 or any(b is base for b in self._free):
+        base = arr
+        while isinstance(base.base, np.ndarray):  # the array that views a foreign buffer (mmap) counts as its owner
+            base = base.base
+        if base.nbytes < 1 << 20 or not base.flags.writeable or any(b is base for b in self._free):
             return
         self._free.append(base)
         del self._free[: -self.keep]

@@ -14,6 +14,8 @@ was tampered with, truncated or replaced is rejected and the version is sent ove
 Server side (`ShmWeights`): each (experiment, version, selection) is written once (0600, under a
 temporary name, then renamed), shared by every shared-memory subscriber; the newest `keep` versions
 per experiment stay, older files are unlinked, and the whole is bounded in bytes. close() removes them.
+The learner's payload buffers may themselves live here (`buffer`, a mapped hidden file): a version packed
+into one is published by a hard link to it, with no copy at all.
 Client side (`read_probe`, `read_payload`): file names are checked (no directory part, our prefix),
 files are opened without following links and must be regular files of exactly the declared size.
 """
@@ -22,11 +24,13 @@ from __future__ import annotations
 
 import hmac
 import logging
+import mmap
 import os
 import re
 import secrets
 import stat
 import threading
+import weakref
 from collections import OrderedDict
 from pathlib import Path
 
@@ -42,6 +46,7 @@ DEFAULT_SHM_DIR = "/dev/shm"
 PREFIX = "user-weights-"
 DEFAULT_KEEP = 3  # versions per experiment: a subscriber still opening the previous one finds it
 DEFAULT_MAX_BYTES = 2 << 30  # of all files together (tmpfs is RAM)
+MIN_BUFFER_BYTES = 1 << 20  # smaller payloads are not pooled (BufferPool): a file each would cost more than a copy
 PROBE_BYTES = 32
 _NAME = re.compile(r"user-weights-[A-Za-z0-9_.-]{1,200}")
 
@@ -137,6 +142,7 @@ class _Written:
         self.done = threading.Event()
         self.name = ""  # "" = could not be written (the stream sends the version instead)
         self.nbytes = 0
+        self.linked = False  # a hard link to a payload buffer: never a spare (the next pack reuses its pages)
 
 
 class ShmWeights:
@@ -163,6 +169,9 @@ class ShmWeights:
         # fresh 4 MiB tmpfs file costs ~5 ms here (page allocation), a rewrite ~1 ms. A subscriber still
         # reading it (`keep` versions behind) sees a digest mismatch and gets that version streamed.
         self._spare = ""
+        # payload buffers handed out by `buffer`, by id of their array: (its weakref, hidden file name, bytes)
+        self._buffers: dict[int, tuple[weakref.ref[np.ndarray], str, int]] = {}
+        self._buffer_bytes = 0
         self._closed = False
         self.swept = self._sweep()
 
@@ -225,7 +234,12 @@ class ShmWeights:
             if payload.nbytes > self.max_bytes:
                 raise OSError(f"{payload.nbytes} bytes exceed the shared-memory cap of {self.max_bytes}")
             self._evict(experiment, payload.nbytes)
-            self._write_file(name, memoryview(payload).cast("B"), self._take_spare())
+            backing = self._backing(payload)
+            if backing:  # packed into one of our files already: name it, no copy
+                os.link(os.path.join(self.directory, backing), os.path.join(self.directory, name))
+                entry.linked = True
+            else:
+                self._write_file(name, memoryview(payload).cast("B"), self._take_spare())
             entry.name, entry.nbytes = name, payload.nbytes
             SHM_WRITTEN.inc()
         except OSError as exc:
@@ -253,7 +267,11 @@ class ShmWeights:
                     gone.add(k)
                     total -= e.nbytes
             for k in gone:
-                self._retire(self._files.pop(k).name)
+                entry = self._files.pop(k)
+                if entry.linked:
+                    self._unlink(entry.name)
+                else:
+                    self._retire(entry.name)
 
     def _retire(self, name: str) -> None:
         """Unlink a version's file, or keep it (renamed) as the spare the next version is written over."""
@@ -287,6 +305,66 @@ class ShmWeights:
             if self._spare:
                 self._unlink(self._spare)
                 self._spare = ""
+            for _, buffer_name, _ in self._buffers.values():
+                self._unlink(buffer_name)  # the learner may still map it: the pages go when it lets go
+            self._buffers.clear()
+            self._buffer_bytes = 0
+
+    # ------------------------------------------------------------------ payload buffers
+
+    def buffer(self, nbytes: int) -> np.ndarray | None:
+        """A writable payload buffer of `nbytes` mapped from a hidden 0600 file here (a BufferPool's `fresh`):
+        a version packed into it is published by a hard link instead of a 4 MiB-per-1M-params copy. None (use
+        ordinary memory) below MIN_BUFFER_BYTES, beyond max_bytes, or when the directory cannot hold it."""
+        with self._lock:
+            if self._closed or nbytes < MIN_BUFFER_BYTES or self._buffer_bytes + nbytes > self.max_bytes:
+                return None
+        name = f".{PREFIX}{self.token}-buf-{secrets.token_hex(8)}"
+        try:
+            fd = os.open(
+                os.path.join(self.directory, name),
+                os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC,
+                0o600,
+            )
+        except OSError:
+            return None
+        try:
+            # every page now, or ENOSPC now: a write through the map into a full tmpfs would be a SIGBUS later
+            os.posix_fallocate(fd, 0, nbytes)
+            array = np.frombuffer(mmap.mmap(fd, nbytes, mmap.MAP_SHARED), dtype=np.uint8)
+        except (OSError, ValueError) as exc:
+            log.info("payload buffer not in shared memory", extra={"error": str(exc)})
+            self._unlink(name)
+            return None
+        finally:
+            os.close(fd)  # the map keeps the file
+        with self._lock:
+            self._buffers[id(array)] = (weakref.ref(array), name, nbytes)
+            self._buffer_bytes += nbytes
+        weakref.finalize(array, self._drop_buffer, id(array), name)
+        return array
+
+    def _drop_buffer(self, key: int, name: str) -> None:
+        """The buffer's array is gone (its pool let it go): its file goes too (links of versions stay)."""
+        self._unlink(name)
+        with self._lock:
+            found = self._buffers.get(key)
+            if found is not None and found[1] == name:
+                del self._buffers[key]
+                self._buffer_bytes -= found[2]
+
+    def _backing(self, payload: np.ndarray) -> str:
+        """The hidden file `payload` fills exactly (all of one of our buffers), or ""."""
+        owner = payload
+        while isinstance(owner.base, np.ndarray):
+            owner = owner.base
+        with self._lock:
+            found = self._buffers.get(id(owner))
+        if found is None or found[0]() is not owner or payload.nbytes != found[2]:
+            return ""
+        if payload.__array_interface__["data"][0] != owner.__array_interface__["data"][0]:
+            return ""
+        return found[1]
 
     # ------------------------------------------------------------------ files
 

@@ -270,6 +270,12 @@ class WeightStore:
             self._evict(experiment, versions, self.history)
             self._cond.notify_all()
 
+    def payload_buffers_from(self, fresh: Callable[[int], np.ndarray | None]) -> None:
+        """Pack new payloads into buffers from `fresh` (None from it: ordinary memory), e.g. ShmWeights.buffer,
+        so that a same-host subscriber's file is a link to the payload, not a copy of it."""
+        with self._pool_lock:
+            self._payload_pool.fresh = fresh
+
     def _take_payload_buffer(self, nbytes: int) -> np.ndarray:
         with self._pool_lock:
             return self._payload_pool.take(nbytes)
@@ -636,9 +642,12 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         keyframe_every: int = DEFAULT_KEYFRAME_EVERY,
         shm: ShmWeights | None = None,
     ) -> None:
-        """shm: the shared-memory directory for same-host subscribers (None: everything streams)."""
+        """shm: the shared-memory directory for same-host subscribers (None: everything streams); the store's
+        payloads are then packed into buffers there."""
         self.store = store
         self.shm = shm
+        if shm is not None:
+            store.payload_buffers_from(shm.buffer)
         self.default_chunk_bytes = default_chunk_bytes
         self.poll_s = poll_s
         self.freshness_s = freshness_s
