@@ -282,3 +282,18 @@ def test_the_buffer_pool_never_hands_out_a_read_only_buffer() -> None:
     pool = BufferPool()
     pool.give(np.frombuffer(bytes(2 << 20), np.uint8))  # e.g. a payload that arrived as bytes
     assert pool.take(2 << 20).flags.writeable
+
+
+def test_a_payload_buffer_leaves_with_its_array_and_frees_its_bytes_under_the_cap(tmp_path: Path) -> None:
+    shm = ShmWeights(str(tmp_path), max_bytes=3 << 20, host=HOST)
+    first = shm.buffer(2 << 20)
+    assert first is not None and first.flags.writeable and len(files(tmp_path)) == 1
+    assert shm.buffer(2 << 20) is None  # over the cap: ordinary memory
+    assert shm.buffer(1 << 10) is None  # too small to be worth a file
+    del first  # the pool let it go
+    assert files(tmp_path) == []
+    second = shm.buffer(2 << 20)
+    assert second is not None
+    second[:] = 7
+    shm.close()
+    assert files(tmp_path) == [] and int(second[-1]) == 7  # unlinked, still mapped until let go

@@ -31,7 +31,7 @@ import secrets
 import stat
 import threading
 import weakref
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from pathlib import Path
 
 import numpy as np
@@ -172,6 +172,7 @@ class ShmWeights:
         # payload buffers handed out by `buffer`, by id of their array: (its weakref, hidden file name, bytes)
         self._buffers: dict[int, tuple[weakref.ref[np.ndarray], str, int]] = {}
         self._buffer_bytes = 0
+        self._dropped: deque[tuple[int, str]] = deque()  # buffers collected since, tidied under the lock
         self._closed = False
         self.swept = self._sweep()
 
@@ -317,6 +318,12 @@ class ShmWeights:
         a version packed into it is published by a hard link instead of a 4 MiB-per-1M-params copy. None (use
         ordinary memory) below MIN_BUFFER_BYTES, beyond max_bytes, or when the directory cannot hold it."""
         with self._lock:
+            while self._dropped:
+                key, gone = self._dropped.popleft()
+                found = self._buffers.get(key)
+                if found is not None and found[1] == gone:
+                    del self._buffers[key]
+                    self._buffer_bytes -= found[2]
             if self._closed or nbytes < MIN_BUFFER_BYTES or self._buffer_bytes + nbytes > self.max_bytes:
                 return None
         name = f".{PREFIX}{self.token}-buf-{secrets.token_hex(8)}"
@@ -345,13 +352,10 @@ class ShmWeights:
         return array
 
     def _drop_buffer(self, key: int, name: str) -> None:
-        """The buffer's array is gone (its pool let it go): its file goes too (links of versions stay)."""
+        """The buffer's array is gone (its pool let it go): its file goes too (links of versions stay). No lock:
+        a finalizer may run in any thread, even one that holds it; the next `buffer` call tidies the table."""
         self._unlink(name)
-        with self._lock:
-            found = self._buffers.get(key)
-            if found is not None and found[1] == name:
-                del self._buffers[key]
-                self._buffer_bytes -= found[2]
+        self._dropped.append((key, name))
 
     def _backing(self, payload: np.ndarray) -> str:
         """The hidden file `payload` fills exactly (all of one of our buffers), or ""."""
