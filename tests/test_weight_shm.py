@@ -16,7 +16,7 @@ from tests.test_weight_streams import AUTH, SPEC, Server, tensors, trained
 from user.v1 import learner_pb2
 from user.v1 import tensor_pb2 as tpb
 from user.weight_codec import WE, WeightAssembler
-from user.weight_shm import ShmWeights, read_payload
+from user.weight_shm import LOCK_SUFFIX, ShmWeights, read_payload
 from user.weights import WeightServicer, WeightSet, WeightStore, WeightSubscriber
 from user.wire import WireError
 
@@ -48,7 +48,8 @@ def same(ws: WeightSet, ref: dict[str, np.ndarray]) -> bool:
 
 
 def files(d: Path) -> list[str]:
-    return sorted(p.name for p in d.iterdir())
+    """The directory's files but the learners' lock files (each live ShmWeights holds one)."""
+    return sorted(p.name for p in d.iterdir() if not p.name.endswith(LOCK_SUFFIX))
 
 
 def test_shared_memory_round_trip_is_bit_exact_and_acked(shm_server: Server, tmp_path: Path) -> None:
@@ -297,3 +298,39 @@ def test_a_payload_buffer_leaves_with_its_array_and_frees_its_bytes_under_the_ca
     second[:] = 7
     shm.close()
     assert files(tmp_path) == [] and int(second[-1]) == 7  # unlinked, still mapped until let go
+
+
+_LEARNER = """
+import sys, time
+import numpy as np
+from user.weight_shm import ShmWeights
+shm = ShmWeights(sys.argv[1], host="h")
+print(shm.file_for("a", 1, b"\\x01", np.zeros(100, np.uint8)), flush=True)
+time.sleep(600)
+"""
+
+
+def test_files_of_a_learner_killed_with_sigkill_are_swept_even_when_its_pid_is_alive(tmp_path: Path) -> None:
+    import signal
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", _LEARNER, str(tmp_path)], stdout=subprocess.PIPE, text=True)
+    try:
+        name = proc.stdout.readline().strip() if proc.stdout else ""
+        assert name and (tmp_path / name).exists()
+        other = ShmWeights(str(tmp_path), host=HOST)
+        assert other.swept == 0 and (tmp_path / name).exists()  # alive: its lock is held
+        other.close()
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+    # its pid may be reused (a restarted container's learner often gets its predecessor's): the lock decides
+    os.rename(tmp_path / name, tmp_path / name.replace(f"-{proc.pid}-", f"-{os.getpid()}-", 1))
+    for lock in [p for p in tmp_path.iterdir() if p.name.endswith(LOCK_SUFFIX) and f"-{proc.pid}-" in p.name]:
+        lock.rename(tmp_path / lock.name.replace(f"-{proc.pid}-", f"-{os.getpid()}-", 1))
+    live = ShmWeights(str(tmp_path), host=HOST)
+    assert live.swept == 1 and files(tmp_path) == []
+    assert [p.name for p in tmp_path.iterdir()] == [f".user-weights-{live.token}{LOCK_SUFFIX}"]  # only ours
+    live.close()
+    assert list(tmp_path.iterdir()) == []

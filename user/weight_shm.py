@@ -15,13 +15,15 @@ Server side (`ShmWeights`): each (experiment, version, selection) is written onc
 temporary name, then renamed), shared by every shared-memory subscriber; the newest `keep` versions
 per experiment stay, older files are unlinked, and the whole is bounded in bytes. close() removes them.
 The learner's payload buffers may themselves live here (`buffer`, a mapped hidden file): a version packed
-into one is published by a hard link to it, with no copy at all.
+into one is published by a hard link to it, with no copy at all. Each learner flocks a lock file here for its
+whole life; the next learner removes the files of any whose lock is free (it died: kill -9, a container killed).
 Client side (`read_probe`, `read_payload`): file names are checked (no directory part, our prefix),
 files are opened without following links and must be regular files of exactly the declared size.
 """
 
 from __future__ import annotations
 
+import fcntl
 import hmac
 import logging
 import mmap
@@ -59,7 +61,9 @@ SHM_FALLBACK = prometheus_client.Counter(
 )
 
 
-_OWNER = re.compile(r"\.?user-weights-(\d+)-.*")  # file (or temporary file) of the learner with this pid
+# a learner's file (or temporary file): (its token, its pid); the token is "<pid>-<8 hex>"
+_OWNER = re.compile(r"\.?user-weights-((\d+)-[0-9a-f]{8})[-.].*")
+LOCK_SUFFIX = ".lock"  # .user-weights-<token>.lock: flock-held by its learner for its whole life
 
 
 def _alive(pid: int) -> bool:
@@ -160,9 +164,11 @@ class ShmWeights:
         self.keep = max(1, keep)
         self.max_bytes = max_bytes
         self.host = host_id() if host is None else host
-        # the pid in every name: files of a learner that died without close() (kill -9) are swept by the next
-        # one; the random token keeps two learners on one host (or a restarted pid) apart
+        # The token in every name. Files of a learner that died without close() (kill -9) are swept by the next
+        # one: each learner holds an flock on its own lock file here, which the kernel drops when the process
+        # dies, whatever its pid namespace (a restarted container's learner often has its predecessor's pid).
         self.token = f"{os.getpid()}-{secrets.token_hex(4)}"
+        self._owner_fd = -1
         self._lock = threading.Lock()
         self._files: OrderedDict[tuple[str, int, bytes], _Written] = OrderedDict()  # oldest first
         # The file of the version that just left, renamed: the next version is written over its pages. A
@@ -174,25 +180,70 @@ class ShmWeights:
         self._buffer_bytes = 0
         self._dropped: deque[tuple[int, str]] = deque()  # buffers collected since, tidied under the lock
         self._closed = False
+        self._hold_owner_lock()
         self.swept = self._sweep()
+
+    def _hold_owner_lock(self) -> None:
+        """Create and flock our lock file (under a temporary name first, so no sweeper sees it unlocked);
+        retried before each write while the directory is missing."""
+        if self._owner_fd >= 0 or self._closed:
+            return
+        final = os.path.join(self.directory, f".{PREFIX}{self.token}{LOCK_SUFFIX}")
+        tmp = f"{final}.{secrets.token_hex(4)}.tmp"
+        try:
+            fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
+        except OSError:
+            return
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            os.rename(tmp, final)
+        except OSError:
+            os.close(fd)
+            self._unlink(os.path.basename(tmp))
+            return
+        self._owner_fd = fd
+        self._release_owner = weakref.finalize(self, os.close, fd)  # dropped without close(): the lock goes too
+
+    def _owner_gone(self, lock_name: str) -> bool:
+        """Whether the learner holding this lock file has died (its flock is free)."""
+        try:
+            fd = os.open(os.path.join(self.directory, lock_name), os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+        except OSError:
+            return False
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return True
+        except OSError:
+            return False  # held (alive), or cannot tell
+        finally:
+            os.close(fd)
 
     def _sweep(self) -> int:
         """Remove the files of learners (this user's) whose process is gone; the number removed."""
-        removed = 0
         try:
             names = os.listdir(self.directory)
         except OSError:
             return 0
+        owners: dict[str, list[str]] = {}
+        pids: dict[str, int] = {}
         for name in names:
             match = _OWNER.fullmatch(name)
-            if match is None or _alive(int(match.group(1))):
+            if match is not None and match.group(1) != self.token:
+                owners.setdefault(match.group(1), []).append(name)
+                pids[match.group(1)] = int(match.group(2))
+        removed = 0
+        for token, owned in owners.items():
+            lock = f".{PREFIX}{token}{LOCK_SUFFIX}"
+            # no lock file: a learner from before lock files, judged by its pid
+            if not (self._owner_gone(lock) if lock in owned else not _alive(pids[token])):
                 continue
-            try:
-                if os.lstat(os.path.join(self.directory, name)).st_uid == os.getuid():
-                    os.unlink(os.path.join(self.directory, name))
-                    removed += 1
-            except OSError:
-                pass  # gone already, or not ours to remove
+            for name in sorted(owned, key=lambda n: n == lock):  # the lock last: a crash midway is swept again
+                try:
+                    if os.lstat(os.path.join(self.directory, name)).st_uid == os.getuid():
+                        os.unlink(os.path.join(self.directory, name))
+                        removed += name != lock
+                except OSError:
+                    pass  # gone already, or not ours to remove
         return removed
 
     def same_host(self, subscriber_host: str) -> bool:
@@ -310,6 +361,10 @@ class ShmWeights:
                 self._unlink(buffer_name)  # the learner may still map it: the pages go when it lets go
             self._buffers.clear()
             self._buffer_bytes = 0
+            if self._owner_fd >= 0:
+                self._unlink(f".{PREFIX}{self.token}{LOCK_SUFFIX}")
+                self._release_owner()
+                self._owner_fd = -1
 
     # ------------------------------------------------------------------ payload buffers
 
@@ -326,6 +381,7 @@ class ShmWeights:
                     self._buffer_bytes -= found[2]
             if self._closed or nbytes < MIN_BUFFER_BYTES or self._buffer_bytes + nbytes > self.max_bytes:
                 return None
+        self._hold_owner_lock()
         name = f".{PREFIX}{self.token}-buf-{secrets.token_hex(8)}"
         try:
             fd = os.open(
@@ -375,6 +431,7 @@ class ShmWeights:
     def _write_file(self, name: str, data: memoryview, spare: str = "") -> None:
         """0600, written under a temporary name (a fresh file, or over the spare's pages) and renamed: a
         reader never sees a partial file under a version's name."""
+        self._hold_owner_lock()
         tmp = os.path.join(self.directory, spare or f".{name}.{secrets.token_hex(4)}.tmp")
         flags = os.O_WRONLY | os.O_NOFOLLOW | os.O_CLOEXEC | (0 if spare else os.O_CREAT | os.O_EXCL)
         try:
