@@ -56,6 +56,7 @@ class LearnerServicer(WeightServicer):
             subscribers=self.subscribers,
             scalars=dict(first.scalars),
             experiments=[experiment_status(st) for st in states],
+            subscriber_status=self.subscriber_status(),  # the console's sync column, per weight stream
         )
 
 

@@ -2,7 +2,8 @@
 
 Builds the image, brings docker-compose.yml up under its own project name, and checks:
   every service healthy (docker's health status); steps reaching replay (Replay.Stats); the learner's weight
-  version advancing (Learner.GetStatus); Prometheus scraping every target ("up" in /api/v1/targets);
+  version advancing (Learner.GetStatus); inference getting them through the shared tmpfs volume (fp32_shm);
+  Prometheus scraping every target ("up" in /api/v1/targets);
   then a crash (SIGKILL of the process) of replay and of the learner: both come back by their restart policy,
   nothing an edge had acked is lost (replay's stored steps per robot == the edges' acked counters once the robots
   are paused and their spools are empty: every step reaches replay exactly once), and the weight version keeps
@@ -253,6 +254,17 @@ def scenario(stack: Stack, services: list[str], timeout: float) -> dict[str, Any
     res["weight_version_advancing"] = {"from": a, "to": b, "within_s": round(took, 1)}
     log(f"weight version {a} -> {b}")
 
+    def inference_via_shm() -> str | None:  # the learner proved inference reads the shared tmpfs volume
+        subs = stack.learner_status().subscriber_status
+        found = [s for s in subs if s.client_id.startswith("inference-")]
+        return learner_pb2.WeightEncoding.Name(found[0].encoding) if found and found[0].versions_sent > 1 else None
+
+    encoding, _ = wait_for("inference's weight stream", inference_via_shm, timeout)
+    res["inference_weights_encoding"] = encoding
+    log(f"inference gets weights as {encoding}")
+    if encoding != "WEIGHT_ENCODING_FP32_SHM":
+        raise Failed(f"inference gets weights as {encoding}, not through the shared weights-shm volume")
+
     def targets_up() -> list[dict[str, Any]] | None:
         targets = stack.prometheus_targets()
         return targets if targets and all(t["health"] == "up" for t in targets) else None
@@ -325,6 +337,7 @@ def table(res: dict[str, Any]) -> str:
             ("up -> all healthy", f"{res['up_to_all_healthy_s']} s ({len(res['health'])} services)"),
             ("replay steps rising", "{from} -> {to}".format(**res["replay_steps_rising"])),
             ("weight version advancing", "{from} -> {to}".format(**res["weight_version_advancing"])),
+            ("inference's weights", res.get("inference_weights_encoding", "-")),
             ("Prometheus targets up", str(len(res["prometheus_targets_up"]))),
         ]
     for svc in ("replay", "learner"):

@@ -140,7 +140,20 @@ def test_named_volumes_used_and_declared_match(compose: dict[str, Any], services
     declared = set(compose.get("volumes") or {})
     assert used == declared
     state = {"control-data", "replay-data", "checkpoints", "prometheus-data", "grafana-data"}
-    assert state | {f"{edge}-spool" for edge in EDGES} == declared
+    assert state | {f"{edge}-spool" for edge in EDGES} | {"weights-shm"} == declared
+
+
+def test_learner_and_inference_share_a_tmpfs_volume_as_their_weights_shm_dir(
+    compose: dict[str, Any], services: dict[str, dict[str, Any]], cfg: StackConfig
+) -> None:
+    """A container's /dev/shm is its own: shared-memory weight versions need one tmpfs both mount, at the
+    directory both are configured to use (the learner still proves the sharing per stream)."""
+    assert cfg.learner.weights_shm_dir == cfg.inference.weights_shm_dir == "/data/weights-shm"
+    for name in ("learner", "inference"):
+        mounts = {t: s for s, t in _volumes(services[name])}
+        assert mounts.get(cfg.learner.weights_shm_dir) == "weights-shm", name
+    opts = compose["volumes"]["weights-shm"]["driver_opts"]
+    assert opts["type"] == "tmpfs" and "mode=1777" in opts["o"]  # RAM; the non-root user writes there
 
 
 def test_state_lives_on_the_named_volumes(services: dict[str, dict[str, Any]], cfg: StackConfig) -> None:

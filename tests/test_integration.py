@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 import json
+import os
 import urllib.request
 from pathlib import Path
 
@@ -92,6 +93,15 @@ def test_stack_learns_through_all_services(tmp_path: Path) -> None:
 
         versions = wait_for(edge_versions, "every edge (remote and local policy, both embodiments) at version >= 3")
         assert min(versions.values()) >= 3
+
+        # Every weight stream shows in GetStatus (the console's sync column): inference and the local-policy
+        # edge, with what they applied; on this host they prove the shared /dev/shm and get versions there.
+        subs = list(learner.GetStatus(learner_pb2.LearnerStatusRequest(), timeout=5).subscriber_status)
+        inference_subs = [s for s in subs if s.client_id.startswith("inference-")]
+        assert inference_subs and len(subs) > len(inference_subs), [s.client_id for s in subs]
+        assert all(s.applied_version >= 1 and s.versions_sent >= 1 for s in subs)
+        if os.access("/dev/shm", os.W_OK):
+            assert all(s.encoding == learner_pb2.WEIGHT_ENCODING_FP32_SHM for s in inference_subs)
 
         # Steps reached replay, stamped with the versions that produced them.
         stats = replay.Stats(replay_pb2.StatsRequest(), timeout=5)
