@@ -288,6 +288,13 @@ def scenario(stack: Stack, services: list[str], timeout: float) -> dict[str, Any
     versions = versions_after_restart(stack, version_before, "the learner's restart", timeout)
     res["kill_learner"].update(version_before_kill=version_before, versions_after=[versions[0], versions[-1]])
     log(f"weight version {version_before} before the kill, {versions[0]} -> {versions[-1]} after")
+    # The killed learner's shared-memory files are swept by its successor (by their free lock: in a restarted
+    # container the new learner often has the dead one's pid), not left in RAM: one learner's files remain.
+    names = stack.dc("exec", "-T", "learner", "ls", "-A", "/data/weights-shm").split()
+    owners = sorted({n.lstrip(".").split("-")[2] + "-" + n.lstrip(".").split("-")[3][:8] for n in names})
+    res["kill_learner"]["shm_files_owners"] = owners
+    if len(owners) != 1:
+        raise Failed(f"shared-memory files of {len(owners)} learners after the restart: {names}")
 
     res["docker_kill"] = docker_kill_and_start(stack, ["replay", "learner"], timeout)
     res["acked_after_docker_kill"] = check_acked_not_lost(stack)
