@@ -169,6 +169,7 @@ class ShmWeights:
         # dies, whatever its pid namespace (a restarted container's learner often has its predecessor's pid).
         self.token = f"{os.getpid()}-{secrets.token_hex(4)}"
         self._owner_fd = -1
+        self._owner_mutex = threading.Lock()  # one lock file, even when stream threads race to make it
         self._lock = threading.Lock()
         self._files: OrderedDict[tuple[str, int, bytes], _Written] = OrderedDict()  # oldest first
         # The file of the version that just left, renamed: the next version is written over its pages. A
@@ -188,6 +189,11 @@ class ShmWeights:
         retried before each write while the directory is missing."""
         if self._owner_fd >= 0 or self._closed:
             return
+        with self._owner_mutex:
+            if self._owner_fd < 0 and not self._closed:
+                self._make_owner_lock()
+
+    def _make_owner_lock(self) -> None:
         final = os.path.join(self.directory, f".{PREFIX}{self.token}{LOCK_SUFFIX}")
         tmp = f"{final}.{secrets.token_hex(4)}.tmp"
         try:
