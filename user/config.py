@@ -199,7 +199,8 @@ class LearnerConfig(_ServerSection):
     weights_shm_dir: str | None = Field(
         default="/dev/shm",
         description="same-host subscribers that prove they share this directory get versions as files here "
-        "(the newest 3 per experiment, 0600); null = every version over the stream",
+        "(the newest 3 per experiment, 0600; payloads of 1 MiB and more are packed into mapped files here, so a "
+        "version is a hard link, not a copy); null = every version over the stream",
     )
 
 
