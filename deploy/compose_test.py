@@ -49,6 +49,7 @@ from user.v1 import (  # noqa: E402
     replay_pb2,
     replay_pb2_grpc,
 )
+from user.weight_shm import owner_of  # noqa: E402
 
 LOCAL_BASE, LOCAL_PROMETHEUS = "user-base:trixie", "user-prometheus:trixie"
 PUBLIC_BASE = "python:3.12-slim-bookworm"
@@ -291,7 +292,7 @@ def scenario(stack: Stack, services: list[str], timeout: float) -> dict[str, Any
     # The killed learner's shared-memory files are swept by its successor (by their free lock: in a restarted
     # container the new learner often has the dead one's pid), not left in RAM: one learner's files remain.
     names = stack.dc("exec", "-T", "learner", "ls", "-A", "/data/weights-shm").split()
-    owners = sorted({n.lstrip(".").split("-")[2] + "-" + n.lstrip(".").split("-")[3][:8] for n in names})
+    owners = sorted({owner[0] for owner in map(owner_of, names) if owner})
     res["kill_learner"]["shm_files_owners"] = owners
     if len(owners) != 1:
         raise Failed(f"shared-memory files of {len(owners)} learners after the restart: {names}")

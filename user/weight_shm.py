@@ -66,6 +66,17 @@ _OWNER = re.compile(r"\.?user-weights-((\d+)-[0-9a-f]{8})[-.].*")
 LOCK_SUFFIX = ".lock"  # .user-weights-<token>.lock: flock-held by its learner for its whole life
 
 
+def owner_of(name: str) -> tuple[str, int] | None:
+    """(token, pid) of the learner that wrote this file (a version, buffer, probe, lock or temporary file)."""
+    match = _OWNER.fullmatch(name)
+    return (match.group(1), int(match.group(2))) if match else None
+
+
+def _create_private(path: str) -> int:
+    """A new file only this user can read, opened read-write (never through a link); OSError if it exists."""
+    return os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
+
+
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -197,7 +208,7 @@ class ShmWeights:
         final = os.path.join(self.directory, f".{PREFIX}{self.token}{LOCK_SUFFIX}")
         tmp = f"{final}.{secrets.token_hex(4)}.tmp"
         try:
-            fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
+            fd = _create_private(tmp)
         except OSError:
             return
         try:
@@ -233,10 +244,10 @@ class ShmWeights:
         owners: dict[str, list[str]] = {}
         pids: dict[str, int] = {}
         for name in names:
-            match = _OWNER.fullmatch(name)
-            if match is not None and match.group(1) != self.token:
-                owners.setdefault(match.group(1), []).append(name)
-                pids[match.group(1)] = int(match.group(2))
+            owner = owner_of(name)
+            if owner is not None and owner[0] != self.token:
+                owners.setdefault(owner[0], []).append(name)
+                pids[owner[0]] = owner[1]
         removed = 0
         for token, owned in owners.items():
             lock = f".{PREFIX}{token}{LOCK_SUFFIX}"
@@ -390,11 +401,7 @@ class ShmWeights:
         self._hold_owner_lock()
         name = f".{PREFIX}{self.token}-buf-{secrets.token_hex(8)}"
         try:
-            fd = os.open(
-                os.path.join(self.directory, name),
-                os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC,
-                0o600,
-            )
+            fd = _create_private(os.path.join(self.directory, name))
         except OSError:
             return None
         try:
