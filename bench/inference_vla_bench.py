@@ -469,14 +469,21 @@ def run_profile(
     p99: dict[int, float] = {}
     single_p99: dict[str, float] = {}
     servers = {"ours": start_ours(cfg, weights), "peer": start_peer(cfg, weights)}
+    other = _other_batching(cfg, profile)
+    if other is not None:  # ours in the other batching mode, at the top robot count only
+        servers[OTHER] = start_ours(other, weights)
+    compared: dict[str, tuple[list[Window], list[Window], float]] = {}  # how -> (ours, other mode, seconds)
     paced_p99 = None
     try:
         for c in concurrency:
             log(f"inference_vla {profile.label}: {c} robots, closed loop")
-            windows: dict[str, list[Window]] = {s: [] for s in servers}
+            windows: dict[str, list[Window]] = {s: [] for s in servers if s != OTHER}
             for _ in range(rounds):
                 for side, (addr, _stop) in servers.items():
-                    windows[side].append(drive(pool, addr, profile, c, seconds))
+                    if side != OTHER or c == top:
+                        windows.setdefault(side, []).append(drive(pool, addr, profile, c, seconds))
+            if OTHER in windows:
+                compared["closed loop"] = (windows["ours"], windows.pop(OTHER), rounds * seconds)
             rows += _closed_rows(
                 _group(profile, n_params, f"closed loop, {c} robots", cfg.inference.device), windows, rounds * seconds
             )
@@ -497,6 +504,8 @@ def run_profile(
             paced_s = seconds if quick else 2 * seconds  # one window, long enough for a few calls per robot
             for side, (addr, _stop) in servers.items():
                 windows[side].append(drive(pool, addr, profile, top, paced_s, 1.0 / hz))
+            if OTHER in windows:
+                compared[f"paced at {hz:.2f} Hz"] = (windows["ours"], windows.pop(OTHER), paced_s)
             group = _group(profile, n_params, f"paced, {top} robots x {hz:.2f} Hz ({why})", cfg.inference.device)
             rows += _paced_rows(group, windows, paced_s, top * hz, single_p99, 1e3 / hz)
             if paced_p99 is None:
@@ -504,7 +513,43 @@ def run_profile(
     finally:
         for _addr, stop in servers.values():
             stop()
+    rows += _batching_rows(
+        _group(profile, n_params, f"{top} robots, continuous batching vs batch by batch", cfg.inference.device),
+        compared,
+        cfg.inference.continuous_batching,
+    )
     return rows + _targets(profile, n_params, rate, p99, paced_p99, top, cfg.inference.device)
+
+
+OTHER = "ours, other batching mode"
+
+
+def _other_batching(cfg: StackConfig, profile: Profile) -> StackConfig | None:
+    """Ours with continuous batching switched the other way, for a policy that samples in steps."""
+    if profile.model != "flow_vla":
+        return None
+    other = cfg.model_copy(deep=True)
+    other.inference.continuous_batching = not cfg.inference.continuous_batching
+    return other
+
+
+def _batching_rows(
+    group: str, compared: dict[str, tuple[list[Window], list[Window], float]], continuous_is_ours: bool
+) -> list[Row]:
+    """Continuous batching (a request joins a running batch at its next flow step) against batch by
+    batch, both ours, in alternating windows of the same run."""
+    peer = "ours, batch by batch (inference.continuous_batching: false)"
+    rows = []
+    for how, (ours, other, seconds) in compared.items():
+        cont, batched = (ours, other) if continuous_is_ours else (other, ours)
+        lat_c, lat_b = [x for w in cont for x in w.latencies], [x for w in batched for x in w.latencies]
+        rate_c, rate_b = sum(w.calls for w in cont) / seconds, sum(w.calls for w in batched) / seconds
+        rows += [
+            Row(group, f"{how}: Act calls/s", rate_c, rate_b, "calls/s", True, _batch_note(cont), peer),
+            Row(group, f"{how}: Act latency p50", median(lat_c), median(lat_b), "ms", False, "", peer),
+            Row(group, f"{how}: Act latency p99", _p99(lat_c), _p99(lat_b), "ms", False, "", peer),
+        ]
+    return rows
 
 
 def lerobot_peer_rows(pool: Any, cfg: StackConfig, workdir: Path, quick: bool, log: Callable[..., None]) -> list[Row]:

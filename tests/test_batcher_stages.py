@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
+import pytest
 
 from services.inference.batcher import MicroBatcher
 from tests.helpers import wait_for
@@ -92,3 +94,104 @@ def test_weight_swap_under_load_fails_no_request() -> None:
         batcher.stop()
     assert not errors, errors[:3]
     assert max(versions) == 10 and len(set(versions)) > 2
+
+
+class GatedSteps:
+    """A real flow_vla policy whose second step waits for the test: requests can be queued mid-batch."""
+
+    def __init__(self, policy: Any, fail_first_advance: bool = False) -> None:
+        self.policy = policy
+        self.stepping, self.release = threading.Event(), threading.Event()
+        self.advances = 0
+        self.fail_first_advance = fail_first_advance
+
+    def begin(self, prepared: Any, deterministic: bool) -> Any:
+        return self.policy.begin(prepared, deterministic)
+
+    def advance(self, rows: Any) -> Any:
+        self.advances += 1
+        if self.fail_first_advance and self.advances == 1:
+            raise RuntimeError("step failed")
+        if self.advances == 2:
+            self.stepping.set()
+            assert self.release.wait(10)
+        return self.policy.advance(rows)
+
+    def finish(self, rows: Any) -> np.ndarray:
+        return self.policy.finish(rows)
+
+
+def flow_policy(version: int) -> Any:
+    from tests.test_flow_vla import CFG, weights
+    from user.policy import build_policy
+
+    cfg = CFG.model_copy(update={"flow_steps": 4})
+    w = weights(version, seed=version)
+    w.policy.config_json = cfg.model_dump_json()
+    return build_policy(w.policy, w.policy_tensors(), version)
+
+
+def one_row(i: int) -> dict[str, np.ndarray]:
+    from tests.test_flow_vla import observation
+
+    return {k: v[0] for k, v in observation(1, seed=i).items()}
+
+
+def alone(policy: Any, i: int) -> np.ndarray:
+    return policy.forward(policy.preprocess({k: v[None] for k, v in one_row(i).items()}, [""]), True)[0]
+
+
+def test_a_request_joins_a_continuous_batch_at_the_next_step_with_its_own_answer() -> None:
+    policy = flow_policy(1)
+    gated = GatedSteps(policy)
+    batcher = MicroBatcher(max_batch=8, max_wait_ms=0, name="flow-batch").start()
+    try:
+        batcher.set_policy(policy.forward, 1, policy.preprocess, gated)
+        first = batcher.submit(one_row(0), deterministic=True, key="r0")
+        assert gated.stepping.wait(10)  # r0's batch is between its steps
+        second = batcher.submit(one_row(1), deterministic=True, key="r1")
+        wait_for(lambda: batcher._ready.qsize() == 1, "r1 encoded, waiting for the next step")
+        gated.release.set()
+        a, b = first.result(timeout=10), second.result(timeout=10)
+    finally:
+        batcher.stop()
+    assert batcher.joined == 1  # r1 rode r0's steps instead of waiting for them to end
+    np.testing.assert_allclose(a.action, alone(policy, 0), atol=1e-5)
+    np.testing.assert_allclose(b.action, alone(policy, 1), atol=1e-5)
+    assert a.version == b.version == 1
+    # Each rode 4 steps, 2 of them together: on average a batch of 1.5, as requests / batches says.
+    assert batcher.requests / batcher.batches == pytest.approx(1.5)
+
+
+def test_after_a_swap_the_old_weights_rows_finish_apart_from_the_new() -> None:
+    old, new = flow_policy(1), flow_policy(2)
+    gated = GatedSteps(old)
+    batcher = MicroBatcher(max_batch=8, max_wait_ms=0, name="flow-swap").start()
+    try:
+        batcher.set_policy(old.forward, 1, old.preprocess, gated)
+        first = batcher.submit(one_row(0), deterministic=True, key="r0")
+        assert gated.stepping.wait(10)
+        batcher.set_policy(new.forward, 2, new.preprocess, new)
+        second = batcher.submit(one_row(1), deterministic=True, key="r1")
+        wait_for(lambda: batcher._ready.qsize() == 1, "r1 encoded, waiting for the next step")
+        gated.release.set()
+        a, b = first.result(timeout=10), second.result(timeout=10)
+    finally:
+        batcher.stop()
+    assert (a.version, b.version) == (1, 2) and batcher.joined == 0
+    np.testing.assert_allclose(a.action, alone(old, 0), atol=1e-5)
+    np.testing.assert_allclose(b.action, alone(new, 1), atol=1e-5)
+
+
+def test_a_failing_step_fails_its_batch_and_the_worker_serves_on() -> None:
+    policy = flow_policy(1)
+    batcher = MicroBatcher(max_batch=8, max_wait_ms=0, name="flow-fail").start()
+    try:
+        batcher.set_policy(policy.forward, 1, policy.preprocess, GatedSteps(policy, fail_first_advance=True))
+        with pytest.raises(RuntimeError, match="step failed"):
+            batcher.submit(one_row(0), deterministic=True, key="r0").result(timeout=10)
+        batcher.set_policy(policy.forward, 1, policy.preprocess, policy)
+        res = batcher.submit(one_row(0), deterministic=True, key="r0").result(timeout=10)
+    finally:
+        batcher.stop()
+    np.testing.assert_allclose(res.action, alone(policy, 0), atol=1e-5)

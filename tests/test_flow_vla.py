@@ -104,8 +104,9 @@ def test_images_of_another_size_are_resized_and_bad_input_is_refused() -> None:
 
 
 @pytest.fixture
-def service() -> Iterator[InferenceService]:
+def service(request: pytest.FixtureRequest) -> Iterator[InferenceService]:
     cfg = StackConfig(auth=AUTH)
+    cfg.inference.continuous_batching = getattr(request, "param", False)
     cfg.inference.server.port = 0
     cfg.inference.server.metrics_port = 0
     cfg.inference.server.grace_s = 1.0
@@ -115,6 +116,7 @@ def service() -> Iterator[InferenceService]:
     svc.stop()
 
 
+@pytest.mark.parametrize("service", [False, True], ids=["batched", "continuous"], indirect=True)
 def test_served_chunks_with_instruction_and_stage_times(service: InferenceService) -> None:
     stub = inference_pb2_grpc.InferenceStub(make_channel(service.address, AUTH))
     obs = {k: v[0] for k, v in observation(1).items()}
@@ -215,6 +217,7 @@ def test_chunk_targets_need_chunks() -> None:
     assert np.isfinite(algo.update(batch)["flow_loss"])
 
 
+@pytest.mark.parametrize("service", [False, True], ids=["batched", "continuous"], indirect=True)
 def test_weight_swaps_under_grpc_load_fail_no_request(service: InferenceService) -> None:
     import threading
 
@@ -252,6 +255,8 @@ def test_weight_swaps_under_grpc_load_fail_no_request(service: InferenceService)
             t.join(30)
     assert not errors, errors[:3]
     assert max(versions) == 11
+    stepped = [slot.batcher._policy.stepped for slot in service.slots.values() if slot.batcher._policy]
+    assert stepped and all((s is not None) == service.cfg.inference.continuous_batching for s in stepped)
     assert all(v == sorted(v) for v in per_robot.values())  # each robot only ever sees newer versions
 
 

@@ -140,6 +140,11 @@ class InferenceConfig(_ServerSection):
     batch_workers: int = Field(
         default=1, ge=1, description="batches in their forward at once per policy (CPU: up to the cores left over)"
     )
+    continuous_batching: bool = Field(
+        default=True,
+        description="policies that sample in steps (flow_vla): requests join a running batch at its next step "
+        "instead of waiting for it to end",
+    )
     device: str = DEVICE
     matmul_precision: Literal["highest", "high"] = Field(
         default="highest",

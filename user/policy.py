@@ -11,7 +11,7 @@ import json
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import torch
@@ -120,6 +120,44 @@ class Policy(ABC):
     @abstractmethod
     def act(self, observation: Mapping[str, np.ndarray], deterministic: bool = False) -> np.ndarray:
         """observation values are (B, ...) arrays; returns (B, *action_shape) or (B, H, *action_shape) float32."""
+
+
+class SteppedRows(Protocol):
+    """A batch in the middle of a stepped sampler (flow matching, diffusion), each row at its own step."""
+
+    def __len__(self) -> int: ...
+
+    def merged(self, other: Any) -> SteppedRows:
+        """These rows followed by `other`'s (made by the same policy object)."""
+        ...
+
+    def done(self) -> np.ndarray:
+        """Bool per row: its last step is taken."""
+        ...
+
+    def split(self, mask: np.ndarray) -> tuple[SteppedRows, SteppedRows]:
+        """(the rows where mask, the others), each keeping its order."""
+        ...
+
+
+@runtime_checkable
+class SteppedSampler(Protocol):
+    """Optional for a Policy that samples in steps: its forward in parts, so the inference service can
+    batch continuously (a request that arrives while a batch integrates joins it at the next step and
+    leaves when its own steps are done, instead of waiting for the whole batch to finish first).
+    `finish(advance^n(begin(p, d)))` must equal `forward(p, d)` row for row."""
+
+    def begin(self, prepared: Any, deterministic: bool) -> SteppedRows:
+        """Encode a preprocessed batch: rows at step 0."""
+        ...
+
+    def advance(self, rows: Any) -> SteppedRows:
+        """One step for every row (rows that are done are never advanced)."""
+        ...
+
+    def finish(self, rows: Any) -> np.ndarray:
+        """Rows that are done -> their actions, as forward returns them."""
+        ...
 
 
 POLICIES: Registry[Policy] = Registry("policy", Policy, "user.policies")

@@ -16,6 +16,14 @@ another is still in its forward (on a CPU with one torch thread per forward, a s
 second batch instead of idling); each batch still runs one forward, and a swap of weights reaches
 every worker's next batch.
 
+A policy that samples in steps (flow matching, diffusion: `user.policy.SteppedSampler`) can be
+batched continuously: the workers then only collect, preprocess and encode (the policy's `begin`),
+and a step thread runs the batch one step at a time; groups encoded meanwhile join it at the next
+step, and each row is answered when its own steps are done. A request that just missed a batch
+waits for its own encode and one step, not a whole forward, and encoding overlaps the steps (a second
+core, or the CPU side of a GPU's launches). Rows of different weights never share a step: after a
+swap the old weights' rows finish apart, the new ones start anew.
+
 Heavy preprocessing stays off the gRPC threads: a policy that defines
 `preprocess(batched observation, instructions)` (resize and normalize images, tokenize
 instructions, copy to the device in one go) has it run here, once per group, and its `act` then
@@ -32,11 +40,14 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from user.log import kv
+
+if TYPE_CHECKING:
+    from user.policy import SteppedRows, SteppedSampler
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +97,39 @@ class _Served:
     act: ActFn
     version: int
     preprocess: PreprocessFn | None = None
+    stepped: SteppedSampler | None = None  # batch continuously: the policy's forward in steps
+
+
+@dataclass
+class _Rolling:
+    """Continuous batching: one policy's rows in their steps, each with the request it answers."""
+
+    served: _Served
+    rows: SteppedRows
+    reqs: list[_Request]
+    admitted: np.ndarray  # per row: when its group left the queue (perf_counter)
+    began: np.ndarray  # per row: when its group's steps began (after preprocess and encode)
+    preprocess_us: np.ndarray
+    rode: np.ndarray  # per row: rows in each step it took, summed (/ steps = the batch it shared)
+    steps: np.ndarray  # per row: steps taken
+
+    def join(self, other: _Rolling) -> None:
+        self.rows = self.rows.merged(other.rows)
+        self.reqs += other.reqs
+        for name in ("admitted", "began", "preprocess_us", "rode", "steps"):
+            setattr(self, name, np.concatenate([getattr(self, name), getattr(other, name)]))
+
+    def leave(self, mask: np.ndarray) -> _Rolling:
+        """The rows where mask leave this batch, as a batch of their own."""
+        out_rows, self.rows = self.rows.split(mask)
+        out = [r for r, m in zip(self.reqs, mask, strict=True) if m]
+        self.reqs = [r for r, m in zip(self.reqs, mask, strict=True) if not m]
+        taken = {}
+        for name in ("admitted", "began", "preprocess_us", "rode", "steps"):
+            column = getattr(self, name)
+            taken[name] = column[mask]
+            setattr(self, name, column[~mask])
+        return _Rolling(self.served, out_rows, out, **taken)
 
 
 class MicroBatcher:
@@ -116,8 +160,12 @@ class MicroBatcher:
         self._forward_s = 0.0  # recent preprocess + forward seconds per batch (EWMA)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
+        self._ready: queue.Queue[_Rolling] = queue.Queue()  # encoded groups, for the step thread
         self.requests = 0  # requests answered by a forward
-        self.batches = 0  # forwards run
+        # Forwards run; a continuous batch's row adds 1 / the rows it shared its steps with, so that
+        # requests / batches stays the mean batch a request rode in.
+        self.batches = 0.0
+        self.joined = 0  # requests that joined a continuous batch already in its steps
 
     # ----------------------------------------------------------------------- public
 
@@ -125,6 +173,7 @@ class MicroBatcher:
         if not self._threads:
             names = [self.name] if self.workers == 1 else [f"{self.name}-{i}" for i in range(self.workers)]
             self._threads = [threading.Thread(target=self._run, name=n, daemon=True) for n in names]
+            self._threads.append(threading.Thread(target=self._run_steps, name=f"{self.name}-steps", daemon=True))
             for thread in self._threads:
                 thread.start()
         return self
@@ -135,11 +184,25 @@ class MicroBatcher:
             thread.join(timeout)
         self._threads = []
         self._fail_pending(RuntimeError("batcher stopped"))
+        while True:  # groups encoded after the step thread left
+            try:
+                self._fail(self._ready.get_nowait().reqs, RuntimeError("batcher stopped"))
+            except queue.Empty:
+                break
 
-    def set_policy(self, act: ActFn, version: int, preprocess: PreprocessFn | None = None) -> None:
-        """Swap the policy; a batch in progress finishes with the one it started with (no request fails)."""
+    def set_policy(
+        self,
+        act: ActFn,
+        version: int,
+        preprocess: PreprocessFn | None = None,
+        stepped: SteppedSampler | None = None,
+    ) -> None:
+        """Swap the policy; a batch in progress finishes with the one it started with (no request fails).
+
+        With `stepped` (the policy's forward in parts) the batch is continuous: requests that arrive
+        while it runs join it at its next step, and each leaves when its own steps are done."""
         with self._lock:
-            self._policy = _Served(act, int(version), preprocess)
+            self._policy = _Served(act, int(version), preprocess, stepped)
 
     @property
     def version(self) -> int | None:
@@ -174,6 +237,8 @@ class MicroBatcher:
     # ----------------------------------------------------------------------- worker
 
     def _run(self) -> None:
+        """A worker: collects batches; runs a whole forward, or (continuous) preprocesses and encodes a
+        group and hands it to the step thread, then collects the next while those rows take their steps."""
         while not self._stop.is_set():
             try:
                 first = self._queue.get(timeout=0.1)
@@ -184,9 +249,58 @@ class MicroBatcher:
                 self._serve(batch)
             except Exception as exc:  # never let one bad batch kill the worker
                 log.exception("batch failed", extra=kv(size=len(batch)))
-                for req in batch:
-                    if not req.future.done():
-                        req.future.set_exception(exc)
+                self._fail(batch, exc)
+
+    def _run_steps(self) -> None:
+        """The step thread of continuous batching: encoded groups join the running batch of their
+        weights at a step boundary (up to max_batch rows), then every running batch takes one step."""
+        rolling: list[_Rolling] = []  # running batches, one per weights
+        pending: list[_Rolling] = []  # encoded groups waiting for room
+        try:
+            while not self._stop.is_set():
+                pending += self._ready_groups(wait=not rolling and not pending)
+                self._admit(pending, rolling)
+                self._step(rolling)
+        finally:
+            for batch in rolling + pending + self._ready_groups(wait=False):
+                self._fail(batch.reqs, RuntimeError("batcher stopped"))
+
+    def _ready_groups(self, wait: bool) -> list[_Rolling]:
+        groups: list[_Rolling] = []
+        if not wait and self._ready.empty():  # the common case between two steps: no exception raised
+            return groups
+        if wait:
+            try:
+                groups.append(self._ready.get(timeout=0.1))
+            except queue.Empty:
+                return groups
+        while True:
+            try:
+                groups.append(self._ready.get_nowait())
+            except queue.Empty:
+                return groups
+
+    def _admit(self, pending: list[_Rolling], rolling: list[_Rolling]) -> None:
+        rows = sum(len(r.reqs) for r in rolling)
+        while pending and (rows == 0 or rows + len(pending[0].reqs) <= self.max_batch):
+            group = pending.pop(0)
+            rows += len(group.reqs)
+            same = next((r for r in rolling if r.served is group.served), None)  # a swap keeps weights apart
+            if same is None:
+                rolling.append(group)
+                continue
+            try:
+                same.join(group)
+                self.joined += len(group.reqs)
+            except Exception as exc:
+                log.exception("joining a running batch failed", extra=kv(size=len(group.reqs)))
+                self._fail(group.reqs, exc)
+
+    @staticmethod
+    def _fail(reqs: list[_Request], exc: BaseException) -> None:
+        for req in reqs:
+            if not req.future.done():
+                req.future.set_exception(exc)
 
     def _expected(self, now: float) -> int:
         """How many distinct callers asked or were answered within the window (at least 1): a robot
@@ -250,14 +364,101 @@ class MicroBatcher:
         for req in live:
             groups.setdefault(req.group(), []).append(req)
         for reqs in groups.values():
-            self._forward(policy, reqs)
+            if policy.stepped is None:
+                self._forward(policy, reqs)
+            else:
+                self._begin(policy, reqs)
+
+    def _prepare(self, policy: _Served, reqs: list[_Request]) -> Any:
+        stacked = {k: np.stack([r.observation[k] for r in reqs]) for k in reqs[0].observation}
+        if policy.preprocess is not None:
+            return policy.preprocess(stacked, [r.instruction for r in reqs])
+        return stacked
+
+    def _begin(self, policy: _Served, reqs: list[_Request]) -> None:
+        """Preprocess and encode a group, for the step thread."""
+        assert policy.stepped is not None
+        start = time.perf_counter()
+        try:
+            prepared = self._prepare(policy, reqs)
+            encode_start = time.perf_counter()
+            rows = policy.stepped.begin(prepared, reqs[0].deterministic)
+            if len(rows) != len(reqs):
+                raise ValueError(f"policy began {len(rows)} rows for a batch of {len(reqs)}")
+            n = len(reqs)
+            self._ready.put(
+                _Rolling(
+                    policy,
+                    rows,
+                    list(reqs),
+                    np.full(n, start),
+                    np.full(n, encode_start),
+                    np.full(n, int((encode_start - start) * 1e6)),
+                    np.zeros(n),
+                    np.zeros(n, np.int64),
+                )
+            )
+        except Exception as exc:
+            log.exception("policy begin failed", extra=kv(size=len(reqs), version=policy.version))
+            self._fail(reqs, exc)
+
+    def _step(self, rolling: list[_Rolling]) -> None:
+        """One step for each rolling batch; rows whose steps are done are answered and leave."""
+        for batch in list(rolling):
+            stepped = batch.served.stepped
+            assert stepped is not None
+            try:
+                batch.rows = stepped.advance(batch.rows)
+                batch.rode += len(batch.reqs)
+                batch.steps += 1
+                done = np.asarray(batch.rows.done(), dtype=bool)
+                if done.shape != (len(batch.reqs),):
+                    raise ValueError(f"policy reported {done.shape} done flags for {len(batch.reqs)} rows")
+                if not done.any():
+                    continue
+                finish_start = time.perf_counter()
+                finished = batch.leave(done)
+                actions = np.asarray(stepped.finish(finished.rows))
+                if actions.shape[:1] != (len(finished.reqs),):
+                    raise ValueError(f"policy finished shape {actions.shape} for {len(finished.reqs)} rows")
+            except Exception as exc:
+                log.exception("policy step failed", extra=kv(size=len(batch.reqs), version=batch.served.version))
+                self._fail(batch.reqs, exc)
+                rolling.remove(batch)
+                continue
+            if not batch.reqs:
+                rolling.remove(batch)
+            self._answer_stepped(finished, actions, finish_start)
+
+    def _answer_stepped(self, finished: _Rolling, actions: np.ndarray, finish_start: float) -> None:
+        end = time.perf_counter()
+        shared = finished.rode / np.maximum(finished.steps, 1)  # the batch each row shared, on average
+        with self._lock:
+            self.requests += len(finished.reqs)
+            self.batches += float(np.sum(1.0 / np.maximum(shared, 1.0)))
+            spent = float(finish_start - finished.admitted.min())
+            self._forward_s += FORWARD_EWMA * (spent - self._forward_s) if self._forward_s else spent
+            self._answered.update((r.key, end) for r in finished.reqs if r.key)
+        if self.on_batch is not None:
+            self.on_batch(round(float(shared.mean())), float(finish_start - finished.began.min()))
+        postprocess_us = int((end - finish_start) * 1e6)
+        for i, req in enumerate(finished.reqs):
+            req.future.set_result(
+                ActResult(
+                    np.array(actions[i], dtype=np.float32),
+                    finished.served.version,
+                    int((finished.admitted[i] - req.submitted) * 1e6),
+                    int((finish_start - finished.began[i]) * 1e6),
+                    max(1, round(float(shared[i]))),
+                    int(finished.preprocess_us[i]),
+                    postprocess_us,
+                )
+            )
 
     def _forward(self, policy: _Served, reqs: list[_Request]) -> None:
         start = time.perf_counter()
         try:
-            stacked = {k: np.stack([r.observation[k] for r in reqs]) for k in reqs[0].observation}
-            if policy.preprocess is not None:
-                stacked = policy.preprocess(stacked, [r.instruction for r in reqs])
+            stacked = self._prepare(policy, reqs)
             forward_start = time.perf_counter()
             actions = np.asarray(policy.act(stacked, reqs[0].deterministic))
             forward_end = time.perf_counter()
@@ -273,7 +474,7 @@ class MicroBatcher:
         compute_s = forward_end - forward_start
         with self._lock:
             self.requests += len(reqs)
-            self.batches += 1
+            self.batches += 1.0
             spent = forward_end - start
             self._forward_s += FORWARD_EWMA * (spent - self._forward_s) if self._forward_s else spent
         if self.on_batch is not None:

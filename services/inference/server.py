@@ -29,7 +29,7 @@ from user import rpc, wire
 from user.config import ConfigError, StackConfig
 from user.experiments import embodiment_inputs, fit_action
 from user.log import kv
-from user.policy import Policy, build_policy, check_device
+from user.policy import Policy, SteppedSampler, build_policy, check_device
 from user.v1 import inference_pb2, inference_pb2_grpc
 from user.weights import WeightSet, WeightSubscriber
 from user.worker import WorkerReporter, report_worker
@@ -127,7 +127,8 @@ class PolicySlot:
             # A policy with its own batched preprocess gets it run in the batcher thread, not per request.
             preprocess = getattr(policy, "preprocess", None)
             act = policy.forward if preprocess is not None else policy.act  # type: ignore[attr-defined]
-            self.batcher.set_policy(act, policy.version, preprocess)
+            continuous = self.service.cfg.inference.continuous_batching and isinstance(policy, SteppedSampler)
+            self.batcher.set_policy(act, policy.version, preprocess, policy if continuous else None)
         WEIGHT_UPDATES.inc()
         POLICY_VERSION.set(policy.version)
         log.info(

@@ -118,6 +118,8 @@ class FlowVla(nn.Module):
         self.expert = nn.Sequential(
             nn.Linear(chunk + 32 + h, h), nn.SiLU(), nn.Linear(h, h), nn.SiLU(), nn.Linear(h, chunk)
         )
+        # The expert after its first layer, as a plain tuple (not registered: no second set of weights).
+        self._rest = tuple(self.expert)[1:]
 
     def encode(self, images: list[torch.Tensor], state: torch.Tensor | None, tokens: torch.Tensor) -> torch.Tensor:
         """images: float (B, 3, S, S) each; state (B, state_dim); tokens (B, max_words) -> context (B, hidden)."""
@@ -159,24 +161,99 @@ class FlowVla(nn.Module):
         return (err * weight).sum() / weight.sum().clamp(min=1e-6) if weight is not None else err.mean()
 
     def sample(self, context: torch.Tensor, deterministic: bool) -> torch.Tensor:
-        """Integrate from noise (zeros when deterministic) to a normalised chunk (B, horizon, A).
+        """Integrate from noise (zeros when deterministic) to a normalised chunk (B, horizon, A)."""
+        rows = self.start(context, deterministic)
+        for _ in range(self.cfg.flow_steps):
+            rows = self.advance(rows)
+        return rows.x.clamp(-1.0, 1.0)
 
-        The same function as `velocity` step by step, computed in parts: the expert's first layer is split
-        by its inputs (chunk | time | context), the context's share is computed once per call instead of once
-        per flow step (at the VLA size it is ~46 % of the expert's weights, which a batch-1 forward is bound
-        by reading), and the time's share for every step in one product (all rows of a step share its t)."""
+    def start(self, context: torch.Tensor, deterministic: bool) -> FlowRows:
+        """Rows at flow time 0, ready for `advance`; `sample` is start + flow_steps advances.
+
+        The expert's first layer is split by its inputs (chunk | time | context): the context's share
+        is computed here, once per row instead of once per flow step (at the VLA size it is ~46 % of
+        the expert's weights, which a batch-1 forward is bound by reading), and the time's share for
+        every step in one product."""
         shape = (context.shape[0], self.cfg.horizon, self.cfg.action_dim)
         x = torch.zeros(shape, device=context.device) if deterministic else torch.randn(shape, device=context.device)
-        first, rest = self.expert[0], self.expert[1:]
+        first = self.expert[0]
         w_chunk, w_time, w_context = first.weight.split([x[0].numel(), 32, context.shape[1]], dim=1)
-        from_context = nn.functional.linear(context, w_context, first.bias)  # (B, hidden), once
-        dt = 1.0 / self.cfg.flow_steps
-        times = torch.arange(self.cfg.flow_steps, device=context.device) * dt
-        from_time = _time_embedding(times) @ w_time.T  # (flow_steps, hidden): every step's, in one product
-        for i in range(self.cfg.flow_steps):
-            hidden = torch.addmm(from_context + from_time[i], x.flatten(1), w_chunk.T)
-            x = x + dt * rest(hidden).view_as(x)
-        return x.clamp(-1.0, 1.0)
+        times = torch.arange(self.cfg.flow_steps, device=context.device) * (1.0 / self.cfg.flow_steps)
+        shared = FlowShared(_time_embedding(times) @ w_time.T, w_chunk.T, self._rest)
+        step = torch.zeros(shape[0], dtype=torch.long, device=context.device)
+        base = nn.functional.linear(context, w_context, first.bias)
+        return FlowRows(x, base, step, np.zeros(shape[0], np.int64), shared, at=0)
+
+    def advance(self, rows: FlowRows) -> FlowRows:
+        """One Euler step for every row, each at its own flow time (rows may have joined at different steps)."""
+        shared = rows.shared
+        # Rows all at one step (a plain sample) add that step's time share by broadcast, not by a gather.
+        from_time = shared.from_time[rows.step] if rows.at is None else shared.from_time[rows.at]
+        hidden = torch.addmm(rows.base + from_time, rows.x.flatten(1), shared.w_chunk_t)
+        for layer in shared.rest:
+            hidden = layer(hidden)
+        x = rows.x + shared.dt * hidden.view_as(rows.x)
+        at = None if rows.at is None else rows.at + 1
+        return FlowRows(x, rows.base, rows.step + 1, rows.taken + 1, shared, at)
+
+
+class FlowShared:
+    """What every row integrated with one set of weights shares."""
+
+    def __init__(self, from_time: torch.Tensor, w_chunk_t: torch.Tensor, rest: tuple[nn.Module, ...]) -> None:
+        self.from_time = from_time  # (flow_steps, hidden): each step's time share of the expert's first layer
+        self.w_chunk_t = w_chunk_t  # the chunk's share of that layer, transposed for addmm
+        self.rest = rest  # the expert after its first layer
+        self.steps = int(from_time.shape[0])
+        self.dt = 1.0 / self.steps
+
+
+class FlowRows:
+    """Chunks in the middle of their flow integration, each row at its own step.
+
+    What continuous batching in the inference service holds between steps: rows that arrive while
+    a batch integrates join it at the next step (`merged`) instead of waiting for the whole batch,
+    and leave when their last step is done (`split`)."""
+
+    def __init__(
+        self,
+        x: torch.Tensor,
+        base: torch.Tensor,
+        step: torch.Tensor,
+        taken: np.ndarray,
+        shared: FlowShared,
+        at: int | None = None,
+    ) -> None:
+        self.x = x  # (B, horizon, A): the noisy chunks
+        self.base = base  # (B, hidden): the context's share of the expert's first layer, with its bias
+        self.step = step  # (B,): steps taken, on the device (indexes from_time there)
+        self.taken = taken  # (B,): steps taken, on the host (done() needs no device sync)
+        self.shared = shared
+        self.at = at  # the step every row is at, when they all are at one (no gather needed)
+
+    def __len__(self) -> int:
+        return int(self.x.shape[0])
+
+    def merged(self, other: FlowRows) -> FlowRows:
+        """These rows then `other`'s (both from the same weights)."""
+        cat = torch.cat
+        at = self.at if self.at == other.at else None
+        x, base, step = cat([self.x, other.x]), cat([self.base, other.base]), cat([self.step, other.step])
+        return FlowRows(x, base, step, np.concatenate([self.taken, other.taken]), self.shared, at)
+
+    def done(self) -> np.ndarray:
+        return self.taken >= self.shared.steps
+
+    def split(self, mask: np.ndarray) -> tuple[FlowRows, FlowRows]:
+        """(the rows where mask, the others), each in order."""
+        if mask.all():  # a batch that began together ends together: no copies
+            return self, self._rows(slice(0, 0))
+        take = torch.as_tensor(mask, device=self.x.device)
+        return self._rows(take, mask), self._rows(~take, ~mask)
+
+    def _rows(self, index: torch.Tensor | slice, host: np.ndarray | slice | None = None) -> FlowRows:
+        host = index if host is None else host
+        return FlowRows(self.x[index], self.base[index], self.step[index], self.taken[host], self.shared, self.at)
 
 
 class Prepared:
@@ -319,6 +396,22 @@ class FlowVlaPolicy(Policy):
     def forward(self, prepared: Prepared, deterministic: bool = False) -> np.ndarray:
         context = self.model.encode(prepared.images, prepared.state, prepared.tokens)
         chunk = self.scaler.unnormalize(self.model.sample(context, deterministic))
+        return chunk.cpu().numpy().astype(np.float32, copy=False)
+
+    # Stepped sampling (user.policy.SteppedSampler): forward() in parts, so the inference service can let
+    # rows join and leave a batch at flow-step boundaries.
+    @torch.inference_mode()
+    def begin(self, prepared: Prepared, deterministic: bool = False) -> FlowRows:
+        context = self.model.encode(prepared.images, prepared.state, prepared.tokens)
+        return self.model.start(context, deterministic)
+
+    @torch.inference_mode()
+    def advance(self, rows: FlowRows) -> FlowRows:
+        return self.model.advance(rows)
+
+    @torch.inference_mode()
+    def finish(self, rows: FlowRows) -> np.ndarray:
+        chunk = self.scaler.unnormalize(rows.x.clamp(-1.0, 1.0))
         return chunk.cpu().numpy().astype(np.float32, copy=False)
 
     def act(self, observation: Mapping[str, np.ndarray], deterministic: bool = False) -> np.ndarray:
