@@ -101,35 +101,46 @@ class _Served:
 
 
 @dataclass
+class _Member:
+    """One request in a continuous batch."""
+
+    req: _Request
+    admitted: float  # when its group left the queue (perf_counter)
+    began: float  # when its group's steps could begin (after preprocess and encode)
+    preprocess_us: int
+    joined_at: tuple[int, int] = (0, 0)  # the batch's (rows stepped, steps) when it joined
+
+
+@dataclass
 class _Rolling:
-    """Continuous batching: one policy's rows in their steps, each with the request it answers."""
+    """Continuous batching: one policy's rows in their steps, with the request each row answers."""
 
     served: _Served
     rows: SteppedRows
-    reqs: list[_Request]
-    admitted: np.ndarray  # per row: when its group left the queue (perf_counter)
-    began: np.ndarray  # per row: when its group's steps began (after preprocess and encode)
-    preprocess_us: np.ndarray
-    rode: np.ndarray  # per row: rows in each step it took, summed (/ steps = the batch it shared)
-    steps: np.ndarray  # per row: steps taken
+    members: list[_Member]
+    rows_stepped: int = 0  # rows summed over the steps taken: with `steps`, the batch a member shared
+    steps: int = 0
 
     def join(self, other: _Rolling) -> None:
         self.rows = self.rows.merged(other.rows)
-        self.reqs += other.reqs
-        for name in ("admitted", "began", "preprocess_us", "rode", "steps"):
-            setattr(self, name, np.concatenate([getattr(self, name), getattr(other, name)]))
+        for m in other.members:
+            m.joined_at = (self.rows_stepped, self.steps)
+        self.members += other.members
 
-    def leave(self, mask: np.ndarray) -> _Rolling:
-        """The rows where mask leave this batch, as a batch of their own."""
+    def leave(self, mask: np.ndarray) -> tuple[SteppedRows, list[_Member]]:
+        """The rows where mask leave this batch: (their rows, their members)."""
         out_rows, self.rows = self.rows.split(mask)
-        out = [r for r, m in zip(self.reqs, mask, strict=True) if m]
-        self.reqs = [r for r, m in zip(self.reqs, mask, strict=True) if not m]
-        taken = {}
-        for name in ("admitted", "began", "preprocess_us", "rode", "steps"):
-            column = getattr(self, name)
-            taken[name] = column[mask]
-            setattr(self, name, column[~mask])
-        return _Rolling(self.served, out_rows, out, **taken)
+        out = [m for m, done in zip(self.members, mask, strict=True) if done]
+        self.members = [m for m, done in zip(self.members, mask, strict=True) if not done]
+        return out_rows, out
+
+    def requests(self) -> list[_Request]:
+        return [m.req for m in self.members]
+
+    def shared(self, member: _Member) -> float:
+        """The mean batch this member's steps ran in."""
+        rows, steps = self.rows_stepped - member.joined_at[0], self.steps - member.joined_at[1]
+        return rows / steps if steps else 1.0
 
 
 class MicroBatcher:
@@ -186,7 +197,7 @@ class MicroBatcher:
         self._fail_pending(RuntimeError("batcher stopped"))
         while True:  # groups encoded after the step thread left
             try:
-                self._fail(self._ready.get_nowait().reqs, RuntimeError("batcher stopped"))
+                self._fail(self._ready.get_nowait().requests(), RuntimeError("batcher stopped"))
             except queue.Empty:
                 break
 
@@ -263,7 +274,7 @@ class MicroBatcher:
                 self._step(rolling)
         finally:
             for batch in rolling + pending + self._ready_groups(wait=False):
-                self._fail(batch.reqs, RuntimeError("batcher stopped"))
+                self._fail(batch.requests(), RuntimeError("batcher stopped"))
 
     def _ready_groups(self, wait: bool) -> list[_Rolling]:
         groups: list[_Rolling] = []
@@ -281,20 +292,20 @@ class MicroBatcher:
                 return groups
 
     def _admit(self, pending: list[_Rolling], rolling: list[_Rolling]) -> None:
-        rows = sum(len(r.reqs) for r in rolling)
-        while pending and (rows == 0 or rows + len(pending[0].reqs) <= self.max_batch):
+        rows = sum(len(r.members) for r in rolling)
+        while pending and (rows == 0 or rows + len(pending[0].members) <= self.max_batch):
             group = pending.pop(0)
-            rows += len(group.reqs)
+            rows += len(group.members)
             same = next((r for r in rolling if r.served is group.served), None)  # a swap keeps weights apart
             if same is None:
                 rolling.append(group)
                 continue
             try:
                 same.join(group)
-                self.joined += len(group.reqs)
+                self.joined += len(group.members)
             except Exception as exc:
-                log.exception("joining a running batch failed", extra=kv(size=len(group.reqs)))
-                self._fail(group.reqs, exc)
+                log.exception("joining a running batch failed", extra=kv(size=len(group.members)))
+                self._fail(group.requests(), exc)
 
     @staticmethod
     def _fail(reqs: list[_Request], exc: BaseException) -> None:
@@ -385,19 +396,9 @@ class MicroBatcher:
             rows = policy.stepped.begin(prepared, reqs[0].deterministic)
             if len(rows) != len(reqs):
                 raise ValueError(f"policy began {len(rows)} rows for a batch of {len(reqs)}")
-            n = len(reqs)
-            self._ready.put(
-                _Rolling(
-                    policy,
-                    rows,
-                    list(reqs),
-                    np.full(n, start),
-                    np.full(n, encode_start),
-                    np.full(n, int((encode_start - start) * 1e6)),
-                    np.zeros(n),
-                    np.zeros(n, np.int64),
-                )
-            )
+            preprocess_us = int((encode_start - start) * 1e6)
+            members = [_Member(r, start, encode_start, preprocess_us) for r in reqs]
+            self._ready.put(_Rolling(policy, rows, members))
         except Exception as exc:
             log.exception("policy begin failed", extra=kv(size=len(reqs), version=policy.version))
             self._fail(reqs, exc)
@@ -408,49 +409,52 @@ class MicroBatcher:
             stepped = batch.served.stepped
             assert stepped is not None
             try:
+                n = len(batch.members)
                 batch.rows = stepped.advance(batch.rows)
-                batch.rode += len(batch.reqs)
+                batch.rows_stepped += n
                 batch.steps += 1
-                done = np.asarray(batch.rows.done(), dtype=bool)
-                if done.shape != (len(batch.reqs),):
-                    raise ValueError(f"policy reported {done.shape} done flags for {len(batch.reqs)} rows")
+                done = batch.rows.done()
+                if done.shape != (n,):
+                    raise ValueError(f"policy reported {done.shape} done flags for {n} rows")
                 if not done.any():
                     continue
                 finish_start = time.perf_counter()
-                finished = batch.leave(done)
-                actions = np.asarray(stepped.finish(finished.rows))
-                if actions.shape[:1] != (len(finished.reqs),):
-                    raise ValueError(f"policy finished shape {actions.shape} for {len(finished.reqs)} rows")
+                shared = [batch.shared(m) for m, d in zip(batch.members, done, strict=True) if d]
+                finished_rows, finished = batch.leave(done)
+                actions = np.asarray(stepped.finish(finished_rows))
+                if actions.shape[:1] != (len(finished),):
+                    raise ValueError(f"policy finished shape {actions.shape} for {len(finished)} rows")
             except Exception as exc:
-                log.exception("policy step failed", extra=kv(size=len(batch.reqs), version=batch.served.version))
-                self._fail(batch.reqs, exc)
+                log.exception("policy step failed", extra=kv(size=len(batch.members), version=batch.served.version))
+                self._fail(batch.requests(), exc)
                 rolling.remove(batch)
                 continue
-            if not batch.reqs:
+            if not batch.members:
                 rolling.remove(batch)
-            self._answer_stepped(finished, actions, finish_start)
+            self._answer_stepped(batch.served, finished, shared, actions, finish_start)
 
-    def _answer_stepped(self, finished: _Rolling, actions: np.ndarray, finish_start: float) -> None:
+    def _answer_stepped(
+        self, served: _Served, finished: list[_Member], shared: list[float], actions: np.ndarray, finish_start: float
+    ) -> None:
         end = time.perf_counter()
-        shared = finished.rode / np.maximum(finished.steps, 1)  # the batch each row shared, on average
         with self._lock:
-            self.requests += len(finished.reqs)
-            self.batches += float(np.sum(1.0 / np.maximum(shared, 1.0)))
-            spent = float(finish_start - finished.admitted.min())
+            self.requests += len(finished)
+            self.batches += sum(1.0 / max(s, 1.0) for s in shared)
+            spent = finish_start - min(m.admitted for m in finished)
             self._forward_s += FORWARD_EWMA * (spent - self._forward_s) if self._forward_s else spent
-            self._answered.update((r.key, end) for r in finished.reqs if r.key)
+            self._answered.update((m.req.key, end) for m in finished if m.req.key)
         if self.on_batch is not None:
-            self.on_batch(round(float(shared.mean())), float(finish_start - finished.began.min()))
+            self.on_batch(round(sum(shared) / len(shared)), finish_start - min(m.began for m in finished))
         postprocess_us = int((end - finish_start) * 1e6)
-        for i, req in enumerate(finished.reqs):
-            req.future.set_result(
+        for m, row, batch in zip(finished, actions, shared, strict=True):
+            m.req.future.set_result(
                 ActResult(
-                    np.array(actions[i], dtype=np.float32),
-                    finished.served.version,
-                    int((finished.admitted[i] - req.submitted) * 1e6),
-                    int((finish_start - finished.began[i]) * 1e6),
-                    max(1, round(float(shared[i]))),
-                    int(finished.preprocess_us[i]),
+                    np.array(row, dtype=np.float32),
+                    served.version,
+                    int((m.admitted - m.req.submitted) * 1e6),
+                    int((finish_start - m.began) * 1e6),
+                    max(1, round(batch)),
+                    m.preprocess_us,
                     postprocess_us,
                 )
             )
