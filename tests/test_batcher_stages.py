@@ -99,18 +99,18 @@ def test_weight_swap_under_load_fails_no_request() -> None:
 class GatedSteps:
     """A real flow_vla policy whose second step waits for the test: requests can be queued mid-batch."""
 
-    def __init__(self, policy: Any, fail_first_advance: bool = False) -> None:
+    def __init__(self, policy: Any, fail: str = "") -> None:
         self.policy = policy
         self.stepping, self.release = threading.Event(), threading.Event()
         self.advances = 0
-        self.fail_first_advance = fail_first_advance
+        self.fail = fail  # "advance" or "finish": that call raises, once
 
     def begin(self, prepared: Any, deterministic: bool) -> Any:
         return self.policy.begin(prepared, deterministic)
 
     def advance(self, rows: Any) -> Any:
         self.advances += 1
-        if self.fail_first_advance and self.advances == 1:
+        if self.fail == "advance" and self.advances == 1:
             raise RuntimeError("step failed")
         if self.advances == 2:
             self.stepping.set()
@@ -118,6 +118,8 @@ class GatedSteps:
         return self.policy.advance(rows)
 
     def finish(self, rows: Any) -> np.ndarray:
+        if self.fail == "finish":
+            raise RuntimeError("step failed")
         return self.policy.finish(rows)
 
 
@@ -183,11 +185,14 @@ def test_after_a_swap_the_old_weights_rows_finish_apart_from_the_new() -> None:
     np.testing.assert_allclose(b.action, alone(new, 1), atol=1e-5)
 
 
-def test_a_failing_step_fails_its_batch_and_the_worker_serves_on() -> None:
+@pytest.mark.parametrize("fail", ["advance", "finish"])
+def test_a_failing_step_fails_its_batch_and_the_worker_serves_on(fail: str) -> None:
     policy = flow_policy(1)
+    gated = GatedSteps(policy, fail=fail)
+    gated.release.set()
     batcher = MicroBatcher(max_batch=8, max_wait_ms=0, name="flow-fail").start()
     try:
-        batcher.set_policy(policy.forward, 1, policy.preprocess, GatedSteps(policy, fail_first_advance=True))
+        batcher.set_policy(policy.forward, 1, policy.preprocess, gated)
         with pytest.raises(RuntimeError, match="step failed"):
             batcher.submit(one_row(0), deterministic=True, key="r0").result(timeout=10)
         batcher.set_policy(policy.forward, 1, policy.preprocess, policy)

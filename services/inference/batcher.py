@@ -176,7 +176,7 @@ class MicroBatcher:
         # Forwards run; a continuous batch's row adds 1 / the rows it shared its steps with, so that
         # requests / batches stays the mean batch a request rode in.
         self.batches = 0.0
-        self.joined = 0  # requests that joined a continuous batch already in its steps
+        self.joined = 0  # requests that joined a running continuous batch (at a step boundary)
 
     # ----------------------------------------------------------------------- public
 
@@ -408,6 +408,7 @@ class MicroBatcher:
         for batch in list(rolling):
             stepped = batch.served.stepped
             assert stepped is not None
+            finished: list[_Member] = []
             try:
                 n = len(batch.members)
                 batch.rows = stepped.advance(batch.rows)
@@ -426,7 +427,7 @@ class MicroBatcher:
                     raise ValueError(f"policy finished shape {actions.shape} for {len(finished)} rows")
             except Exception as exc:
                 log.exception("policy step failed", extra=kv(size=len(batch.members), version=batch.served.version))
-                self._fail(batch.requests(), exc)
+                self._fail(batch.requests() + [m.req for m in finished], exc)
                 rolling.remove(batch)
                 continue
             if not batch.members:
