@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -143,20 +143,28 @@ def alone(policy: Any, i: int) -> np.ndarray:
     return policy.forward(policy.preprocess({k: v[None] for k, v in one_row(i).items()}, [""]), True)[0]
 
 
+def one_arrives_mid_batch(
+    batcher: MicroBatcher, gated: GatedSteps, meanwhile: Callable[[], None] = lambda: None
+) -> tuple[Any, Any]:
+    """r0's batch stops between its steps; `meanwhile` runs, r1 arrives and is encoded; then the steps go on."""
+    try:
+        first = batcher.submit(one_row(0), deterministic=True, key="r0")
+        assert gated.stepping.wait(10)
+        meanwhile()
+        second = batcher.submit(one_row(1), deterministic=True, key="r1")
+        wait_for(lambda: batcher._ready.qsize() == 1, "r1 encoded, waiting for the next step")
+        gated.release.set()
+        return first.result(timeout=10), second.result(timeout=10)
+    finally:
+        batcher.stop()
+
+
 def test_a_request_joins_a_continuous_batch_at_the_next_step_with_its_own_answer() -> None:
     policy = flow_policy(1)
     gated = GatedSteps(policy)
     batcher = MicroBatcher(max_batch=8, max_wait_ms=0, name="flow-batch").start()
-    try:
-        batcher.set_policy(policy.forward, 1, policy.preprocess, gated)
-        first = batcher.submit(one_row(0), deterministic=True, key="r0")
-        assert gated.stepping.wait(10)  # r0's batch is between its steps
-        second = batcher.submit(one_row(1), deterministic=True, key="r1")
-        wait_for(lambda: batcher._ready.qsize() == 1, "r1 encoded, waiting for the next step")
-        gated.release.set()
-        a, b = first.result(timeout=10), second.result(timeout=10)
-    finally:
-        batcher.stop()
+    batcher.set_policy(policy.forward, 1, policy.preprocess, gated)
+    a, b = one_arrives_mid_batch(batcher, gated)
     assert batcher.joined == 1  # r1 rode r0's steps instead of waiting for them to end
     np.testing.assert_allclose(a.action, alone(policy, 0), atol=1e-5)
     np.testing.assert_allclose(b.action, alone(policy, 1), atol=1e-5)
@@ -169,17 +177,8 @@ def test_after_a_swap_the_old_weights_rows_finish_apart_from_the_new() -> None:
     old, new = flow_policy(1), flow_policy(2)
     gated = GatedSteps(old)
     batcher = MicroBatcher(max_batch=8, max_wait_ms=0, name="flow-swap").start()
-    try:
-        batcher.set_policy(old.forward, 1, old.preprocess, gated)
-        first = batcher.submit(one_row(0), deterministic=True, key="r0")
-        assert gated.stepping.wait(10)
-        batcher.set_policy(new.forward, 2, new.preprocess, new)
-        second = batcher.submit(one_row(1), deterministic=True, key="r1")
-        wait_for(lambda: batcher._ready.qsize() == 1, "r1 encoded, waiting for the next step")
-        gated.release.set()
-        a, b = first.result(timeout=10), second.result(timeout=10)
-    finally:
-        batcher.stop()
+    batcher.set_policy(old.forward, 1, old.preprocess, gated)
+    a, b = one_arrives_mid_batch(batcher, gated, lambda: batcher.set_policy(new.forward, 2, new.preprocess, new))
     assert (a.version, b.version) == (1, 2) and batcher.joined == 0
     np.testing.assert_allclose(a.action, alone(old, 0), atol=1e-5)
     np.testing.assert_allclose(b.action, alone(new, 1), atol=1e-5)
