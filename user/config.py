@@ -141,7 +141,7 @@ class InferenceConfig(_ServerSection):
         default=1, ge=1, description="batches in their forward at once per policy (CPU: up to the cores left over)"
     )
     continuous_batching: bool = Field(
-        default=True,
+        default=False,
         description="policies that sample in steps (flow_vla): requests join a running batch at its next step "
         "instead of waiting for it to end",
     )
