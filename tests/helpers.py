@@ -52,3 +52,27 @@ def random_sac_batch(obs_dim: int, act_dim: int, seed: int, n: int = 16, p_termi
         "next_obs": torch.randn(n, obs_dim, generator=g),
         "terminated": (torch.rand(n, generator=g) < p_terminal).float(),
     }
+
+
+class EndingContext:
+    """The part of a grpc.ServicerContext a streaming handler uses, for driving the handler's generator by hand;
+    `end()` does what gRPC does when the RPC terminates (runs the callbacks), without resuming or closing it."""
+
+    def __init__(self) -> None:
+        self.callbacks: list[Callable[[], object]] = []
+        self.active = True
+
+    def add_callback(self, callback: Callable[[], object]) -> bool:
+        self.callbacks.append(callback)
+        return True
+
+    def is_active(self) -> bool:
+        return self.active
+
+    def abort(self, code: object, details: str) -> None:
+        raise AssertionError(f"aborted {code}: {details}")
+
+    def end(self) -> None:
+        self.active = False
+        for callback in self.callbacks:
+            callback()

@@ -21,6 +21,7 @@ import yaml
 
 from edge_agent.control_client import ControlClient
 from services.control.server import ControlService
+from tests import helpers
 from tests.helpers import free_port, wait_for
 from tests.test_replay_store import spec
 from user import cli
@@ -283,29 +284,6 @@ class SilentEdge:
         self.call.cancel()
 
 
-class EndingContext:
-    """What Connect uses of gRPC's context; `end()` does what gRPC does when the RPC terminates: runs its callbacks."""
-
-    def __init__(self) -> None:
-        self.callbacks: list = []
-        self.active = True
-
-    def add_callback(self, callback) -> bool:
-        self.callbacks.append(callback)
-        return True
-
-    def is_active(self) -> bool:
-        return self.active
-
-    def abort(self, code: grpc.StatusCode, details: str) -> None:
-        raise AssertionError(f"aborted {code}: {details}")
-
-    def end(self) -> None:
-        self.active = False
-        for callback in self.callbacks:
-            callback()
-
-
 def test_a_stream_cut_while_registered_is_sent_releases_its_robots_at_once(make_control) -> None:
     """A client that cancels while `registered` is on its way: gRPC drops the handler's generator at that
     yield (no code after it runs) and runs the RPC's callbacks. Its robots must go offline then, not when the
@@ -313,7 +291,7 @@ def test_a_stream_cut_while_registered_is_sent_releases_its_robots_at_once(make_
     control = make_control(experiments(max_alpha=1), lease_ttl_s=60.0)
     s = stub_for(control.address)
     register = control_pb2.RegisterRequest(agent_id="cut-pc-1", robots=[team_spec("cut-arm-0", "a")])
-    ctx = EndingContext()
+    ctx = helpers.EndingContext()
     stream = control.servicer.Connect(iter([control_pb2.EdgeMessage(register=register)]), ctx)
     assert [lease.experiment for lease in next(stream).registered.leases] == ["alpha"]
     assert robot(s, "cut-arm-0").online

@@ -858,3 +858,19 @@ def test_link_rate_for_patch_compression_leaves_out_the_round_trip() -> None:
     assert link.wire_bps == pytest.approx(full.encoded_bytes / 1e-3)  # 1 MiB in 1 ms of transfer
     assert link.goodput_bps == pytest.approx(full.encoded_bytes / 0.099)  # end to end, less the apply
     store.close()
+
+
+def test_a_subscriber_whose_stream_is_dropped_mid_message_leaves_when_the_rpc_ends() -> None:
+    """gRPC may drop a handler's generator at a yield (the client cancelled while that message was being sent)
+    and never resume nor close it: the subscriber must still leave the learner's status when the RPC ends."""
+    store = WeightStore()
+    servicer = WeightServicer(store, poll_s=0.1)
+    store.publish(1, SPEC, tensors())
+    ctx = helpers.EndingContext()
+    stream = servicer.SubscribeWeights(learner_pb2.SubscribeWeightsRequest(client_id="dropped"), ctx)
+    assert next(stream).header.version == 1
+    assert [s.client_id for s in servicer.subscriber_status()] == ["dropped"]
+    ctx.end()  # `stream` stays suspended and referenced, as gRPC leaves it
+    assert servicer.subscribers == 0 and servicer.subscriber_status() == []
+    stream.close()  # its own end afterwards changes nothing
+    assert servicer.subscribers == 0
