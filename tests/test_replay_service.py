@@ -16,6 +16,7 @@ from services.control.server import ControlService
 from services.replay import server as replay_server
 from services.replay.server import ReplayService
 from services.replay.store import ReplayStore
+from tests import helpers
 from tests.helpers import wait_for
 from tests.test_replay_store import episode, make_step, spec
 from user import wire
@@ -392,3 +393,18 @@ def test_a_restart_remembers_which_episodes_ended(make_service: Callable[..., Re
     # what is legal still passes: a re-sent last step, and the open episode going on to its end
     insert(again, [make_step("arm-0", "ended", 4, last=True), make_step("arm-0", "open", 3, last=True)])
     assert stats(again).steps == 9
+
+
+def test_an_insert_stream_dropped_mid_ack_is_counted_out_when_the_rpc_ends(service: ReplayService) -> None:
+    """gRPC may drop the Insert generator at an ack's yield (the edge cancelled while it was being sent) and
+    never resume it: the open-stream count that shutdown waits for must still come down when the RPC ends."""
+    ctx = helpers.EndingContext()
+    up: queue.Queue = queue.Queue()
+    for req in requests(episode("arm-0", "drop", 3)):
+        up.put(req)
+    stream = service.servicer.Insert(iter(up.get, None), ctx)
+    assert sorted(next(stream).seqs) == [0, 1, 2]  # committed and acknowledged; the client is still "sending"
+    assert service.servicer._streams == 1
+    ctx.end()  # `stream` stays suspended and referenced, as gRPC leaves it
+    assert service.servicer._streams == 0 and service.servicer.wait_streams(0.1)
+    up.put(None)

@@ -98,6 +98,28 @@ def _wrap_handler(handler: grpc.RpcMethodHandler, wrap: Callable[[Callable, bool
 _CALLERS: dict[int, Identity] = {}  # id(context) -> identity, while the call runs
 
 
+def at_stream_end(context: grpc.ServicerContext, cleanup: Callable[[], None]) -> Callable[[], None]:
+    """Run `cleanup` once, when the RPC ends; returns the once-only call for the handler's own `finally` too.
+
+    A streaming handler's `finally` alone is not enough: when the client cancels while a message is being
+    sent, gRPC drops the handler's generator at that yield and neither resumes nor closes it, so code after
+    the yield never runs. gRPC's termination callback always does; whichever of the two comes first cleans up."""
+    lock = threading.Lock()
+    done = False
+
+    def once() -> None:
+        nonlocal done
+        with lock:
+            if done:
+                return
+            done = True
+        cleanup()
+
+    if not context.add_callback(once):  # the RPC has already ended
+        once()
+    return once
+
+
 def caller(context: grpc.ServicerContext) -> Identity | None:
     """Who is making this call (None when auth is off): handlers use it to bind an edge to its agent."""
     return _CALLERS.get(id(context))

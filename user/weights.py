@@ -754,9 +754,7 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
             context.add_callback(lambda: acks.put(None))
         with self._lock:
             self._links[id(link)] = link
-        # The subscriber leaves when the RPC ends, even if gRPC drops this generator at a yield without
-        # resuming or closing it (a client that cancels while a message is being sent): then `finally` never runs.
-        context.add_callback(lambda: self._leave(link))
+        left = rpc.at_stream_end(context, lambda: self._leave(link))  # even if gRPC drops this generator
         WEIGHTS_SUBSCRIBERS.inc()
         # Read at scrape time, so a stalled subscriber's staleness grows while nothing is acked.
         SUB_STALENESS.labels(link.client_id).set_function(lambda: link.status().staleness)
@@ -783,14 +781,11 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
                     continue
                 have = packed.version
         finally:
-            self._leave(link)
+            left()
 
     def _leave(self, link: Link) -> None:
-        """Forget a subscriber; only the first of the RPC's end callback and the stream's own end does anything."""
         with self._lock:
-            if self._links.get(id(link)) is not link:
-                return
-            del self._links[id(link)]
+            self._links.pop(id(link), None)
         WEIGHTS_SUBSCRIBERS.dec()
         for gauge in (SUB_STALENESS, SUB_SYNC, SUB_GOODPUT):
             try:

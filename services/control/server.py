@@ -834,11 +834,9 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
             context.abort(grpc.StatusCode.ALREADY_EXISTS, str(exc))
         for old in replaced:
             old.outbox.put(Abort(grpc.StatusCode.ABORTED, "superseded by a newer registration of this agent"))
-        # However the stream ends, its robots go offline now, not at lease expiry. gRPC runs this when the RPC
-        # terminates; the `finally` below may never run: a client that cancels while `registered` is being sent
-        # leaves this generator suspended at that yield, and gRPC never resumes nor closes it.
-        if not context.add_callback(lambda: self._hung_up(conn)):
-            self._hung_up(conn)
+        # However the stream ends (even while `registered` is being sent), its robots go offline then, not at
+        # lease expiry.
+        hung_up = rpc.at_stream_end(context, lambda: self._hung_up(conn))
         REGISTRATIONS.inc()
         replay_addr = replay_shard_for(self.replay_shards, req.agent_id, req.site)
         log.info(
@@ -874,10 +872,10 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
         try:
             yield from self._outbound(conn, context, reader_done)
         finally:
-            self._hung_up(conn)
+            hung_up()
 
     def _hung_up(self, conn: Connection) -> None:
-        if self.registry.disconnect(conn):  # only the first of the callback and the generator's end
+        if self.registry.disconnect(conn):
             log.info("agent disconnected", extra=kv(agent_id=conn.agent_id, robots=conn.robot_ids))
 
     def _outbound(

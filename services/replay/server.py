@@ -398,11 +398,16 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down; re-send later")
         inbox = _Inbox(request_iterator, maxsize=2 * self.commit_max_steps)
         self._stream_delta(+1)
+
+        def close() -> None:
+            inbox.close()
+            self._stream_delta(-1)
+
+        ended = rpc.at_stream_end(context, close)  # shutdown waits for this count: it must come down once
         try:
             yield from self._insert(inbox, context, rpc.caller(context))
         finally:
-            inbox.close()
-            self._stream_delta(-1)
+            ended()
 
     def InsertBatch(
         self, request_iterator: Iterator[replay_pb2.InsertBatchRequest], context: grpc.ServicerContext
