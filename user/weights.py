@@ -754,10 +754,10 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
             context.add_callback(lambda: acks.put(None))
         with self._lock:
             self._links[id(link)] = link
-        left = rpc.at_stream_end(context, lambda: self._leave(link))  # even if gRPC drops this generator
         WEIGHTS_SUBSCRIBERS.inc()
         # Read at scrape time, so a stalled subscriber's staleness grows while nothing is acked.
         SUB_STALENESS.labels(link.client_id).set_function(lambda: link.status().staleness)
+        left = rpc.at_stream_end(context, lambda: self._leave(link))  # even if gRPC drops this generator
         log.info("weight subscriber joined", extra=kv(client_id=link.client_id, have_version=have, acked=link.acked))
         try:
             if acks is not None and link.shm_host and self.shm is not None and self.shm.same_host(link.shm_host):
