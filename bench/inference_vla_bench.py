@@ -26,7 +26,9 @@ serving process's (time.process_time over the window: gRPC, handler, batcher, mo
 robots' (each robot process's own). On a machine where the robots share the cores with the server,
 throughput is capped near cores / (robot CPU + server CPU per call) whatever the batching does. The
 targets of issue #9 are printed as rows: at 16 robots >= 4x the peer's throughput, with p99 <= 2x
-our single-robot p99.
+our single-robot p99. For flow_vla, a second server of ours in the other `inference.continuous_batching`
+mode is driven at 16 robots too (closed loop and paced, alternating windows): the "continuous batching
+vs batch by batch" rows.
 """
 
 from __future__ import annotations
