@@ -162,10 +162,11 @@ def one_arrives_mid_batch(
 def test_a_request_joins_a_continuous_batch_at_the_next_step_with_its_own_answer() -> None:
     policy = flow_policy(1)
     gated = GatedSteps(policy)
-    batcher = MicroBatcher(max_batch=8, max_wait_ms=0, name="flow-batch").start()
+    joins: list[int] = []
+    batcher = MicroBatcher(max_batch=8, max_wait_ms=0, name="flow-batch", on_join=joins.append).start()
     batcher.set_policy(policy.forward, 1, policy.preprocess, gated)
     a, b = one_arrives_mid_batch(batcher, gated)
-    assert batcher.joined == 1  # r1 rode r0's steps instead of waiting for them to end
+    assert batcher.joined == 1 and joins == [1]  # r1 rode r0's steps instead of waiting for them to end
     np.testing.assert_allclose(a.action, alone(policy, 0), atol=1e-5)
     np.testing.assert_allclose(b.action, alone(policy, 1), atol=1e-5)
     assert a.version == b.version == 1

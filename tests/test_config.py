@@ -61,6 +61,7 @@ def test_no_file_gives_the_defaults() -> None:
         ("edge.robots=[{id: arm-0}, {kind: sim_reach_arm}]", "edge.robots.1.id"),
         ("log_level=LOUD", "log_level"),
         ("inference.matmul_precision=medium", "inference.matmul_precision"),
+        ("inference.continuous_batching=sometimes", "inference.continuous_batching"),
         ("replay.cache_prefault=sometimes", "replay.cache_prefault"),
         ("up.max_restarts=-1", "up.max_restarts"),
         ("edge.replug_s=-1", "edge.replug_s"),

@@ -153,6 +153,7 @@ class MicroBatcher:
         on_batch: BatchObserver | None = None,
         name: str = "batcher",
         workers: int = 1,
+        on_join: Callable[[int], None] | None = None,
     ) -> None:
         if max_batch < 1:
             raise ValueError("max_batch must be >= 1")
@@ -162,6 +163,7 @@ class MicroBatcher:
         self.max_batch = max_batch
         self.max_wait_s = max(0.0, max_wait_ms) / 1000.0
         self.on_batch = on_batch
+        self.on_join = on_join  # called with the size of each group that joins a running continuous batch
         self.name = name
         self._queue: queue.Queue[_Request] = queue.Queue()
         self._policy: _Served | None = None
@@ -303,6 +305,8 @@ class MicroBatcher:
             try:
                 same.join(group)
                 self.joined += len(group.members)
+                if self.on_join is not None:
+                    self.on_join(len(group.members))
             except Exception as exc:
                 log.exception("joining a running batch failed", extra=kv(size=len(group.members)))
                 self._fail(group.requests(), exc)

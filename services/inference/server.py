@@ -51,6 +51,10 @@ QUEUE_SECONDS = prometheus_client.Histogram(
     "Time an Act request waited to be batched",
     buckets=(0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.025, 0.05, 0.1, 0.5),
 )
+JOINED = prometheus_client.Counter(
+    "user_inference_joined_total",
+    "Requests that joined a running continuous batch at a flow step (inference.continuous_batching)",
+)
 COMPUTE_SECONDS = prometheus_client.Histogram(
     "user_inference_compute_seconds",
     "Policy forward time per batch",
@@ -111,6 +115,7 @@ class PolicySlot:
             on_batch=_observe_batch,
             name=f"inference-batch-{experiment}",
             workers=icfg.batch_workers,
+            on_join=JOINED.inc,
         )
         self.policy: Policy | None = None
         self.subscriber: WeightSubscriber | None = None
