@@ -51,7 +51,7 @@ RUN rm -rf user/v1 && mkdir -p user/v1 \
 
 # Non-root; /data holds the named volumes (replay LMDB, checkpoints), created here so fresh volumes inherit the owner.
 RUN useradd --create-home --uid 10001 --shell /usr/sbin/nologin user \
-    && mkdir -p /data/control /data/replay /data/checkpoints /data/spool /data/weights-shm \
+    && mkdir -p /data/control /data/replay /data/checkpoints /data/spool /data/weights-shm /data/replay-shm \
     && chown -R user:user /data
 USER user
 

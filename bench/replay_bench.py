@@ -10,9 +10,12 @@ sample plain batches.
 from __future__ import annotations
 
 import math
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
+import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -705,6 +708,122 @@ def bench_larger_than_hot(n: int, repeats: int, workdir: Path, log: Callable[...
     return rows
 
 
+# --------------------------------------------------------------------------- replay -> a learner on its host
+
+
+def _serve_replay(cfg_json: str, conn: Any) -> None:
+    """Child process: a replay service knowing the bench robot's spec; sends its address, stops on any message."""
+    from services.replay.server import ReplayService
+    from user.config import StackConfig
+
+    specs = {"feed-0": camera_spec("feed-0")}
+    service = ReplayService(StackConfig.model_validate_json(cfg_json), spec_source=specs.get, start_metrics=False)
+    conn.send(service.start().address)
+    conn.recv()
+    service.stop()
+
+
+def bench_learner_feed(n: int, seconds: float, rounds: int, workdir: Path, log: Callable[..., None]) -> list[Row]:
+    """Batches of 256 with two raw 128x128 cameras (~50 MB) from a replay service in its own process to this one,
+    ready as the learner's sampler thread hands them on (decode_arrays): through shared memory (its default on one
+    host) vs through the gRPC socket, in alternating windows; and lerobot's in-RAM sample of the same transitions."""
+    import multiprocessing
+
+    from cloud_learner.learner import decode_arrays
+    from cloud_learner.replay_sampler import SharedMemoryReplay, SharedSample
+    from user.config import StackConfig
+    from user.rpc import make_channel
+    from user.v1 import replay_pb2, replay_pb2_grpc
+
+    cfg = StackConfig.model_validate({"auth": {"token": "bench-token"}})
+    rc = cfg.replay
+    rc.server.port = rc.server.metrics_port = 0
+    rc.path, rc.map_size_mb = workdir / "feed" / "replay", map_size_for(IMAGES, 2 * n)
+    rc.cache_mb = 2 * n * len(CAMERAS) * IMAGE_HW * IMAGE_HW * 3 >> 20  # every transition in the RAM tier
+    shm_dir = Path(tempfile.mkdtemp(prefix="user-bench-", dir="/dev/shm" if Path("/dev/shm").is_dir() else None))
+    rc.shm_dir = str(shm_dir)
+    episodes = make_episodes(IMAGES, n)
+    ctx = multiprocessing.get_context("spawn")
+    to_child, child_end = ctx.Pipe()
+    child = ctx.Process(target=_serve_replay, args=(cfg.model_dump_json(), child_end), daemon=True)
+    child.start()
+    group = f"replay Sample to a learner on its host, batch {BATCH}, two {IMAGE_HW}x{IMAGE_HW} cameras + state (N={n})"
+    try:
+        if not to_child.poll(120):
+            raise RuntimeError("replay process did not start")
+        addr = to_child.recv()
+        with make_channel(addr, cfg.auth) as channel:
+            stub = replay_pb2_grpc.ReplayStub(channel)
+            requests = (replay_pb2.InsertRequest(seq=i, step=st) for i, st in enumerate(to_steps(episodes, "feed-0")))
+            for _ack in stub.Insert(requests, timeout=600):
+                pass
+            shared = SharedMemoryReplay(stub, str(shm_dir))
+            request = replay_pb2.SampleRequest(batch_size=BATCH)
+            keys = ["camera.front", "camera.wrist", "state"]
+            ways = {
+                "shm": lambda: shared.Sample(request, timeout=60),
+                "socket": lambda: stub.Sample(request, timeout=60),
+            }
+            if not isinstance(ways["shm"](), SharedSample):
+                raise RuntimeError("replay did not offer shared memory on its own host")
+            rates: dict[str, list[float]] = {"shm": [], "socket": []}
+            nbytes = 0
+            for r in range(rounds):
+                for way in ("shm", "socket") if r % 2 == 0 else ("socket", "shm"):
+                    done, start = 0, time.perf_counter()
+                    while time.perf_counter() - start < seconds:
+                        arrays = decode_arrays(ways[way]().batch, keys)
+                        done += 1
+                    rates[way].append(done / (time.perf_counter() - start))
+                    nbytes = sum(
+                        a.nbytes for part in ("observation", "next_observation") for a in arrays[part].values()
+                    )
+            log(f"{group}: batches/s {rates}")
+    finally:
+        to_child.send("stop")
+        child.join(60)
+        shutil.rmtree(shm_dir, ignore_errors=True)
+        shutil.rmtree(workdir / "feed", ignore_errors=True)
+    buf = make_peer(n)
+    for tr in peer_transitions(episodes):
+        buf.add(**tr)
+    peer_ms = median(repeat_ms(lambda: buf.sample(BATCH), max(5, rounds * 3), warmup=1))
+    shm, sock = median(rates["shm"]), median(rates["socket"])
+    note = f"{nbytes / 1e6:.0f} MB of frames a batch; medians of {rounds} alternating {seconds:.0f} s windows"
+    return [
+        Row(
+            group,
+            "batches/s ready in the learner, shared memory vs socket",
+            shm,
+            sock,
+            "batches/s",
+            True,
+            note,
+            peer_name="ours through the gRPC socket",
+        ),
+        Row(
+            group,
+            "batches/s ready in the learner vs lerobot's in-RAM sample",
+            shm,
+            1e3 / peer_ms,
+            "batches/s",
+            True,
+            "theirs: ReplayBuffer.sample in the learner's own process, no transport",
+            peer_name="lerobot 0.6.1 ReplayBuffer",
+        ),
+        Row(
+            group,
+            "batches/s through the socket vs lerobot's in-RAM sample",
+            sock,
+            1e3 / peer_ms,
+            "batches/s",
+            True,
+            "a learner on another host",
+            peer_name="lerobot 0.6.1 ReplayBuffer",
+        ),
+    ]
+
+
 def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Row]:
     workdir.mkdir(parents=True, exist_ok=True)
     sizes = [(SIM_ARM, 600, 3), (IMAGES, 300, 2)] if quick else [(SIM_ARM, 20_000, 30), (IMAGES, 1_000, 10)]
@@ -724,4 +843,5 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
     for fraction in (0.3, 1.0):
         rows += bench_camera_service(n_img, r_img, workdir, log, decoded_fraction=fraction)
     rows += bench_larger_than_hot(2_000 if quick else 50_000, 3 if quick else 20, workdir, log)
+    rows += bench_learner_feed(200 if quick else 2_000, 2.0 if quick else 5.0, 2 if quick else 4, workdir, log)
     return rows

@@ -47,7 +47,7 @@ import torch
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
 from cloud_learner.checkpoint import load_latest, read_version_mark, save_checkpoint, write_version_mark
 from cloud_learner.prepare import check_prepare, normalize_keys, state_stats, with_stats
-from cloud_learner.replay_sampler import ShardedSampler, replay_source
+from cloud_learner.replay_sampler import ShardedSampler, SharedArrays, replay_source
 from user import rpc
 from user.config import ExperimentConfig, StackConfig
 from user.experiments import EMBODIMENT_KEY, LayoutError, assign, check_plugins, layout_for, pad_action, ready
@@ -117,37 +117,57 @@ def _decode(tensor: Any, what: str) -> np.ndarray:
         raise WireError(f"{what}: {exc}") from None
 
 
-def decode_arrays(batch: replay_pb2.Batch, keys: list[str]) -> dict[str, Any]:
-    """Replay batch -> numpy arrays: observation/next_observation dicts for `keys`, action (n, a),
-    reward, terminated, intervention (n,). Images keep their dtype (uint8)."""
+def _getter(batch: replay_pb2.Batch | SharedArrays) -> Any:
+    """name ("action", "observation/<key>", ...) -> decoded array, or None where the batch has none."""
+    if isinstance(batch, SharedArrays):  # copied out of a shared-memory slot already
+        return batch.get
+
+    def get(name: str) -> np.ndarray | None:
+        part, _, key = name.partition("/")
+        if key:
+            tensors = getattr(batch, part).tensors
+            return _decode(tensors[key], f"{part}[{key!r}]") if key in tensors else None
+        return _decode(getattr(batch, name), name) if batch.HasField(name) else None
+
+    return get
+
+
+def decode_arrays(batch: replay_pb2.Batch | SharedArrays, keys: list[str]) -> dict[str, Any]:
+    """Replay batch (its proto, or the arrays of a shared-memory slot) -> numpy arrays: observation/next_observation
+    dicts for `keys`, action (n, a), reward, terminated, intervention (n,). Images keep their dtype (uint8)."""
+    get = _getter(batch)
+
+    def need(name: str) -> np.ndarray:
+        arr = get(name)
+        if arr is None:
+            raise WireError(f"batch lacks {name}")
+        return arr
+
     obs, nxt = {}, {}
     for key in keys:
-        if key not in batch.observation.tensors or key not in batch.next_observation.tensors:
+        now, then = get(f"observation/{key}"), get(f"next_observation/{key}")
+        if now is None or then is None:
             raise WireError(f"batch lacks observation[{key!r}]")
-        obs[key] = _decode(batch.observation.tensors[key], f"observation[{key!r}]")
-        nxt[key] = _decode(batch.next_observation.tensors[key], f"next_observation[{key!r}]")
-    action = _decode(batch.action, "action")
+        obs[key], nxt[key] = now, then
+    action = need("action")
     n = action.shape[0] if action.ndim else 0
     if n < 1:
         raise WireError("empty batch")
-    intervention = (
-        _decode(batch.intervention, "intervention").reshape(n).astype(bool)
-        if batch.HasField("intervention")
-        else np.zeros(n, bool)
-    )
+    intervention = get("intervention")
     out = {
         "observation": obs,
         "next_observation": nxt,
         "action": action.reshape(n, -1).astype(np.float32, copy=False),
-        "reward": _decode(batch.reward, "reward").reshape(n).astype(np.float32, copy=False),
-        "terminated": _decode(batch.terminated, "terminated").reshape(n).astype(np.float32, copy=False),
-        "intervention": intervention,
+        "reward": need("reward").reshape(n).astype(np.float32, copy=False),
+        "terminated": need("terminated").reshape(n).astype(np.float32, copy=False),
+        "intervention": intervention.reshape(n).astype(bool) if intervention is not None else np.zeros(n, bool),
     }
-    if batch.HasField("n_steps"):  # n-step rows: bootstrap with gamma ** n_steps (fewer at an episode's end)
-        out["n_steps"] = _decode(batch.n_steps, "n_steps").reshape(n).astype(np.float32, copy=False)
-    if batch.HasField("action_chunk"):  # the next H actions per row (SampleRequest.action_horizon > 1)
-        chunk = _decode(batch.action_chunk, "action_chunk")
-        mask = _decode(batch.chunk_mask, "chunk_mask") if batch.HasField("chunk_mask") else None
+    n_steps = get("n_steps")
+    if n_steps is not None:  # n-step rows: bootstrap with gamma ** n_steps (fewer at an episode's end)
+        out["n_steps"] = n_steps.reshape(n).astype(np.float32, copy=False)
+    chunk = get("action_chunk")
+    if chunk is not None:  # the next H actions per row (SampleRequest.action_horizon > 1)
+        mask = get("chunk_mask")
         if chunk.ndim < 2 or chunk.shape[0] != n or mask is None or mask.shape != chunk.shape[:2]:
             raise WireError(f"action_chunk {list(chunk.shape)} and chunk_mask do not match a batch of {n}")
         out["action_chunk"] = chunk.reshape(n, chunk.shape[1], -1).astype(np.float32, copy=False)

@@ -15,11 +15,15 @@ empty, UNAVAILABLE when none is live.
 from __future__ import annotations
 
 import logging
+import math
+import mmap
+import os
 import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass
+from typing import Any
 
 import grpc
 import numpy as np
@@ -28,7 +32,9 @@ import prometheus_client
 from user import rpc, wire
 from user.config import AuthConfig, LearnerConfig
 from user.log import kv
+from user.shm_files import host_id, name_pattern, open_regular
 from user.v1 import replay_pb2, replay_pb2_grpc, tensor_pb2
+from user.wire import WireError
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +44,13 @@ SHARD_TRANSITIONS = prometheus_client.Gauge(
 )
 SHARD_SAMPLED = prometheus_client.Counter(
     "user_learner_replay_shard_sampled_total", "Transitions sampled from a replay shard", ["addr"]
+)
+SHM_BATCHES = prometheus_client.Counter(
+    "user_learner_replay_shm_batches_total", "Batches taken from replay's shared-memory slots (same host)"
+)
+SHM_SOCKET = prometheus_client.Counter(
+    "user_learner_replay_shm_socket_total",
+    "Batches asked for through shared memory that came through the socket (no session or slot, a bad slot)",
 )
 
 
@@ -224,11 +237,129 @@ class ShardedSampler:
 
 def replay_source(
     lc: LearnerConfig, auth: AuthConfig, channel: grpc.Channel
-) -> replay_pb2_grpc.ReplayStub | ShardedSampler:
-    """What the learner samples from: the one replay on `channel`, or every shard of lc.replay_addrs."""
-    if not lc.replay_addrs:
-        return replay_pb2_grpc.ReplayStub(channel)
-    return ShardedSampler(lc.replay_addrs, auth, lc.rpc_timeout_s, seed=lc.seed)
+) -> replay_pb2_grpc.ReplayStub | ShardedSampler | SharedMemoryReplay:
+    """What the learner samples from: the one replay on `channel` (through shared memory where it proves to be on
+    this host), or every shard of lc.replay_addrs."""
+    if lc.replay_addrs:
+        return ShardedSampler(lc.replay_addrs, auth, lc.rpc_timeout_s, seed=lc.seed)
+    stub = replay_pb2_grpc.ReplayStub(channel)
+    return SharedMemoryReplay(stub, lc.replay_shm_dir) if lc.replay_shm_dir else stub
+
+
+# --------------------------------------------------------------------------- same host: shared memory
+
+SLOT_NAME = name_pattern("user-replay-")  # services/replay/shared.py's PREFIX
+NONCE_BYTES = 32
+REOPEN_S = 30.0  # after a session is refused or lost, the next OpenSharedMemory waits this long
+
+
+class SharedArrays(dict[str, np.ndarray]):
+    """A batch copied out of a shared-memory slot: arrays by SharedArray name ("action", "observation/<key>")."""
+
+
+@dataclass
+class SharedSample:
+    """What SharedMemoryReplay.Sample returns for a batch that came through shared memory (shaped like a
+    SampleResponse where the learner reads it)."""
+
+    batch: SharedArrays
+    transitions: int
+    table_transitions: dict[str, int]
+
+
+def read_shared(directory: str, shared: replay_pb2.SharedBatch) -> SharedArrays:
+    """Copy every array out of the slot file (checked: our name, a regular file of the stated size, each array
+    within it); WireError otherwise."""
+    fd = open_regular(directory, shared.file, SLOT_NAME)
+    try:
+        size = os.fstat(fd).st_size
+        if size != shared.file_bytes or size == 0:
+            raise WireError(f"slot {shared.file}: {size} bytes, the response says {shared.file_bytes}")
+        out = SharedArrays()
+        with mmap.mmap(fd, size, access=mmap.ACCESS_READ) as mapped:
+            raw = np.frombuffer(mapped, dtype=np.uint8)
+            try:
+                for arr in shared.arrays:
+                    dtype = wire.dtype_from_proto(arr.dtype)
+                    shape = tuple(int(d) for d in arr.shape)
+                    nbytes = math.prod(shape) * dtype.itemsize
+                    if any(d < 0 for d in shape) or arr.offset + nbytes > size or arr.name in out:
+                        raise WireError(f"slot {shared.file}: array {arr.name[:80]!r} {shape} does not fit")
+                    out[arr.name] = raw[arr.offset : arr.offset + nbytes].view(dtype).reshape(shape).copy()
+            finally:
+                del raw  # the map closes only once nothing views it
+        return out
+    finally:
+        os.close(fd)
+
+
+class SharedMemoryReplay:
+    """The replay stub, with Sample's batches taken from replay's shared-memory slots when it proves to be on
+    this host (OpenSharedMemory), through the socket otherwise. One per sampling thread's channel; other calls
+    go to the stub."""
+
+    def __init__(self, stub: replay_pb2_grpc.ReplayStub, directory: str) -> None:
+        self.stub, self.directory = stub, directory
+        self._nonce = b""
+        self._release: list[str] = []  # slots copied out, released with the next request
+        self._open_after = 0.0
+        self._lock = threading.Lock()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.stub, name)
+
+    def _open(self, timeout: float) -> None:
+        if time.monotonic() < self._open_after:
+            return
+        self._open_after = time.monotonic() + REOPEN_S
+        try:
+            offer = self.stub.OpenSharedMemory(replay_pb2.SharedMemoryRequest(host_id=host_id()), timeout=timeout)
+        except grpc.RpcError as err:  # e.g. UNIMPLEMENTED by an older replay: the socket it is
+            log.info("replay offers no shared memory", extra=kv(code=err.code().name))
+            return
+        if not offer.probe_file:
+            log.info("replay offers no shared memory", extra=kv(reason=offer.reason))
+            return
+        try:
+            fd = open_regular(self.directory, offer.probe_file, SLOT_NAME)
+        except WireError as exc:
+            log.info("replay's shared memory is not ours", extra=kv(error=str(exc)))
+            return
+        try:
+            nonce = os.read(fd, NONCE_BYTES + 1)
+        finally:
+            os.close(fd)
+        if len(nonce) == NONCE_BYTES:
+            self._nonce = nonce
+            log.info("replay batches through shared memory", extra=kv(directory=self.directory))
+
+    def Sample(self, request: replay_pb2.SampleRequest, timeout: float) -> Any:
+        with self._lock:
+            if not self._nonce:
+                self._open(timeout)
+            if not self._nonce:
+                return self.stub.Sample(request, timeout=timeout)
+            ask = replay_pb2.SampleRequest()
+            ask.CopyFrom(request)
+            ask.shm_session = self._nonce
+            ask.shm_release.extend(self._release)
+            resp = self.stub.Sample(ask, timeout=timeout)
+            self._release.clear()  # delivered (a failed call keeps them: releasing twice is harmless)
+            if not resp.HasField("shared"):  # replay restarted (session unknown), or no slot was free
+                SHM_SOCKET.inc()
+                self._nonce, self._open_after = b"", time.monotonic() + REOPEN_S
+                return resp
+            try:
+                arrays = read_shared(self.directory, resp.shared)
+            except WireError as exc:
+                log.warning("bad shared-memory batch; through the socket now", extra=kv(error=str(exc)))
+                SHM_SOCKET.inc()
+                self._nonce, self._open_after = b"", time.monotonic() + REOPEN_S
+                return self.stub.Sample(request, timeout=timeout)
+            finally:
+                self._release.append(resp.shared.file)
+            SHM_BATCHES.inc()
+            return SharedSample(arrays, int(resp.transitions), dict(resp.table_transitions))
 
 
 # --------------------------------------------------------------------------- batches

@@ -140,7 +140,7 @@ def test_named_volumes_used_and_declared_match(compose: dict[str, Any], services
     declared = set(compose.get("volumes") or {})
     assert used == declared
     state = {"control-data", "replay-data", "checkpoints", "prometheus-data", "grafana-data"}
-    assert state | {f"{edge}-spool" for edge in EDGES} | {"weights-shm"} == declared
+    assert state | {f"{edge}-spool" for edge in EDGES} | {"weights-shm", "replay-shm"} == declared
 
 
 def test_learner_and_inference_share_a_tmpfs_volume_as_their_weights_shm_dir(
@@ -154,6 +154,18 @@ def test_learner_and_inference_share_a_tmpfs_volume_as_their_weights_shm_dir(
         assert mounts.get(cfg.learner.weights_shm_dir) == "weights-shm", name
     opts = compose["volumes"]["weights-shm"]["driver_opts"]
     assert opts["type"] == "tmpfs" and "mode=1777" in opts["o"]  # RAM; the non-root user writes there
+
+
+def test_replay_and_learner_share_a_tmpfs_volume_for_sample_batches(
+    compose: dict[str, Any], services: dict[str, dict[str, Any]], cfg: StackConfig
+) -> None:
+    """Replay writes sample batches as slot files the learner copies out (it proves the sharing per session)."""
+    assert cfg.replay.shm_dir == cfg.learner.replay_shm_dir == "/data/replay-shm"
+    for name in ("replay", "learner"):
+        mounts = {t: s for s, t in _volumes(services[name])}
+        assert mounts.get(cfg.replay.shm_dir) == "replay-shm", name
+    opts = compose["volumes"]["replay-shm"]["driver_opts"]
+    assert opts["type"] == "tmpfs" and "mode=1777" in opts["o"]
 
 
 def test_state_lives_on_the_named_volumes(services: dict[str, dict[str, Any]], cfg: StackConfig) -> None:

@@ -35,6 +35,7 @@ from user import wire
 from user.config import AuthConfig, StackConfig
 from user.policy import policy_spec_for
 from user.rpc import check_health, make_channel
+from user.shm_files import host_id
 from user.v1 import (
     control_pb2,
     control_pb2_grpc,
@@ -389,10 +390,15 @@ def test_replay_insert(stack: dict[str, Any], reqs: list[replay_pb2.InsertReques
 
 
 @FUZZ
-@given(sample=any_or_near(replay_pb2.SampleRequest(batch_size=4)), stats=any_or_near(replay_pb2.StatsRequest()))
-def test_replay_unary(stack: dict[str, Any], sample: Any, stats: Any) -> None:
+@given(
+    sample=any_or_near(replay_pb2.SampleRequest(batch_size=4)),
+    stats=any_or_near(replay_pb2.StatsRequest()),
+    shm=any_or_near(replay_pb2.SharedMemoryRequest(host_id=host_id())),
+)
+def test_replay_unary(stack: dict[str, Any], sample: Any, stats: Any, shm: Any) -> None:
     unary(stack["replay"].Sample, sample)
     unary(stack["replay"].Stats, stats)
+    unary(stack["replay"].OpenSharedMemory, shm)
 
 
 # --------------------------------------------------------------------------- Inference

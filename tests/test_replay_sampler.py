@@ -175,7 +175,8 @@ def test_merge_refuses_batches_that_disagree(shards: dict[str, Shard]) -> None:
 
 def test_learner_uses_the_sampler_only_for_several_shards(shards: dict[str, Shard]) -> None:
     with make_channel(shards["a"].addr, AUTH) as channel:
-        assert isinstance(replay_source(LearnerConfig(), AUTH, channel), replay_pb2_grpc.ReplayStub)
+        single = LearnerConfig(replay_shm_dir=None)
+        assert isinstance(replay_source(single, AUTH, channel), replay_pb2_grpc.ReplayStub)
         sharded = replay_source(LearnerConfig(replay_addrs=[s.addr for s in shards.values()]), AUTH, channel)
         assert isinstance(sharded, ShardedSampler)
         sharded.close()

@@ -127,6 +127,13 @@ class ReplayConfig(_ServerSection):
     attach: dict[str, Path] = Field(
         default={}, description="read-only tables from other buffers, e.g. {prior: runs/old/replay}"
     )
+    shm_dir: str | None = Field(
+        default="/dev/shm",
+        description="same-host learners that prove they share this directory get batches as slot files here "
+        "instead of through the socket; null = always through the socket",
+    )
+    shm_max_mb: int = Field(default=1024, ge=1, description="shared-memory slot files of all learners together")
+    shm_slots: int = Field(default=4, ge=1, le=64, description="slot files per learner session (batches it holds)")
 
 
 class InferenceConfig(_ServerSection):
@@ -201,6 +208,11 @@ class LearnerConfig(_ServerSection):
         default=1.0, gt=0, description="weight streams pick per link the encoding that delivers a version within this"
     )
     weights_history: int = Field(default=4, ge=1, description="published versions kept as delta bases")
+    replay_shm_dir: str | None = Field(
+        default="/dev/shm",
+        description="same host as replay: take batches from slot files replay writes in this shared-memory "
+        "directory once it proves shared (not with replay_addrs shards); null = always through the socket",
+    )
     weights_shm_dir: str | None = Field(
         default="/dev/shm",
         description="same-host subscribers that prove they share this directory get versions as files here "

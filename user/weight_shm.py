@@ -23,27 +23,26 @@ files are opened without following links and must be regular files of exactly th
 
 from __future__ import annotations
 
-import fcntl
 import hmac
 import logging
 import mmap
 import os
 import re
 import secrets
-import stat
 import threading
 import weakref
 from collections import OrderedDict, deque
-from pathlib import Path
 
 import numpy as np
 import prometheus_client
 
+from user.shm_files import LOCK_SUFFIX, ShmOwner, create_private, host_id, open_regular
 from user.wire import WireError
+
+__all__ = ["LOCK_SUFFIX", "ShmWeights", "host_id", "read_payload", "read_probe"]
 
 log = logging.getLogger(__name__)
 
-BOOT_ID = Path("/proc/sys/kernel/random/boot_id")
 DEFAULT_SHM_DIR = "/dev/shm"
 PREFIX = "user-weights-"
 DEFAULT_KEEP = 3  # versions per experiment: a subscriber still opening the previous one finds it
@@ -61,38 +60,13 @@ SHM_FALLBACK = prometheus_client.Counter(
 )
 
 
-# a learner's file (or temporary file): (its token, its pid); the token is "<pid>-<8 hex>"
-_OWNER = re.compile(r"\.?user-weights-((\d+)-[0-9a-f]{8})[-.].*")
-LOCK_SUFFIX = ".lock"  # .user-weights-<token>.lock: flock-held by its learner for its whole life
-
-
 def owner_of(name: str) -> tuple[str, int] | None:
     """(token, pid) of the learner that wrote this file (a version, buffer, probe, lock or temporary file)."""
     match = _OWNER.fullmatch(name)
     return (match.group(1), int(match.group(2))) if match else None
 
 
-def _create_private(path: str) -> int:
-    """A new file only this user can read, opened read-write (never through a link); OSError if it exists."""
-    return os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except OSError:
-        return True  # exists, not ours to signal
-    return True
-
-
-def host_id() -> str:
-    """This machine's identity for the same-host check: the boot id ("" where there is none: no shm)."""
-    try:
-        return BOOT_ID.read_text().strip()
-    except OSError:
-        return ""
+_OWNER = re.compile(r"\.?user-weights-((\d+)-[0-9a-f]{8})[-.].*")
 
 
 def valid_name(name: str) -> bool:
@@ -108,14 +82,7 @@ def _open_regular(directory: str, name: str) -> int:
     """fd of directory/name, read-only, not through a link, a regular file; WireError otherwise."""
     if not valid_name(name):
         raise WireError(f"shared-memory name {name[:80]!r} is not a weight file name")
-    try:
-        fd = os.open(os.path.join(directory, name), os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
-    except OSError as exc:
-        raise WireError(f"shared-memory file {name}: {exc.strerror}") from exc
-    if not stat.S_ISREG(os.fstat(fd).st_mode):
-        os.close(fd)
-        raise WireError(f"shared-memory file {name} is not a regular file")
-    return fd
+    return open_regular(directory, name, _NAME)
 
 
 def read_probe(directory: str, name: str) -> bytes:
@@ -178,9 +145,8 @@ class ShmWeights:
         # The token in every name. Files of a learner that died without close() (kill -9) are swept by the next
         # one: each learner holds an flock on its own lock file here, which the kernel drops when the process
         # dies, whatever its pid namespace (a restarted container's learner often has its predecessor's pid).
-        self.token = f"{os.getpid()}-{secrets.token_hex(4)}"
-        self._owner_fd = -1
-        self._owner_mutex = threading.Lock()  # one lock file, even when stream threads race to make it
+        self.owner = ShmOwner(directory, PREFIX)
+        self.token = self.owner.token
         self._lock = threading.Lock()
         self._files: OrderedDict[tuple[str, int, bytes], _Written] = OrderedDict()  # oldest first
         # The file of the version that just left, renamed: the next version is written over its pages. A
@@ -192,76 +158,7 @@ class ShmWeights:
         self._buffer_bytes = 0
         self._dropped: deque[tuple[int, str]] = deque()  # buffers collected since, tidied under the lock
         self._closed = False
-        self._hold_owner_lock()
-        self.swept = self._sweep()
-
-    def _hold_owner_lock(self) -> None:
-        """Create and flock our lock file (under a temporary name first, so no sweeper sees it unlocked);
-        retried before each write while the directory is missing."""
-        if self._owner_fd >= 0 or self._closed:
-            return
-        with self._owner_mutex:
-            if self._owner_fd < 0 and not self._closed:
-                self._make_owner_lock()
-
-    def _make_owner_lock(self) -> None:
-        final = os.path.join(self.directory, f".{PREFIX}{self.token}{LOCK_SUFFIX}")
-        tmp = f"{final}.{secrets.token_hex(4)}.tmp"
-        try:
-            fd = _create_private(tmp)
-        except OSError:
-            return
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            os.rename(tmp, final)
-        except OSError:
-            os.close(fd)
-            self._unlink(os.path.basename(tmp))
-            return
-        self._owner_fd = fd
-        self._release_owner = weakref.finalize(self, os.close, fd)  # dropped without close(): the lock goes too
-
-    def _owner_gone(self, lock_name: str) -> bool:
-        """Whether the learner holding this lock file has died (its flock is free)."""
-        try:
-            fd = os.open(os.path.join(self.directory, lock_name), os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
-        except OSError:
-            return False
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            return True
-        except OSError:
-            return False  # held (alive), or cannot tell
-        finally:
-            os.close(fd)
-
-    def _sweep(self) -> int:
-        """Remove the files of learners (this user's) whose process is gone; the number removed."""
-        try:
-            names = os.listdir(self.directory)
-        except OSError:
-            return 0
-        owners: dict[str, list[str]] = {}
-        pids: dict[str, int] = {}
-        for name in names:
-            owner = owner_of(name)
-            if owner is not None and owner[0] != self.token:
-                owners.setdefault(owner[0], []).append(name)
-                pids[owner[0]] = owner[1]
-        removed = 0
-        for token, owned in owners.items():
-            lock = f".{PREFIX}{token}{LOCK_SUFFIX}"
-            # no lock file: a learner from before lock files, judged by its pid
-            if not (self._owner_gone(lock) if lock in owned else not _alive(pids[token])):
-                continue
-            for name in sorted(owned, key=lambda n: n == lock):  # the lock last: a crash midway is swept again
-                try:
-                    if os.lstat(os.path.join(self.directory, name)).st_uid == os.getuid():
-                        os.unlink(os.path.join(self.directory, name))
-                        removed += name != lock
-                except OSError:
-                    pass  # gone already, or not ours to remove
-        return removed
+        self.swept = self.owner.swept
 
     def same_host(self, subscriber_host: str) -> bool:
         return bool(self.host) and hmac.compare_digest(self.host.encode(), subscriber_host.encode())
@@ -378,10 +275,7 @@ class ShmWeights:
                 self._unlink(buffer_name)  # the learner may still map it: the pages go when it lets go
             self._buffers.clear()
             self._buffer_bytes = 0
-            if self._owner_fd >= 0:
-                self._unlink(f".{PREFIX}{self.token}{LOCK_SUFFIX}")
-                self._release_owner()
-                self._owner_fd = -1
+        self.owner.close()
 
     # ------------------------------------------------------------------ payload buffers
 
@@ -398,10 +292,10 @@ class ShmWeights:
                     self._buffer_bytes -= found[2]
             if self._closed or nbytes < MIN_BUFFER_BYTES or self._buffer_bytes + nbytes > self.max_bytes:
                 return None
-        self._hold_owner_lock()
+        self.owner.hold()
         name = f".{PREFIX}{self.token}-buf-{secrets.token_hex(8)}"
         try:
-            fd = _create_private(os.path.join(self.directory, name))
+            fd = create_private(os.path.join(self.directory, name))
         except OSError:
             return None
         try:
@@ -444,7 +338,7 @@ class ShmWeights:
     def _write_file(self, name: str, data: memoryview, spare: str = "") -> None:
         """0600, written under a temporary name (a fresh file, or over the spare's pages) and renamed: a
         reader never sees a partial file under a version's name."""
-        self._hold_owner_lock()
+        self.owner.hold()
         tmp = os.path.join(self.directory, spare or f".{name}.{secrets.token_hex(4)}.tmp")
         flags = os.O_WRONLY | os.O_NOFOLLOW | os.O_CLOEXEC | (0 if spare else os.O_CREAT | os.O_EXCL)
         try:

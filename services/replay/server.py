@@ -33,6 +33,8 @@ from services.replay.chunks import add_action_chunks, horizon_problem
 from services.replay.disk import ReplayError
 from services.replay.hot import single_threaded_cv2
 from services.replay.prefetch import Prefetcher
+from services.replay.shared import NAME as SHARED_NAME
+from services.replay.shared import NONCE_BYTES, SHARED_FALLBACK, SharedBatches
 from services.replay.store import (
     EmptyBufferError,
     LayoutError,
@@ -53,11 +55,14 @@ log = logging.getLogger(__name__)
 
 SERVICE_NAME = replay_pb2.DESCRIPTOR.services_by_name["Replay"].full_name
 MAX_SAMPLE = 65536
+MAX_RELEASE = 64  # slot files released per SampleRequest
 MAX_N_STEP = 1000
 MAX_FRAME_STACK = 64
 MAX_TABLES = 64
 MAX_STORE_TABLES = 256  # distinct tables one buffer holds: each costs index columns and a metric series
 PREFETCH_MAX_BYTES = 16 << 20  # larger batches are assembled per request, not kept ready in RAM
+# batches for a same-host learner: assembling one (~5 ms for 50 MB of frames) overlaps the learner's copy-out
+SHM_PREFETCH_MAX_BYTES = 64 << 20
 TABLE_NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 SAMPLERS = {
     replay_pb2.SAMPLER_UNIFORM: "uniform",
@@ -346,8 +351,11 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         min_size_to_sample: int = 0,
         samples_per_insert: float = 0.0,
         samples_per_insert_slack: float = 0.0,
+        shared: SharedBatches | None = None,
     ) -> None:
+        """shared: batches through shared memory for same-host learners (None: always through the socket)."""
         self.store = store
+        self.shared = shared
         self.prefetch = Prefetcher(prefetch_batches, prefetch_max_age_s, lambda: store.generation)
         self.min_size_to_sample = min_size_to_sample
         self.samples_per_insert = samples_per_insert
@@ -589,12 +597,20 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         draw = to_draw(request)
         robot_ids = draw.robot_ids or None
         start = time.perf_counter()
+        shm = bool(request.shm_session) and self.shared is not None
         try:
             self._rate_limit(request, robot_ids, context)
-            key = request.SerializeToString(deterministic=True)
+            kind = replay_pb2.SampleRequest()
+            kind.CopyFrom(request)
+            kind.ClearField("shm_session")
+            kind.ClearField("shm_release")
+            # a shared-memory kind is prefetched as arrays (written into a slot), the other as its proto
+            key = kind.SerializeToString(deterministic=True) + (b"\0shm" if shm else b"")
             served = self.prefetch.served
-            batch, size = self.prefetch.get(
-                key, lambda: self._assemble(draw, request.action_horizon), lambda r: r[1] <= PREFETCH_MAX_BYTES
+            assembled, size = self.prefetch.get(
+                key,
+                lambda: self._assemble(draw, request.action_horizon, as_proto=not shm),
+                lambda r: r[1] <= (SHM_PREFETCH_MAX_BYTES if shm else PREFETCH_MAX_BYTES),
             )
             if self.prefetch.served > served:
                 PREFETCH_SERVED.inc()
@@ -608,25 +624,48 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             log.warning("sample aborted", extra=kv(error=str(exc)))
             SAMPLE_ABORTED.inc()
             context.abort(grpc.StatusCode.ABORTED, f"sample raced a change of the buffer, retry: {exc}")
-        if size > MAX_BATCH_BYTES:
+        resp = replay_pb2.SampleResponse(transitions=transitions, table_transitions=per_table)
+        if shm:
+            assert self.shared is not None
+            shared, why = self.shared.write(request.shm_session, list(request.shm_release), assembled)
+            if shared is not None:
+                resp.shared.CopyFrom(shared)
+            else:
+                SHARED_FALLBACK.labels(why).inc()
+                assembled = to_batch(assembled) if size <= MAX_BATCH_BYTES else None
+        if size > MAX_BATCH_BYTES and not resp.HasField("shared"):
             per = max(1, size // request.batch_size)
             context.abort(
                 grpc.StatusCode.INVALID_ARGUMENT,
                 f"a batch of {request.batch_size} is {size} bytes, over the {MAX_BATCH_BYTES}-byte message limit; "
                 f"ask for at most {MAX_BATCH_BYTES // per}",
             )
+        if not resp.HasField("shared"):
+            resp.batch.CopyFrom(assembled)
         with self._count_lock:
             self.sampled += request.batch_size
-        resp = replay_pb2.SampleResponse(batch=batch, transitions=transitions, table_transitions=per_table)
         SAMPLE_SECONDS.observe(time.perf_counter() - start)
         return resp
 
-    def _assemble(self, draw: Draw, action_horizon: int = 1) -> tuple[replay_pb2.Batch, int]:
+    def OpenSharedMemory(
+        self, request: replay_pb2.SharedMemoryRequest, context: grpc.ServicerContext
+    ) -> replay_pb2.SharedMemoryOffer:
+        if len(request.host_id) > 128:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "host_id is at most 128 characters")
+        if self.shared is None:
+            return replay_pb2.SharedMemoryOffer(reason="shared memory is off (replay.shm_dir)")
+        return self.shared.offer(request.host_id)
+
+    def _assemble(
+        self, draw: Draw, action_horizon: int = 1, as_proto: bool = True
+    ) -> tuple[replay_pb2.Batch | dict[str, Any], int]:
         with self._rng_lock:
             rng = np.random.default_rng(self._rng.integers(1 << 63))
         arrays = self.store.sample(draw.batch_size, rng, draw=draw)
         add_action_chunks(self.store, arrays, action_horizon)  # the next H actions per row (H > 1)
         size = _nbytes(arrays)
+        if not as_proto:
+            return arrays, size
         if size > MAX_BATCH_BYTES:
             return replay_pb2.Batch(), size
         return to_batch(arrays), size
@@ -729,6 +768,10 @@ def sample_request_problem(req: replay_pb2.SampleRequest) -> str | None:
         return problem
     if req.n_step > MAX_N_STEP:
         return f"n_step must be at most {MAX_N_STEP}, got {req.n_step}"
+    if len(req.shm_session) not in (0, NONCE_BYTES):
+        return f"shm_session is the {NONCE_BYTES} bytes of an OpenSharedMemory probe file"
+    if len(req.shm_release) > MAX_RELEASE or not all(SHARED_NAME.fullmatch(n) for n in req.shm_release):
+        return f"shm_release names at most {MAX_RELEASE} slot files of this replay"
     if req.n_step > 1 and not (0 < req.gamma <= 1):
         return f"gamma must be in (0, 1] for n_step > 1, got {req.gamma}"
     for field, value in (("priority_alpha", req.priority_alpha), ("priority_beta", req.priority_beta)):
@@ -809,6 +852,7 @@ class ReplayService(rpc.GrpcService):
         except BaseException:
             self.store.close()
             raise
+        self.shared = SharedBatches(rc.shm_dir, rc.shm_max_mb << 20, rc.shm_slots) if rc.shm_dir else None
         self._control: ControlSpecSource | None = None
         if spec_source is None:
             self._control = ControlSpecSource(rc.control_addr, cfg.auth, rc.rpc_timeout_s)
@@ -823,6 +867,7 @@ class ReplayService(rpc.GrpcService):
             min_size_to_sample=rc.min_size_to_sample,
             samples_per_insert=rc.samples_per_insert,
             samples_per_insert_slack=rc.samples_per_insert_slack,
+            shared=self.shared,
         )
         self.start_metrics = start_metrics
         self.running: rpc.RunningServer | None = None
@@ -853,6 +898,8 @@ class ReplayService(rpc.GrpcService):
         if not self.servicer.wait_streams(grace + 1.0):
             log.warning("insert streams still open at shutdown")
         self.store.close()
+        if self.shared is not None:
+            self.shared.close()
         if self._control is not None:
             self._control.close()
 
