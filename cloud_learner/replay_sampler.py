@@ -18,8 +18,10 @@ import logging
 import math
 import mmap
 import os
+import sys
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass
@@ -251,6 +253,7 @@ def replay_source(
 SLOT_NAME = name_pattern("user-replay-")  # services/replay/shared.py's PREFIX
 NONCE_BYTES = 32
 REOPEN_S = 30.0  # after a session is refused or lost, the next OpenSharedMemory waits this long
+MAX_MAPPED = 80  # slot mappings kept (replay.shm_slots is at most 64 per session)
 
 
 class SharedArrays(dict[str, np.ndarray]):
@@ -267,42 +270,72 @@ class SharedSample:
     table_transitions: dict[str, int]
 
 
-def read_shared(directory: str, shared: replay_pb2.SharedBatch) -> SharedArrays:
-    """Copy every array out of the slot file (checked: our name, a regular file of the stated size, each array
-    within it); WireError otherwise."""
-    fd = open_regular(directory, shared.file, SLOT_NAME)
+def shared_arrays(base: np.ndarray, shared: replay_pb2.SharedBatch) -> SharedArrays:
+    """The batch's arrays as views of `base` (the slot's bytes), each checked to lie inside it; WireError else."""
+    arrays = SharedArrays()
+    for arr in shared.arrays:
+        dtype = wire.dtype_from_proto(arr.dtype)
+        shape = tuple(int(d) for d in arr.shape)
+        nbytes = math.prod(shape) * dtype.itemsize
+        if any(d < 0 for d in shape) or arr.offset + nbytes > base.nbytes or arr.name in arrays:
+            raise WireError(f"slot {shared.file}: array {arr.name[:80]!r} {shape} does not fit")
+        arrays[arr.name] = base[arr.offset : arr.offset + nbytes].view(dtype).reshape(shape)
+    return arrays
+
+
+@dataclass
+class _Mapped:
+    """A slot file this learner keeps mapped: reading a batch in it costs no copy and, after its first, no page
+    faults. `held` while arrays of the batch last read from it may be alive (they view `base`)."""
+
+    map: mmap.mmap
+    base: np.ndarray
+    held: bool = False
+
+    def in_use(self) -> bool:
+        return sys.getrefcount(self.base) > 2  # this attribute, getrefcount's argument; every view adds one
+
+    def close(self) -> bool:
+        """Unmap if nothing views it; whether it was."""
+        if self.in_use():
+            return False
+        del self.base
+        try:
+            self.map.close()
+        except BufferError:  # a view appeared after all (another thread): the map goes when it does
+            pass
+        return True
+
+
+def map_slot(directory: str, shared: replay_pb2.SharedBatch) -> _Mapped:
+    """Map a slot file (our name, no links, a regular file of the stated size); WireError otherwise."""
+    fd = open_regular(directory, shared.file, SLOT_NAME, writable=True)  # writable: the batch is the learner's
     try:
         size = os.fstat(fd).st_size
         if size != shared.file_bytes or size == 0:
             raise WireError(f"slot {shared.file}: {size} bytes, the response says {shared.file_bytes}")
-        out = SharedArrays()
-        with mmap.mmap(fd, size, access=mmap.ACCESS_READ) as mapped:
-            raw = np.frombuffer(mapped, dtype=np.uint8)
-            try:
-                for arr in shared.arrays:
-                    dtype = wire.dtype_from_proto(arr.dtype)
-                    shape = tuple(int(d) for d in arr.shape)
-                    nbytes = math.prod(shape) * dtype.itemsize
-                    if any(d < 0 for d in shape) or arr.offset + nbytes > size or arr.name in out:
-                        raise WireError(f"slot {shared.file}: array {arr.name[:80]!r} {shape} does not fit")
-                    out[arr.name] = raw[arr.offset : arr.offset + nbytes].view(dtype).reshape(shape).copy()
-            finally:
-                del raw  # the map closes only once nothing views it
-        return out
+        mapped = mmap.mmap(fd, size, mmap.MAP_SHARED)
+    except OSError as exc:
+        raise WireError(f"slot {shared.file}: {exc.strerror}") from exc
     finally:
         os.close(fd)
+    return _Mapped(mapped, np.frombuffer(mapped, dtype=np.uint8))
 
 
 class SharedMemoryReplay:
     """The replay stub, with Sample's batches taken from replay's shared-memory slots when it proves to be on
     this host (OpenSharedMemory), through the socket otherwise. One per sampling thread's channel; other calls
-    go to the stub."""
+    go to the stub.
+
+    A batch's arrays are views of the slot file, mapped once and kept mapped: no copy. The slot is released to
+    replay (SampleRequest.shm_release) with the first request after every array of that batch is gone, so a
+    learner holding batches in its prefetch queue holds their slots (replay.shm_slots per session)."""
 
     def __init__(self, stub: replay_pb2_grpc.ReplayStub, directory: str) -> None:
         self.stub, self.directory = stub, directory
         self._nonce = b""
-        self._release: list[str] = []  # slots copied out, released with the next request
         self._open_after = 0.0
+        self._mapped: OrderedDict[str, _Mapped] = OrderedDict()  # slot name -> its mapping, oldest use first
         self._lock = threading.Lock()
 
     def __getattr__(self, name: str) -> Any:
@@ -333,6 +366,25 @@ class SharedMemoryReplay:
             self._nonce = nonce
             log.info("replay batches through shared memory", extra=kv(directory=self.directory))
 
+    def _released(self) -> list[str]:
+        """Slots whose batch nobody views any more (released now), and old mappings dropped."""
+        free = []
+        for name, mapped in self._mapped.items():
+            if mapped.held and not mapped.in_use():
+                mapped.held = False
+                free.append(name)
+        while len(self._mapped) > MAX_MAPPED:  # slots replay replaced or a past session's: unmap the oldest free
+            name = next((n for n, m in self._mapped.items() if not m.held and not m.in_use()), None)
+            if name is None or not self._mapped.pop(name).close():
+                break
+        return free
+
+    def _drop_session(self) -> None:
+        self._nonce, self._open_after = b"", time.monotonic() + REOPEN_S
+        for name in [n for n, m in self._mapped.items() if not m.held]:
+            if self._mapped[name].close():
+                del self._mapped[name]
+
     def Sample(self, request: replay_pb2.SampleRequest, timeout: float) -> Any:
         with self._lock:
             if not self._nonce:
@@ -342,24 +394,42 @@ class SharedMemoryReplay:
             ask = replay_pb2.SampleRequest()
             ask.CopyFrom(request)
             ask.shm_session = self._nonce
-            ask.shm_release.extend(self._release)
-            resp = self.stub.Sample(ask, timeout=timeout)
-            self._release.clear()  # delivered (a failed call keeps them: releasing twice is harmless)
-            if not resp.HasField("shared"):  # replay restarted (session unknown), or no slot was free
+            released = self._released()
+            ask.shm_release.extend(released)
+            try:
+                resp = self.stub.Sample(ask, timeout=timeout)
+            except grpc.RpcError:
+                for name in released:  # maybe not delivered: released again next time (harmless twice)
+                    self._mapped[name].held = True
+                raise
+            if not resp.HasField("shared"):
                 SHM_SOCKET.inc()
-                self._nonce, self._open_after = b"", time.monotonic() + REOPEN_S
+                if resp.shm_reason == "unknown session":  # replay restarted, or the session idled out
+                    self._drop_session()
                 return resp
             try:
-                arrays = read_shared(self.directory, resp.shared)
+                arrays = self._read(resp.shared)
             except WireError as exc:
                 log.warning("bad shared-memory batch; through the socket now", extra=kv(error=str(exc)))
                 SHM_SOCKET.inc()
-                self._nonce, self._open_after = b"", time.monotonic() + REOPEN_S
+                self._drop_session()
                 return self.stub.Sample(request, timeout=timeout)
-            finally:
-                self._release.append(resp.shared.file)
             SHM_BATCHES.inc()
             return SharedSample(arrays, int(resp.transitions), dict(resp.table_transitions))
+
+    def _read(self, shared: replay_pb2.SharedBatch) -> SharedArrays:
+        mapped = self._mapped.get(shared.file)
+        if mapped is not None and mapped.held:
+            raise WireError(f"slot {shared.file} came back before this learner released it")
+        if mapped is None or mapped.base.nbytes != shared.file_bytes:
+            if mapped is not None and mapped.close():
+                del self._mapped[shared.file]
+            mapped = map_slot(self.directory, shared)
+            self._mapped[shared.file] = mapped
+        self._mapped.move_to_end(shared.file)
+        arrays = shared_arrays(mapped.base, shared)
+        mapped.held = True
+        return arrays
 
 
 # --------------------------------------------------------------------------- batches

@@ -9,6 +9,7 @@ import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import grpc
 import numpy as np
@@ -123,6 +124,59 @@ def test_batches_come_through_shared_memory_and_match_the_socket(service: Replay
     assert sorted(shared) == sorted(inline)
 
 
+def test_a_batch_still_held_is_never_overwritten_by_a_later_one(service: ReplayService, shm_dir: Path) -> None:
+    """Batches are read into reused buffers (>= 1 MiB each): one is reused only once no array of it is alive."""
+    client = SharedMemoryReplay(stub(service), str(shm_dir))
+    request = replay_pb2.SampleRequest(batch_size=4096)  # ~1.8 MB: pooled
+    held = []
+    for i in range(6):
+        arrays = decode_arrays(client.Sample(request, timeout=10).batch, KEYS)
+        if i % 2 == 0:  # every other batch is dropped at once: its buffer may serve the next
+            held.append((arrays, {k: v.copy() for k, v in arrays["observation"].items()}))
+    for arrays, as_received in held:
+        check_rows(arrays)
+        for key, value in as_received.items():
+            np.testing.assert_array_equal(arrays["observation"][key], value)
+
+
+def test_a_learner_holding_every_slot_gets_the_socket_and_keeps_its_session(
+    service: ReplayService, shm_dir: Path
+) -> None:
+    client = SharedMemoryReplay(stub(service), str(shm_dir))
+    request = replay_pb2.SampleRequest(batch_size=16)
+    held = [client.Sample(request, timeout=10) for _ in range(2)]  # the fixture's 2 slots, both still viewed
+    assert all(isinstance(r, SharedSample) for r in held)
+    over_socket = client.Sample(request, timeout=10)
+    assert isinstance(over_socket, replay_pb2.SampleResponse) and over_socket.shm_reason == "no free slot"
+    del held  # the learner trained on them: their slots go back with the next request
+    assert isinstance(client.Sample(request, timeout=10), SharedSample)
+
+
+def test_after_replay_restarts_the_learner_opens_a_new_session(
+    tmp_path: Path, shm_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import cloud_learner.replay_sampler as sampler
+
+    monkeypatch.setattr(sampler, "REOPEN_S", 0.0)
+    cfg = _cfg(tmp_path / "replay", shm_dir=str(shm_dir))
+    specs = {"arm-0": camera_spec("arm-0")}.get
+    svc = ReplayService(cfg, spec_source=specs, start_metrics=False).start()
+    insert(svc, steps("e1", 10))
+    port = svc.address.rsplit(":", 1)[1]
+    client = SharedMemoryReplay(stub(svc), str(shm_dir))
+    request = replay_pb2.SampleRequest(batch_size=8)
+    assert isinstance(client.Sample(request, timeout=10), SharedSample)
+    svc.stop()
+    cfg.replay.server.port = int(port)
+    svc = ReplayService(cfg, spec_source=specs, start_metrics=False).start()
+    try:
+        again = client.Sample(request, timeout=10)  # the old session is unknown: this batch through the socket
+        assert isinstance(again, replay_pb2.SampleResponse) and again.shm_reason == "unknown session"
+        assert isinstance(client.Sample(request, timeout=10), SharedSample)  # a new session
+    finally:
+        svc.stop()
+
+
 def test_the_learner_samples_through_shared_memory_by_default(service: ReplayService, shm_dir: Path) -> None:
     lc = LearnerConfig(replay_shm_dir=str(shm_dir))
     with make_channel(service.address, AUTH) as channel:
@@ -178,15 +232,15 @@ def test_a_replaced_slot_is_refused_and_the_batch_comes_through_the_socket(
 ) -> None:
     import cloud_learner.replay_sampler as sampler
 
-    read_shared = sampler.read_shared
+    map_slot = sampler.map_slot
 
-    def replaced(directory: str, shared: replay_pb2.SharedBatch) -> SharedArrays:
+    def replaced(directory: str, shared: replay_pb2.SharedBatch) -> Any:
         path = shm_dir / shared.file  # another process of this user put another file under its name
         path.unlink()
         path.write_bytes(b"x" * 10)
-        return read_shared(directory, shared)
+        return map_slot(directory, shared)
 
-    monkeypatch.setattr(sampler, "read_shared", replaced)
+    monkeypatch.setattr(sampler, "map_slot", replaced)
     client = SharedMemoryReplay(stub(service), str(shm_dir))
     resp = client.Sample(replay_pb2.SampleRequest(batch_size=16), timeout=10)
     assert isinstance(resp, replay_pb2.SampleResponse) and resp.HasField("batch") and not resp.HasField("shared")

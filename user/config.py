@@ -133,7 +133,12 @@ class ReplayConfig(_ServerSection):
         "instead of through the socket; null = always through the socket",
     )
     shm_max_mb: int = Field(default=1024, ge=1, description="shared-memory slot files of all learners together")
-    shm_slots: int = Field(default=4, ge=1, le=64, description="slot files per learner session (batches it holds)")
+    shm_slots: int = Field(
+        default=8,
+        ge=1,
+        le=64,
+        description="slot files per learner session: batches it may hold at once (its prefetch queue, one training)",
+    )
 
 
 class InferenceConfig(_ServerSection):

@@ -53,12 +53,13 @@ def name_pattern(prefix: str) -> re.Pattern[str]:
     return re.compile(re.escape(prefix) + r"[A-Za-z0-9_.-]{1,200}")
 
 
-def open_regular(directory: str, name: str, pattern: re.Pattern[str]) -> int:
-    """fd of directory/name, read-only, not through a link, a regular file; WireError otherwise."""
+def open_regular(directory: str, name: str, pattern: re.Pattern[str], writable: bool = False) -> int:
+    """fd of directory/name, read-only (or read-write), not through a link, a regular file; WireError otherwise."""
     if not pattern.fullmatch(name) or name in (".", ".."):
         raise WireError(f"shared-memory name {name[:80]!r} is not one of ours")
     try:
-        fd = os.open(os.path.join(directory, name), os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC)
+        mode = os.O_RDWR if writable else os.O_RDONLY
+        fd = os.open(os.path.join(directory, name), mode | os.O_NOFOLLOW | os.O_CLOEXEC)
     except OSError as exc:
         raise WireError(f"shared-memory file {name}: {exc.strerror}") from exc
     if not stat.S_ISREG(os.fstat(fd).st_mode):

@@ -632,6 +632,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
                 resp.shared.CopyFrom(shared)
             else:
                 SHARED_FALLBACK.labels(why).inc()
+                resp.shm_reason = why
                 assembled = to_batch(assembled) if size <= MAX_BATCH_BYTES else None
         if size > MAX_BATCH_BYTES and not resp.HasField("shared"):
             per = max(1, size // request.batch_size)
