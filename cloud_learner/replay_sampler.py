@@ -50,6 +50,10 @@ SHARD_SAMPLED = prometheus_client.Counter(
 SHM_BATCHES = prometheus_client.Counter(
     "user_learner_replay_shm_batches_total", "Batches taken from replay's shared-memory slots (same host)"
 )
+SHM_SESSIONS = prometheus_client.Counter(
+    "user_learner_replay_shm_sessions_total",
+    "Shared-memory sessions opened with replay (it proved to share its directory)",
+)
 SHM_SOCKET = prometheus_client.Counter(
     "user_learner_replay_shm_socket_total",
     "Batches asked for through shared memory that came through the socket (no session or slot, a bad slot)",
@@ -364,6 +368,7 @@ class SharedMemoryReplay:
             os.close(fd)
         if len(nonce) == NONCE_BYTES:
             self._nonce = nonce
+            SHM_SESSIONS.inc()
             log.info("replay batches through shared memory", extra=kv(directory=self.directory))
 
     def _released(self) -> list[str]:
@@ -403,7 +408,8 @@ class SharedMemoryReplay:
                     self._mapped[name].held = True
                 raise
             if not resp.HasField("shared"):
-                SHM_SOCKET.inc()
+                if resp.shm_reason != "small batch":
+                    SHM_SOCKET.inc()
                 if resp.shm_reason == "unknown session":  # replay restarted, or the session idled out
                     self._drop_session()
                 return resp

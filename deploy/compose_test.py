@@ -240,14 +240,14 @@ def docker_kill_and_start(stack: Stack, services: list[str], timeout: float) -> 
     return {"healthy_again_s": round(healthy, 1), "version_before": version_before, "versions_after": versions[-1]}
 
 
-def learner_shm_batches(stack: Stack) -> int:
-    """user_learner_replay_shm_batches_total from the learner's /metrics (0 before its first, or while it restarts)."""
+def learner_shm_sessions(stack: Stack) -> int:
+    """user_learner_replay_shm_sessions_total from the learner's /metrics (0 before its first, or while it restarts)."""
     try:
         text = urllib.request.urlopen(f"http://{stack.host}:9104/metrics", timeout=5).read().decode()
     except OSError:
         return 0
     for line in text.splitlines():
-        if line.startswith("user_learner_replay_shm_batches_total "):
+        if line.startswith("user_learner_replay_shm_sessions_total "):
             return int(float(line.split()[1]))
     return 0
 
@@ -279,11 +279,10 @@ def scenario(stack: Stack, services: list[str], timeout: float) -> dict[str, Any
     if encoding != "WEIGHT_ENCODING_FP32_SHM":
         raise Failed(f"inference gets weights as {encoding}, not through the shared weights-shm volume")
 
-    shm_batches = learner_shm_batches(stack)
-    res["learner_replay_shm_batches"] = rising(
-        lambda: learner_shm_batches(stack), "learner batches through the shared replay-shm volume", timeout
-    )[:2]
-    log(f"learner batches through replay-shm: {shm_batches} -> {res['learner_replay_shm_batches'][1]}")
+    # the learner proved it shares replay's replay-shm volume (its state-only batches are small: they take the socket)
+    sessions, _ = wait_for("a shared-memory session with replay", lambda: learner_shm_sessions(stack) or None, timeout)
+    res["learner_replay_shm_sessions"] = sessions
+    log(f"learner shared-memory sessions with replay: {sessions}")
 
     def targets_up() -> list[dict[str, Any]] | None:
         targets = stack.prometheus_targets()
@@ -303,11 +302,11 @@ def scenario(stack: Stack, services: list[str], timeout: float) -> dict[str, Any
         raise Failed(f"replay held {steps_before} steps before the kill and {a} after: stored steps lost")
     res["kill_replay"].update(steps_before_kill=steps_before, steps_after_restart=a, steps_rising_to=b)
     # the learner opens a new shared-memory session with the restarted replay (after REOPEN_S), and the killed
-    # replay's slot files are swept by its successor: one replay's files remain
-    a, b, _ = rising(lambda: learner_shm_batches(stack), "learner batches through replay-shm after the kill", timeout)
+    # replay's files are swept by its successor: one replay's files remain
+    a, b, _ = rising(lambda: learner_shm_sessions(stack), "a new shared-memory session after the kill", timeout)
     names = stack.dc("exec", "-T", "replay", "ls", "-A", "/data/replay-shm").split()
     owners = sorted({m.group(1) for n in names if (m := re.match(r"\.?user-replay-(\d+-[0-9a-f]{8})", n))})
-    res["kill_replay"].update(shm_batches=[a, b], shm_files_owners=owners)
+    res["kill_replay"].update(shm_sessions=[a, b], shm_files_owners=owners)
     if len(owners) != 1:
         raise Failed(f"replay-shm files of {len(owners)} replays after the restart: {names}")
 

@@ -17,6 +17,7 @@ import pytest
 
 from cloud_learner.learner import decode_arrays
 from cloud_learner.replay_sampler import SharedArrays, SharedMemoryReplay, SharedSample, replay_source
+from services.replay import server as replay_server
 from services.replay.server import ReplayService
 from services.replay.shared import SharedBatches
 from tests.test_replay_service import AUTH, _cfg, insert, stub
@@ -68,6 +69,12 @@ def steps(episode: str, length: int) -> list[step_pb2.Step]:
             step.final_observation.CopyFrom(_obs(t + 1))
         out.append(step)
     return out
+
+
+@pytest.fixture(autouse=True)
+def tiny_batches_through_shared_memory(monkeypatch: pytest.MonkeyPatch) -> None:
+    """These tests' batches are small (8x8 frames): below replay's SHM_MIN_BYTES they would take the socket."""
+    monkeypatch.setattr(replay_server, "SHM_MIN_BYTES", 0)
 
 
 @pytest.fixture
@@ -152,12 +159,15 @@ def test_a_learner_holding_every_slot_gets_the_socket_and_keeps_its_session(
     assert isinstance(client.Sample(request, timeout=10), SharedSample)
 
 
+@pytest.mark.parametrize("small", [False, True])
 def test_after_replay_restarts_the_learner_opens_a_new_session(
-    tmp_path: Path, shm_dir: Path, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, shm_dir: Path, monkeypatch: pytest.MonkeyPatch, small: bool
 ) -> None:
     import cloud_learner.replay_sampler as sampler
 
     monkeypatch.setattr(sampler, "REOPEN_S", 0.0)
+    if small:  # every batch takes the socket; the session is still checked, and renewed
+        monkeypatch.setattr(replay_server, "SHM_MIN_BYTES", 1 << 40)
     cfg = _cfg(tmp_path / "replay", shm_dir=str(shm_dir))
     specs = {"arm-0": camera_spec("arm-0")}.get
     svc = ReplayService(cfg, spec_source=specs, start_metrics=False).start()
@@ -165,16 +175,35 @@ def test_after_replay_restarts_the_learner_opens_a_new_session(
     port = svc.address.rsplit(":", 1)[1]
     client = SharedMemoryReplay(stub(svc), str(shm_dir))
     request = replay_pb2.SampleRequest(batch_size=8)
-    assert isinstance(client.Sample(request, timeout=10), SharedSample)
+    first = client.Sample(request, timeout=10)
+    assert isinstance(first, replay_pb2.SampleResponse if small else SharedSample)
+    session = client._nonce
+    assert session
     svc.stop()
     cfg.replay.server.port = int(port)
     svc = ReplayService(cfg, spec_source=specs, start_metrics=False).start()
     try:
         again = client.Sample(request, timeout=10)  # the old session is unknown: this batch through the socket
         assert isinstance(again, replay_pb2.SampleResponse) and again.shm_reason == "unknown session"
-        assert isinstance(client.Sample(request, timeout=10), SharedSample)  # a new session
+        then = client.Sample(request, timeout=10)  # a new session
+        assert isinstance(then, replay_pb2.SampleResponse if small else SharedSample)
+        assert client._nonce and client._nonce != session
     finally:
         svc.stop()
+
+
+def test_a_small_batch_takes_the_socket_and_the_session_stays(
+    service: ReplayService, shm_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    client = SharedMemoryReplay(stub(service), str(shm_dir))
+    assert isinstance(client.Sample(replay_pb2.SampleRequest(batch_size=64), timeout=10), SharedSample)
+    monkeypatch.setattr(replay_server, "SHM_MIN_BYTES", 256 << 10)
+    small = client.Sample(replay_pb2.SampleRequest(batch_size=64), timeout=10)  # ~26 kB
+    assert isinstance(small, replay_pb2.SampleResponse) and small.shm_reason == "small batch"
+    check_rows(decode_arrays(small.batch, KEYS))
+    big = client.Sample(replay_pb2.SampleRequest(batch_size=2048), timeout=10)  # ~850 kB: the same session
+    assert isinstance(big, SharedSample)
+    assert service.shared is not None and service.shared.sessions() == 1
 
 
 def test_the_learner_samples_through_shared_memory_by_default(service: ReplayService, shm_dir: Path) -> None:

@@ -176,19 +176,30 @@ class SharedBatches:
         SHARED_BATCHES.inc()
         return out, ""
 
+    def release(self, nonce: bytes, release: list[str]) -> _Session | None:
+        """Free the slots the caller is done with; its session (None if unknown)."""
+        with self._lock:
+            return self._release(nonce, release)
+
+    def _release(self, nonce: bytes, release: list[str]) -> _Session | None:
+        session = self._sessions.get(nonce)
+        if session is None:
+            return None
+        session.last_used = time.monotonic()
+        if session.probe:  # proven: the caller read it
+            self.owner.unlink(session.probe)
+            session.probe = ""
+        for name in release:
+            if name in session.slots:
+                session.slots[name].busy = False
+        return session
+
     def _take(self, nonce: bytes, release: list[str], nbytes: int) -> tuple[_Slot | None, str]:
         """A free slot of at least nbytes, marked busy (released ones freed first); (None, reason) if none."""
         with self._lock:
-            session = self._sessions.get(nonce)
+            session = self._release(nonce, release)
             if session is None:
                 return None, "unknown session"
-            session.last_used = time.monotonic()
-            if session.probe:  # proven: the caller read it
-                self.owner.unlink(session.probe)
-                session.probe = ""
-            for name in release:
-                if name in session.slots:
-                    session.slots[name].busy = False
             free = [s for s in session.slots.values() if not s.busy]
             fits = [s for s in free if s.nbytes >= nbytes]
             if fits:
