@@ -258,6 +258,14 @@ SLOT_NAME = name_pattern("user-replay-")  # services/replay/shared.py's PREFIX
 NONCE_BYTES = 32
 REOPEN_S = 30.0  # after a session is refused or lost, the next OpenSharedMemory waits this long
 MAX_MAPPED = 80  # slot mappings kept (replay.shm_slots is at most 64 per session)
+# a Sample that failed with these may have filled a slot after all (the answer was lost)
+LOST_ANSWER = (
+    grpc.StatusCode.DEADLINE_EXCEEDED,
+    grpc.StatusCode.CANCELLED,
+    grpc.StatusCode.UNAVAILABLE,
+    grpc.StatusCode.UNKNOWN,
+    grpc.StatusCode.INTERNAL,
+)
 
 
 class SharedArrays(dict[str, np.ndarray]):
@@ -340,6 +348,7 @@ class SharedMemoryReplay:
         self._nonce = b""
         self._open_after = 0.0
         self._mapped: OrderedDict[str, _Mapped] = OrderedDict()  # slot name -> its mapping, oldest use first
+        self._unsent: list[str] = []  # slots released here, not yet told to replay by a call that succeeded
         self._lock = threading.Lock()
 
     def __getattr__(self, name: str) -> Any:
@@ -372,20 +381,22 @@ class SharedMemoryReplay:
             log.info("replay batches through shared memory", extra=kv(directory=self.directory))
 
     def _released(self) -> list[str]:
-        """Slots whose batch nobody views any more (released now), and old mappings dropped."""
-        free = []
+        """Slots to release: those whose batch nobody views any more, and any a failed call did not deliver.
+        Old mappings are dropped."""
         for name, mapped in self._mapped.items():
             if mapped.held and not mapped.in_use():
                 mapped.held = False
-                free.append(name)
+                self._unsent.append(name)
         while len(self._mapped) > MAX_MAPPED:  # slots replay replaced or a past session's: unmap the oldest free
             name = next((n for n, m in self._mapped.items() if not m.held and not m.in_use()), None)
             if name is None or not self._mapped.pop(name).close():
                 break
-        return free
+        return list(self._unsent)
 
-    def _drop_session(self) -> None:
-        self._nonce, self._open_after = b"", time.monotonic() + REOPEN_S
+    def _drop_session(self, reopen_in: float) -> None:
+        """Stop using this session (its slots idle out at replay); a new one is opened after `reopen_in`."""
+        self._nonce, self._open_after = b"", time.monotonic() + reopen_in
+        self._unsent.clear()
         for name in [n for n, m in self._mapped.items() if not m.held]:
             if self._mapped[name].close():
                 del self._mapped[name]
@@ -399,26 +410,29 @@ class SharedMemoryReplay:
             ask = replay_pb2.SampleRequest()
             ask.CopyFrom(request)
             ask.shm_session = self._nonce
-            released = self._released()
-            ask.shm_release.extend(released)
+            ask.shm_release.extend(self._released())
             try:
                 resp = self.stub.Sample(ask, timeout=timeout)
-            except grpc.RpcError:
-                for name in released:  # maybe not delivered: released again next time (harmless twice)
-                    self._mapped[name].held = True
-                raise
+            except grpc.RpcError as err:
+                if err.code() in LOST_ANSWER:  # replay may have filled a slot we never heard of: a new session
+                    self._drop_session(0.0)
+                raise  # else refused before any slot was touched: the releases go again with the next call
+            self._unsent.clear()
             if not resp.HasField("shared"):
                 if resp.shm_reason != "small batch":
                     SHM_SOCKET.inc()
-                if resp.shm_reason == "unknown session":  # replay restarted, or the session idled out
-                    self._drop_session()
+                held = any(m.held for m in self._mapped.values())
+                # replay restarted or the session idled out; or every slot is taken while we hold none (a slot
+                # filled for an answer that never arrived): a new session
+                if resp.shm_reason == "unknown session" or (resp.shm_reason == "no free slot" and not held):
+                    self._drop_session(0.0)
                 return resp
             try:
                 arrays = self._read(resp.shared)
             except WireError as exc:
                 log.warning("bad shared-memory batch; through the socket now", extra=kv(error=str(exc)))
                 SHM_SOCKET.inc()
-                self._drop_session()
+                self._drop_session(REOPEN_S)
                 return self.stub.Sample(request, timeout=timeout)
             SHM_BATCHES.inc()
             return SharedSample(arrays, int(resp.transitions), dict(resp.table_transitions))

@@ -192,6 +192,43 @@ def test_after_replay_restarts_the_learner_opens_a_new_session(
         svc.stop()
 
 
+def test_a_lost_answer_moves_the_learner_to_a_new_session_and_the_old_one_idles_out(
+    service: ReplayService, shm_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Replay filled a slot for an answer the learner never got (its deadline passed): that slot would stay taken,
+    so the learner starts a new session; the old one's files go once it idles out."""
+    import cloud_learner.replay_sampler as sampler
+    import services.replay.shared as shared
+
+    real = stub(service)
+    answers = {"lose": True}
+
+    class LossyStub:
+        def __getattr__(self, name: str) -> Any:
+            return getattr(real, name)
+
+        def Sample(self, request: replay_pb2.SampleRequest, timeout: float) -> Any:
+            resp = real.Sample(request, timeout=timeout)
+            if answers.pop("lose", False) and resp.HasField("shared"):
+                raise sampler.SamplerError(grpc.StatusCode.DEADLINE_EXCEEDED, "answer lost")
+            return resp
+
+    client = SharedMemoryReplay(LossyStub(), str(shm_dir))
+    request = replay_pb2.SampleRequest(batch_size=16)
+    with pytest.raises(grpc.RpcError):
+        client.Sample(request, timeout=10)
+    lost_session = next(iter(service.shared._sessions))  # type: ignore[union-attr]
+    assert isinstance(client.Sample(request, timeout=10), SharedSample)  # a new session at once
+    assert service.shared.sessions() == 2  # type: ignore[union-attr]
+    lost_files = [shm_dir / s.name for s in service.shared._sessions[lost_session].slots.values()]  # type: ignore
+    assert lost_files and all(f.exists() for f in lost_files)
+    service.shared._sessions[lost_session].last_used -= shared.IDLE_S + 1  # type: ignore[union-attr]
+    monkeypatch.setattr(service.shared, "_expired_at", 0.0)
+    assert isinstance(client.Sample(request, timeout=10), SharedSample)  # sampling expires idle sessions
+    assert lost_session not in service.shared._sessions  # type: ignore[union-attr]
+    assert service.shared.sessions() == 1 and not any(f.exists() for f in lost_files)  # type: ignore[union-attr]
+
+
 def test_a_small_batch_takes_the_socket_and_the_session_stays(
     service: ReplayService, shm_dir: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -95,6 +95,7 @@ class SharedBatches:
         self._sessions: dict[bytes, _Session] = {}
         self._bytes = 0
         self._lock = threading.Lock()
+        self._expired_at = time.monotonic()
 
     # ------------------------------------------------------------------ sessions
 
@@ -127,8 +128,10 @@ class SharedBatches:
             os.close(fd)
 
     def _expire(self) -> None:
+        """Close sessions idle for IDLE_S (a learner that died, or moved to a new session)."""
         now = time.monotonic()
         with self._lock:
+            self._expired_at = now
             idle = [n for n, s in self._sessions.items() if now - s.last_used > IDLE_S]
             for nonce in idle:
                 self._close_session(self._sessions.pop(nonce))
@@ -152,6 +155,7 @@ class SharedBatches:
         self, nonce: bytes, release: list[str], arrays: dict[str, Any]
     ) -> tuple[replay_pb2.SharedBatch | None, str]:
         """(the batch in a slot of the session, "") or (None, why not: the caller answers through the socket)."""
+        self._expire_now_and_then()
         named = batch_arrays(arrays)
         layout, total = [], 0
         for name, arr in named:
@@ -176,8 +180,13 @@ class SharedBatches:
         SHARED_BATCHES.inc()
         return out, ""
 
+    def _expire_now_and_then(self) -> None:
+        if time.monotonic() - self._expired_at > 1.0:
+            self._expire()
+
     def release(self, nonce: bytes, release: list[str]) -> _Session | None:
         """Free the slots the caller is done with; its session (None if unknown)."""
+        self._expire_now_and_then()
         with self._lock:
             return self._release(nonce, release)
 
