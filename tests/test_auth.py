@@ -22,6 +22,7 @@ from tests.helpers import wait_for
 from tests.test_replay_store import make_step, spec
 from user.config import AuthConfig, StackConfig
 from user.rpc import make_channel
+from user.shm_files import host_id
 from user.v1 import control_pb2, control_pb2_grpc, replay_pb2, replay_pb2_grpc
 
 ADMIN = "admin-token-0123456789"
@@ -159,6 +160,21 @@ def test_an_edge_writes_only_its_robots_steps(stack) -> None:
         replay_pb2.StatsRequest(), timeout=5
     )
     assert dict(stats.steps_per_robot) == {"arm-5": 1, "gripper-0": 1}
+
+
+def test_whoever_may_sample_may_open_a_shared_memory_session_and_an_edge_may_not(stack) -> None:
+    _, replay, _ = stack
+    ask = replay_pb2.SharedMemoryRequest(host_id=host_id())
+
+    def open_code(token: str) -> grpc.StatusCode:
+        return code_of(
+            replay_pb2_grpc.ReplayStub(make_channel(replay.address, AuthConfig(token=token))).OpenSharedMemory,
+            ask,
+            timeout=5,
+        )
+
+    assert [open_code(t) for t in (ADMIN, OPERATOR, READER, WORKER)] == [grpc.StatusCode.OK] * 4
+    assert open_code(EDGE) == grpc.StatusCode.PERMISSION_DENIED
 
 
 def test_tokens_rotate_without_a_restart(stack, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

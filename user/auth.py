@@ -5,7 +5,8 @@ Roles:
             so a stack configured with one shared token works as before.
   operator  reads everything and calls every write method except the edge's own (Connect, Insert) and the
             workers' (RegisterWorker): commands, experiments.
-  reader    read-only methods (List*, Get*, Stats, Status, Sample, SubscribeWeights) for dashboards and tools.
+  reader    read-only methods (List*, Get*, Stats, Status, Sample with Replay.OpenSharedMemory, SubscribeWeights)
+            for dashboards and tools.
   edge      what an edge agent needs: Control.Connect (as its own agent_id, only its robots), Replay.Insert
             and InsertBatch (steps of its robots), Inference.Act and ActBatch, Learner.SubscribeWeights. Nothing
             else: it cannot read the fleet.
@@ -39,6 +40,8 @@ log = logging.getLogger(__name__)
 
 Role = Literal["admin", "operator", "reader", "edge", "worker"]
 READ_PREFIXES = ("List", "Get", "Stats", "Status", "Sample", "Subscribe")
+# reads by another name: a shared-memory session only changes how Sample's batches travel (bounded per replay)
+READ_METHODS = frozenset({"/user.v1.Replay/OpenSharedMemory"})
 EDGE_METHODS = frozenset(
     {
         "/user.v1.Control/Connect",
@@ -79,7 +82,7 @@ class Identity:
             return True
         if self.role == "edge":
             return method in EDGE_METHODS
-        is_read = method.rsplit("/", 1)[-1].startswith(READ_PREFIXES)
+        is_read = method.rsplit("/", 1)[-1].startswith(READ_PREFIXES) or method in READ_METHODS
         if self.role == "reader":
             return is_read
         if self.role == "worker":
