@@ -302,6 +302,7 @@ class _Mapped:
 
     map: mmap.mmap
     base: np.ndarray
+    session: bytes = b""  # the session it was handed out in
     held: bool = False
 
     def in_use(self) -> bool:
@@ -383,8 +384,11 @@ class SharedMemoryReplay:
     def _released(self) -> list[str]:
         """Slots to release: those whose batch nobody views any more, and any a failed call did not deliver.
         Old mappings are dropped."""
-        for name, mapped in self._mapped.items():
-            if mapped.held and not mapped.in_use():
+        for name, mapped in list(self._mapped.items()):
+            if mapped.session != self._nonce:  # a past session's (replay restarted): its file is gone, unmap it
+                if mapped.close():
+                    del self._mapped[name]
+            elif mapped.held and not mapped.in_use():
                 mapped.held = False
                 self._unsent.append(name)
         while len(self._mapped) > MAX_MAPPED:  # slots replay replaced or a past session's: unmap the oldest free
@@ -406,6 +410,8 @@ class SharedMemoryReplay:
             if not self._nonce:
                 self._open(timeout)
             if not self._nonce:
+                self._released()  # unmaps what past sessions handed out, once free
+                self._unsent.clear()
                 return self.stub.Sample(request, timeout=timeout)
             ask = replay_pb2.SampleRequest()
             ask.CopyFrom(request)
@@ -445,6 +451,7 @@ class SharedMemoryReplay:
             if mapped is not None and mapped.close():
                 del self._mapped[shared.file]
             mapped = map_slot(self.directory, shared)
+            mapped.session = self._nonce
             self._mapped[shared.file] = mapped
         self._mapped.move_to_end(shared.file)
         arrays = shared_arrays(mapped.base, shared)

@@ -188,6 +188,9 @@ def test_after_replay_restarts_the_learner_opens_a_new_session(
         then = client.Sample(request, timeout=10)  # a new session
         assert isinstance(then, replay_pb2.SampleResponse if small else SharedSample)
         assert client._nonce and client._nonce != session
+        del first  # the old session's slot, held until now, is unmapped once free (its file is gone)
+        client.Sample(request, timeout=10)
+        assert all(m.session == client._nonce for m in client._mapped.values())
     finally:
         svc.stop()
 
