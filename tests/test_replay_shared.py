@@ -232,6 +232,21 @@ def test_a_lost_answer_moves_the_learner_to_a_new_session_and_the_old_one_idles_
     assert service.shared.sessions() == 1 and not any(f.exists() for f in lost_files)  # type: ignore[union-attr]
 
 
+def test_a_slot_replay_cannot_fill_sends_the_batch_through_the_socket(
+    service: ReplayService, shm_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    client = SharedMemoryReplay(stub(service), str(shm_dir))
+    assert isinstance(client.Sample(replay_pb2.SampleRequest(batch_size=8), timeout=10), SharedSample)
+
+    def broken(*_: Any) -> Any:
+        raise RuntimeError("no slot today")
+
+    monkeypatch.setattr(service.shared, "write", broken)
+    resp = client.Sample(replay_pb2.SampleRequest(batch_size=8), timeout=10)  # not UNKNOWN: the socket
+    assert isinstance(resp, replay_pb2.SampleResponse) and resp.shm_reason == "error"
+    check_rows(decode_arrays(resp.batch, KEYS))
+
+
 def test_a_small_batch_takes_the_socket_and_the_session_stays(
     service: ReplayService, shm_dir: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -632,7 +632,11 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             assembled = to_batch(assembled)
         elif shm:
             assert self.shared is not None
-            shared, why = self.shared.write(request.shm_session, list(request.shm_release), assembled)
+            try:
+                shared, why = self.shared.write(request.shm_session, list(request.shm_release), assembled)
+            except Exception as exc:  # a slot we could not fill: this batch goes through the socket
+                log.warning("shared-memory batch not written", extra=kv(error=repr(exc)))
+                shared, why = None, "error"
             if shared is not None:
                 resp.shared.CopyFrom(shared)
             else:

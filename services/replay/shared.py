@@ -123,7 +123,11 @@ class SharedBatches:
         self.owner.hold()
         fd = create_private(os.path.join(self.directory, name))
         try:
-            os.write(fd, nonce)
+            if os.write(fd, nonce) != len(nonce):
+                raise OSError(28, "short write")  # ENOSPC
+        except OSError:
+            self.owner.unlink(name)
+            raise
         finally:
             os.close(fd)
 
