@@ -730,7 +730,7 @@ def bench_learner_feed(n: int, seconds: float, rounds: int, workdir: Path, log: 
     import multiprocessing
 
     from cloud_learner.learner import decode_arrays
-    from cloud_learner.replay_sampler import SharedMemoryReplay, SharedSample
+    from cloud_learner.replay_shm import SharedMemoryReplay, SharedSample
     from user.config import StackConfig
     from user.rpc import make_channel
     from user.v1 import replay_pb2, replay_pb2_grpc

@@ -47,7 +47,8 @@ import torch
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
 from cloud_learner.checkpoint import load_latest, read_version_mark, save_checkpoint, write_version_mark
 from cloud_learner.prepare import check_prepare, normalize_keys, state_stats, with_stats
-from cloud_learner.replay_sampler import ShardedSampler, SharedArrays, replay_source
+from cloud_learner.replay_sampler import ShardedSampler, replay_source
+from cloud_learner.replay_shm import SharedArrays
 from user import rpc
 from user.config import ExperimentConfig, StackConfig
 from user.experiments import EMBODIMENT_KEY, LayoutError, assign, check_plugins, layout_for, pad_action, ready

@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from cloud_learner.learner import decode_arrays
-from cloud_learner.replay_sampler import SharedArrays, SharedMemoryReplay, SharedSample, replay_source
+from cloud_learner.replay_sampler import SamplerError, replay_source
+from cloud_learner.replay_shm import SharedArrays, SharedMemoryReplay, SharedSample
 from services.replay import server as replay_server
 from services.replay.server import ReplayService
 from services.replay.shared import SharedBatches
@@ -163,7 +164,7 @@ def test_a_learner_holding_every_slot_gets_the_socket_and_keeps_its_session(
 def test_after_replay_restarts_the_learner_opens_a_new_session(
     tmp_path: Path, shm_dir: Path, monkeypatch: pytest.MonkeyPatch, small: bool
 ) -> None:
-    import cloud_learner.replay_sampler as sampler
+    import cloud_learner.replay_shm as sampler
 
     monkeypatch.setattr(sampler, "REOPEN_S", 0.0)
     if small:  # every batch takes the socket; the session is still checked, and renewed
@@ -200,7 +201,6 @@ def test_a_lost_answer_moves_the_learner_to_a_new_session_and_the_old_one_idles_
 ) -> None:
     """Replay filled a slot for an answer the learner never got (its deadline passed): that slot would stay taken,
     so the learner starts a new session; the old one's files go once it idles out."""
-    import cloud_learner.replay_sampler as sampler
     import services.replay.shared as shared
 
     real = stub(service)
@@ -213,7 +213,7 @@ def test_a_lost_answer_moves_the_learner_to_a_new_session_and_the_old_one_idles_
         def Sample(self, request: replay_pb2.SampleRequest, timeout: float) -> Any:
             resp = real.Sample(request, timeout=timeout)
             if answers.pop("lose", False) and resp.HasField("shared"):
-                raise sampler.SamplerError(grpc.StatusCode.DEADLINE_EXCEEDED, "answer lost")
+                raise SamplerError(grpc.StatusCode.DEADLINE_EXCEEDED, "answer lost")
             return resp
 
     client = SharedMemoryReplay(LossyStub(), str(shm_dir))
@@ -314,7 +314,7 @@ def test_a_caller_that_never_releases_gets_the_socket_once_its_slots_are_taken(
 def test_a_replaced_slot_is_refused_and_the_batch_comes_through_the_socket(
     service: ReplayService, shm_dir: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import cloud_learner.replay_sampler as sampler
+    import cloud_learner.replay_shm as sampler
 
     map_slot = sampler.map_slot
 
