@@ -59,7 +59,8 @@ LOST_ANSWER = (
 
 
 class SharedArrays(dict[str, np.ndarray]):
-    """A batch copied out of a shared-memory slot: arrays by SharedArray name ("action", "observation/<key>")."""
+    """A batch from a shared-memory slot: arrays (views of the slot) by SharedArray name ("action",
+    "observation/<key>")."""
 
 
 @dataclass
