@@ -25,7 +25,7 @@ import prometheus_client
 
 from user import wire
 from user.log import kv
-from user.shm_files import host_id, name_pattern, open_regular
+from user.shm_files import PROBE_BYTES, host_id, name_pattern, open_regular, read_probe
 from user.v1 import replay_pb2, replay_pb2_grpc
 from user.wire import WireError
 
@@ -45,7 +45,6 @@ SHM_SOCKET = prometheus_client.Counter(
 
 
 SLOT_NAME = name_pattern("user-replay-")  # services/replay/shared.py's PREFIX
-NONCE_BYTES = 32
 REOPEN_S = 30.0  # after a session is refused or lost, the next OpenSharedMemory waits this long
 MAX_MAPPED = 80  # slot mappings kept (replay.shm_slots is at most 64 per session)
 # a Sample that failed with these may have filled a slot after all (the answer was lost)
@@ -158,16 +157,10 @@ class SharedMemoryReplay:
         if not offer.probe_file:
             log.info("replay offers no shared memory", extra=kv(reason=offer.reason))
             return
-        try:
-            fd = open_regular(self.directory, offer.probe_file, SLOT_NAME)
-        except WireError as exc:
-            log.info("replay's shared memory is not ours", extra=kv(error=str(exc)))
-            return
-        try:
-            nonce = os.read(fd, NONCE_BYTES + 1)
-        finally:
-            os.close(fd)
-        if len(nonce) == NONCE_BYTES:
+        nonce = read_probe(self.directory, offer.probe_file, SLOT_NAME)
+        if len(nonce) != PROBE_BYTES:
+            log.info("replay's shared-memory directory is not this one", extra=kv(directory=self.directory))
+        else:
             self._nonce = nonce
             SHM_SESSIONS.inc()
             log.info("replay batches through shared memory", extra=kv(directory=self.directory))

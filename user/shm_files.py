@@ -23,6 +23,7 @@ from user.wire import WireError
 
 BOOT_ID = Path("/proc/sys/kernel/random/boot_id")
 LOCK_SUFFIX = ".lock"
+PROBE_BYTES = 32  # a probe file's random nonce: the peer proves it reads our directory by echoing it
 
 
 def host_id() -> str:
@@ -66,6 +67,20 @@ def open_regular(directory: str, name: str, pattern: re.Pattern[str], writable: 
         os.close(fd)
         raise WireError(f"shared-memory file {name} is not a regular file")
     return fd
+
+
+def read_probe(directory: str, name: str, pattern: re.Pattern[str]) -> bytes:
+    """A probe file's bytes (up to PROBE_BYTES + 1; b"" if it cannot be read: the caller uses the socket)."""
+    try:
+        fd = open_regular(directory, name, pattern)
+    except WireError:
+        return b""
+    try:
+        return os.read(fd, PROBE_BYTES + 1)
+    except OSError:
+        return b""
+    finally:
+        os.close(fd)
 
 
 class ShmOwner:

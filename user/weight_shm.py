@@ -36,7 +36,8 @@ from collections import OrderedDict, deque
 import numpy as np
 import prometheus_client
 
-from user.shm_files import LOCK_SUFFIX, ShmOwner, create_private, host_id, open_regular
+from user import shm_files
+from user.shm_files import LOCK_SUFFIX, PROBE_BYTES, ShmOwner, create_private, host_id, open_regular
 from user.wire import WireError
 
 __all__ = ["LOCK_SUFFIX", "ShmWeights", "host_id", "read_payload", "read_probe"]
@@ -48,7 +49,6 @@ PREFIX = "user-weights-"
 DEFAULT_KEEP = 3  # versions per experiment: a subscriber still opening the previous one finds it
 DEFAULT_MAX_BYTES = 2 << 30  # of all files together (tmpfs is RAM)
 MIN_BUFFER_BYTES = 1 << 20  # smaller payloads are not pooled (BufferPool): a file each would cost more than a copy
-PROBE_BYTES = 32
 _NAME = re.compile(r"user-weights-[A-Za-z0-9_.-]{1,200}")
 
 SHM_WRITTEN = prometheus_client.Counter(
@@ -87,16 +87,7 @@ def _open_regular(directory: str, name: str) -> int:
 
 def read_probe(directory: str, name: str) -> bytes:
     """The probe file's bytes (b"" if it cannot be read: the server then streams as usual)."""
-    try:
-        fd = _open_regular(directory, name)
-    except WireError:
-        return b""
-    try:
-        return os.read(fd, PROBE_BYTES + 1)[: PROBE_BYTES + 1]
-    except OSError:
-        return b""
-    finally:
-        os.close(fd)
+    return shm_files.read_probe(directory, name, _NAME)
 
 
 def read_payload(directory: str, name: str, size: int, out: np.ndarray) -> np.ndarray:

@@ -34,7 +34,7 @@ from services.replay.disk import ReplayError
 from services.replay.hot import single_threaded_cv2
 from services.replay.prefetch import Prefetcher
 from services.replay.shared import NAME as SHARED_NAME
-from services.replay.shared import NONCE_BYTES, SHARED_FALLBACK, SharedBatches
+from services.replay.shared import SHARED_FALLBACK, SharedBatches
 from services.replay.store import (
     EmptyBufferError,
     LayoutError,
@@ -48,6 +48,7 @@ from user import rpc, wire
 from user.auth import Identity
 from user.config import AuthConfig, StackConfig
 from user.log import kv
+from user.shm_files import PROBE_BYTES
 from user.v1 import control_pb2, control_pb2_grpc, replay_pb2, replay_pb2_grpc, robot_pb2, step_pb2
 from user.v1 import tensor_pb2 as tpb
 
@@ -603,10 +604,12 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         shm = bool(request.shm_session) and self.shared is not None
         try:
             self._rate_limit(request, robot_ids, context)
-            kind = replay_pb2.SampleRequest()
-            kind.CopyFrom(request)
-            kind.ClearField("shm_session")
-            kind.ClearField("shm_release")
+            kind = request
+            if request.shm_session or request.shm_release:  # the same kind of batch, whichever session asks
+                kind = replay_pb2.SampleRequest()
+                kind.CopyFrom(request)
+                kind.ClearField("shm_session")
+                kind.ClearField("shm_release")
             # a shared-memory kind is prefetched as arrays (written into a slot), the other as its proto
             key = kind.SerializeToString(deterministic=True) + (b"\0shm" if shm else b"")
             served = self.prefetch.served
@@ -780,8 +783,8 @@ def sample_request_problem(req: replay_pb2.SampleRequest) -> str | None:
         return problem
     if req.n_step > MAX_N_STEP:
         return f"n_step must be at most {MAX_N_STEP}, got {req.n_step}"
-    if len(req.shm_session) not in (0, NONCE_BYTES):
-        return f"shm_session is the {NONCE_BYTES} bytes of an OpenSharedMemory probe file"
+    if len(req.shm_session) not in (0, PROBE_BYTES):
+        return f"shm_session is the {PROBE_BYTES} bytes of an OpenSharedMemory probe file"
     if len(req.shm_release) > MAX_RELEASE or not all(SHARED_NAME.fullmatch(n) for n in req.shm_release):
         return f"shm_release names at most {MAX_RELEASE} slot files of this replay"
     if req.n_step > 1 and not (0 < req.gamma <= 1):

@@ -31,14 +31,13 @@ import prometheus_client
 
 from user import wire
 from user.log import kv
-from user.shm_files import ShmOwner, create_private, host_id, name_pattern
+from user.shm_files import PROBE_BYTES, ShmOwner, create_private, host_id, name_pattern
 from user.v1 import replay_pb2
 
 log = logging.getLogger(__name__)
 
 PREFIX = "user-replay-"
 NAME = name_pattern(PREFIX)
-NONCE_BYTES = 32
 IDLE_S = 60.0  # a session nobody sampled with for this long is closed
 ALIGN = 64  # array offsets in a slot: cache-line aligned
 MAX_SESSIONS = 64
@@ -88,7 +87,7 @@ class _Session:
 class SharedBatches:
     """Replay's side: sessions, their slot files, and writing a batch into a free slot (thread-safe)."""
 
-    def __init__(self, directory: str, max_bytes: int, slots: int = 4, host: str | None = None) -> None:
+    def __init__(self, directory: str, max_bytes: int, slots: int = 8, host: str | None = None) -> None:
         self.directory, self.max_bytes, self.slots = directory, max_bytes, max(1, slots)
         self.host = host_id() if host is None else host
         self.owner = ShmOwner(directory, PREFIX)
@@ -109,7 +108,7 @@ class SharedBatches:
                 return replay_pb2.SharedMemoryOffer(reason="replay is shutting down")
             if len(self._sessions) >= MAX_SESSIONS:
                 return replay_pb2.SharedMemoryOffer(reason=f"{MAX_SESSIONS} sessions open")
-        nonce, key = secrets.token_bytes(NONCE_BYTES), secrets.token_hex(4)
+        nonce, key = secrets.token_bytes(PROBE_BYTES), secrets.token_hex(4)
         probe = f"{PREFIX}{self.owner.token}-{key}-probe"
         try:
             self._write_probe(probe, nonce)
