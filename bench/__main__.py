@@ -3,7 +3,9 @@
 `python -m bench --only load [--duration 600] [--edges 64] [--hz 10]` (`make load`): the load test,
 run only when named (it takes the whole --duration, 10 minutes by default).
 
-Runs each benchmark against its real peer in this process and prints one table.
+Runs each benchmark against its real peer in this process and prints one table. Without --json/--markdown the
+rows also go to runs/bench/latest.json|md, where a run replaces only its own benches' rows: the files keep every
+bench's last figures, each row with its bench and when it was measured.
 """
 
 from __future__ import annotations
@@ -17,7 +19,10 @@ import sys
 import tempfile
 import time
 import traceback
+from dataclasses import fields
+from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 from rich.console import Console
 from rich.table import Table
@@ -106,7 +111,12 @@ def _parser() -> argparse.ArgumentParser:
         help=f"comma-separated subset of {list(BENCHES)} (default all but {sorted(OPT_IN)}; --quick skips "
         f"{sorted(SLOW)})",
     )
-    p.add_argument("--json", dest="json_path", help="rows as JSON (default runs/bench/latest.json, not with --quick)")
+    p.add_argument(
+        "--json",
+        dest="json_path",
+        help="rows as JSON (default runs/bench/latest.json, not with --quick: there the benches that ran replace "
+        "their own rows and every other bench's last rows stay)",
+    )
     p.add_argument(
         "--markdown", dest="md_path", help="table as Markdown (default runs/bench/latest.md, not with --quick)"
     )
@@ -144,6 +154,26 @@ def render(rows: list[Row], title: str) -> Table:
     return table
 
 
+def merged(path: Path, fresh: list[dict[str, Any]], ran: list[str]) -> list[dict[str, Any]]:
+    """The rows kept at `path` from earlier runs of benches not in `ran`, then `fresh`: `--only x` replaces x's
+    rows in runs/bench/latest.json and keeps every other bench's last figures (each row says when it was
+    measured). Rows without a bench name (files from before it was recorded) or an unreadable file are dropped."""
+    try:
+        old = json.loads(path.read_text())
+    except (OSError, ValueError):
+        old = []
+    if not isinstance(old, list):
+        old = []
+    kept = [r for r in old if isinstance(r, dict) and r.get("bench") in BENCHES and r["bench"] not in ran]
+    order = {name: i for i, name in enumerate(BENCHES)}
+    return sorted(kept + fresh, key=lambda r: order[r["bench"]])  # stable: rows keep their order within a bench
+
+
+def row_of(doc: dict[str, Any]) -> Row:
+    """A Row back from its JSON (the fields Row has; bench, measured_at and advantage are derived)."""
+    return Row(**{f.name: doc[f.name] for f in fields(Row) if f.name in doc})
+
+
 def markdown(rows: list[Row]) -> str:
     lines = [
         "| benchmark | metric | USER (ours) | peer | ours vs peer | note |",
@@ -168,6 +198,7 @@ def selected(only: str | None, quick: bool) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    accumulate = not args.quick and args.json_path is None and args.md_path is None
     if not args.quick:
         args.json_path = args.json_path or str(DEFAULT_OUT / "latest.json")
         args.md_path = args.md_path or str(DEFAULT_OUT / "latest.md")
@@ -182,6 +213,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING)
     console = Console(stderr=True)
     rows: list[Row] = []
+    docs: list[dict[str, Any]] = []  # rows as JSON, each with its bench and when it was measured
     failed: list[str] = []
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="user-bench-") as tmp:
@@ -195,7 +227,10 @@ def main(argv: list[str] | None = None) -> int:
                 extra: dict = {"overrides": args.overrides} if name in TAKES_OVERRIDES else {}
                 if name == "load":
                     extra |= {"duration_s": args.duration, "robots": args.edges, "hz": args.hz}
-                rows += module.run(quick=args.quick, workdir=workdir / name, log=console.log, **extra)
+                got = module.run(quick=args.quick, workdir=workdir / name, log=console.log, **extra)
+                rows += got
+                at = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
+                docs += [{"bench": name, "measured_at": at, **r.to_json()} for r in got]
             except Exception:
                 failed.append(name)
                 console.print(f"[red]bench {name} failed[/red]\n{traceback.format_exc()}")
@@ -212,11 +247,19 @@ def main(argv: list[str] | None = None) -> int:
     for out in (args.json_path, args.md_path):
         if out:
             Path(out).parent.mkdir(parents=True, exist_ok=True)
+    if accumulate:  # the default files: this run's benches replace their own rows, the others' stay
+        docs = merged(
+            Path(args.json_path), docs, [n for n in names if n not in failed]
+        )  # a failed bench keeps its last rows
     if args.json_path:
-        Path(args.json_path).write_text(json.dumps([r.to_json() for r in rows], indent=1, default=str))
+        Path(args.json_path).write_text(json.dumps(docs, indent=1, default=str))
     if args.md_path:
-        legend = "".join(f"\n- {LEGEND[n]}" for n in names)
-        Path(args.md_path).write_text(f"{title.replace(chr(10), '; ')}\n\n{markdown(rows)}{legend}\n")
+        when: dict[str, str] = {}
+        for d in docs:
+            when.setdefault(d["bench"], d["measured_at"])
+        legend = "".join(f"\n- ({when[n]}) {LEGEND[n]}" for n in when)
+        table = markdown([row_of(d) for d in docs])
+        Path(args.md_path).write_text(f"{title.replace(chr(10), '; ')}\n\n{table}{legend}\n")
     if args.json_path or args.md_path:
         print(f"wrote {', '.join(p for p in (args.json_path, args.md_path) if p)}")
     return 1 if failed else 0
