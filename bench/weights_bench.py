@@ -206,6 +206,7 @@ class PeerFanout:
         self.shutdown = threading.Event()
         self.queues: list[Any] = []
         self.servers, self.channels, self.calls, self.threads = [], [], [], []
+        self.handlers: list[futures.ThreadPoolExecutor] = []  # each server's handler threads
         self.received: queue.Queue[tuple[float, dict[str, torch.Tensor]]] = queue.Queue()
         self.pool = futures.ThreadPoolExecutor(max_workers=n, thread_name_prefix="peer-learner")
         for _ in range(n):
@@ -218,8 +219,9 @@ class PeerFanout:
                 interaction_message_queue=MpQueue(),
                 queue_get_timeout=0.05,
             )
+            handlers = futures.ThreadPoolExecutor(max_workers=MAX_WORKERS)
             server = grpc.server(
-                futures.ThreadPoolExecutor(max_workers=MAX_WORKERS),
+                handlers,
                 options=[
                     ("grpc.max_receive_message_length", lt.MAX_MESSAGE_SIZE),
                     ("grpc.max_send_message_length", lt.MAX_MESSAGE_SIZE),
@@ -234,6 +236,7 @@ class PeerFanout:
             thread.start()
             self.queues.append(q)
             self.servers.append(server)
+            self.handlers.append(handlers)
             self.channels.append(channel)
             self.calls.append(call)
             self.threads.append(thread)
@@ -281,6 +284,8 @@ class PeerFanout:
             c.close()
         for s in self.servers:
             s.stop(0.5).wait()
+        for h in self.handlers:  # StreamParameters returns within its queue timeout once shutdown is set: let it,
+            h.shutdown(wait=True)  # or it reads a queue already gone ("handle is closed" logged by grpc)
         self.pool.shutdown()
         for q in self.queues:  # not closed: a stopped service's thread may still be in its get()
             q.cancel_join_thread()
