@@ -167,6 +167,34 @@ def act_rate(batch: int, device: str, seconds: float) -> tuple[float, int]:
     return rate(lambda _: policy.forward(policy.preprocess(obs, texts), True), device, seconds)
 
 
+def publish_ms(params: float, device: str, repeats: int) -> float:
+    """Median ms the learner's training thread spends publishing a version of a `params`-parameter actor trained on
+    `device`: the algorithm's policy() copy to host numpy (`user.policy.module_tensors`: pinned buffers and one
+    wait on a GPU) plus `WeightStore.publish` (the pack subscribers are served from), as `cloud_learner.learner`
+    does every publish_every updates. An Adam step before each version, so the copy waits for queued work as in
+    training."""
+    from bench.weights_bench import sized_config
+    from user.policy import actor_from_config, module_tensors, policy_spec_for
+    from user.weights import WeightStore
+
+    config = sized_config(params)
+    actor = actor_from_config(config).to(device)
+    opt = torch.optim.Adam(actor.parameters(), lr=1e-4)
+    obs = torch.randn(256, config["obs_dim"], device=device)
+    spec, store = policy_spec_for(config), WeightStore()
+    times = []
+    for version in range(1, repeats + 2):
+        _, _, action = actor(obs)
+        opt.zero_grad()
+        action.square().mean().backward()
+        opt.step()  # queued, not waited for: publish's copy waits, as after a learner update
+        start = time.perf_counter()
+        store.publish(version, spec, module_tensors(actor))
+        if version > 1:  # the first pays one-off allocations
+            times.append(1e3 * (time.perf_counter() - start))
+    return float(np.median(times))
+
+
 def _spec(case: Case) -> Any:
     from user.v1 import robot_pb2
     from user.v1 import tensor_pb2 as tpb
@@ -356,6 +384,23 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
                     f"training thread: update {served['update_share']:.0%}, waiting for a batch "
                     f"{served['wait_batch_share']:.0%}, publish {served['publish_share']:.0%} of the window",
                     peer_name="the same algorithm fed from memory (no replay, no gRPC)",
+                )
+            )
+        for params in (1e6,) if quick else (1e6, 25e6):
+            log(f"gpu: publish {params / 1e6:.0f}M params")
+            repeats = 3 if quick else 10
+            gpu, cpu = publish_ms(params, device, repeats), publish_ms(params, "cpu", repeats)
+            rows.append(
+                Row(
+                    f"weights published from a learner on {name}, {params / 1e6:.0f}M-param actor (issue 8's GPU path)",
+                    f"ms per version on the training thread, {name} vs {cores} CPU cores",
+                    gpu,
+                    cpu,
+                    "ms",
+                    False,
+                    f"median of {repeats}; device -> pinned host copy, one wait, WeightStore pack; an Adam step queued "
+                    "before each",
+                    peer_name=PEER,
                 )
             )
         for batch in (1,) if quick else (1, 16, 32):

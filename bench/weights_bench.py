@@ -639,7 +639,12 @@ def fact_rows() -> list[Row]:
         Row(group, "integrity check", "xxh3-128 checksum per version (sha256 optional)", "none"),
         Row(group, "auth on the stream", "bearer token", "none"),
         Row(group, "version after learner kill -9", "never reused (high-water mark)", "n/a (no versions)"),
-        Row(group, "GPU path (pinned memory, side stream)", "not measured: no GPU this session", "n/a"),
+        Row(
+            group,
+            "weights off a GPU learner",
+            "pinned host copies, one wait per version (no side stream); timed by `make gpu` (publish rows)",
+            "n/a",
+        ),
     ]
 
 
