@@ -198,7 +198,8 @@ def selected(only: str | None, quick: bool) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    accumulate = not args.quick and args.json_path is None and args.md_path is None
+    # default files (not --quick): this run's benches replace their own rows there and the others' stay
+    default_json, default_md = (not args.quick and p is None for p in (args.json_path, args.md_path))
     if not args.quick:
         args.json_path = args.json_path or str(DEFAULT_OUT / "latest.json")
         args.md_path = args.md_path or str(DEFAULT_OUT / "latest.md")
@@ -247,18 +248,17 @@ def main(argv: list[str] | None = None) -> int:
     for out in (args.json_path, args.md_path):
         if out:
             Path(out).parent.mkdir(parents=True, exist_ok=True)
-    if accumulate:  # the default files: this run's benches replace their own rows, the others' stay
-        docs = merged(
-            Path(args.json_path), docs, [n for n in names if n not in failed]
-        )  # a failed bench keeps its last rows
+    ran = [n for n in names if n not in failed]  # a failed bench keeps its last rows in the default files
+    kept = merged(DEFAULT_OUT / "latest.json", docs, ran) if default_json or default_md else docs
     if args.json_path:
-        Path(args.json_path).write_text(json.dumps(docs, indent=1, default=str))
+        Path(args.json_path).write_text(json.dumps(kept if default_json else docs, indent=1, default=str))
     if args.md_path:
+        shown = kept if default_md else docs
         when: dict[str, str] = {}
-        for d in docs:
+        for d in shown:
             when.setdefault(d["bench"], d["measured_at"])
         legend = "".join(f"\n- ({when[n]}) {LEGEND[n]}" for n in when)
-        table = markdown([row_of(d) for d in docs])
+        table = markdown([row_of(d) for d in shown])
         Path(args.md_path).write_text(f"{title.replace(chr(10), '; ')}\n\n{table}{legend}\n")
     if args.json_path or args.md_path:
         print(f"wrote {', '.join(p for p in (args.json_path, args.md_path) if p)}")

@@ -62,6 +62,10 @@ def test_explicit_outputs_hold_only_that_run(tmp_path: Path, stub_benches: dict)
     assert bench_main.main(["--only", "beta", "--json", str(out)]) == 0
     assert [r["bench"] for r in json.loads(out.read_text())] == ["beta"]
     assert [r["bench"] for r in _rows(tmp_path)] == ["alpha", "beta"]  # the default file is left alone
+    md = tmp_path / "one.md"
+    assert bench_main.main(["--only", "alpha", "--markdown", str(md)]) == 0
+    assert "beta" not in md.read_text()
+    assert [r["bench"] for r in _rows(tmp_path)] == ["alpha", "beta"]  # the default JSON still keeps beta
 
 
 def test_unreadable_or_unattributed_rows_are_dropped(tmp_path: Path, stub_benches: dict) -> None:
@@ -73,3 +77,16 @@ def test_unreadable_or_unattributed_rows_are_dropped(tmp_path: Path, stub_benche
     latest.write_text("{not json")
     assert bench_main.main(["--only", "alpha"]) == 0
     assert [r["bench"] for r in _rows(tmp_path)] == ["alpha"]
+
+
+def test_a_failed_bench_keeps_its_last_rows(tmp_path: Path, stub_benches: dict) -> None:
+    assert bench_main.main([]) == 0
+    broken = types.ModuleType("stub_bench_beta")
+
+    def run(**_: object) -> list[Row]:
+        raise RuntimeError("the peer did not start")
+
+    broken.run = run  # type: ignore[attr-defined]
+    sys.modules["stub_bench_beta"] = broken
+    assert bench_main.main([]) == 1
+    assert [(r["bench"], r["ours"]) for r in _rows(tmp_path)] == [("alpha", 2.0), ("beta", 3.0)]
