@@ -85,8 +85,9 @@ LEGEND = {
     "cameras rendered without shadows/MSAA, vs the bare gym env.step (gym-hil's image_obs renderer for cameras); "
     "the same random actions, rounds alternate.",
     "curves": "curves: success curves of the in-process trainer (cloud_learner.local) vs a uniform random policy "
-    "on the same robot: reach (SAC, state; target 90% in 5 min) and gym-hil Panda pick-cube (RLPD + scripted demos and "
-    "interventions, state; target 80% in 30 min); curves in runs/bench/curves/*.json|png.",
+    "on the same robot: reach (SAC, state; target 90% in 5 min), gym-hil Panda pick-cube from state (RLPD + scripted "
+    "demos and interventions; target 80% in 30 min) and from its two cameras + proprioception (success rising within "
+    "30 min), SO-101 pick-cube from state (RLPD; 80% in 30 min); curves in runs/bench/curves/*.json|png.",
     "two_arms": "two_arms: SO-101 and Panda pick-cube training at once on one stack (processes, one edge agent per "
     "robot at its control rate), two experiments each with its own RLPD instance and replay table, from state, "
     "scripted expert taking over stalled episodes; success without help per arm vs a uniform random policy; curves in "
