@@ -389,7 +389,12 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
         for params in (1e6,) if quick else (1e6, 25e6):
             log(f"gpu: publish {params / 1e6:.0f}M params")
             repeats = 3 if quick else 10
-            gpu, cpu = publish_ms(params, device, repeats), publish_ms(params, "cpu", repeats)
+            try:  # new and not yet run on a GPU: a failure here must not cost the other rows
+                gpu, cpu = publish_ms(params, device, repeats), publish_ms(params, "cpu", repeats)
+            except Exception as exc:
+                log(f"gpu: publish {params / 1e6:.0f}M failed: {exc!r}")
+                rows.append(Row(f"weights published from a learner on {name}", "ms per version", "failed", repr(exc)))
+                continue
             rows.append(
                 Row(
                     f"weights published from a learner on {name}, {params / 1e6:.0f}M-param actor (issue 8's GPU path)",
