@@ -824,6 +824,85 @@ def bench_learner_feed(n: int, seconds: float, rounds: int, workdir: Path, log: 
     ]
 
 
+def bench_remote_feed(n: int, seconds: float, rounds: int, workdir: Path, log: Callable[..., None]) -> list[Row]:
+    """A learner on another host (no shared memory): batches of 256 with two camera-like 128x128 frames, JPEG from
+    the edge, through the gRPC socket until decode_arrays hands them on: frames as replay keeps them
+    (SampleRequest.encoded_frames, the learner's default; its sampler threads decode) vs decoded by replay (replay's
+    default config: no decoded window), in alternating windows."""
+    import multiprocessing
+
+    from cloud_learner.learner import decode_arrays
+    from user.config import StackConfig
+    from user.rpc import make_channel
+    from user.v1 import replay_pb2, replay_pb2_grpc
+
+    cfg = StackConfig.model_validate({"auth": {"token": "bench-token"}})
+    rc = cfg.replay
+    rc.server.port = rc.server.metrics_port = 0
+    rc.path, rc.map_size_mb, rc.shm_dir = workdir / "remote" / "replay", map_size_for(CAMERA, 2 * n), None
+    steps = edge_encode(to_steps(make_episodes(CAMERA, n), "feed-0"))[0]
+    ctx = multiprocessing.get_context("spawn")
+    to_child, child_end = ctx.Pipe()
+    child = ctx.Process(target=_serve_replay, args=(cfg.model_dump_json(), child_end), daemon=True)
+    child.start()
+    group = (
+        f"replay Sample to a learner on another host (socket), batch {BATCH}, two {IMAGE_HW}x{IMAGE_HW} camera-like "
+        f"frames JPEG q{EDGE_JPEG_QUALITY} from the edge (N={n})"
+    )
+    keys = ["camera.front", "camera.wrist", "state"]
+    rates: dict[str, list[float]] = {"kept": [], "decoded": []}
+    wire_mb: dict[str, float] = {}
+    try:
+        if not to_child.poll(120):
+            raise RuntimeError("replay process did not start")
+        with make_channel(to_child.recv(), cfg.auth) as channel:
+            stub = replay_pb2_grpc.ReplayStub(channel)
+            requests = (replay_pb2.InsertRequest(seq=i, step=st) for i, st in enumerate(steps))
+            for _ack in stub.Insert(requests, timeout=600):
+                pass
+            asks = {way: replay_pb2.SampleRequest(batch_size=BATCH, encoded_frames=way == "kept") for way in rates}
+            for way, ask in asks.items():  # what each way puts on the link, and that both decode alike
+                wire_mb[way] = stub.Sample(ask, timeout=60).batch.ByteSize() / 1e6
+            for r in range(rounds):
+                for way in ("kept", "decoded") if r % 2 == 0 else ("decoded", "kept"):
+                    done, start = 0, time.perf_counter()
+                    while time.perf_counter() - start < seconds:
+                        arrays = decode_arrays(stub.Sample(asks[way], timeout=60).batch, keys)
+                        done += 1
+                    if arrays["observation"]["camera.front"].shape != (BATCH, IMAGE_HW, IMAGE_HW, 3):
+                        raise RuntimeError(f"{way}: frames of the wrong shape")
+                    rates[way].append(done / (time.perf_counter() - start))
+            log(f"{group}: batches/s {rates}, MB a batch on the wire {wire_mb}")
+    finally:
+        to_child.send("stop")
+        child.join(60)
+        shutil.rmtree(workdir / "remote", ignore_errors=True)
+    kept, decoded = median(rates["kept"]), median(rates["decoded"])
+    note = f"medians of {rounds} alternating {seconds:.0f} s windows; replay and learner share this machine's cores"
+    return [
+        Row(
+            group,
+            "batches/s ready in the learner: JPEG as kept (learner decodes) vs decoded by replay",
+            kept,
+            decoded,
+            "batches/s",
+            True,
+            note,
+            peer_name="ours, replay decodes (encoded_frames off)",
+        ),
+        Row(
+            group,
+            "MB a batch on the link",
+            wire_mb["kept"],
+            wire_mb["decoded"],
+            "MB",
+            False,
+            "what a slower link between sites carries per batch",
+            peer_name="ours, replay decodes (encoded_frames off)",
+        ),
+    ]
+
+
 def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Row]:
     workdir.mkdir(parents=True, exist_ok=True)
     sizes = [(SIM_ARM, 600, 3), (IMAGES, 300, 2)] if quick else [(SIM_ARM, 20_000, 30), (IMAGES, 1_000, 10)]
@@ -844,4 +923,5 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
         rows += bench_camera_service(n_img, r_img, workdir, log, decoded_fraction=fraction)
     rows += bench_larger_than_hot(2_000 if quick else 50_000, 3 if quick else 20, workdir, log)
     rows += bench_learner_feed(200 if quick else 2_000, 2.0 if quick else 5.0, 2 if quick else 4, workdir, log)
+    rows += bench_remote_feed(200 if quick else 2_000, 2.0 if quick else 5.0, 2 if quick else 4, workdir, log)
     return rows

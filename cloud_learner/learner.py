@@ -469,7 +469,7 @@ class ExperimentRun:
     def _table_request(self, table: str, req: BatchRequest) -> replay_pb2.SampleRequest:
         """A sample of one table: the experiment's own (its robots) or a pre-filled one (every row of it:
         imported demos carry their dataset's robot id)."""
-        request = replay_pb2.SampleRequest(batch_size=req.batch_size)
+        request = replay_pb2.SampleRequest(batch_size=req.batch_size, encoded_frames=self.lc.replay_encoded_frames)
         if table == self.exp.table:
             with self._lock:
                 request.robot_ids.extend(sorted(self.specs))
@@ -628,7 +628,9 @@ class ExperimentRun:
         return sorted((k, sorted(v)) for k, v in kinds.items())
 
     def _request(self, batch_size: int, robot_ids: list[str], req: BatchRequest) -> replay_pb2.SampleRequest:
-        request = replay_pb2.SampleRequest(batch_size=batch_size, robot_ids=robot_ids)
+        request = replay_pb2.SampleRequest(
+            batch_size=batch_size, robot_ids=robot_ids, encoded_frames=self.lc.replay_encoded_frames
+        )
         if req.n_step > 1:  # replay sums the discounted rewards; the batch says how many steps each row holds
             request.n_step, request.gamma = req.n_step, req.gamma
         if req.action_horizon > 1:  # replay assembles each row's next H actions (action-chunking policies)

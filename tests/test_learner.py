@@ -193,6 +193,28 @@ def test_decode_batch_keeps_every_feature_images_uint8_and_interventions() -> No
         decode_batch(no_camera, LAYOUT)
 
 
+def test_decode_batch_decodes_frames_replay_sent_as_kept() -> None:
+    """A batch asked for with encoded_frames brings its camera frames as PNG bytes (Tensor.frame_bytes): the
+    learner decodes them to the same uint8 frames a raw batch would hold."""
+    from user import wire
+    from user.v1 import tensor_pb2
+
+    raw, kept = replay_batch(5), replay_batch(5)
+    frames = np.random.default_rng(1).integers(0, 256, (5, 8, 8, 3), np.uint8)
+    blobs = np.empty(5, object)
+    blobs[:] = [wire.encode_image(f, tensor_pb2.ENCODING_PNG) for f in frames]
+    for batch, tensor in (
+        (raw, to_tensor(frames)),
+        (kept, wire.frames_tensor(wire.EncodedFrames(blobs, 2, (8, 8, 3)))),
+    ):
+        for tmap in (batch.observation, batch.next_observation):
+            tmap.tensors["camera.front"].CopyFrom(tensor)
+    assert len(kept.observation.tensors["camera.front"].frame_bytes) == 5
+    a, b = decode_batch(raw, LAYOUT), decode_batch(kept, LAYOUT)
+    for part in ("observation", "next_observation"):
+        assert torch.equal(getattr(a, part)["camera.front"], getattr(b, part)["camera.front"])
+
+
 # --------------------------------------------------------------------------- plug-ins from config
 
 

@@ -218,6 +218,11 @@ class LearnerConfig(_ServerSection):
         description="same host as replay: take batches from slot files replay writes in this shared-memory "
         "directory once it proves shared (not with replay_addrs shards); null = always through the socket",
     )
+    replay_encoded_frames: bool = Field(
+        default=True,
+        description="batches through the socket bring camera frames as replay keeps them (JPEG/PNG, ~1/10 of raw) "
+        "and the learner's sampler threads decode them; false = replay decodes",
+    )
     weights_shm_dir: str | None = Field(
         default="/dev/shm",
         description="same-host subscribers that prove they share this directory get versions as files here "

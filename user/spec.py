@@ -333,7 +333,7 @@ class StepCheck:
                     except wire.WireError:
                         return False
                 continue
-            if dtype is None or enc != tpb.ENCODING_RAW or len(t.data) != nbytes:
+            if dtype is None or enc != tpb.ENCODING_RAW or len(t.data) != nbytes or _batched(t):
                 return False
             if finite and not np.isfinite(np.frombuffer(t.data, dtype)).all():
                 return False
@@ -343,7 +343,7 @@ class StepCheck:
         act = self.action
         if self.action_limits is None or tensor.dtype != act.dtype or tuple(tensor.shape) != act.shape:
             return False
-        if tensor.encoding != tpb.ENCODING_RAW or len(tensor.data) != self.action_bytes:
+        if tensor.encoding != tpb.ENCODING_RAW or len(tensor.data) != self.action_bytes or _batched(tensor):
             return False
         values = np.frombuffer(tensor.data, self.action_dtype)
         low, high = self.action_limits
@@ -363,6 +363,12 @@ class StepCheck:
         if not self._tensors(step.observation, images_checked) or not self._action(step.action):
             return False
         return not has_final or self._tensors(step.final_observation, images_checked)
+
+
+def _batched(tensor: tpb.Tensor) -> bool:
+    """frame_bytes/batch_dims belong to sampled batches of images: a step's tensor with them is for the full
+    check to refuse (wire.from_tensor / check_image)."""
+    return bool(tensor.batch_dims or tensor.frame_bytes)
 
 
 def _id_ok(value: str, limit: int) -> bool:

@@ -7,7 +7,10 @@ instead of producing a garbage array.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -149,6 +152,8 @@ def from_tensor(tensor: tpb.Tensor) -> np.ndarray:
     if expected > MAX_TENSOR_BYTES:
         raise WireError(f"tensor of {expected} bytes exceeds {MAX_TENSOR_BYTES}")
     enc = tensor.encoding
+    if tensor.frame_bytes or tensor.batch_dims:
+        return _decode_frames(tensor, shape, dtype)
     if enc == tpb.ENCODING_RAW:
         raw = tensor.data
     elif enc in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG):
@@ -214,6 +219,8 @@ def check_image(tensor: tpb.Tensor) -> None:
     encoding = tensor.encoding
     if encoding not in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG):
         raise WireError(f"not an image encoding: {encoding}")
+    if tensor.frame_bytes or tensor.batch_dims:
+        raise WireError("frame_bytes and batch_dims are for batches of images, not one image")
     data = tensor.data
     _check_image_header(data, shape, _UINT8 if tensor.dtype == tpb.DTYPE_UINT8 else dtype_from_proto(tensor.dtype))
     if encoding == tpb.ENCODING_PNG:
@@ -234,18 +241,130 @@ def check_image(tensor: tpb.Tensor) -> None:
         raise WireError("undecodable JPEG payload")
 
 
-def _decode_image(data: bytes, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+def _decode_image(
+    data: bytes | memoryview, shape: tuple[int, ...], dtype: np.dtype, out: np.ndarray | None = None
+) -> np.ndarray:
+    """One JPEG/PNG image of the declared shape (decoded into `out` when given)."""
+    _check_image_header(data, shape, dtype)
+    grey = len(shape) == 2 or shape[-1] == 1
+    if data[:2] == b"\xff\xd8":  # JPEG (the header check found its frame header)
+        return decode_jpeg(data, shape, out)
     import cv2
 
-    _check_image_header(data, shape, dtype)
-    flag = cv2.IMREAD_GRAYSCALE if len(shape) == 2 or shape[-1] == 1 else cv2.IMREAD_COLOR
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), flag)
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_COLOR)
     if img is None:
         raise WireError("undecodable image payload")
     img = img.reshape(shape) if img.size == math.prod(shape) else img
     if img.shape != shape:
         raise WireError(f"decoded image shape {img.shape} != declared {shape}")
+    if out is not None:
+        out[...] = img
+        return out
     return img
+
+
+def decode_jpeg(data: bytes | memoryview, shape: tuple[int, ...], out: np.ndarray | None = None) -> np.ndarray:
+    """A JPEG of uint8 `shape` ((H, W), (H, W, 1) or (H, W, 3); channels in the order they were encoded, as cv2
+    gives them). libjpeg-turbo through simplejpeg: the same pixels as cv2.imdecode, ~1.8x faster (128x128 q90:
+    41 vs 74 us), without the GIL, and straight into `out` when given. Lenient as cv2: a scan cut short decodes
+    with grey filled in (check_image refuses that where it matters)."""
+    import simplejpeg
+
+    grey = len(shape) == 2 or shape[-1] == 1
+    target = out if out is not None else np.empty(shape, np.uint8)
+    try:
+        img = simplejpeg.decode_jpeg(data, colorspace="GRAY" if grey else "BGR", strict=False, buffer=target)
+    except ValueError as exc:
+        raise WireError(f"undecodable JPEG payload: {exc}") from None
+    if img.size != target.size:
+        raise WireError(f"decoded image shape {img.shape} != declared {shape}")
+    return target
+
+
+# --------------------------------------------------------------------------- batches of encoded images
+
+
+@dataclass(frozen=True)
+class EncodedFrames:
+    """Images kept as JPEG/PNG, one per cell of `blobs` (an object array of bytes, shaped like the batch dims),
+    all with one `encoding`; each decodes to uint8 `image_shape`. Sent as one Tensor with frame_bytes."""
+
+    blobs: np.ndarray
+    encoding: int
+    image_shape: tuple[int, ...]
+
+    @property
+    def nbytes(self) -> int:  # what the frames cost on the wire
+        return sum(len(b) for b in self.blobs.reshape(-1).tolist())
+
+    def decoded(self) -> np.ndarray:
+        return from_tensor(frames_tensor(self))
+
+
+def stack_frames(parts: Sequence[EncodedFrames]) -> EncodedFrames:
+    """k parts of batch dims (B,) -> (B, k), as np.stack(axis=1) stacks arrays (frame stacking)."""
+    blobs = np.empty((len(parts[0].blobs), len(parts)), object)
+    for j, part in enumerate(parts):
+        blobs[:, j] = part.blobs
+    return EncodedFrames(blobs, parts[0].encoding, parts[0].image_shape)
+
+
+def frames_tensor(frames: EncodedFrames) -> tpb.Tensor:
+    """One Tensor holding every image of `frames` as it is kept (no decoding, no re-encoding)."""
+    flat = frames.blobs.reshape(-1).tolist()
+    return tpb.Tensor(
+        dtype=tpb.DTYPE_UINT8,
+        shape=[*frames.blobs.shape, *frames.image_shape],
+        data=b"".join(flat),
+        encoding=frames.encoding,
+        frame_bytes=[len(b) for b in flat],
+        batch_dims=frames.blobs.ndim,
+    )
+
+
+_FRAME_WORKERS = max(1, min(4, os.cpu_count() or 1))
+_MIN_FRAMES_PER_TASK = 32
+_frame_pool: ThreadPoolExecutor | None = None
+
+
+def _frames_pool() -> ThreadPoolExecutor:
+    global _frame_pool
+    if _frame_pool is None:
+        _frame_pool = ThreadPoolExecutor(max_workers=_FRAME_WORKERS, thread_name_prefix="wire-decode")
+    return _frame_pool
+
+
+def _decode_frames(tensor: tpb.Tensor, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+    """A Tensor with frame_bytes: every image checked against the declared shape and decoded into one array, on a
+    few threads (the JPEG decoder runs without the GIL)."""
+    enc, b, sizes = tensor.encoding, tensor.batch_dims, list(tensor.frame_bytes)
+    if enc not in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG):
+        raise WireError("frame_bytes is for JPEG/PNG tensors")
+    if not 1 <= b < len(shape) or not is_image_shape(shape[b:]):
+        raise WireError(f"batch_dims {b} must leave an image shape (H, W), (H, W, 1) or (H, W, 3) of {shape}")
+    count, image = math.prod(shape[:b]), shape[b:]
+    if len(sizes) != count:
+        raise WireError(f"{len(sizes)} frame_bytes for {count} images of shape {shape}")
+    data = memoryview(tensor.data)
+    if sum(sizes) != len(data):
+        raise WireError(f"frame_bytes add up to {sum(sizes)}, data has {len(data)} bytes")
+    out = np.empty(shape, np.uint8)
+    flat = out.reshape(count, *image)
+    ends = np.cumsum(sizes).tolist()
+    starts = [0, *ends[:-1]]
+
+    def run(lo: int, hi: int) -> None:
+        for i in range(lo, hi):
+            _decode_image(data[starts[i] : ends[i]], image, dtype, flat[i])
+
+    tasks = max(1, min(_FRAME_WORKERS, count // _MIN_FRAMES_PER_TASK))
+    if tasks == 1:
+        run(0, count)
+        return out
+    step = -(-count // tasks)
+    for f in [_frames_pool().submit(run, lo, min(count, lo + step)) for lo in range(0, count, step)]:
+        f.result()  # a WireError of any image is raised here
+    return out
 
 
 _UINT8 = np.dtype(np.uint8)
@@ -276,10 +395,10 @@ def _image_size(data: bytes, shape: tuple[int, ...]) -> tuple[int, int, int | No
     return None
 
 
-def to_tensor_map(arrays: Mapping[str, np.ndarray]) -> tpb.TensorMap:
+def to_tensor_map(arrays: Mapping[str, np.ndarray | EncodedFrames]) -> tpb.TensorMap:
     out = tpb.TensorMap()
     for name, arr in arrays.items():
-        out.tensors[name].CopyFrom(to_tensor(arr))
+        out.tensors[name].CopyFrom(frames_tensor(arr) if isinstance(arr, EncodedFrames) else to_tensor(arr))
     return out
 
 

@@ -14,6 +14,7 @@ import logging
 import math
 import mmap
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import numpy as np
 import prometheus_client
@@ -64,6 +65,44 @@ def _decoder_pool() -> ThreadPoolExecutor:
         single_threaded_cv2()
         _pool = ThreadPoolExecutor(max_workers=_WORKERS, thread_name_prefix="replay-decode")
     return _pool
+
+
+def decode_blobs(blobs: np.ndarray, encs: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """Stored frames (bytes, each RAW, JPEG or PNG as `encs` says) decoded into one uint8 array, on the decoder
+    threads; a frame that does not decode reads as zeros (counted)."""
+    out = np.empty((len(blobs), *shape), np.uint8)
+
+    import cv2
+
+    flag = cv2.IMREAD_GRAYSCALE if len(shape) == 2 or shape[-1] == 1 else cv2.IMREAD_COLOR
+
+    def run(lo: int, hi: int) -> None:
+        for i in range(lo, hi):
+            enc = encs[i]
+            if enc == tpb.ENCODING_RAW:
+                out[i] = np.frombuffer(blobs[i], np.uint8).reshape(shape)
+                continue
+            try:  # validated when it was stored
+                if enc == tpb.ENCODING_JPEG:
+                    wire.decode_jpeg(blobs[i], shape, out[i])
+                    continue
+                img = cv2.imdecode(np.frombuffer(blobs[i], np.uint8), flag)
+                if img is None or img.size != out[i].size:
+                    raise wire.WireError("undecodable PNG")
+                out[i] = img.reshape(shape)
+            except wire.WireError:  # the checked decoder says why, or zeros
+                t = tpb.Tensor(dtype=tpb.DTYPE_UINT8, shape=shape, data=blobs[i], encoding=int(enc))
+                out[i] = decode_image(t).reshape(shape)
+
+    n = len(blobs)
+    if n < _DECODE_MIN:
+        run(0, n)
+        return out
+    pool = _decoder_pool()
+    step = -(-n // _WORKERS)
+    for f in [pool.submit(run, lo, min(n, lo + step)) for lo in range(0, n, step)]:
+        f.result()
+    return out
 
 
 def frame_nbytes(layout: Layout) -> int:
@@ -249,30 +288,48 @@ class HotGroup:
         ok &= self.t_first[rows] >= self.frames_written - self.frame_capacity
         return ok
 
-    def observations(self, rows: np.ndarray, which: str) -> dict[str, np.ndarray]:
-        at = self.t_rows[0 if which == "obs" else 1].take(rows)
+    def frame_rows(self, rows: np.ndarray, which: str) -> np.ndarray:
+        """Ring rows of the observation ("obs") or next observation ("next") of transition rows."""
+        return self.t_rows[0 if which == "obs" else 1].take(rows)
+
+    def observations(self, rows: np.ndarray, which: str, skip: frozenset[str] = frozenset()) -> dict[str, np.ndarray]:
+        """The observations of transition rows; encoded features in `skip` are left out (the caller takes their
+        bytes)."""
+        at = self.frame_rows(rows, which)
         # take(axis=0) copies whole rows; fancy indexing of a 2-D+ array walks them element by element (~3x slower)
         out = {name: column.take(at, axis=0) for name, column in self.frames.items()}
         for name in self.encoded:
-            out[name] = self._decode(name, at)
+            if name not in skip:
+                out[name] = self._decode(name, at)
         return out
 
-    def observations_pair(self, rows: np.ndarray, next_rows: np.ndarray) -> tuple[dict, dict]:
+    def observations_pair(
+        self, rows: np.ndarray, next_rows: np.ndarray, keep_encoded: bool = False
+    ) -> tuple[dict[str, Any], dict[str, Any]]:
         """observations(rows, "obs") and observations(next_rows, "next"), decoding each encoded frame once
-        (a batch's next observations are often other draws' observations)."""
+        (a batch's next observations are often other draws' observations). keep_encoded: encoded features come as
+        wire.EncodedFrames (their bytes as kept) where all their frames share one image encoding."""
         if rows is next_rows:  # one-step transitions: both frame rows of each in one gather, both frames in one
             at = self.t_rows.take(rows, axis=1)
             a, b = at[0], at[1]
             pairs = {name: column.take(at, axis=0) for name, column in self.frames.items()}  # (2, k, ...)
-            obs = {name: pair[0] for name, pair in pairs.items()}
-            nxt = {name: pair[1] for name, pair in pairs.items()}
+            obs: dict[str, Any] = {name: pair[0] for name, pair in pairs.items()}
+            nxt: dict[str, Any] = {name: pair[1] for name, pair in pairs.items()}
         else:
             a, b = self.t_rows[0].take(rows), self.t_rows[1].take(next_rows)
             obs = {name: column.take(a, axis=0) for name, column in self.frames.items()}
             nxt = {name: column.take(b, axis=0) for name, column in self.frames.items()}
-        if self.encoded:
+        names = list(self.encoded)
+        if keep_encoded:
+            for name in list(names):
+                kept = self.encoded_frames(name, np.concatenate([a, b]))
+                if kept is not None:
+                    obs[name] = wire.EncodedFrames(kept.blobs[: len(a)], kept.encoding, kept.image_shape)
+                    nxt[name] = wire.EncodedFrames(kept.blobs[len(a) :], kept.encoding, kept.image_shape)
+                    names.remove(name)
+        if names:
             uniq, inv = np.unique(np.concatenate([a, b]), return_inverse=True)
-            for name in self.encoded:
+            for name in names:
                 frames = self._decode(name, uniq)
                 obs[name], nxt[name] = frames[inv[: len(a)]], frames[inv[len(a) :]]
         return obs, nxt
@@ -307,35 +364,16 @@ class HotGroup:
 
     def _decode_blobs(self, name: str, at: np.ndarray) -> np.ndarray:
         """Frames of an encoded feature at ring rows, each decoded from its bytes (on the decoder threads)."""
-        shape = self.encoded[name]
-        out = np.empty((len(at), *shape), np.uint8)
-        blobs, encs = self.blobs[name][at], self.blob_enc[name][at]
+        return decode_blobs(self.blobs[name][at], self.blob_enc[name][at], self.encoded[name])
 
-        import cv2
-
-        flag = cv2.IMREAD_GRAYSCALE if len(shape) == 2 or shape[-1] == 1 else cv2.IMREAD_COLOR
-
-        def run(lo: int, hi: int) -> None:
-            for i in range(lo, hi):
-                if encs[i] == tpb.ENCODING_RAW:
-                    out[i] = np.frombuffer(blobs[i], np.uint8).reshape(shape)
-                    continue
-                img = cv2.imdecode(np.frombuffer(blobs[i], np.uint8), flag)  # validated when it was stored
-                if img is None or img.size != out[i].size:  # the checked decoder says why, or zeros
-                    img = decode_image(
-                        tpb.Tensor(dtype=tpb.DTYPE_UINT8, shape=shape, data=blobs[i], encoding=int(encs[i]))
-                    )
-                out[i] = img.reshape(shape)
-
-        n = len(at)
-        pool = _decoder_pool()
-        if n < _DECODE_MIN:
-            run(0, n)
-            return out
-        step = -(-n // _WORKERS)
-        for f in [pool.submit(run, lo, min(n, lo + step)) for lo in range(0, n, step)]:
-            f.result()
-        return out
+    def encoded_frames(self, name: str, at: np.ndarray) -> wire.EncodedFrames | None:
+        """Frames of an encoded feature at ring rows as they are kept, when all have one image encoding (else None:
+        decode them)."""
+        encs = self.blob_enc[name][at]
+        enc = int(encs[0]) if len(encs) else tpb.ENCODING_RAW
+        if enc == tpb.ENCODING_RAW or not (encs == enc).all():
+            return None
+        return wire.EncodedFrames(self.blobs[name][at], enc, self.encoded[name])
 
     def resident_bytes(self) -> int:
         frames = min(self.frames_written, self.frame_capacity) * self.frame_bytes

@@ -22,7 +22,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import grpc
@@ -676,6 +676,8 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
     ) -> tuple[replay_pb2.Batch | dict[str, Any], int]:
         with self._rng_lock:
             rng = np.random.default_rng(self._rng.integers(1 << 63))
+        if draw.encoded_frames and not as_proto:  # a shared-memory slot holds arrays: frames come decoded
+            draw = replace(draw, encoded_frames=False)
         arrays = self.store.sample(draw.batch_size, rng, draw=draw)
         add_action_chunks(self.store, arrays, action_horizon)  # the next H actions per row (H > 1)
         size = _nbytes(arrays)
@@ -807,6 +809,7 @@ def to_draw(req: replay_pb2.SampleRequest) -> Draw:
         n_step=max(1, req.n_step),
         gamma=req.gamma or 0.99,
         frame_stack=max(1, req.frame_stack),
+        encoded_frames=req.encoded_frames,
     )
 
 
@@ -818,7 +821,7 @@ def _nbytes(arrays: dict[str, Any]) -> int:
 
 
 def to_batch(arrays: dict[str, Any]) -> replay_pb2.Batch:
-    """store.sample() arrays -> the wire Batch (RAW tensors)."""
+    """store.sample() arrays -> the wire Batch (RAW tensors; encoded frames as kept, with frame_bytes)."""
     return replay_pb2.Batch(
         observation=wire.to_tensor_map(arrays["observation"]),
         action=wire.to_tensor(arrays["action"]),

@@ -43,13 +43,14 @@ from services.replay.disk import (
     split_key,
     step_key,
 )
-from services.replay.hot import HotGroup, Layout, decode_image, frame_nbytes
+from services.replay.hot import HotGroup, Layout, decode_blobs, decode_image, frame_nbytes
 from services.replay.rawstep import Span, StepSpans, Unexpected, step_spans
 from services.replay.tables import INTERVENTIONS, Draw, EmptyBufferError, Index, Record
 from user import wire
 from user.log import kv
 from user.v1 import robot_pb2, step_pb2
 from user.v1 import tensor_pb2 as tpb
+from user.wire import EncodedFrames, stack_frames
 
 __all__ = [
     "EmptyBufferError",
@@ -166,6 +167,41 @@ class _Columns:
     obs: list[int] = field(default_factory=list)
     nxt: list[int] = field(default_factory=list)
     action: list[np.ndarray | None] = field(default_factory=list)
+
+
+IMAGE_ENC = (tpb.ENCODING_JPEG, tpb.ENCODING_PNG)
+
+
+def _stack(parts: list[Any]) -> Any:
+    """Frame stacking of one feature: arrays, or encoded frames (decoded if only some parts kept their bytes)."""
+    if all(isinstance(p, EncodedFrames) for p in parts) and len({(p.encoding, p.image_shape) for p in parts}) == 1:
+        return stack_frames(parts)
+    return np.stack([p.decoded() if isinstance(p, EncodedFrames) else p for p in parts], axis=1)
+
+
+def _kept_frames(
+    hot: HotGroup | None,
+    name: str,
+    shape: tuple[int, ...],
+    at: np.ndarray | None,
+    ok: np.ndarray,
+    cold: np.ndarray,
+    tensors: list[tpb.Tensor],
+) -> Any:
+    """One encoded feature's frames for a batch: the hot draws' (`ok`) bytes from ring rows `at`, the cold draws'
+    from their stored tensors; as kept when all share one image encoding, else decoded."""
+    n = len(ok)
+    blobs, encs = np.empty(n, object), np.empty(n, np.uint8)
+    if hot is not None and at is not None:
+        blobs[ok], encs[ok] = hot.blobs[name][at], hot.blob_enc[name][at]
+    for i, t in zip(cold.tolist(), tensors, strict=True):
+        if t.dtype != tpb.DTYPE_UINT8 or tuple(t.shape) != shape:
+            raise ValueError(f"{name}: dtype or shape differs from the batch's layout")
+        blobs[i], encs[i] = t.data, t.encoding
+    enc = int(encs[0])
+    if enc != tpb.ENCODING_RAW and (encs == enc).all():
+        return EncodedFrames(blobs, enc, shape)
+    return decode_blobs(blobs, encs, shape)
 
 
 def _stack_actions(parts: list[tuple[list[int], np.ndarray | None]], n: int) -> np.ndarray | None:
@@ -1126,36 +1162,38 @@ class ReplayStore:
                 "weights": drawn.weights,
                 "n_steps": drawn.n_steps,
             }
-            k = max(1, req.frame_stack)
+            k, enc = max(1, req.frame_stack), req.encoded_frames
             if k == 1:
-                self._gather(out, tids, last)
+                self._gather(out, tids, last, enc)
                 return out
             # frame stacking: the k newest observations up to t, and up to t+n for next_observation
             # (oldest first), repeating an episode's first observation where fewer than k came before
             newest: dict[str, Any] = {}
-            self._gather(newest, tids, last)
+            self._gather(newest, tids, last, enc)
             obs_parts, next_parts = [], []
             for back in range(k - 1, 0, -1):
                 part: dict[str, Any] = {}
-                self._gather(part, idx.back(tids, back), last)  # (its next_observation is not used)
+                self._gather(part, idx.back(tids, back), last, enc)  # (its next_observation is not used)
                 obs_parts.append(part["observation"])
                 before_end: dict[str, Any] = {}
-                self._gather(before_end, idx.back(last, back - 1), last)
+                self._gather(before_end, idx.back(last, back - 1), last, enc)
                 next_parts.append(before_end["observation"])
             obs_parts.append(newest["observation"])
             next_parts.append(newest["next_observation"])
             out["action"] = newest["action"]
-            out["observation"] = {f: np.stack([p[f] for p in obs_parts], axis=1) for f in obs_parts[-1]}
-            out["next_observation"] = {f: np.stack([p[f] for p in next_parts], axis=1) for f in next_parts[-1]}
+            out["observation"] = {f: _stack([p[f] for p in obs_parts]) for f in obs_parts[-1]}
+            out["next_observation"] = {f: _stack([p[f] for p in next_parts]) for f in next_parts[-1]}
             return out
 
-    def _gather(self, out: dict[str, Any], tids: np.ndarray, last: np.ndarray) -> None:
-        """observation (of tids), next_observation (after last) and action columns (caller holds the lock)."""
+    def _gather(self, out: dict[str, Any], tids: np.ndarray, last: np.ndarray, keep_encoded: bool = False) -> None:
+        """observation (of tids), next_observation (after last) and action columns (caller holds the lock).
+        keep_encoded: JPEG/PNG frames of the hot tier's encoded features as kept (wire.EncodedFrames) where a
+        feature's drawn frames share one encoding."""
         idx = self.index
         same = last is tids  # one-step transitions: one set of checks
         rows = idx.hot_row.a[tids]
         next_rows = rows if same else idx.hot_row.a[last]
-        if self._gather_hot(out, tids, last, rows, next_rows):
+        if self._gather_hot(out, tids, last, rows, next_rows, keep_encoded):
             return
         g_obs = idx.group.a[tids]
         g_next = g_obs if same else idx.group.a[last]
@@ -1179,10 +1217,16 @@ class ReplayStore:
         n_hot = int(np.count_nonzero(ok_obs))
         self.hits += n_hot
         self.misses += len(tids) - n_hot
-        self._fill_mixed(out, hot, tids, last, ok_obs, ok_next)
+        self._fill_mixed(out, hot, tids, last, ok_obs, ok_next, keep_encoded)
 
     def _gather_hot(
-        self, out: dict[str, Any], tids: np.ndarray, last: np.ndarray, rows: np.ndarray, next_rows: np.ndarray
+        self,
+        out: dict[str, Any],
+        tids: np.ndarray,
+        last: np.ndarray,
+        rows: np.ndarray,
+        next_rows: np.ndarray,
+        keep_encoded: bool = False,
     ) -> bool:
         """The usual batch, every draw still in the first draw's hot ring: gathered from RAM (True), else
         nothing done (False). A transition is only ever written to its own group's ring, so draws that all
@@ -1195,7 +1239,7 @@ class ReplayStore:
         if n_hot != len(tids) or not (last is tids or hot.valid(next_rows, last).all()):
             return False
         self.hits += n_hot
-        out["observation"], out["next_observation"] = hot.observations_pair(rows, next_rows)
+        out["observation"], out["next_observation"] = hot.observations_pair(rows, next_rows, keep_encoded)
         action = hot.action.take(rows, axis=0)
         out["action"] = action if action.dtype == np.float32 else action.astype(np.float32)
         return True
@@ -1208,9 +1252,11 @@ class ReplayStore:
         last: np.ndarray,
         ok_obs: np.ndarray,
         ok_next: np.ndarray,
+        keep_encoded: bool = False,
     ) -> None:
         """Hot rows gathered from RAM, the rest read from LMDB into the same columns (caller holds the lock)."""
         idx = self.index
+        kept = frozenset(hot.encoded) if keep_encoded and hot is not None else frozenset()
         cold_obs, cold_next = np.flatnonzero(~ok_obs), np.flatnonzero(~ok_next)
         keys = idx.keys_of(tids[cold_obs])
         last_keys = idx.keys_of(last[cold_next])
@@ -1220,7 +1266,8 @@ class ReplayStore:
             layout = layout_of(self._read([(keys or last_keys)[0]])[0])
         # large frames (cameras): copied straight from the LMDB pages into the batch; small steps parse
         # faster with protobuf (C) than rawstep walks them (Python)
-        if layout is not None and not self._attached and frame_nbytes(layout) >= RAW_READ_MIN_BYTES:
+        raw_read = not kept and not self._attached  # (encoded frames are never raw: _read_cold_raw would say no)
+        if layout is not None and raw_read and frame_nbytes(layout) >= RAW_READ_MIN_BYTES:
             obs, next_obs, action = self._columns(layout, n, hot, tids, last, ok_obs, ok_next)
             if self._read_cold_raw(layout, keys, last_keys, cold_obs, cold_next, obs, next_obs, action):
                 out["observation"] = obs
@@ -1252,16 +1299,28 @@ class ReplayStore:
                     f"sampled transitions have different observation layouts ({keys[0][:-8]!r} vs "
                     f"{keys[i][:-8]!r}); sample robots with different specs separately (robot_ids)"
                 )
-        features = layout[0]
-        obs, next_obs, action = self._columns(layout, n, hot, tids, last, ok_obs, ok_next)
+        if keep_encoded and hot is None:  # no hot tier: the features the stored steps keep as JPEG/PNG
+            first = cur[0].observation if cur else nxt[0]
+            kept = frozenset(f for f, dt, _ in layout[0] if dt == np.uint8 and first.tensors[f].encoding in IMAGE_ENC)
+        features = [f for f, _, _ in layout[0] if f not in kept]
+        obs, next_obs, action = self._columns(layout, n, hot, tids, last, ok_obs, ok_next, kept)
         try:
             for i, s in zip(cold_obs.tolist(), cur, strict=True):
-                for f, _, _ in features:
+                for f in features:
                     obs[f][i] = tensor_array(s.observation.tensors[f])
                 action[i] = tensor_array(s.action)
             for i, m in zip(cold_next.tolist(), nxt, strict=True):
-                for f, _, _ in features:
+                for f in features:
                     next_obs[f][i] = tensor_array(m.tensors[f])
+            if kept:
+                shapes = {f: sh for f, _, sh in layout[0]}
+                obs_at = hot.frame_rows(idx.hot_row.a[tids[ok_obs]], "obs") if hot is not None else None
+                next_at = hot.frame_rows(idx.hot_row.a[last[ok_next]], "next") if hot is not None else None
+                for f in kept:
+                    cold = [s.observation.tensors[f] for s in cur]
+                    obs[f] = _kept_frames(hot, f, shapes[f], obs_at, ok_obs, cold_obs, cold)
+                    cold = [m.tensors[f] for m in nxt]
+                    next_obs[f] = _kept_frames(hot, f, shapes[f], next_at, ok_next, cold_next, cold)
         except (KeyError, ValueError) as exc:
             raise LayoutError(f"sampled observations do not match one layout: {exc}") from None
         out["observation"] = obs
@@ -1277,20 +1336,22 @@ class ReplayStore:
         last: np.ndarray,
         ok_obs: np.ndarray,
         ok_next: np.ndarray,
-    ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], np.ndarray]:
-        """Batch columns of `layout` with the hot rows gathered from RAM (the cold rows are left to fill)."""
+        skip: frozenset[str] = frozenset(),
+    ) -> tuple[dict[str, Any], dict[str, Any], np.ndarray]:
+        """Batch columns of `layout` with the hot rows gathered from RAM (the cold rows are left to fill); features
+        in `skip` (encoded ones the caller passes on as kept) get no column."""
         features, (act_dtype, act_shape) = layout
-        obs = {f: np.empty((n, *sh), dt) for f, dt, sh in features}
-        next_obs = {f: np.empty((n, *sh), dt) for f, dt, sh in features}
+        obs: dict[str, Any] = {f: np.empty((n, *sh), dt) for f, dt, sh in features if f not in skip}
+        next_obs: dict[str, Any] = {f: np.empty((n, *sh), dt) for f, dt, sh in features if f not in skip}
         action = np.empty((n, *act_shape), act_dtype)
         idx = self.index
         if hot is not None and ok_obs.any():
             rows = idx.hot_row.a[tids[ok_obs]]
-            for f, col in hot.observations(rows, "obs").items():
+            for f, col in hot.observations(rows, "obs", skip).items():
                 obs[f][ok_obs] = col
             action[ok_obs] = hot.action[rows]
         if hot is not None and ok_next.any():
-            for f, col in hot.observations(idx.hot_row.a[last[ok_next]], "next").items():
+            for f, col in hot.observations(idx.hot_row.a[last[ok_next]], "next", skip).items():
                 next_obs[f][ok_next] = col
         return obs, next_obs, action
 

@@ -183,6 +183,7 @@ class Draw:
     n_step: int = 1
     gamma: float = 0.99
     frame_stack: int = 1  # observations get an axis of the k newest frames (oldest first)
+    encoded_frames: bool = False  # JPEG/PNG frames as kept (wire.EncodedFrames) where they share one encoding
 
 
 @dataclass
