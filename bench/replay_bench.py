@@ -824,7 +824,9 @@ def bench_learner_feed(n: int, seconds: float, rounds: int, workdir: Path, log: 
     ]
 
 
-def bench_remote_feed(n: int, seconds: float, rounds: int, workdir: Path, log: Callable[..., None]) -> list[Row]:
+def bench_remote_feed(
+    n: int, seconds: float, rounds: int, workdir: Path, log: Callable[..., None], link: str = ""
+) -> list[Row]:
     """A learner on another host (no shared memory): batches of 256 with two camera-like 128x128 frames, JPEG from
     the edge, through the gRPC socket until decode_arrays hands them on: frames as replay keeps them
     (SampleRequest.encoded_frames, the learner's default; its sampler threads decode) vs decoded by replay (replay's
@@ -846,8 +848,8 @@ def bench_remote_feed(n: int, seconds: float, rounds: int, workdir: Path, log: C
     child = ctx.Process(target=_serve_replay, args=(cfg.model_dump_json(), child_end), daemon=True)
     child.start()
     group = (
-        f"replay Sample to a learner on another host (socket), batch {BATCH}, two {IMAGE_HW}x{IMAGE_HW} camera-like "
-        f"frames JPEG q{EDGE_JPEG_QUALITY} from the edge (N={n})"
+        f"replay Sample to a learner on another host (socket{link}), batch {BATCH}, two {IMAGE_HW}x{IMAGE_HW} "
+        f"camera-like frames JPEG q{EDGE_JPEG_QUALITY} from the edge (N={n})"
     )
     keys = ["camera.front", "camera.wrist", "state"]
     rates: dict[str, list[float]] = {"kept": [], "decoded": []}
@@ -903,6 +905,49 @@ def bench_remote_feed(n: int, seconds: float, rounds: int, workdir: Path, log: C
     ]
 
 
+LINK_RATE, LINK_NAME = "1gbit", "1 Gbit/s"  # a site's shard to a cloud learner
+LINK_SETUP = f"ip link set lo up && tc qdisc add dev lo root tbf rate {LINK_RATE} burst 1mb latency 100ms"
+
+
+def remote_feed_over_link(quick: bool, workdir: Path, log: Callable[..., None]) -> list[Row]:
+    """bench_remote_feed with replay and learner in a private network namespace whose 127.0.0.1 is a 1 Gbit/s tc
+    tbf link (as bench.weights_link makes its 20 Mbit/s one); one row saying why where it cannot be made."""
+    import json
+
+    cmd = [sys.executable, "-m", "bench.replay_bench", "--link-child", str(workdir)] + (["--quick"] if quick else [])
+    shell = f"{LINK_SETUP} && exec {' '.join(cmd)}"
+    err = "?"
+    for prefix in (["unshare", "-n"], ["unshare", "-rn"]):  # as root, else as a user namespace's root
+        try:
+            proc = subprocess.run([*prefix, "sh", "-c", shell], capture_output=True, text=True, timeout=900)
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            err = str(exc)
+            continue
+        if proc.returncode == 0:
+            for line in proc.stdout.splitlines():
+                if line.startswith("LOG "):
+                    log(line[4:])
+            return [Row(**r) for r in json.loads(proc.stdout.strip().splitlines()[-1])]
+        err = ((proc.stderr or proc.stdout).strip().splitlines() or ["?"])[-1]
+    log(f"replay remote feed over a {LINK_NAME} link: skipped ({err})")
+    group = f"replay Sample to a learner on another host over a {LINK_NAME} link"
+    return [Row(group, "skipped", "n/a", "n/a", note=f"could not emulate: {err}")]
+
+
+def _link_child(workdir: Path, quick: bool) -> None:
+    import json
+
+    rows = bench_remote_feed(
+        200 if quick else 2_000,
+        1.0 if quick else 5.0,
+        2 if quick else 4,
+        workdir,
+        lambda *a, **_: print("LOG", *a, flush=True),
+        link=f" over a {LINK_NAME} link, tc tbf in a netns",
+    )
+    print(json.dumps([r.__dict__ for r in rows]), flush=True)
+
+
 def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Row]:
     workdir.mkdir(parents=True, exist_ok=True)
     sizes = [(SIM_ARM, 600, 3), (IMAGES, 300, 2)] if quick else [(SIM_ARM, 20_000, 30), (IMAGES, 1_000, 10)]
@@ -923,5 +968,11 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Ro
         rows += bench_camera_service(n_img, r_img, workdir, log, decoded_fraction=fraction)
     rows += bench_larger_than_hot(2_000 if quick else 50_000, 3 if quick else 20, workdir, log)
     rows += bench_learner_feed(200 if quick else 2_000, 2.0 if quick else 5.0, 2 if quick else 4, workdir, log)
-    rows += bench_remote_feed(200 if quick else 2_000, 2.0 if quick else 5.0, 2 if quick else 4, workdir, log)
+    rows += bench_remote_feed(200 if quick else 2_000, 1.0 if quick else 5.0, 2 if quick else 4, workdir, log)
+    rows += remote_feed_over_link(quick, workdir, log)
     return rows
+
+
+if __name__ == "__main__":
+    if len(sys.argv) >= 3 and sys.argv[1] == "--link-child":
+        _link_child(Path(sys.argv[2]), "--quick" in sys.argv)

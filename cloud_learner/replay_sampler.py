@@ -257,12 +257,33 @@ def merge_batches(batches: list[replay_pb2.Batch]) -> replay_pb2.Batch:
             keys = set(getattr(present[0], name).tensors)
             if any(set(getattr(b, name).tensors) != keys for b in present):
                 raise SamplerError(grpc.StatusCode.FAILED_PRECONDITION, f"replay shards disagree on {name} keys")
-            getattr(out, name).CopyFrom(
-                wire.to_tensor_map({k: _concat([getattr(b, name).tensors[k] for b in present]) for k in sorted(keys)})
-            )
+            merged = getattr(out, name)
+            for k in sorted(keys):
+                parts = [getattr(b, name).tensors[k] for b in present]
+                kept = _concat_kept(parts)
+                merged.tensors[k].CopyFrom(kept if kept is not None else wire.to_tensor(_concat(parts)))
         else:
             getattr(out, name).CopyFrom(wire.to_tensor(_concat([getattr(b, name) for b in present])))
     return out
+
+
+def _concat_kept(tensors: list[tensor_pb2.Tensor]) -> tensor_pb2.Tensor | None:
+    """Shards' encoded frames (Tensor.frame_bytes) of one kind joined as they came, to be decoded once by the
+    learner; None when they are not all such frames of one encoding and image shape (then decode and join)."""
+    first = tensors[0]
+    like = (first.dtype, first.encoding, first.batch_dims, list(first.shape[1:]))
+    if not first.frame_bytes or any((t.dtype, t.encoding, t.batch_dims, list(t.shape[1:])) != like for t in tensors):
+        return None
+    if not all(t.frame_bytes for t in tensors):
+        return None
+    return tensor_pb2.Tensor(
+        dtype=first.dtype,
+        shape=[sum(int(t.shape[0]) for t in tensors), *first.shape[1:]],
+        data=b"".join(t.data for t in tensors),
+        encoding=first.encoding,
+        frame_bytes=[n for t in tensors for n in t.frame_bytes],
+        batch_dims=first.batch_dims,
+    )
 
 
 def _concat(tensors: list[tensor_pb2.Tensor]) -> np.ndarray:

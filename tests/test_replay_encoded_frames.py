@@ -205,3 +205,25 @@ def test_a_step_whose_frame_claims_to_be_a_batch_is_refused(service: ReplayServi
         list(stub.Insert(iter([replay_pb2.InsertRequest(seq=0, step=step)]), timeout=10))
     assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
     assert stub.Stats(replay_pb2.StatsRequest(), timeout=10).steps == 0
+
+
+def test_shards_kept_frames_are_joined_without_decoding() -> None:
+    """The learner's ShardedSampler joins shards' batches: kept JPEG frames stay encoded (decoded once, by the
+    learner); mixed with raw frames from another shard they are decoded and joined as raw."""
+    from cloud_learner.replay_sampler import merge_batches
+
+    def batch(frames: tpb.Tensor, n: int) -> replay_pb2.Batch:
+        b = replay_pb2.Batch(reward=wire.to_tensor(np.zeros(n, np.float32)))
+        for tmap in (b.observation, b.next_observation):
+            tmap.tensors[CAM].CopyFrom(frames)
+        return b
+
+    one, two = _frames_tensor(4), _frames_tensor(3)
+    merged = merge_batches([batch(one, 4), batch(two, 3)]).observation.tensors[CAM]
+    assert list(merged.frame_bytes) == [*one.frame_bytes, *two.frame_bytes] and merged.shape[0] == 7
+    expected = np.concatenate([wire.from_tensor(one), wire.from_tensor(two)])
+    np.testing.assert_array_equal(wire.from_tensor(merged), expected)
+    raw = wire.to_tensor(wire.from_tensor(two))
+    mixed = merge_batches([batch(one, 4), batch(raw, 3)]).observation.tensors[CAM]
+    assert not mixed.frame_bytes and mixed.encoding == tpb.ENCODING_RAW
+    np.testing.assert_array_equal(wire.from_tensor(mixed), expected)
