@@ -4,6 +4,7 @@ test plug-ins that are one class each plus a config entry."""
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from collections.abc import Iterator
 from pathlib import Path
@@ -345,3 +346,41 @@ def test_stop_rule_counts_only_episodes_without_interventions(tmp_path: Path) ->
     doc = json.loads((tmp_path / "metrics.json").read_text())
     assert doc["rolling_success_autonomous"][0] is None  # the first episode was helped: no unhelped one yet
     assert doc["rolling_success_autonomous"][-1] == pytest.approx(0.25)
+
+
+def test_a_learner_through_the_socket_trains_on_edge_jpegs_it_decodes_itself(tmp_path: Path) -> None:
+    """An edge JPEG-encodes its camera; the learner samples through the socket (no shared memory) with
+    encoded_frames: replay sends the frames as it keeps them, the learner decodes them into uint8 batches."""
+    from prometheus_client import REGISTRY
+
+    def kept() -> float:
+        return REGISTRY.get_sample_value("user_replay_sampled_frames_kept_total") or 0.0
+
+    cfg = stack_cfg(tmp_path, [{"name": "cam", "algorithm": {"kind": "test_mean"}}])
+    cfg.learner.replay_shm_dir = None
+    before = kept()
+    with contextlib.ExitStack() as stack:
+        control = ControlService(cfg, start_metrics=False).start()
+        stack.callback(control.stop)
+        cfg.replay.control_addr = cfg.learner.control_addr = cfg.inference.control_addr = control.address
+        replay = ReplayService(cfg, start_metrics=False).start()
+        stack.callback(replay.stop)
+        cfg.learner.replay_addr = replay.address
+        learner = LearnerService(cfg, start_metrics=False).start()
+        stack.callback(learner.stop)
+        cfg.inference.learner_addr = learner.address
+        inference = InferenceService(cfg, start_metrics=False).start()
+        stack.callback(inference.stop)
+        edge = cfg.edge
+        edge.control_addr, edge.replay_addr, edge.inference_addr = control.address, replay.address, inference.address
+        edge.learner_addr, edge.mode, edge.metrics_port = learner.address, "fast", 0
+        jpeg = {"*": "jpeg"}
+        edge.robots = [RobotConfig(id="cam-0", kind="lang_reach_arm", params={"camera_size": 32}, image_encoding=jpeg)]
+        agent = EdgeAgent(cfg)
+        agent.start()
+        stack.callback(agent.stop)
+        run = wait_for(lambda: learner.learner.runs.get("cam"), "the experiment to start")
+        wait_for(lambda: len(run.algo.seen) >= 3, "three updates")
+        assert run.algo.seen[-1]["dtypes"]["camera.front"] == torch.uint8
+        assert run.state.sample_errors == 0
+        assert kept() - before >= 3 * 8 * 2  # every sampled frame came as replay keeps it (obs and next obs)

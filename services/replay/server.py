@@ -112,6 +112,10 @@ DECODED_HIT_RATE = prometheus_client.Gauge(
 TABLE_TRANSITIONS = prometheus_client.Gauge("user_replay_table_transitions", "Transitions per table", ["table"])
 PREFETCH_SERVED = prometheus_client.Counter("user_replay_prefetch_served_total", "Samples served from a ready batch")
 RATE_LIMITED = prometheus_client.Counter("user_replay_rate_limited_total", "Samples refused by the rate limiter")
+FRAMES_KEPT = prometheus_client.Counter(
+    "user_replay_sampled_frames_kept_total",
+    "Camera frames sent in samples as replay keeps them (JPEG/PNG bytes, encoded_frames), not decoded",
+)
 SAMPLE_ABORTED = prometheus_client.Counter(
     "user_replay_sample_aborted_total", "Samples answered ABORTED: they raced a change of the buffer (e.g. an eviction)"
 )
@@ -657,6 +661,11 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             )
         if not resp.HasField("shared"):
             resp.batch.CopyFrom(assembled)
+            if request.encoded_frames:
+                b = resp.batch
+                FRAMES_KEPT.inc(
+                    sum(len(t.frame_bytes) for m in (b.observation, b.next_observation) for t in m.tensors.values())
+                )
         with self._count_lock:
             self.sampled += request.batch_size
         SAMPLE_SECONDS.observe(time.perf_counter() - start)
