@@ -1299,12 +1299,14 @@ class ReplayStore:
                     f"sampled transitions have different observation layouts ({keys[0][:-8]!r} vs "
                     f"{keys[i][:-8]!r}); sample robots with different specs separately (robot_ids)"
                 )
-        if keep_encoded and hot is None:  # no hot tier: the features the stored steps keep as JPEG/PNG
-            first = cur[0].observation if cur else nxt[0]
-            kept = frozenset(f for f, dt, _ in layout[0] if dt == np.uint8 and first.tensors[f].encoding in IMAGE_ENC)
-        features = [f for f, _, _ in layout[0] if f not in kept]
-        obs, next_obs, action = self._columns(layout, n, hot, tids, last, ok_obs, ok_next, kept)
         try:
+            if keep_encoded and hot is None:  # no hot tier: the features the stored steps keep as JPEG/PNG
+                first = cur[0].observation if cur else nxt[0]
+                kept = frozenset(
+                    f for f, dt, _ in layout[0] if dt == np.uint8 and first.tensors[f].encoding in IMAGE_ENC
+                )
+            features = [f for f, _, _ in layout[0] if f not in kept]
+            obs, next_obs, action = self._columns(layout, n, hot, tids, last, ok_obs, ok_next, kept)
             for i, s in zip(cold_obs.tolist(), cur, strict=True):
                 for f in features:
                     obs[f][i] = tensor_array(s.observation.tensors[f])
