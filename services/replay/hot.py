@@ -277,7 +277,8 @@ class HotGroup:
         self.t_rows[0, rows] = obs % self.frame_capacity
         self.t_rows[1, rows] = nxt % self.frame_capacity
         self.t_tid[rows] = tids
-        self.action[rows] = np.stack(actions) if k > 1 else actions[0][None]
+        # one (k, ...) array as indexing gives it: assigned whole (np.stack would walk it row by row)
+        self.action[rows] = actions if isinstance(actions, np.ndarray) else np.stack(actions)
         self.rows_written += k
         return rows
 
