@@ -912,23 +912,12 @@ LINK_SETUP = f"ip link set lo up && tc qdisc add dev lo root tbf rate {LINK_RATE
 def remote_feed_over_link(quick: bool, workdir: Path, log: Callable[..., None]) -> list[Row]:
     """bench_remote_feed with replay and learner in a private network namespace whose 127.0.0.1 is a 1 Gbit/s tc
     tbf link (as bench.weights_link makes its 20 Mbit/s one); one row saying why where it cannot be made."""
-    import json
+    from bench.netns import rows_in_netns
 
     cmd = [sys.executable, "-m", "bench.replay_bench", "--link-child", str(workdir)] + (["--quick"] if quick else [])
-    shell = f"{LINK_SETUP} && exec {' '.join(cmd)}"
-    err = "?"
-    for prefix in (["unshare", "-n"], ["unshare", "-rn"]):  # as root, else as a user namespace's root
-        try:
-            proc = subprocess.run([*prefix, "sh", "-c", shell], capture_output=True, text=True, timeout=900)
-        except (OSError, subprocess.TimeoutExpired) as exc:
-            err = str(exc)
-            continue
-        if proc.returncode == 0:
-            for line in proc.stdout.splitlines():
-                if line.startswith("LOG "):
-                    log(line[4:])
-            return [Row(**r) for r in json.loads(proc.stdout.strip().splitlines()[-1])]
-        err = ((proc.stderr or proc.stdout).strip().splitlines() or ["?"])[-1]
+    rows, err = rows_in_netns(LINK_SETUP, cmd, log)
+    if rows is not None:
+        return rows
     log(f"replay remote feed over a {LINK_NAME} link: skipped ({err})")
     group = f"replay Sample to a learner on another host over a {LINK_NAME} link"
     return [Row(group, "skipped", "n/a", "n/a", note=f"could not emulate: {err}")]

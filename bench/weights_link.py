@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 from collections.abc import Callable
 from typing import Any
@@ -32,22 +31,12 @@ SETUP = (
 
 
 def run(quick: bool, log: Callable[..., None] = print) -> list[Row]:
+    from bench.netns import rows_in_netns
+
     cmd = [sys.executable, "-m", "bench.weights_link", "--child"] + (["--quick"] if quick else [])
-    shell = f"{SETUP} && exec {' '.join(cmd)}"
-    for prefix in (["unshare", "-n"], ["unshare", "-rn"]):  # as root, else as a user namespace's root
-        try:
-            proc = subprocess.run([*prefix, "sh", "-c", shell], capture_output=True, text=True, timeout=900)
-        except (OSError, subprocess.TimeoutExpired) as exc:
-            err = str(exc)
-            continue
-        if proc.returncode == 0:
-            for line in proc.stdout.splitlines():
-                if line.startswith("LOG "):
-                    log(line[4:])
-            doc = json.loads(proc.stdout.strip().splitlines()[-1])
-            return [Row(**r) for r in doc]
-        err = (proc.stderr or proc.stdout).strip().splitlines()[-1:] or ["?"]
-        err = err[0]
+    rows, err = rows_in_netns(SETUP, cmd, log)
+    if rows is not None:
+        return rows
     log(f"weights slow link: skipped ({err})")
     return [
         Row("weights over 20 Mbit/s (tc tbf in a netns)", "skipped", "n/a", "n/a", note=f"could not emulate: {err}")
