@@ -127,6 +127,16 @@ def test_interleaved_robots_complete_their_transitions_in_the_hot_tier(store: Re
     assert store.cache_info()["misses"] == 0
 
 
+def test_whole_episodes_out_of_key_order_in_one_commit(store: ReplayStore) -> None:
+    """Each episode's steps in one run but the runs not in key order (robot z before robot a): committed without a
+    sort, every transition completed and hot."""
+    assert store.put_steps(episode("arm-z", "e", 6) + episode("arm-a", "e", 5) + episode("arm-m", "f", 4)) == (15, 0)
+    assert store.transitions == 15 and store.cache_info()["entries"] == 15 and not store._tails
+    batch = store.sample(64, np.random.default_rng(0))
+    np.testing.assert_array_equal(batch["next_observation"]["state"], batch["observation"]["state"] + 1)
+    assert store.cache_info()["misses"] == 0
+
+
 def test_resent_steps_are_stored_once(store: ReplayStore) -> None:
     steps = episode("arm-0", "e", 6)
     assert store.put_steps(steps[:4]) == (4, 0)

@@ -172,6 +172,13 @@ class _Columns:
 IMAGE_ENC = (tpb.ENCODING_JPEG, tpb.ENCODING_PNG)
 
 
+def _episodes_contiguous(keys: list[bytes]) -> bool:
+    """Whether each episode's keys form one run (a stream of one robot's steps): no sort needed then."""
+    prefixes = [k[:-8] for k in keys]
+    runs = 1 + sum(map(bytes.__ne__, prefixes[1:], prefixes[:-1]))
+    return runs == len(set(prefixes))
+
+
 def _stack(parts: list[Any]) -> Any:
     """Frame stacking of one feature: arrays, or encoded frames (decoded if only some parts kept their bytes)."""
     if all(isinstance(p, EncodedFrames) for p in parts) and len({(p.encoding, p.image_shape) for p in parts}) == 1:
@@ -598,8 +605,8 @@ class ReplayStore:
         # successor in the same group only when that is its neighbour. Interleaved robots (an edge streams its
         # robots' steps in turn) left most steps waiting as tails (up to MAX_OPEN_TAILS, ~40 MB) that were
         # then completed from LMDB, outside the hot tier.
-        order = sorted(range(len(keys)), key=lambda i: (keys[i][:-8], keys[i][-8:]))
-        if order != list(range(len(keys))):
+        if not _episodes_contiguous(keys):  # (in order: each episode's steps already ascend)
+            order = sorted(range(len(keys)), key=lambda i: (keys[i][:-8], keys[i][-8:]))
             keys, scalars = [keys[i] for i in order], [scalars[i] for i in order]
             tables, raws, steps = [tables[i] for i in order], [raws[i] for i in order], [steps[i] for i in order]
         episode_tables = {k[:-8]: t for k, t in zip(keys, tables, strict=True) if t != ONLINE}
