@@ -863,7 +863,7 @@ def bench_remote_feed(
             for _ack in stub.Insert(requests, timeout=600):
                 pass
             asks = {way: replay_pb2.SampleRequest(batch_size=BATCH, encoded_frames=way == "kept") for way in rates}
-            for way, ask in asks.items():  # what each way puts on the link, and that both decode alike
+            for way, ask in asks.items():  # what each way puts on the link
                 wire_mb[way] = stub.Sample(ask, timeout=60).batch.ByteSize() / 1e6
             for r in range(rounds):
                 for way in ("kept", "decoded") if r % 2 == 0 else ("decoded", "kept"):
