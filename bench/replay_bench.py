@@ -9,6 +9,7 @@ sample plain batches.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import shutil
 import signal
@@ -17,7 +18,7 @@ import sys
 import tempfile
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -723,40 +724,61 @@ def _serve_replay(cfg_json: str, conn: Any) -> None:
     service.stop()
 
 
-def bench_learner_feed(n: int, seconds: float, rounds: int, workdir: Path, log: Callable[..., None]) -> list[Row]:
-    """Batches of 256 with two raw 128x128 cameras (~50 MB) from a replay service in its own process to this one,
-    ready as the learner's sampler thread hands them on (decode_arrays): through shared memory (its default on one
-    host) vs through the gRPC socket, in alternating windows; and lerobot's in-RAM sample of the same transitions."""
-    import multiprocessing
-
-    from cloud_learner.learner import decode_arrays
-    from cloud_learner.replay_shm import SharedMemoryReplay, SharedSample
+def _feed_config(path: Path, map_size_mb: int) -> Any:
+    """A stack config for a bench replay process at `path` (ephemeral ports, a bench token)."""
     from user.config import StackConfig
-    from user.rpc import make_channel
-    from user.v1 import replay_pb2, replay_pb2_grpc
 
     cfg = StackConfig.model_validate({"auth": {"token": "bench-token"}})
     rc = cfg.replay
     rc.server.port = rc.server.metrics_port = 0
-    rc.path, rc.map_size_mb = workdir / "feed" / "replay", map_size_for(IMAGES, 2 * n)
-    rc.cache_mb = 2 * n * len(CAMERAS) * IMAGE_HW * IMAGE_HW * 3 >> 20  # every transition in the RAM tier
-    shm_dir = Path(tempfile.mkdtemp(prefix="user-bench-", dir="/dev/shm" if Path("/dev/shm").is_dir() else None))
-    rc.shm_dir = str(shm_dir)
-    episodes = make_episodes(IMAGES, n)
+    rc.path, rc.map_size_mb = path, map_size_mb
+    return cfg
+
+
+@contextlib.contextmanager
+def _replay_process(cfg: Any, steps: list[step_pb2.Step]) -> Iterator[Any]:
+    """A replay service in its own (spawned) process, as a learner on another process sees it, holding `steps`
+    (sent through its Insert stream): yields its stub; the process stops on exit."""
+    import multiprocessing
+
+    from user.rpc import make_channel
+    from user.v1 import replay_pb2, replay_pb2_grpc
+
     ctx = multiprocessing.get_context("spawn")
     to_child, child_end = ctx.Pipe()
     child = ctx.Process(target=_serve_replay, args=(cfg.model_dump_json(), child_end), daemon=True)
     child.start()
-    group = f"replay Sample to a learner on its host, batch {BATCH}, two {IMAGE_HW}x{IMAGE_HW} cameras + state (N={n})"
     try:
         if not to_child.poll(120):
             raise RuntimeError("replay process did not start")
-        addr = to_child.recv()
-        with make_channel(addr, cfg.auth) as channel:
+        with make_channel(to_child.recv(), cfg.auth) as channel:
             stub = replay_pb2_grpc.ReplayStub(channel)
-            requests = (replay_pb2.InsertRequest(seq=i, step=st) for i, st in enumerate(to_steps(episodes, "feed-0")))
+            requests = (replay_pb2.InsertRequest(seq=i, step=st) for i, st in enumerate(steps))
             for _ack in stub.Insert(requests, timeout=600):
                 pass
+            yield stub
+    finally:
+        to_child.send("stop")
+        child.join(60)
+
+
+def bench_learner_feed(n: int, seconds: float, rounds: int, workdir: Path, log: Callable[..., None]) -> list[Row]:
+    """Batches of 256 with two raw 128x128 cameras (~50 MB) from a replay service in its own process to this one,
+    ready as the learner's sampler thread hands them on (decode_arrays): through shared memory (its default on one
+    host) vs through the gRPC socket, in alternating windows; and lerobot's in-RAM sample of the same transitions."""
+    from cloud_learner.learner import decode_arrays
+    from cloud_learner.replay_shm import SharedMemoryReplay, SharedSample
+    from user.v1 import replay_pb2
+
+    cfg = _feed_config(workdir / "feed" / "replay", map_size_for(IMAGES, 2 * n))
+    rc = cfg.replay
+    rc.cache_mb = 2 * n * len(CAMERAS) * IMAGE_HW * IMAGE_HW * 3 >> 20  # every transition in the RAM tier
+    shm_dir = Path(tempfile.mkdtemp(prefix="user-bench-", dir="/dev/shm" if Path("/dev/shm").is_dir() else None))
+    rc.shm_dir = str(shm_dir)
+    episodes = make_episodes(IMAGES, n)
+    group = f"replay Sample to a learner on its host, batch {BATCH}, two {IMAGE_HW}x{IMAGE_HW} cameras + state (N={n})"
+    try:
+        with _replay_process(cfg, to_steps(episodes, "feed-0")) as stub:
             shared = SharedMemoryReplay(stub, str(shm_dir))
             request = replay_pb2.SampleRequest(batch_size=BATCH)
             keys = ["camera.front", "camera.wrist", "state"]
@@ -780,8 +802,6 @@ def bench_learner_feed(n: int, seconds: float, rounds: int, workdir: Path, log: 
                     )
             log(f"{group}: batches/s {rates}")
     finally:
-        to_child.send("stop")
-        child.join(60)
         shutil.rmtree(shm_dir, ignore_errors=True)
         shutil.rmtree(workdir / "feed", ignore_errors=True)
     buf = make_peer(n)
@@ -831,22 +851,12 @@ def bench_remote_feed(
     the edge, through the gRPC socket until decode_arrays hands them on: frames as replay keeps them
     (SampleRequest.encoded_frames, the learner's default; its sampler threads decode) vs decoded by replay (replay's
     default config: no decoded window), in alternating windows."""
-    import multiprocessing
-
     from cloud_learner.learner import decode_arrays
-    from user.config import StackConfig
-    from user.rpc import make_channel
-    from user.v1 import replay_pb2, replay_pb2_grpc
+    from user.v1 import replay_pb2
 
-    cfg = StackConfig.model_validate({"auth": {"token": "bench-token"}})
-    rc = cfg.replay
-    rc.server.port = rc.server.metrics_port = 0
-    rc.path, rc.map_size_mb, rc.shm_dir = workdir / "remote" / "replay", map_size_for(CAMERA, 2 * n), None
+    cfg = _feed_config(workdir / "remote" / "replay", map_size_for(CAMERA, 2 * n))
+    cfg.replay.shm_dir = None
     steps = edge_encode(to_steps(make_episodes(CAMERA, n), "feed-0"))[0]
-    ctx = multiprocessing.get_context("spawn")
-    to_child, child_end = ctx.Pipe()
-    child = ctx.Process(target=_serve_replay, args=(cfg.model_dump_json(), child_end), daemon=True)
-    child.start()
     group = (
         f"replay Sample to a learner on another host (socket{link}), batch {BATCH}, two {IMAGE_HW}x{IMAGE_HW} "
         f"camera-like frames JPEG q{EDGE_JPEG_QUALITY} from the edge (N={n})"
@@ -855,13 +865,7 @@ def bench_remote_feed(
     rates: dict[str, list[float]] = {"kept": [], "decoded": []}
     wire_mb: dict[str, float] = {}
     try:
-        if not to_child.poll(120):
-            raise RuntimeError("replay process did not start")
-        with make_channel(to_child.recv(), cfg.auth) as channel:
-            stub = replay_pb2_grpc.ReplayStub(channel)
-            requests = (replay_pb2.InsertRequest(seq=i, step=st) for i, st in enumerate(steps))
-            for _ack in stub.Insert(requests, timeout=600):
-                pass
+        with _replay_process(cfg, steps) as stub:
             asks = {way: replay_pb2.SampleRequest(batch_size=BATCH, encoded_frames=way == "kept") for way in rates}
             for way, ask in asks.items():  # what each way puts on the link
                 wire_mb[way] = stub.Sample(ask, timeout=60).batch.ByteSize() / 1e6
@@ -876,8 +880,6 @@ def bench_remote_feed(
                     rates[way].append(done / (time.perf_counter() - start))
             log(f"{group}: batches/s {rates}, MB a batch on the wire {wire_mb}")
     finally:
-        to_child.send("stop")
-        child.join(60)
         shutil.rmtree(workdir / "remote", ignore_errors=True)
     kept, decoded = median(rates["kept"]), median(rates["decoded"])
     note = f"medians of {rounds} alternating {seconds:.0f} s windows; replay and learner share this machine's cores"

@@ -67,6 +67,7 @@ def test_no_file_gives_the_defaults() -> None:
         ("edge.replug_s=-1", "edge.replug_s"),
         ("learner.weights_shm_dir=[1]", "learner.weights_shm_dir"),
         ("learner.replay_shm_dir=[1]", "learner.replay_shm_dir"),
+        ("learner.replay_encoded_frames=sometimes", "learner.replay_encoded_frames"),
         ("replay.shm_slots=0", "replay.shm_slots"),
         ("replay.shm_max_mb=0", "replay.shm_max_mb"),
         ("experiments=[{name: a, table: 'lab a'}]", "experiments.0.table"),  # replay would refuse every step
