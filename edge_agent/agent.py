@@ -27,7 +27,7 @@ import numpy as np
 import prometheus_client
 
 from edge_agent.control_client import ControlClient
-from edge_agent.encoder import FrameEncoder, Plan, plan_for
+from edge_agent.encoder import FrameEncoder, Plan, robot_plans
 from edge_agent.policy_source import PolicySource, make_policy_source
 from edge_agent.replay_client import ReplaySender
 from edge_agent.robot import Observation, Robot, action_bounds, clip_action, make_robot
@@ -525,16 +525,7 @@ class RobotLoop:
 
 def encoding_plans(cfg: StackConfig, robots: list[Robot]) -> dict[str, Plan]:
     """Per robot, the camera features its config (edge.robots[i].image_encoding) encodes on the edge."""
-    by_id = {rc.id: (i, rc) for i, rc in enumerate(cfg.edge.robots)}
-    plans: dict[str, Plan] = {}
-    for robot in robots:
-        rid = robot.spec.robot_id
-        if rid in by_id and by_id[rid][1].image_encoding:
-            i, rc = by_id[rid]
-            plan = plan_for(robot.spec, rc.image_encoding, rc.jpeg_quality, f"edge.robots[{i}].image_encoding")
-            if plan:
-                plans[rid] = plan
-    return plans
+    return robot_plans(cfg.edge.robots, [robot.spec for robot in robots])
 
 
 @dataclass

@@ -18,13 +18,14 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import prometheus_client
 
 from user import wire
+from user.config import RobotConfig
 from user.log import kv
 from user.v1 import robot_pb2, step_pb2
 from user.v1 import tensor_pb2 as tpb
@@ -40,6 +41,11 @@ FRAME_BYTES = prometheus_client.Counter(
 )
 ENCODE_SECONDS = prometheus_client.Counter(
     "user_edge_encode_seconds_total", "Time spent encoding camera frames (summed over encoder threads)"
+)
+ACT_FRAME_BYTES = prometheus_client.Counter(
+    "user_edge_act_frame_bytes_total",
+    "Camera frame bytes of Act requests before (raw) and after (encoded) act_image_encoding",
+    ["form"],
 )
 PENDING = prometheus_client.Gauge("user_edge_encode_pending_steps", "Steps waiting for their frames to be encoded")
 SEND_WAITS = prometheus_client.Counter(
@@ -68,6 +74,42 @@ def plan_for(spec: robot_pb2.RobotSpec, image_encoding: Mapping[str, str], jpeg_
     if unknown:
         raise ValueError(f"{where}: {unknown} are not observation features of robot {spec.robot_id} {sorted(feats)}")
     return plan
+
+
+def robot_plans(
+    robots: Sequence[RobotConfig], specs: Iterable[robot_pb2.RobotSpec], act: bool = False
+) -> dict[str, Plan]:
+    """Per robot id, the camera features its config entry encodes: `image_encoding` for its steps, or with
+    act=True `act_image_encoding` for its Act requests (None there = as image_encoding, so the policy sees
+    frames the way the learner does). Robots with nothing to encode are left out."""
+    by_id = {rc.id: (i, rc) for i, rc in enumerate(robots)}
+    plans: dict[str, Plan] = {}
+    for spec in specs:
+        if spec.robot_id not in by_id:
+            continue
+        i, rc = by_id[spec.robot_id]
+        field, encoding = "image_encoding", rc.image_encoding
+        if act and rc.act_image_encoding is not None:
+            field, encoding = "act_image_encoding", rc.act_image_encoding
+        plan = plan_for(spec, encoding, rc.jpeg_quality, f"edge.robots[{i}].{field}") if encoding else {}
+        if plan:
+            plans[spec.robot_id] = plan
+    return plans
+
+
+def encode_observation(observation: Mapping[str, np.ndarray], plan: Plan | None) -> tpb.TensorMap:
+    """An observation as a TensorMap, the planned camera frames JPEG/PNG-encoded (counted), the rest raw."""
+    if not plan:
+        return wire.to_tensor_map(observation)
+    out = tpb.TensorMap()
+    for name, arr in observation.items():
+        enc, quality = plan.get(name, (tpb.ENCODING_RAW, 0))
+        tensor = wire.to_tensor(arr, enc, jpeg_quality=quality) if enc != tpb.ENCODING_RAW else wire.to_tensor(arr)
+        if enc != tpb.ENCODING_RAW:
+            ACT_FRAME_BYTES.labels("raw").inc(arr.nbytes)
+            ACT_FRAME_BYTES.labels("encoded").inc(len(tensor.data))
+        out.tensors[name].CopyFrom(tensor)
+    return out
 
 
 def _encode(tensor: tpb.Tensor, encoding: int, quality: int) -> tuple[bytes, float]:

@@ -13,7 +13,7 @@ import pytest
 
 from edge_agent.agent import RobotLoop, encoding_plans
 from edge_agent.encoder import FrameEncoder, plan_for
-from edge_agent.policy_source import PolicySource
+from edge_agent.policy_source import PolicySource, RemotePolicy, make_policy_source
 from edge_agent.replay_client import ReplaySender
 from edge_agent.robot import Robot, make_robot
 from edge_agent.spool import open_outbox
@@ -235,6 +235,28 @@ def test_robot_config_image_encoding_reaches_the_plan(camera_arm: Robot) -> None
     assert encoding_plans(cfg, [camera_arm]) == {"cam-0": {"camera.front": (tpb.ENCODING_PNG, 70)}}
     cfg.edge.robots = [RobotConfig(id="cam-0")]
     assert encoding_plans(cfg, [camera_arm]) == {}
+
+
+def test_act_frames_follow_image_encoding_unless_set(camera_arm: Robot) -> None:
+    """Remote Act requests encode a robot's frames as its steps are (the policy sees what the learner saw)
+    unless act_image_encoding says otherwise; a name that is not a camera fails at start, naming the field."""
+    cfg = StackConfig(auth=AuthConfig(token="t"))
+    cfg.edge.policy_source = "remote"
+    cfg.edge.inference_addr = "127.0.0.1:9"  # nothing is called here
+    jpeg, png = {"camera.front": (tpb.ENCODING_JPEG, 60)}, {"camera.front": (tpb.ENCODING_PNG, 60)}
+    cases = [({"*": "jpeg"}, None, jpeg), ({"*": "jpeg"}, {}, {}), ({}, {"*": "png"}, png), ({}, None, {})]
+    for steps, act, plan in cases:
+        rc = RobotConfig(id="cam-0", params={"camera": True}, image_encoding=steps, act_image_encoding=act)
+        cfg.edge.robots = [rc.model_copy(update={"jpeg_quality": 60})]
+        source = make_policy_source(cfg, "edge-0", [camera_arm.spec])
+        try:
+            assert isinstance(source, RemotePolicy)
+            assert source.frame_plans == ({"cam-0": plan} if plan else {}), (steps, act)
+        finally:
+            source.close()
+    cfg.edge.robots = [RobotConfig(id="cam-0", act_image_encoding={"state": "jpeg"})]
+    with pytest.raises(ValueError, match=r"edge.robots\[0\].act_image_encoding: 'state' is not a uint8"):
+        make_policy_source(cfg, "edge-0", [camera_arm.spec])
 
 
 class ListSink:

@@ -8,6 +8,7 @@ import grpc
 import numpy as np
 import pytest
 import torch
+from prometheus_client import REGISTRY
 
 from cloud_learner.algorithm import ALGORITHMS, Batch, Feature, Layout
 from edge_agent.policy_source import RemotePolicy
@@ -20,6 +21,7 @@ from user.policy import build_policy
 from user.rpc import make_channel
 from user.text import INSTRUCTION_KEY, encode_instruction
 from user.v1 import inference_pb2, inference_pb2_grpc
+from user.v1 import tensor_pb2 as tpb
 from user.weights import WeightSet
 
 torch.set_num_threads(1)
@@ -148,6 +150,92 @@ def test_edge_executes_the_served_chunk_row_by_row(service: InferenceService) ->
         assert version == 5
     finally:
         source.close()
+
+
+@pytest.mark.parametrize("encoding", [tpb.ENCODING_JPEG, tpb.ENCODING_PNG], ids=["jpeg", "png"])
+def test_encoded_camera_frames_reach_the_policy_decoded(service: InferenceService, encoding: int) -> None:
+    """An edge with act_image_encoding sends its frames JPEG/PNG-encoded; inference decodes them to the
+    declared shape, so the policy acts on exactly the decoded frame (PNG: the raw frame itself)."""
+    source = RemotePolicy(
+        service.address, AUTH, deterministic=True, frame_plans={"arm-0": {"camera.front": (encoding, 50)}}
+    )
+    obs = {k: v[0] for k, v in observation(1).items()}
+    sent = wire.to_tensor(obs["camera.front"], encoding, jpeg_quality=50)
+    seen = {**obs, "camera.front": wire.from_tensor(sent)}
+
+    def forward(o: dict[str, np.ndarray]) -> np.ndarray:
+        return service.policy.forward(service.policy.preprocess({k: v[None] for k, v in o.items()}, [""]), True)
+
+    frames = REGISTRY.get_sample_value("user_inference_encoded_frames_total", {"encoding": _ENC[encoding]}) or 0.0
+    try:
+        action, version = source.act("arm-0", obs, deadline_s=10.0)
+    finally:
+        source.close()
+    assert version == 5
+    np.testing.assert_allclose(action, forward(seen)[0, 0], atol=1e-5)
+    raw_action = forward(obs)[0, 0]
+    if encoding == tpb.ENCODING_JPEG:  # lossy at quality 50 (this small random net barely tells the frames apart)
+        assert len(sent.data) < obs["camera.front"].nbytes / 4
+        assert not np.array_equal(seen["camera.front"], obs["camera.front"])
+    else:
+        np.testing.assert_array_equal(seen["camera.front"], obs["camera.front"])
+        np.testing.assert_allclose(action, raw_action, atol=1e-5)
+    assert REGISTRY.get_sample_value("user_inference_encoded_frames_total", {"encoding": _ENC[encoding]}) == frames + 1
+
+
+_ENC = {tpb.ENCODING_JPEG: "jpeg", tpb.ENCODING_PNG: "png"}
+
+
+def test_bad_encoded_frames_are_refused_and_serving_goes_on(service: InferenceService) -> None:
+    """A frame of another size, a cut-short scan, a grey image for a colour camera or a batch of frames:
+    INVALID_ARGUMENT, counted as no frame, and the next good request is answered."""
+    stub = inference_pb2_grpc.InferenceStub(make_channel(service.address, AUTH))
+    obs = {k: v[0] for k, v in observation(1).items()}
+    good = wire.to_tensor(obs["camera.front"], tpb.ENCODING_JPEG)
+    small = wire.to_tensor(obs["camera.front"][:32, :32], tpb.ENCODING_JPEG)
+    small.shape[:] = [64, 64, 3]
+    cut = tpb.Tensor()
+    cut.CopyFrom(good)
+    cut.data = good.data[: len(good.data) // 2] + b"\xff\xd9"
+    grey = wire.to_tensor(obs["camera.front"][..., 0], tpb.ENCODING_JPEG)
+    grey.shape[:] = [64, 64, 3]
+    blobs = np.empty(1, dtype=object)
+    blobs[0] = good.data
+    batch = wire.frames_tensor(wire.EncodedFrames(blobs, tpb.ENCODING_JPEG, (64, 64, 3)))
+    frames = REGISTRY.get_sample_value("user_inference_encoded_frames_total", {"encoding": "jpeg"}) or 0.0
+    for bad in (small, cut, grey, batch):
+        tmap = wire.to_tensor_map({"state": obs["state"]})
+        tmap.tensors["camera.front"].CopyFrom(bad)
+        with pytest.raises(grpc.RpcError) as err:
+            stub.Act(inference_pb2.ActRequest(robot_id="arm-0", observation=tmap), timeout=10)
+        assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT, err.value.details()
+    assert (REGISTRY.get_sample_value("user_inference_encoded_frames_total", {"encoding": "jpeg"}) or 0.0) == frames
+    tmap = wire.to_tensor_map({"state": obs["state"]})
+    tmap.tensors["camera.front"].CopyFrom(good)
+    resp = stub.Act(inference_pb2.ActRequest(robot_id="arm-0", observation=tmap), timeout=10)
+    assert wire.from_tensor(resp.action).shape == (H, A)
+
+
+def test_a_robot_with_a_wrong_frame_does_not_fail_its_batch_mates(service: InferenceService) -> None:
+    """Frames of a shape, channel count or dtype the policy cannot read are refused per request, before
+    batching: in one ActBatch the others are answered (their forward used to fail with INTERNAL)."""
+    stub = inference_pb2_grpc.InferenceStub(make_channel(service.address, AUTH))
+    obs = {k: v[0] for k, v in observation(1).items()}
+    frame = obs["camera.front"]
+    wrong = [frame[None], frame[..., 0], np.zeros((64, 64, 4), np.uint8), frame.astype(np.float32)]
+    requests = [inference_pb2.ActRequest(robot_id="arm-0", observation=wire.to_tensor_map(obs))]
+    for i, bad in enumerate(wrong):
+        requests.append(
+            inference_pb2.ActRequest(
+                robot_id=f"arm-{i + 1}", observation=wire.to_tensor_map({**obs, "camera.front": bad})
+            )
+        )
+    smaller = {**obs, "camera.front": frame[:48, :40]}  # another size is resized, not refused
+    requests.append(inference_pb2.ActRequest(robot_id="arm-9", observation=wire.to_tensor_map(smaller)))
+    results = stub.ActBatch(inference_pb2.ActBatchRequest(requests=requests), timeout=10).results
+    invalid = grpc.StatusCode.INVALID_ARGUMENT.value[0]
+    assert [r.code for r in results] == [0, invalid, invalid, invalid, invalid, 0], [r.message for r in results]
+    assert "uint8 *x*x3" in results[1].message
 
 
 # --- flow_bc: the learner side of HG-DAgger ----------------------------------------------------------

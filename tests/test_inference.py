@@ -275,6 +275,30 @@ def test_batcher_respects_max_batch_and_survives_errors(policy) -> None:
         batcher.stop()
 
 
+def test_a_row_that_fails_the_forward_fails_only_itself(policy) -> None:
+    """A batch whose forward raises is retried row by row: the robot whose input broke it gets the error,
+    its batch-mates their actions."""
+    batcher = MicroBatcher(max_batch=3, max_wait_ms=5_000.0).start()  # no keys: the batch closes at 3 rows
+
+    def picky(observation, deterministic):
+        if np.any(observation["state"][:, 0] == 99.0):
+            raise ValueError("row with 99")
+        return policy.act(observation, deterministic)
+
+    try:
+        batcher.set_policy(picky, 1)
+        bad = {"state": np.full(6, 99.0, np.float32)}
+        futures = [batcher.submit(o, True) for o in (obs(0), bad, obs(2))]
+        with pytest.raises(ValueError, match="row with 99"):
+            futures[1].result(timeout=10)
+        good = [futures[0].result(timeout=10), futures[2].result(timeout=10)]
+        assert [r.batch_size for r in good] == [1, 1]  # answered alone, after the batch of 3 failed
+        expected = policy.act({"state": obs(0)["state"][None]}, deterministic=True)[0]
+        np.testing.assert_allclose(good[0].action, expected, rtol=1e-5, atol=1e-6)
+    finally:
+        batcher.stop()
+
+
 def test_batcher_closes_early_when_every_robot_is_in(policy) -> None:
     """With one known robot, a request does not wait out max_wait (a 10 s wait would fail result(timeout=5))."""
     batcher = MicroBatcher(max_batch=64, max_wait_ms=10_000.0).start()

@@ -334,6 +334,11 @@ class RobotConfig(Strict):
         "default raw",
     )
     jpeg_quality: int = Field(default=90, ge=1, le=100, description="JPEG quality of image_encoding jpeg (1-100)")
+    act_image_encoding: dict[str, Literal["raw", "jpeg", "png"]] | None = Field(
+        default=None,
+        description="camera frames of Act requests to a remote inference service, same form as image_encoding; "
+        "null = as image_encoding (the policy sees frames as the learner does), {} = raw",
+    )
 
 
 class EdgeConfig(Strict):

@@ -121,6 +121,25 @@ class Policy(ABC):
     def act(self, observation: Mapping[str, np.ndarray], deterministic: bool = False) -> np.ndarray:
         """observation values are (B, ...) arrays; returns (B, *action_shape) or (B, H, *action_shape) float32."""
 
+    @property
+    def image_shapes(self) -> Mapping[str, tuple[int | None, ...]]:
+        """(H, W, C) of each camera feature the policy reads as uint8; None = any size there (it resizes)."""
+        return {}
+
+    def check_observation(self, observation: Mapping[str, np.ndarray]) -> None:
+        """ValueError unless one unbatched observation fits the forward. Inference runs it per request before
+        batching, so a robot sending a frame of the wrong shape gets INVALID_ARGUMENT instead of failing the
+        forward of every robot batched with it."""
+        for key, want in self.image_shapes.items():
+            arr = observation.get(key)
+            if arr is None:
+                continue  # missing keys are the caller's check (observation_keys)
+            shape = tuple(arr.shape)
+            fits = len(shape) == len(want) and all(w is None or w == g for w, g in zip(want, shape, strict=True))
+            if arr.dtype != np.uint8 or not fits:
+                expected = "x".join("*" if w is None else str(w) for w in want)
+                raise ValueError(f"image {key!r} is {arr.dtype} {shape}, the policy reads uint8 {expected}")
+
 
 class SteppedRows(Protocol):
     """A batch in the middle of a stepped sampler (flow matching, diffusion), each row at its own step."""

@@ -476,8 +476,11 @@ class MicroBatcher:
             rows = [np.array(actions[i], dtype=np.float32) for i in range(len(reqs))]
         except Exception as exc:
             log.exception("policy forward failed", extra=kv(size=len(reqs), version=policy.version))
-            for req in reqs:
-                req.future.set_exception(exc)
+            if len(reqs) > 1:  # one robot's input may be what failed: each alone, so the others still get answers
+                for req in reqs:
+                    self._forward(policy, [req])
+                return
+            reqs[0].future.set_exception(exc)
             return
         end = time.perf_counter()
         compute_s = forward_end - forward_start

@@ -31,6 +31,7 @@ from user.experiments import embodiment_inputs, fit_action
 from user.log import kv
 from user.policy import Policy, SteppedSampler, build_policy, check_device
 from user.v1 import inference_pb2, inference_pb2_grpc
+from user.v1 import tensor_pb2 as tpb
 from user.weights import WeightSet, WeightSubscriber
 from user.worker import WorkerReporter, report_worker
 
@@ -60,6 +61,12 @@ COMPUTE_SECONDS = prometheus_client.Histogram(
     "Policy forward time per batch",
     buckets=(0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.025, 0.05, 0.1, 0.5),
 )
+ENCODED_FRAMES = prometheus_client.Counter(
+    "user_inference_encoded_frames_total",
+    "Camera frames that came JPEG/PNG-encoded in Act requests (edge act_image_encoding), decoded here",
+    ["encoding"],
+)
+_FRAME_LABELS = {tpb.ENCODING_JPEG: ENCODED_FRAMES.labels("jpeg"), tpb.ENCODING_PNG: ENCODED_FRAMES.labels("png")}
 POLICY_VERSION = prometheus_client.Gauge("user_inference_policy_version", "Version of the policy being served")
 WEIGHT_UPDATES = prometheus_client.Counter("user_inference_weight_updates_total", "Weight sets loaded")
 
@@ -246,10 +253,15 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
         if policy is None:
             raise _ActError(grpc.StatusCode.UNAVAILABLE, "no policy yet")
         try:
-            raw = embodiment_inputs(policy, kind, wire.from_tensor_map(request.observation))
+            raw = embodiment_inputs(policy, kind, wire.from_tensor_map(request.observation, strict=True))
             obs = validate_observation(raw, policy)
+            policy.check_observation(obs)
         except ValueError as exc:  # WireError is a ValueError
             raise _ActError(grpc.StatusCode.INVALID_ARGUMENT, f"bad observation: {exc}") from None
+        for tensor in request.observation.tensors.values():
+            counter = _FRAME_LABELS.get(tensor.encoding)
+            if counter is not None:
+                counter.inc()
         if len(request.instruction) > MAX_INSTRUCTION_CHARS:
             raise _ActError(grpc.StatusCode.INVALID_ARGUMENT, f"instruction over {MAX_INSTRUCTION_CHARS} chars")
         try:

@@ -389,6 +389,17 @@ class FlowVlaPolicy(Policy):
     def chunk_horizon(self) -> int:
         return self._chunk_horizon
 
+    @property
+    def image_shapes(self) -> dict[str, tuple[int | None, ...]]:
+        return {key: (None, None, 3) for key in self.config.image_keys}  # any size: resized to image_size
+
+    def check_observation(self, observation: Mapping[str, np.ndarray]) -> None:
+        super().check_observation(observation)
+        values = sum(int(np.size(observation[k])) for k in self.config.state_keys if k in observation)
+        if values != self.config.state_dim:
+            keys, dim = self.config.state_keys, self.config.state_dim
+            raise ValueError(f"state {keys} has {values} values, the policy reads {dim}")
+
     def preprocess(self, observation: Mapping[str, np.ndarray], instructions: Sequence[str]) -> Prepared:
         return self.prep(observation, instructions)
 

@@ -170,6 +170,11 @@ class ActorPolicy(Policy):
     def chunk_horizon(self) -> int:
         return 1
 
+    @property
+    def image_shapes(self) -> dict[str, tuple[int | None, ...]]:
+        pairs = zip(self.config.get("image_keys", []), self.config.get("image_shapes", []), strict=True)
+        return {key: tuple(int(d) for d in shape) for key, shape in pairs}
+
     def _check_shapes(self, obs: Mapping[str, torch.Tensor]) -> None:
         for key, dim in zip(self.config["state_keys"], self.config["state_dims"], strict=True):
             if obs[key][0].numel() != int(dim):

@@ -67,6 +67,10 @@ class PaddedPolicy(Policy):
     def chunk_horizon(self) -> int:
         return self.inner.chunk_horizon
 
+    @property
+    def image_shapes(self) -> Mapping[str, tuple[int | None, ...]]:
+        return self.inner.image_shapes
+
     def act(self, observation: Mapping[str, np.ndarray], deterministic: bool = False) -> np.ndarray:
         ids = np.asarray(observation[EMBODIMENT_KEY]).astype(np.int64).reshape(-1)
         batch = ids.size

@@ -298,6 +298,10 @@ class SmolVlaPolicy(Policy):
     def chunk_horizon(self) -> int:
         return self._chunk_horizon
 
+    @property
+    def image_shapes(self) -> dict[str, tuple[int | None, ...]]:
+        return {key: (None, None, 3) for key in self.params.image_keys}  # lerobot's processor resizes them
+
     @classmethod
     def from_checkpoint(
         cls, folder: str | Path, spec: SmolVlaSpec | None = None, version: int = 0, device: str = "cpu"
