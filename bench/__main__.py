@@ -71,7 +71,9 @@ LEGEND = {
     "model served one request at a time (openpi / lerobot policy-server style), at two sizes (0.16M toy, 13.9M with "
     "two 128x128 cameras); robots are separate processes, closed loop or paced at a chunk's control rate; windows "
     "alternate. Tiny SmolVLA from a local folder, 1 robot: ours vs lerobot's async-inference PolicyServer (offline, "
-    "loopback, its own pickle protocol).",
+    "loopback, its own pickle protocol). Over 20 Mbit/s (tc tbf in a private netns): the VLA with real gym-hil "
+    "Panda frames, 1 and 8 robots paced at 3.75 Hz, frames JPEG-encoded by the edge vs raw (ours) and vs the "
+    "one-at-a-time server (raw).",
     "hg_dagger": "hg_dagger: flow_vla on lang_reach_arm (real MuJoCo, scripted expert), in one process with in-memory "
     "tables: HG-DAgger (demos + interventions) vs BC given the same expert steps as more demos; async vs sync learner.",
     "hgdagger_stack": "hgdagger_stack: configs/hgdagger.yaml as processes (control, replay, learner, inference, "

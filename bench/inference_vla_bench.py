@@ -50,6 +50,7 @@ from bench.inference_bench import serve_peer, start_ours
 from user import rpc, wire
 from user.config import AuthConfig, ServerConfig, StackConfig, load_config
 from user.v1 import inference_pb2, inference_pb2_grpc
+from user.v1 import tensor_pb2 as tpb
 
 PEER = "one-request-at-a-time server (openpi / lerobot policy-server style)"
 RPC_TIMEOUT_S = 60.0
@@ -199,23 +200,30 @@ class RobotTask:
     period_s: float  # 0: closed loop (next call when the answer is in); else one call per period
     cameras: tuple[str, ...]
     image: int
+    frames: tuple[dict[str, np.ndarray], ...] = ()  # camera frames to cycle through; () = random noise frames
+    jpeg_quality: int = 0  # > 0: frames go JPEG-encoded, as an edge with act_image_encoding sends them
 
 
 def _requests(task: RobotTask) -> list[inference_pb2.ActRequest]:
+    from edge_agent.encoder import encode_observation
+
     rng = np.random.default_rng(task.index)
-    return [
-        inference_pb2.ActRequest(
-            robot_id=f"arm-{task.index}",
-            observation=wire.to_tensor_map(
-                {
-                    **{k: rng.integers(0, 256, size=(task.image, task.image, 3), dtype=np.uint8) for k in task.cameras},
-                    "state": rng.standard_normal(STATE_DIM).astype(np.float32),
-                }
-            ),
-            instruction=INSTRUCTIONS[task.index % len(INSTRUCTIONS)],
+    plan = {k: (tpb.ENCODING_JPEG, task.jpeg_quality) for k in task.cameras} if task.jpeg_quality else None
+    requests = []
+    for i in range(OBSERVATIONS_PER_ROBOT):
+        if task.frames:
+            images = task.frames[(task.index + i) % len(task.frames)]
+        else:
+            images = {k: rng.integers(0, 256, size=(task.image, task.image, 3), dtype=np.uint8) for k in task.cameras}
+        obs = {**images, "state": rng.standard_normal(STATE_DIM).astype(np.float32)}
+        requests.append(
+            inference_pb2.ActRequest(
+                robot_id=f"arm-{task.index}",
+                observation=encode_observation(obs, plan),
+                instruction=INSTRUCTIONS[task.index % len(INSTRUCTIONS)],
+            )
         )
-        for _ in range(OBSERVATIONS_PER_ROBOT)
-    ]
+    return requests
 
 
 def _robot(task: RobotTask) -> tuple[list[float], list[int], list[list[int]], list[str], float]:
@@ -273,10 +281,19 @@ class Window:
     robots_cpu_s: float  # all robot processes during the window
 
 
-def drive(pool: Any, addr: str, profile: Profile, clients: int, seconds: float, period_s: float = 0.0) -> Window:
+def drive(
+    pool: Any,
+    addr: str,
+    profile: Profile,
+    clients: int,
+    seconds: float,
+    period_s: float = 0.0,
+    frames: tuple[dict[str, np.ndarray], ...] = (),
+    jpeg_quality: int = 0,
+) -> Window:
     start_at = time.time() + START_MARGIN_S + 0.05 * clients
     tasks = [
-        RobotTask(addr, i, start_at, start_at + seconds, period_s, profile.cameras, profile.image)
+        RobotTask(addr, i, start_at, start_at + seconds, period_s, profile.cameras, profile.image, frames, jpeg_quality)
         for i in range(clients)
     ]
     pending = pool.map_async(_robot, tasks, chunksize=1)
@@ -589,6 +606,10 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print, overrides:
                 rows += run_profile(pool, PROFILES[name.strip()], cfg, quick, log, workdir)
             if os.environ.get("USER_INFERENCE_VLA_LEROBOT_PEER", "1") != "0":  # 0: skip it (a short device run)
                 rows += lerobot_peer_rows(pool, cfg, workdir, quick, log)
+        if os.environ.get("USER_INFERENCE_VLA_LINK", "1") != "0" and cfg.inference.device == "cpu":
+            from bench.inference_link import run as link_rows
+
+            rows += link_rows(quick, log)  # its own servers and robots, inside a private network namespace
     finally:
         torch.set_num_threads(threads)
     return rows

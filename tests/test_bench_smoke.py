@@ -56,6 +56,7 @@ def test_bench_quick(tmp_path: Path) -> None:
         assert any(m.endswith(f"), {metric}") for _, m in weights), metric
     assert any(g.startswith("learner updates/s") for g, _ in metrics), "learner updates/s rows"
     assert any("20 Mbit/s" in g or "20mbit" in g for g, _ in weights), "slow-link rows (measured or skipped)"
+    assert any(g.startswith("VLA inference over 20 Mbit/s") for g, _ in metrics), "inference slow-link rows"
 
     numeric = [r for r in rows if r["higher_is_better"] is not None]
     assert numeric
