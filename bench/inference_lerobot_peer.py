@@ -33,9 +33,11 @@ import grpc
 import numpy as np
 
 from bench import Row, median
-from user import rpc, wire
+from edge_agent.encoder import encode_observation
+from user import rpc
 from user.config import AuthConfig, StackConfig
 from user.v1 import inference_pb2, inference_pb2_grpc
+from user.v1 import tensor_pb2 as tpb
 
 PEER = "lerobot async_inference PolicyServer (0.6.1)"
 WORDS = ["reach", "the", "red", "green", "blue", "target"]
@@ -46,15 +48,27 @@ START_TIMEOUT_S = 300.0  # importing lerobot + torch in a fresh process takes a 
 RPC_TIMEOUT_S = 60.0
 
 
-def build_checkpoint(root: Path) -> Path:
+@dataclass(frozen=True)
+class Setup:
+    """What the robot sends: its cameras and their size, the frames (keyed camera.<name>; () = noise frames),
+    and for ours whether the edge JPEG-encodes them (lerobot's client always pickles them raw)."""
+
+    image: int = IMAGE
+    cameras: tuple[str, ...] = ("front",)
+    frames: tuple[dict[str, np.ndarray], ...] = ()
+    jpeg_quality: int = 0
+
+
+def build_checkpoint(root: Path, setup: Setup = Setup()) -> Path:
     import torch
     from lerobot.policies.smolvla.modeling_smolvla import SmolVLAPolicy
 
     from user.policies.smolvla import make_tiny_backbone, save_checkpoint, tiny_smolvla_config
 
-    backbone = make_tiny_backbone(root / "backbone", WORDS, image_size=IMAGE)
+    backbone = make_tiny_backbone(root / "backbone", WORDS, image_size=setup.image)
     torch.manual_seed(0)
-    config = tiny_smolvla_config(backbone, ["front"], STATE, ACTION, horizon=HORIZON, image_size=IMAGE)
+    cameras = list(setup.cameras)
+    config = tiny_smolvla_config(backbone, cameras, STATE, ACTION, horizon=HORIZON, image_size=setup.image)
     return save_checkpoint(SmolVLAPolicy(config), root / "checkpoint")
 
 
@@ -76,7 +90,11 @@ def start_lerobot(root: Path) -> tuple[str, subprocess.Popen]:
         stdout=log,
         stderr=subprocess.STDOUT,
     )
-    return f"127.0.0.1:{port}", proc
+    addr = f"127.0.0.1:{port}"
+    # Its import of lerobot + transformers takes a core for tens of seconds: done before any window opens.
+    with grpc.insecure_channel(addr) as channel:
+        grpc.channel_ready_future(channel).result(timeout=START_TIMEOUT_S)
+    return addr, proc
 
 
 @dataclass(frozen=True)
@@ -86,26 +104,36 @@ class Task:
     checkpoint: str
     seconds: float  # the window opens once the robot is connected and warmed up (one robot: no sync)
     token: str
+    setup: Setup = Setup()
 
 
-def _observations(n: int = 8) -> list[tuple[np.ndarray, np.ndarray]]:
+def _observations(setup: Setup, n: int = 8) -> list[tuple[dict[str, np.ndarray], np.ndarray]]:
+    """(camera name -> frame, state) n times."""
     rng = np.random.default_rng(0)
-    return [
-        (rng.integers(0, 256, (IMAGE, IMAGE, 3), dtype=np.uint8), rng.standard_normal(STATE).astype(np.float32))
-        for _ in range(n)
-    ]
+    out = []
+    for i in range(n):
+        if setup.frames:
+            images = {c: setup.frames[i % len(setup.frames)][f"camera.{c}"] for c in setup.cameras}
+        else:
+            images = {c: rng.integers(0, 256, (setup.image, setup.image, 3), dtype=np.uint8) for c in setup.cameras}
+        out.append((images, rng.standard_normal(STATE).astype(np.float32)))
+    return out
 
 
 def _ours_calls(task: Task) -> Callable[[int], None]:
     channel = rpc.make_channel(task.addr, AuthConfig(token=task.token))
     stub = inference_pb2_grpc.InferenceStub(channel)
+    setup = task.setup
+    plan = (
+        {f"camera.{c}": (tpb.ENCODING_JPEG, setup.jpeg_quality) for c in setup.cameras} if setup.jpeg_quality else None
+    )
     requests = [
         inference_pb2.ActRequest(
             robot_id="arm-0",
-            observation=wire.to_tensor_map({"camera.front": img, "state": state}),
+            observation=encode_observation({**{f"camera.{c}": v for c, v in images.items()}, "state": state}, plan),
             instruction=INSTRUCTION,
         )
-        for img, state in _observations()
+        for images, state in _observations(setup)
     ]
 
     def call(i: int) -> None:
@@ -125,13 +153,15 @@ def _lerobot_calls(task: Task) -> Callable[[int], None]:
     channel = grpc.insecure_channel(task.addr)
     grpc.channel_ready_future(channel).result(timeout=START_TIMEOUT_S)
     stub = services_pb2_grpc.AsyncInferenceStub(channel)
-    features = hw_to_dataset_features({**dict.fromkeys(MOTORS, float), "front": (IMAGE, IMAGE, 3)}, "observation")
+    setup = task.setup
+    cameras = {c: (setup.image, setup.image, 3) for c in setup.cameras}
+    features = hw_to_dataset_features({**dict.fromkeys(MOTORS, float), **cameras}, "observation")
     stub.Ready(services_pb2.Empty(), timeout=RPC_TIMEOUT_S)
-    setup = RemotePolicyConfig("smolvla", task.checkpoint, features, HORIZON, "cpu")
-    stub.SendPolicyInstructions(services_pb2.PolicySetup(data=pickle.dumps(setup)), timeout=RPC_TIMEOUT_S)
+    policy = RemotePolicyConfig("smolvla", task.checkpoint, features, HORIZON, "cpu")
+    stub.SendPolicyInstructions(services_pb2.PolicySetup(data=pickle.dumps(policy)), timeout=RPC_TIMEOUT_S)
     raws = [
-        {**dict(zip(MOTORS, state.tolist(), strict=True)), "front": img, "task": INSTRUCTION}
-        for img, state in _observations()
+        {**dict(zip(MOTORS, state.tolist(), strict=True)), **images, "task": INSTRUCTION}
+        for images, state in _observations(setup)
     ]
 
     def call(i: int) -> None:
@@ -163,14 +193,14 @@ def _robot(task: Task) -> tuple[list[float], str]:
         return [], f"{type(exc).__name__}: {exc}"
 
 
-def start_ours(cfg: StackConfig, checkpoint: Path) -> tuple[str, Callable[[], None]]:
+def start_ours(cfg: StackConfig, checkpoint: Path, setup: Setup = Setup()) -> tuple[str, Callable[[], None]]:
     from bench.inference_bench import start_ours as start
     from user.policies.smolvla import SmolVlaPolicy, SmolVlaSpec, policy_spec
     from user.weights import WeightSet
 
     spec = SmolVlaSpec(
         checkpoint=str(checkpoint),
-        image_keys={"camera.front": "front"},
+        image_keys={f"camera.{c}": c for c in setup.cameras},
         state_keys=["state"],
         action_dim=ACTION,
         action_low=[-1e6] * ACTION,  # no clipping: lerobot's server does not clip either
@@ -178,6 +208,37 @@ def start_ours(cfg: StackConfig, checkpoint: Path) -> tuple[str, Callable[[], No
     )
     policy = SmolVlaPolicy.from_checkpoint(checkpoint, spec)
     return start(cfg, WeightSet(1, policy_spec(spec), policy.tensors()))
+
+
+def measure(
+    pool: Any,
+    root: Path,
+    checkpoint: Path,
+    sides: dict[str, tuple[str, str, Setup]],
+    token: str,
+    rounds: int,
+    seconds: float,
+) -> dict[str, list[float]]:
+    """Chunk latencies (ms) per side label; sides: label -> ("ours" | "lerobot", address, what the robot sends).
+    The sides take turns, one robot at a time."""
+    lat: dict[str, list[float]] = {label: [] for label in sides}
+    for _ in range(rounds):
+        for label, (kind, addr, setup) in sides.items():
+            latencies, error = pool.apply_async(
+                _robot, (Task(kind, addr, str(checkpoint), seconds, token, setup),)
+            ).get()
+            if error:
+                raise RuntimeError(f"{label}: {error} (lerobot log: {root / 'policy_server.log'})")
+            lat[label] += latencies
+    return lat
+
+
+def stop_lerobot(proc: subprocess.Popen) -> None:
+    proc.terminate()
+    try:
+        proc.wait(10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
 
 
 def run(pool: Any, cfg: StackConfig, token: str, workdir: Path, quick: bool, log: Callable[..., None]) -> list[Row]:
@@ -188,41 +249,28 @@ def run(pool: Any, cfg: StackConfig, token: str, workdir: Path, quick: bool, log
     log("inference_vla: tiny SmolVLA, 1 robot, ours vs lerobot's async-inference PolicyServer")
     lerobot_addr, proc = start_lerobot(root)
     ours_addr, stop_ours = start_ours(cfg, checkpoint)
-    lat: dict[str, list[float]] = {"ours": [], "lerobot": []}
     try:
-        for _ in range(rounds):
-            for side, addr in (("ours", ours_addr), ("lerobot", lerobot_addr)):
-                task = Task(side, addr, str(checkpoint), seconds, token)
-                pending = pool.apply_async(_robot, (task,))
-                latencies, error = pending.get()
-                if error:
-                    raise RuntimeError(f"{side}: {error} (lerobot log: {root / 'policy_server.log'})")
-                lat[side] += latencies
+        sides = {"ours": ("ours", ours_addr, Setup()), "lerobot": ("lerobot", lerobot_addr, Setup())}
+        lat = measure(pool, root, checkpoint, sides, token, rounds, seconds)
     finally:
         stop_ours()
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
+        stop_lerobot(proc)
     group = "inference SmolVLA (tiny, local folder, chunk 8x6), closed loop, 1 robot, lerobot's own protocol"
-    rate = {s: len(v) / (rounds * seconds) for s, v in lat.items()}
+    return rows(
+        group, lat, rounds * seconds, "ours: one Act per chunk; lerobot: SendObservations + GetActions per chunk"
+    )
+
+
+def rows(group: str, lat: dict[str, list[float]], seconds: float, note: str, ours: str = "ours") -> list[Row]:
+    """chunks/s, p50 and p99: lat[ours] vs lat["lerobot"]."""
+    rate = {s: len(v) / seconds for s, v in lat.items()}
     return [
-        Row(
-            group,
-            "chunks/s",
-            rate["ours"],
-            rate["lerobot"],
-            "calls/s",
-            True,
-            "ours: one Act per chunk; lerobot: SendObservations + GetActions per chunk",
-            PEER,
-        ),
-        Row(group, "chunk latency p50", median(lat["ours"]), median(lat["lerobot"]), "ms", False, "", PEER),
+        Row(group, "chunks/s", rate[ours], rate["lerobot"], "calls/s", True, note, PEER),
+        Row(group, "chunk latency p50", median(lat[ours]), median(lat["lerobot"]), "ms", False, "", PEER),
         Row(
             group,
             "chunk latency p99",
-            float(np.percentile(lat["ours"], 99)),
+            float(np.percentile(lat[ours], 99)),
             float(np.percentile(lat["lerobot"], 99)),
             "ms",
             False,

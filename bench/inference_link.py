@@ -20,8 +20,11 @@ import argparse
 import json
 import multiprocessing
 import sys
+import tempfile
 from collections.abc import Callable
 from dataclasses import replace
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -152,10 +155,64 @@ def _child(quick: bool) -> None:
                 note = f"ours: JPEG q{JPEG_QUALITY}, {jpeg_bytes / 1e3:.1f} kB of frames a request ({raw_kb:.1f} raw)"
                 rows += _rows(group, lat, rate, clients * hz, 1e3 / hz, note)
                 rows.append(Row(group, "camera bytes per request", jpeg_bytes, raw_bytes, "B", False, "", OURS_RAW))
+            if not quick:  # lerobot's server imports lerobot + transformers: too slow for the smoke run
+                rows += _lerobot_rows(pool, cfg, frames, jpeg_bytes, raw_kb)
     finally:
         for _addr, stop in servers.values():
             stop()
     print(json.dumps([r.__dict__ for r in rows]), flush=True)
+
+
+def _lerobot_rows(
+    pool: Any, cfg: Any, frames: tuple[dict[str, np.ndarray], ...], jpeg_bytes: float, raw_kb: float
+) -> list[Row]:
+    """One robot, tiny SmolVLA from a local folder, closed loop: ours (the edge's JPEG frames, and raw) vs
+    lerobot's async-inference PolicyServer (its client pickles the raw frames) over the same link."""
+    from bench import inference_lerobot_peer as peer
+    from bench.inference_vla_bench import TOKEN
+
+    setup = peer.Setup(image=128, cameras=("front", "wrist"), frames=frames)
+    rounds, seconds = 1, 10.0  # lerobot's side last: its server keeps a core busy after its client's window
+    group = (
+        f"inference SmolVLA (tiny, local folder, chunk 8x6) over {RATE[:-4]} Mbit/s (tc tbf in a netns), "
+        "two 128x128 gym-hil Panda frames, closed loop, 1 robot, lerobot's own protocol"
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        checkpoint = peer.build_checkpoint(root, setup)
+        lerobot_addr, proc = peer.start_lerobot(root)
+        ours_addr, stop_ours = peer.start_ours(cfg, checkpoint, setup)
+        try:
+            print(f"LOG inference over {RATE}: tiny SmolVLA, 1 robot, ours vs lerobot's PolicyServer", flush=True)
+            sides = {
+                "ours JPEG": ("ours", ours_addr, replace(setup, jpeg_quality=JPEG_QUALITY)),
+                "ours raw": ("ours", ours_addr, setup),
+                "lerobot": ("lerobot", lerobot_addr, setup),
+            }
+            lat = peer.measure(pool, root, checkpoint, sides, TOKEN, rounds, seconds)
+        except Exception as exc:  # the flow_vla rows above still count
+            return [Row(group, "lerobot async_inference PolicyServer", "not run", f"{type(exc).__name__}: {exc}")]
+        finally:
+            stop_ours()
+            peer.stop_lerobot(proc)
+    note = (
+        f"ours: JPEG q{JPEG_QUALITY}, {jpeg_bytes / 1e3:.1f} kB of frames a chunk request; lerobot: {raw_kb:.1f} kB raw"
+    )
+    out = peer.rows(group, lat, rounds * seconds, note, ours="ours JPEG")
+    raw_note = "ours with the same raw frames lerobot sends: the protocol alone, without the edge's encoding"
+    out.append(
+        Row(
+            group,
+            "chunk latency p50, ours raw frames",
+            median(lat["ours raw"]),
+            median(lat["lerobot"]),
+            "ms",
+            False,
+            raw_note,
+            peer.PEER,
+        )
+    )
+    return out
 
 
 if __name__ == "__main__":
