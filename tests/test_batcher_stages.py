@@ -200,3 +200,28 @@ def test_a_failing_step_fails_its_batch_and_the_worker_serves_on(fail: str) -> N
     finally:
         batcher.stop()
     np.testing.assert_allclose(res.action, alone(policy, 0), atol=1e-5)
+
+
+def test_a_row_that_fails_its_groups_encoding_fails_only_itself() -> None:
+    """Continuous batching: a group whose preprocess/encode raises is begun again row by row, so only the
+    robot whose input broke it gets the error."""
+    policy = flow_policy(1)
+
+    def picky(observation: Mapping[str, np.ndarray], instructions: Sequence[str]) -> Any:
+        if np.any(np.asarray(observation["state"])[:, 0] == 99.0):
+            raise ValueError("row with 99")
+        return policy.preprocess(observation, instructions)
+
+    batcher = MicroBatcher(max_batch=3, max_wait_ms=5_000, name="flow-picky").start()  # no keys: closes at 3
+    try:
+        batcher.set_policy(policy.forward, 1, picky, policy)
+        bad = one_row(1)
+        bad["state"] = np.full_like(bad["state"], 99.0)
+        futures = [batcher.submit(o, deterministic=True) for o in (one_row(0), bad, one_row(2))]
+        with pytest.raises(ValueError, match="row with 99"):
+            futures[1].result(timeout=10)
+        first, last = futures[0].result(timeout=10), futures[2].result(timeout=10)
+    finally:
+        batcher.stop()
+    np.testing.assert_allclose(first.action, alone(policy, 0), atol=1e-5)
+    np.testing.assert_allclose(last.action, alone(policy, 2), atol=1e-5)

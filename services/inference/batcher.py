@@ -405,6 +405,10 @@ class MicroBatcher:
             self._ready.put(_Rolling(policy, rows, members))
         except Exception as exc:
             log.exception("policy begin failed", extra=kv(size=len(reqs), version=policy.version))
+            if len(reqs) > 1:  # as in _forward: each row alone, so one robot's input fails only that robot
+                for req in reqs:
+                    self._begin(policy, [req])
+                return
             self._fail(reqs, exc)
 
     def _step(self, rolling: list[_Rolling]) -> None:
