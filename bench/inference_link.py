@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import multiprocessing
-import sys
 import tempfile
 from collections.abc import Callable
 from dataclasses import replace
@@ -30,24 +29,17 @@ import numpy as np
 
 from bench import Row, median
 
-RATE = "20mbit"
-SETUP = (
-    f"ip link set lo up && ip link set lo mtu 1500 && tc qdisc add dev lo root tbf rate {RATE} burst 64kb latency 400ms"
-)
+RATE = "20mbit"  # bench.netns.SLOW_LINK
 JPEG_QUALITY = 90
 EVERY = 8  # control ticks per chunk request (chunks of 16 at 30 Hz, asked for half-way)
 OURS_RAW = "ours, raw frames (same server, the edge not encoding)"
 
 
 def run(quick: bool, log: Callable[..., None] = print) -> list[Row]:
-    from bench.netns import rows_in_netns
+    from bench.netns import SLOW_LINK, link_rows
 
-    cmd = [sys.executable, "-m", "bench.inference_link", "--child"] + (["--quick"] if quick else [])
-    rows, err = rows_in_netns(SETUP, cmd, log)
-    if rows is not None:
-        return rows
-    log(f"inference slow link: skipped ({err})")
-    return [Row("VLA inference over 20 Mbit/s (tc tbf in a netns)", "skipped", "n/a", "n/a", note=f"{err}")]
+    args = ["bench.inference_link", "--child"] + (["--quick"] if quick else [])
+    return link_rows(SLOW_LINK, args, "VLA inference over 20 Mbit/s (tc tbf in a netns)", log)
 
 
 def panda_frames(count: int, size: int) -> tuple[dict[str, np.ndarray], ...]:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import sys
 from collections.abc import Callable
 
 from bench import Row
@@ -30,3 +31,21 @@ def rows_in_netns(setup: str, cmd: list[str], log: Callable[..., None]) -> tuple
             return [Row(**r) for r in json.loads(proc.stdout.strip().splitlines()[-1])], ""
         err = ((proc.stderr or proc.stdout).strip().splitlines() or ["?"])[-1]
     return None, err
+
+
+def tbf_setup(rate: str, burst: str = "64kb", latency: str = "400ms", mtu: int | None = 1500) -> str:
+    """Shell that brings up lo (with a real link's MTU unless mtu is None) behind a tc tbf qdisc at `rate`."""
+    mtu_cmd = f" && ip link set lo mtu {mtu}" if mtu else ""
+    return f"ip link set lo up{mtu_cmd} && tc qdisc add dev lo root tbf rate {rate} burst {burst} latency {latency}"
+
+
+SLOW_LINK = tbf_setup("20mbit")  # a remote site's uplink or a busy Wi-Fi: 127.0.0.1 moves ~19 Mbit/s
+
+
+def link_rows(setup: str, args: list[str], group: str, log: Callable[..., None]) -> list[Row]:
+    """The rows of `python -m <args>` run behind the link, or one row of `group` saying why it was skipped."""
+    rows, err = rows_in_netns(setup, [sys.executable, "-m", *args], log)
+    if rows is not None:
+        return rows
+    log(f"{group}: skipped ({err})")
+    return [Row(group, "skipped", "n/a", "n/a", note=f"could not emulate: {err}")]

@@ -907,22 +907,17 @@ def bench_remote_feed(
     ]
 
 
-LINK_RATE, LINK_NAME = "1gbit", "1 Gbit/s"  # a site's shard to a cloud learner
-LINK_SETUP = f"ip link set lo up && tc qdisc add dev lo root tbf rate {LINK_RATE} burst 1mb latency 100ms"
+LINK_NAME = "1 Gbit/s"  # a site's shard to a cloud learner
 
 
 def remote_feed_over_link(quick: bool, workdir: Path, log: Callable[..., None]) -> list[Row]:
     """bench_remote_feed with replay and learner in a private network namespace whose 127.0.0.1 is a 1 Gbit/s tc
     tbf link (as bench.weights_link makes its 20 Mbit/s one); one row saying why where it cannot be made."""
-    from bench.netns import rows_in_netns
+    from bench.netns import link_rows, tbf_setup
 
-    cmd = [sys.executable, "-m", "bench.replay_bench", "--link-child", str(workdir)] + (["--quick"] if quick else [])
-    rows, err = rows_in_netns(LINK_SETUP, cmd, log)
-    if rows is not None:
-        return rows
-    log(f"replay remote feed over a {LINK_NAME} link: skipped ({err})")
-    group = f"replay Sample to a learner on another host over a {LINK_NAME} link"
-    return [Row(group, "skipped", "n/a", "n/a", note=f"could not emulate: {err}")]
+    args = ["bench.replay_bench", "--link-child", str(workdir)] + (["--quick"] if quick else [])
+    setup = tbf_setup("1gbit", burst="1mb", latency="100ms", mtu=None)
+    return link_rows(setup, args, f"replay Sample to a learner on another host over a {LINK_NAME} link", log)
 
 
 def _link_child(workdir: Path, quick: bool) -> None:

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -25,22 +24,13 @@ import torch
 from bench import Row, median
 
 RATE = "20mbit"
-SETUP = (
-    f"ip link set lo up && ip link set lo mtu 1500 && tc qdisc add dev lo root tbf rate {RATE} burst 64kb latency 400ms"
-)
 
 
 def run(quick: bool, log: Callable[..., None] = print) -> list[Row]:
-    from bench.netns import rows_in_netns
+    from bench.netns import SLOW_LINK, link_rows
 
-    cmd = [sys.executable, "-m", "bench.weights_link", "--child"] + (["--quick"] if quick else [])
-    rows, err = rows_in_netns(SETUP, cmd, log)
-    if rows is not None:
-        return rows
-    log(f"weights slow link: skipped ({err})")
-    return [
-        Row("weights over 20 Mbit/s (tc tbf in a netns)", "skipped", "n/a", "n/a", note=f"could not emulate: {err}")
-    ]
+    args = ["bench.weights_link", "--child"] + (["--quick"] if quick else [])
+    return link_rows(SLOW_LINK, args, "weights over 20 Mbit/s (tc tbf in a netns)", log)
 
 
 def _child(quick: bool) -> None:
