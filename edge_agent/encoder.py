@@ -103,8 +103,8 @@ def encode_observation(observation: Mapping[str, np.ndarray], plan: Plan | None)
         return wire.to_tensor_map(observation)
     out = tpb.TensorMap()
     for name, arr in observation.items():
-        enc, quality = plan.get(name, (tpb.ENCODING_RAW, 0))
-        tensor = wire.to_tensor(arr, enc, jpeg_quality=quality) if enc != tpb.ENCODING_RAW else wire.to_tensor(arr)
+        enc, quality = plan.get(name, (tpb.ENCODING_RAW, wire.DEFAULT_JPEG_QUALITY))
+        tensor = wire.to_tensor(arr, enc, jpeg_quality=quality)
         if enc != tpb.ENCODING_RAW:
             ACT_FRAME_BYTES.labels("raw").inc(arr.nbytes)
             ACT_FRAME_BYTES.labels("encoded").inc(len(tensor.data))
