@@ -164,7 +164,7 @@ def _lerobot_rows(
     from bench.inference_vla_bench import TOKEN
 
     setup = peer.Setup(image=128, cameras=("front", "wrist"), frames=frames)
-    rounds, seconds = 1, 10.0  # lerobot's side last: its server keeps a core busy after its client's window
+    rounds, seconds = 1, 10.0  # one window per side (the flow_vla rows above alternate theirs)
     group = (
         f"inference SmolVLA (tiny, local folder, chunk 8x6) over {RATE[:-4]} Mbit/s (tc tbf in a netns), "
         "two 128x128 gym-hil Panda frames, closed loop, 1 robot, lerobot's own protocol"
