@@ -571,6 +571,119 @@ def _batching_rows(
     return rows
 
 
+@dataclass(frozen=True)
+class EdgeTask:
+    """One robot process running the edge's own chunk path (RemotePolicy -> ChunkExecutor) at a control rate."""
+
+    addr: str
+    index: int
+    start_at: float  # wall clock; ticks before warm_s past it are not counted
+    end_at: float
+    hz: float
+    prefetch: int
+    adaptive: bool
+    warm_s: float = 2.0
+
+
+def _edge_robot(task: EdgeTask) -> tuple[int, int, int, str]:
+    """(ticks counted, ticks held, chunks received, error or "")."""
+    from edge_agent.policy_source import RemotePolicy
+
+    request = _requests(RobotTask(task.addr, task.index, 0.0, 0.0, 0.0, VLA.cameras, VLA.image))[0]
+    obs = wire.from_tensor_map(request.observation)
+    source = RemotePolicy(
+        task.addr,
+        AuthConfig(token=TOKEN),
+        deterministic=True,
+        chunk_prefetch=task.prefetch,
+        adaptive_prefetch=task.adaptive,
+        instruction=request.instruction,
+    )
+    rid, period, counted, held = f"arm-{task.index}", 1.0 / task.hz, 0, 0
+    try:
+        phase = float(np.random.default_rng(task.index).uniform(0.0, period))
+        i = 0
+        while (due := task.start_at + phase + i * period) < task.end_at:
+            time.sleep(max(0.0, due - time.time()))
+            action = source.act(rid, obs, deadline_s=0.5)
+            if due >= task.start_at + task.warm_s:
+                counted, held = counted + 1, held + (action is None)
+            i += 1
+        received = sum(e.received for e in source._chunks.executors.values())
+        return counted, held, received, ""
+    except Exception as exc:  # reported: the error does not cross processes as is
+        return counted, held, 0, f"{type(exc).__name__}: {exc}"
+    finally:
+        source.close()
+
+
+# When each robot asks for its next chunk: ours (adaptive, at least 2 ticks left), ours before (2 ticks left,
+# fixed) and lerobot's async client (chunk_size_threshold 0.5: when half the chunk is left).
+EDGE_RULES = {"ours": (2, True), "fixed": (2, False), "lerobot": (VLA.horizon // 2, False)}
+
+
+def edge_chunk_rows(pool: Any, cfg: StackConfig, quick: bool, log: Callable[..., None]) -> list[Row]:
+    """Robots executing VLA chunks at 30 Hz through the inference service: ticks held and requests made under
+    each rule for asking the next chunk."""
+    robots, seconds = (2, 3.0) if quick else (TOP, 17.0)
+    profile = replace(VLA, hidden=256) if quick else VLA
+    addr, stop = start_ours(cfg, make_weights(profile))
+    counts: dict[str, tuple[int, int, int]] = {}
+    try:
+        for rule, (prefetch, adaptive) in EDGE_RULES.items():
+            log(f"inference_vla: edge chunks, {robots} robots at {CONTROL_HZ:.0f} Hz, rule {rule}")
+            start_at = time.time() + START_MARGIN_S + 0.05 * robots
+            tasks = [
+                EdgeTask(addr, i, start_at, start_at + seconds, CONTROL_HZ, prefetch, adaptive) for i in range(robots)
+            ]
+            results = pool.map(_edge_robot, tasks, chunksize=1)
+            errors = [r[3] for r in results if r[3]]
+            if errors:
+                raise RuntimeError(f"edge robots failed under rule {rule}: {errors[:3]}")
+            counts[rule] = tuple(sum(r[k] for r in results) for k in range(3))  # type: ignore[assignment]
+    finally:
+        stop()
+    group = (
+        f"edge chunk execution: {robots} robots x {CONTROL_HZ:.0f} Hz, flow_vla chunks of {profile.horizon} "
+        "through the inference service (loopback), robots as processes"
+    )
+    acted = {r: 100.0 * (n - h) / max(n, 1) for r, (n, h, _) in counts.items()}
+    per_robot_s = {r: received / (robots * seconds) for r, (_, _, received) in counts.items()}  # warm-up included
+    names = {"fixed": "ours before: next chunk asked with 2 ticks left", "lerobot": LEROBOT_RULE}
+    rows = []
+    for rule in ("fixed", "lerobot"):
+        (n, h, _), (pn, ph, _) = counts["ours"], counts[rule]
+        note = f"ticks held: ours {h} of {n}, {rule} {ph} of {pn}"
+        rows.append(
+            Row(
+                group,
+                f"ticks acting on a fresh chunk row (%) vs {rule}",
+                acted["ours"],
+                acted[rule],
+                "%",
+                True,
+                note,
+                names[rule],
+            )
+        )
+    rows.append(
+        Row(
+            group,
+            "chunks received per robot-second (load on inference)",
+            per_robot_s["ours"],
+            per_robot_s["lerobot"],
+            "/s",
+            False,
+            f"ours before: {per_robot_s['fixed']:.2f}",
+            LEROBOT_RULE,
+        )
+    )
+    return rows
+
+
+LEROBOT_RULE = "lerobot async client's rule (chunk_size_threshold 0.5: ask with half the chunk left)"
+
+
 def lerobot_peer_rows(pool: Any, cfg: StackConfig, workdir: Path, quick: bool, log: Callable[..., None]) -> list[Row]:
     group = "inference SmolVLA (tiny, local folder), 1 robot, lerobot's own protocol"
     if (
@@ -606,6 +719,8 @@ def run(quick: bool, workdir: Path, log: Callable[..., None] = print, overrides:
                 rows += run_profile(pool, PROFILES[name.strip()], cfg, quick, log, workdir)
             if os.environ.get("USER_INFERENCE_VLA_LEROBOT_PEER", "1") != "0":  # 0: skip it (a short device run)
                 rows += lerobot_peer_rows(pool, cfg, workdir, quick, log)
+            if os.environ.get("USER_INFERENCE_VLA_EDGE", "1") != "0":
+                rows += edge_chunk_rows(pool, cfg, quick, log)
         if os.environ.get("USER_INFERENCE_VLA_LINK", "1") != "0" and cfg.inference.device == "cpu":
             from bench.inference_link import run as link_rows
 

@@ -5,8 +5,11 @@ that observation was taken. The ChunkExecutor serves one action per `tick()`:
 
 - Asynchronous inference: once the newest chunk has `prefetch` ticks or fewer left, the next
   request goes out in the background with the current observation, so the robot keeps moving on
-  the old chunk while the network and the model work. A chunk answered late is aligned by ticks:
-  its rows for ticks already past are skipped.
+  the old chunk while the network and the model work. `prefetch` grows with the link: it is at
+  least the ticks the slowest of the last few answers took, plus two, so a slow link or a big model
+  asks earlier instead of letting the chunk run out (one request is in flight at a time, so a chunk
+  must cover about twice the round trip for the robot never to hold). A chunk answered late is
+  aligned by ticks: its rows for ticks already past are skipped.
 - Temporal ensembling (ACT): where chunks overlap, the action is their weighted mean with
   weights exp(-decay * i), i = 0 for the oldest chunk, so a new chunk blends in smoothly.
 - Hold: rows older than `max_age_s` (wall time since their observation) are not used; with no
@@ -19,8 +22,10 @@ Metrics: request latency, chunk age at use, ticks held, chunks received.
 
 from __future__ import annotations
 
+import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -40,6 +45,13 @@ CHUNK_LATENCY = prometheus_client.Histogram(
 )
 CHUNK_HOLDS = prometheus_client.Counter("user_edge_chunk_holds_total", "Ticks with no fresh chunk row (robot held)")
 CHUNKS = prometheus_client.Counter("user_edge_chunks_total", "Chunks received, by mode", ["mode"])
+PREFETCH_TICKS = prometheus_client.Histogram(
+    "user_edge_chunk_prefetch_ticks",
+    "Ticks left in the newest chunk when the next request went out (the adaptive prefetch)",
+    buckets=(1, 2, 3, 4, 6, 8, 12, 16, 32),
+)
+LATENCY_WINDOW = 8  # answers whose slowest sets the prefetch
+PERIOD_EWMA = 0.2  # weight of the newest tick interval in the control period estimate
 
 # observation -> (actions (horizon, A) or (A,), policy version), or None (no answer in time).
 FetchFn = Callable[[dict[str, np.ndarray]], "tuple[np.ndarray, int] | None"]
@@ -74,11 +86,16 @@ class ChunkExecutor:
         decay: float = 0.01,
         clock: Callable[[], float] = time.monotonic,
         runner: Runner = _thread_runner,
+        adaptive: bool = True,
     ) -> None:
+        """adaptive=False keeps `prefetch` fixed whatever the round trip (for comparison)."""
         if prefetch < 0 or max_age_s <= 0:
             raise ValueError("prefetch must be >= 0 and max_age_s > 0")
         self.fetch, self.prefetch, self.max_age_s, self.decay = fetch, int(prefetch), float(max_age_s), float(decay)
-        self.clock, self.runner = clock, runner
+        self.clock, self.runner, self.adaptive = clock, runner, adaptive
+        self._latencies: deque[float] = deque(maxlen=LATENCY_WINDOW)  # seconds, newest last
+        self._period_s = 0.0  # control period, estimated from tick() times; 0 = not known yet
+        self._last_tick_at: float | None = None
         self._lock = threading.Lock()
         self._chunks: list[_Chunk] = []  # oldest first
         self._in_flight = False
@@ -93,13 +110,16 @@ class ChunkExecutor:
         """The action for this control tick (and the version of the newest chunk used), or None: hold."""
         tick, now = self.ticks, self.clock()
         self.ticks += 1
+        self._note_period(now)
         with self._lock:
             self._drop_used(tick, now)
             newest = self._chunks[-1] if self._chunks else None
             left = newest.anchor + len(newest.actions) - tick if newest is not None else 0
-            ask = not self._in_flight and left <= self.prefetch
+            ask = not self._in_flight and left <= self.prefetch_ticks()
             if ask:
                 self._in_flight = True
+                if newest is not None:
+                    PREFETCH_TICKS.observe(left)
             episode = self._episode
         if ask and newest is None:
             self._request(observation, tick, now, "sync", episode)  # nothing to run on meanwhile: ask and wait
@@ -115,7 +135,23 @@ class ChunkExecutor:
             self._episode += 1
             self._in_flight = False
 
+    def prefetch_ticks(self) -> int:
+        """Ask for the next chunk when the newest has this many ticks left: the configured `prefetch`, or
+        more when recent answers took longer than that many control periods."""
+        if not self.adaptive or not self._latencies or self._period_s <= 0:
+            return self.prefetch
+        periods = max(self._latencies) / self._period_s
+        # the answer must land before the tick its chunk would run out; one tick more absorbs jitter
+        return max(self.prefetch, math.ceil(periods - 1e-6) + 2)  # (a round trip of exactly 3 periods is 3)
+
     # ------------------------------------------------------------------ internals
+
+    def _note_period(self, now: float) -> None:
+        last, self._last_tick_at = self._last_tick_at, now
+        if last is None or not 0 < now - last <= 1.0:  # the first tick, or a pause (reset, a held loop)
+            return
+        interval = now - last
+        self._period_s = interval if not self._period_s else self._period_s + PERIOD_EWMA * (interval - self._period_s)
 
     def _request(
         self, observation: dict[str, np.ndarray], tick: int, observed_at: float, mode: str, episode: int
@@ -136,6 +172,7 @@ class ChunkExecutor:
         CHUNKS.labels(mode).inc()
         with self._lock:
             self.last_latency_s = latency
+            self._latencies.append(latency)
             self.received += 1
             if self._episode == episode:
                 self._chunks.append(_Chunk(tick, arr, int(version), observed_at))

@@ -81,8 +81,14 @@ def _as_chunk(action: np.ndarray) -> np.ndarray:
 class _Chunked:
     """A ChunkExecutor per robot around a fetch(robot_id, observation, deadline_s) function."""
 
-    def __init__(self, fetch: Callable[[str, dict[str, np.ndarray], float], tuple[np.ndarray, int] | None]) -> None:
+    def __init__(
+        self,
+        fetch: Callable[[str, dict[str, np.ndarray], float], tuple[np.ndarray, int] | None],
+        prefetch: int = 2,
+        adaptive: bool = True,
+    ) -> None:
         self._fetch = fetch
+        self.prefetch, self.adaptive = prefetch, adaptive  # see ChunkExecutor
         self.executors: dict[str, ChunkExecutor] = {}
         self._deadline_s: dict[str, float] = {}
 
@@ -93,7 +99,9 @@ class _Chunked:
         executor = self.executors.get(robot_id)
         if executor is None:
             executor = self.executors[robot_id] = ChunkExecutor(
-                lambda obs: self._fetch(robot_id, obs, self._deadline_s[robot_id])
+                lambda obs: self._fetch(robot_id, obs, self._deadline_s[robot_id]),
+                prefetch=self.prefetch,
+                adaptive=self.adaptive,
             )
         return executor.tick(observation)
 
@@ -193,7 +201,8 @@ class RemotePolicy(PolicySource):
     With `robots` > 1 the robots' requests go out together as ActBatch calls (ActBatcher); an inference
     server without ActBatch (UNIMPLEMENTED) gets one Act per robot from then on. `frame_plans` (robot id ->
     Plan) JPEG/PNG-encodes those robots' camera frames in each request (a tenth of the bytes over Wi-Fi);
-    inference decodes them to the declared shapes before the policy sees them."""
+    inference decodes them to the declared shapes before the policy sees them. `chunk_prefetch` and
+    `adaptive_prefetch` go to each robot's ChunkExecutor (when to ask for the next chunk)."""
 
     def __init__(
         self,
@@ -203,11 +212,13 @@ class RemotePolicy(PolicySource):
         instruction: str = "",
         robots: int = 1,
         frame_plans: Mapping[str, Plan] | None = None,
+        chunk_prefetch: int = 2,
+        adaptive_prefetch: bool = True,
     ) -> None:
         self.addr = addr
         self.instruction = instruction  # sent with every request; "" = the policy's default
         self.frame_plans = dict(frame_plans or {})
-        self._chunks = _Chunked(self._fetch)
+        self._chunks = _Chunked(self._fetch, chunk_prefetch, adaptive_prefetch)
         self._channel = make_channel(addr, auth)
         self._stub = inference_pb2_grpc.InferenceStub(self._channel)
         self.batcher = ActBatcher(self._stub) if robots > 1 else None

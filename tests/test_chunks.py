@@ -146,3 +146,44 @@ def test_reset_drops_old_chunks_and_the_fetch_in_flight() -> None:
         clock.t += 0.05
         ex.tick(obs(i))
     assert len(runner.jobs) == 1  # the in-flight flag was the new episode's to clear: prefetch works again
+
+
+class DelayedRunner:
+    """Background fetches take `ticks` control periods: a job queued at tick t finishes before tick t + ticks."""
+
+    def __init__(self, ticks: int) -> None:
+        self.ticks, self.now = ticks, 0
+        self.jobs: list[tuple[int, Callable[[], None]]] = []
+
+    def __call__(self, job: Callable[[], None]) -> None:
+        self.jobs.append((self.now + self.ticks, job))
+
+    def advance(self, clock: Clock) -> None:
+        """Called before each tick: finish the jobs due by now, with the clock at their answer's time."""
+        self.now += 1
+        for due, job in [j for j in self.jobs if j[0] <= self.now]:
+            self.jobs.remove((due, job))
+            job()
+
+
+@pytest.mark.parametrize("adaptive", [False, True])
+def test_a_slow_link_asks_earlier_instead_of_holding(adaptive: bool) -> None:
+    """Answers take 3 ticks, chunks have 8 rows: asking with 1 tick left runs the chunk out every time;
+    asking as early as the measured round trip needs keeps the robot moving after the first slow answer."""
+    clock, runner = Clock(), DelayedRunner(ticks=3)
+    rows = 8
+
+    def fetch(o: dict[str, np.ndarray]) -> tuple[np.ndarray, int]:
+        return np.zeros((rows, A), np.float32), 1
+
+    ex = ChunkExecutor(fetch, prefetch=1, clock=clock, runner=runner, adaptive=adaptive)
+    held = []
+    for i in range(60):
+        runner.advance(clock)
+        held.append(ex.tick(obs(i)) is None)
+        clock.t += 0.05  # 20 Hz
+    if adaptive:
+        assert ex.prefetch_ticks() == 5  # ceil(0.15 s / 0.05 s) + 2
+        assert not any(held[20:]), held
+    else:
+        assert sum(held[20:]) >= 10  # two ticks held per chunk of 8, every time
