@@ -73,7 +73,8 @@ LEGEND = {
     "alternate. Tiny SmolVLA from a local folder, 1 robot: ours vs lerobot's async-inference PolicyServer (offline, "
     "loopback, its own pickle protocol). Over 20 Mbit/s (tc tbf in a private netns): the VLA with real gym-hil "
     "Panda frames, 1 and 8 robots paced at 3.75 Hz, frames JPEG-encoded by the edge vs raw (ours) and vs the "
-    "one-at-a-time server (raw).",
+    "one-at-a-time server (raw). Edge chunks: 16 robot processes at 30 Hz through RemotePolicy + ChunkExecutor, ticks "
+    "held and chunks asked under ours (adaptive), the fixed 2-tick rule and lerobot's half-chunk rule.",
     "hg_dagger": "hg_dagger: flow_vla on lang_reach_arm (real MuJoCo, scripted expert), in one process with in-memory "
     "tables: HG-DAgger (demos + interventions) vs BC given the same expert steps as more demos; async vs sync learner.",
     "hgdagger_stack": "hgdagger_stack: configs/hgdagger.yaml as processes (control, replay, learner, inference, "
