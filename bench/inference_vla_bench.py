@@ -609,8 +609,7 @@ def _edge_robot(task: EdgeTask) -> tuple[int, int, int, str]:
             if due >= task.start_at + task.warm_s:
                 counted, held = counted + 1, held + (action is None)
             i += 1
-        received = sum(e.received for e in source._chunks.executors.values())
-        return counted, held, received, ""
+        return counted, held, source.chunks_received, ""
     except Exception as exc:  # reported: the error does not cross processes as is
         return counted, held, 0, f"{type(exc).__name__}: {exc}"
     finally:

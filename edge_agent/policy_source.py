@@ -233,6 +233,11 @@ class RemotePolicy(PolicySource):
     def version(self) -> int:
         return self._version
 
+    @property
+    def chunks_received(self) -> int:
+        """Answers received over all robots (a one-action policy's answers count too)."""
+        return sum(executor.received for executor in self._chunks.executors.values())
+
     def act(
         self, robot_id: str, observation: dict[str, np.ndarray], deadline_s: float
     ) -> tuple[np.ndarray, int] | None:
