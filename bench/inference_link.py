@@ -16,8 +16,6 @@ flow_vla of bench/inference_vla_bench.py. Robots ask for a chunk every 8 ticks a
 
 from __future__ import annotations
 
-import argparse
-import json
 import multiprocessing
 import tempfile
 from collections.abc import Callable
@@ -28,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from bench import Row, median
+from bench.netns import child_main, emit_rows
 
 RATE = "20mbit"  # bench.netns.SLOW_LINK
 JPEG_QUALITY = 90
@@ -152,7 +151,7 @@ def _child(quick: bool) -> None:
     finally:
         for _addr, stop in servers.values():
             stop()
-    print(json.dumps([r.__dict__ for r in rows]), flush=True)
+    emit_rows(rows)
 
 
 def _lerobot_rows(
@@ -208,12 +207,4 @@ def _lerobot_rows(
 
 
 if __name__ == "__main__":
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--child", action="store_true")
-    parser.add_argument("--quick", action="store_true")
-    args = parser.parse_args()
-    if args.child:
-        _child(args.quick)
-    else:
-        for row in run(args.quick):
-            print(row)
+    child_main(_child, run)

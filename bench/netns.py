@@ -5,7 +5,9 @@ The child prints "LOG ..." lines, which are passed on, and its rows as JSON on i
 
 from __future__ import annotations
 
+import argparse
 import json
+import os
 import subprocess
 import sys
 from collections.abc import Callable
@@ -49,3 +51,23 @@ def link_rows(setup: str, args: list[str], group: str, log: Callable[..., None])
         return rows
     log(f"{group}: skipped ({err})")
     return [Row(group, "skipped", "n/a", "n/a", note=f"could not emulate: {err}")]
+
+
+def emit_rows(rows: list[Row]) -> None:
+    """A child's last line: its rows as JSON, for rows_in_netns."""
+    print(json.dumps([r.__dict__ for r in rows]), flush=True)
+
+
+def child_main(child: Callable[[bool], None], run: Callable[[bool], list[Row]]) -> None:
+    """`python -m <bench> --child [--quick]` runs the child (inside the namespace); without --child, the whole
+    benchmark (the parent, which starts the child behind the link) and its rows printed."""
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--child", action="store_true")
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args()
+    if args.child:
+        os.environ.setdefault("MUJOCO_GL", "egl")
+        child(args.quick)
+    else:
+        for row in run(args.quick):
+            print(row)

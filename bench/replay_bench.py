@@ -921,7 +921,7 @@ def remote_feed_over_link(quick: bool, workdir: Path, log: Callable[..., None]) 
 
 
 def _link_child(workdir: Path, quick: bool) -> None:
-    import json
+    from bench.netns import emit_rows
 
     rows = bench_remote_feed(
         200 if quick else 2_000,
@@ -931,7 +931,7 @@ def _link_child(workdir: Path, quick: bool) -> None:
         lambda *a, **_: print("LOG", *a, flush=True),
         link=f" over a {LINK_NAME} link, tc tbf in a netns",
     )
-    print(json.dumps([r.__dict__ for r in rows]), flush=True)
+    emit_rows(rows)
 
 
 def run(quick: bool, workdir: Path, log: Callable[..., None] = print) -> list[Row]:

@@ -12,9 +12,6 @@ its largest action deviation from the sender's fp32 policy is recorded.
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
 from collections.abc import Callable
 from typing import Any
 
@@ -22,6 +19,7 @@ import numpy as np
 import torch
 
 from bench import Row, median
+from bench.netns import child_main, emit_rows
 
 RATE = "20mbit"
 
@@ -111,14 +109,8 @@ def _child(quick: bool) -> None:
             peer_name="fp32 full resend",
         ),
     ]
-    print(json.dumps([r.__dict__ for r in rows]), flush=True)
+    emit_rows(rows)
 
 
 if __name__ == "__main__":
-    p = argparse.ArgumentParser()
-    p.add_argument("--child", action="store_true")
-    p.add_argument("--quick", action="store_true")
-    args = p.parse_args()
-    if args.child:
-        os.environ.setdefault("MUJOCO_GL", "egl")
-        _child(args.quick)
+    child_main(_child, run)
