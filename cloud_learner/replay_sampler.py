@@ -272,9 +272,7 @@ def _concat_kept(tensors: list[tensor_pb2.Tensor]) -> tensor_pb2.Tensor | None:
     learner; None when they are not all such frames of one encoding and image shape (then decode and join)."""
     first = tensors[0]
     like = (first.dtype, first.encoding, first.batch_dims, list(first.shape[1:]))
-    if not first.frame_bytes or any((t.dtype, t.encoding, t.batch_dims, list(t.shape[1:])) != like for t in tensors):
-        return None
-    if not all(t.frame_bytes for t in tensors):
+    if any(not t.frame_bytes or (t.dtype, t.encoding, t.batch_dims, list(t.shape[1:])) != like for t in tensors):
         return None
     return tensor_pb2.Tensor(
         dtype=first.dtype,

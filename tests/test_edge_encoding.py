@@ -246,8 +246,11 @@ def test_act_frames_follow_image_encoding_unless_set(camera_arm: Robot) -> None:
     jpeg, png = {"camera.front": (tpb.ENCODING_JPEG, 60)}, {"camera.front": (tpb.ENCODING_PNG, 60)}
     cases = [({"*": "jpeg"}, None, jpeg), ({"*": "jpeg"}, {}, {}), ({}, {"*": "png"}, png), ({}, None, {})]
     for steps, act, plan in cases:
-        rc = RobotConfig(id="cam-0", params={"camera": True}, image_encoding=steps, act_image_encoding=act)
-        cfg.edge.robots = [rc.model_copy(update={"jpeg_quality": 60})]
+        cfg.edge.robots = [
+            RobotConfig(
+                id="cam-0", params={"camera": True}, image_encoding=steps, act_image_encoding=act, jpeg_quality=60
+            )
+        ]
         source = make_policy_source(cfg, "edge-0", [camera_arm.spec])
         try:
             assert isinstance(source, RemotePolicy)
