@@ -27,7 +27,7 @@ import numpy as np
 import prometheus_client
 
 from edge_agent.control_client import ControlClient
-from edge_agent.encoder import FrameEncoder, Plan, robot_plans
+from edge_agent.encoder import EncodedFrames, FrameEncoder, Plan, robot_plans
 from edge_agent.policy_source import PolicySource, make_policy_source
 from edge_agent.replay_client import ReplaySender
 from edge_agent.robot import Observation, Robot, action_bounds, clip_action, make_robot
@@ -560,9 +560,10 @@ class EdgeAgent:
         self.sender = sender or ReplaySender(edge.replay_addr, cfg.auth, start=False, outbox=open_outbox(edge))
         # robots with image_encoding: frames encoded off their loops, before the spool (edge_agent/encoder.py)
         plans = encoding_plans(cfg, self.robots)
-        self.encoder = FrameEncoder(self.sender, plans, edge.encode_threads) if plans else None
+        frames = EncodedFrames() if plans else None  # frames Act requests encoded, reused by the steps
+        self.encoder = FrameEncoder(self.sender, plans, edge.encode_threads, frames=frames) if plans else None
         self.sink: StepSink = self.encoder if self.encoder is not None else self.sender
-        self.policy = policy or make_policy_source(cfg, edge.agent_id, [r.spec for r in self.robots])
+        self.policy = policy or make_policy_source(cfg, edge.agent_id, [r.spec for r in self.robots], frames)
         self._absent_teleops: dict[str, _Absent[Teleoperator]] = {}  # not connected yet, by their robot's id
         # Robots attached now. Replaced whole on every hot-plug change, never mutated: other threads iterate it.
         self.loops = {r.spec.robot_id: self._make_loop(r) for r in self.robots}

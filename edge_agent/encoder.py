@@ -51,6 +51,9 @@ PENDING = prometheus_client.Gauge("user_edge_encode_pending_steps", "Steps waiti
 SEND_WAITS = prometheus_client.Counter(
     "user_edge_encode_send_waits_total", "send() calls that waited because the encoder was max_pending behind"
 )
+REUSED = prometheus_client.Counter(
+    "user_edge_frames_reused_total", "Step camera frames not encoded again: an Act request had encoded the same frame"
+)
 
 Plan = dict[str, tuple[int, int]]  # feature -> (encoding, jpeg quality)
 
@@ -97,8 +100,45 @@ def robot_plans(
     return plans
 
 
-def encode_observation(observation: Mapping[str, np.ndarray], plan: Plan | None) -> tpb.TensorMap:
-    """An observation as a TensorMap, the planned camera frames JPEG/PNG-encoded (counted), the rest raw."""
+class EncodedFrames:
+    """Camera frames an Act request has encoded, kept so that the step of the same observation reuses them.
+
+    The edge asks for an action chunk with the observation it then sends to replay as a step: with the same
+    plan for both, that frame would be encoded twice. RemotePolicy puts what it encoded here; the FrameEncoder
+    takes a frame whose raw bytes, shape, encoding and quality all match (bytes, not object identity: a robot
+    may refill one buffer every tick), which is exactly what its own encode would have produced. The last
+    `per_feature` frames of each (robot, feature) are kept; thread-safe (Act and steps run on other threads)."""
+
+    def __init__(self, per_feature: int = 2) -> None:
+        self.per_feature = per_feature
+        self._lock = threading.Lock()
+        self._frames: dict[tuple[str, str], deque[tuple[bytes, tuple[int, ...], int, int, bytes]]] = {}
+
+    def put(self, robot_id: str, name: str, frame: np.ndarray, encoding: int, quality: int, data: bytes) -> None:
+        entry = (np.ascontiguousarray(frame).tobytes(), tuple(frame.shape), encoding, quality, data)
+        with self._lock:
+            kept = self._frames.setdefault((robot_id, name), deque(maxlen=self.per_feature))
+            kept.append(entry)
+
+    def find(self, robot_id: str, name: str, tensor: tpb.Tensor, encoding: int, quality: int) -> bytes | None:
+        """The encoded bytes of this RAW frame if an Act request encoded the same frame the same way, else None."""
+        with self._lock:
+            kept = list(self._frames.get((robot_id, name), ()))
+        shape = tuple(tensor.shape)
+        for raw, raw_shape, enc, q, data in reversed(kept):
+            if enc == encoding and q == quality and raw_shape == shape and raw == tensor.data:
+                return data
+        return None
+
+
+def encode_observation(
+    observation: Mapping[str, np.ndarray],
+    plan: Plan | None,
+    robot_id: str = "",
+    frames: EncodedFrames | None = None,
+) -> tpb.TensorMap:
+    """An observation as a TensorMap, the planned camera frames JPEG/PNG-encoded (counted), the rest raw.
+    With `frames`, each encoded frame is kept there for the step of the same observation (robot_id's)."""
     if not plan:
         return wire.to_tensor_map(observation)
     out = tpb.TensorMap()
@@ -108,6 +148,8 @@ def encode_observation(observation: Mapping[str, np.ndarray], plan: Plan | None)
         if enc != tpb.ENCODING_RAW:
             ACT_FRAME_BYTES.labels("raw").inc(arr.nbytes)
             ACT_FRAME_BYTES.labels("encoded").inc(len(tensor.data))
+            if frames is not None:
+                frames.put(robot_id, name, np.asarray(arr), enc, quality, tensor.data)
         out.tensors[name].CopyFrom(tensor)
     return out
 
@@ -123,15 +165,23 @@ class FrameEncoder:
     """A StepSink in front of the sender: encodes the planned camera frames of each robot's steps off the
     control loop, then sender.send() in send order. Robots without a plan go straight through."""
 
-    def __init__(self, sender: object, plans: Mapping[str, Plan], threads: int = 2, max_pending: int = 64) -> None:
+    def __init__(
+        self,
+        sender: object,
+        plans: Mapping[str, Plan],
+        threads: int = 2,
+        max_pending: int = 64,
+        frames: EncodedFrames | None = None,
+    ) -> None:
         self.sender = sender  # a ReplaySender (not owned: closed by whoever made it)
         self.plans = {rid: plan for rid, plan in plans.items() if plan}
+        self.frames = frames  # frames Act requests encoded, reused where a step holds the same one
         self.max_pending = max_pending
         self._queue: deque[tuple[step_pb2.Step, str]] = deque()
         self._busy = 0  # steps taken from the queue, not yet handed to the sender
         self._cond = threading.Condition()
         self._stopping = False
-        self.encoded = self.waits = 0
+        self.encoded = self.waits = self.reused = 0
         self.encode_s = 0.0
         self.raw_bytes = self.encoded_bytes = 0
         self._pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="edge-encode") if threads > 1 else None
@@ -215,6 +265,24 @@ class FrameEncoder:
                 PENDING.set(len(self._queue))
                 self._cond.notify_all()
 
+    def _count_bytes(self, raw: int, encoded: int) -> None:
+        self.raw_bytes += raw
+        self.encoded_bytes += encoded
+        FRAME_BYTES.labels("raw").inc(raw)
+        FRAME_BYTES.labels("encoded").inc(encoded)
+
+    def _reuse(self, robot_id: str, name: str, tensor: tpb.Tensor, encoding: int, quality: int) -> bool:
+        """Put the bytes an Act request already encoded for this frame into the step; False if there are none."""
+        data = self.frames.find(robot_id, name, tensor, encoding, quality) if self.frames is not None else None
+        if data is None:
+            return False
+        self.reused += 1
+        REUSED.inc()
+        self._count_bytes(len(tensor.data), len(data))
+        tensor.data = data
+        tensor.encoding = encoding
+        return True
+
     def _encode_batch(self, batch: list[tuple[step_pb2.Step, str]]) -> None:
         """Every planned frame of the batch encoded (on the pool when it has one), then written into its step
         by this thread alone (protobuf messages are not mutated from several threads)."""
@@ -225,18 +293,17 @@ class FrameEncoder:
             for part in parts:
                 for name, (enc, quality) in plan.items():
                     tensor = part.tensors.get(name)
-                    if tensor is not None and tensor.encoding == tpb.ENCODING_RAW and tensor.dtype == tpb.DTYPE_UINT8:
+                    if tensor is None or tensor.encoding != tpb.ENCODING_RAW or tensor.dtype != tpb.DTYPE_UINT8:
+                        continue
+                    if not self._reuse(step.robot_id, name, tensor, enc, quality):
                         jobs.append((tensor, enc, quality))
         if self._pool is not None and len(jobs) > 1:
             results = list(self._pool.map(lambda job: _encode(*job), jobs))
         else:
             results = [_encode(*job) for job in jobs]
         for (tensor, enc, _q), (data, seconds) in zip(jobs, results, strict=True):
-            self.raw_bytes += len(tensor.data)
-            self.encoded_bytes += len(data)
+            self._count_bytes(len(tensor.data), len(data))
             self.encode_s += seconds
-            FRAME_BYTES.labels("raw").inc(len(tensor.data))
-            FRAME_BYTES.labels("encoded").inc(len(data))
             FRAMES.labels("jpeg" if enc == tpb.ENCODING_JPEG else "png").inc()
             ENCODE_SECONDS.inc(seconds)
             tensor.data = data

@@ -21,7 +21,7 @@ import numpy as np
 import prometheus_client
 
 from edge_agent.chunks import ChunkExecutor
-from edge_agent.encoder import Plan, encode_observation, robot_plans
+from edge_agent.encoder import EncodedFrames, Plan, encode_observation, robot_plans
 from user import wire
 from user.config import AuthConfig, StackConfig
 from user.log import kv
@@ -201,8 +201,9 @@ class RemotePolicy(PolicySource):
     With `robots` > 1 the robots' requests go out together as ActBatch calls (ActBatcher); an inference
     server without ActBatch (UNIMPLEMENTED) gets one Act per robot from then on. `frame_plans` (robot id ->
     Plan) JPEG/PNG-encodes those robots' camera frames in each request (a tenth of the bytes over Wi-Fi);
-    inference decodes them to the declared shapes before the policy sees them. `chunk_prefetch` and
-    `adaptive_prefetch` go to each robot's ChunkExecutor (when to ask for the next chunk)."""
+    inference decodes them to the declared shapes before the policy sees them; with `frames` (shared with the
+    edge's FrameEncoder) each encoded frame is kept so the step of the same observation is not encoded again.
+    `chunk_prefetch` and `adaptive_prefetch` go to each robot's ChunkExecutor (when to ask for the next chunk)."""
 
     def __init__(
         self,
@@ -214,10 +215,12 @@ class RemotePolicy(PolicySource):
         frame_plans: Mapping[str, Plan] | None = None,
         chunk_prefetch: int = 2,
         adaptive_prefetch: bool = True,
+        frames: EncodedFrames | None = None,
     ) -> None:
         self.addr = addr
         self.instruction = instruction  # sent with every request; "" = the policy's default
         self.frame_plans = dict(frame_plans or {})
+        self.frames = frames
         self._chunks = _Chunked(self._fetch, chunk_prefetch, adaptive_prefetch)
         self._channel = make_channel(addr, auth)
         self._stub = inference_pb2_grpc.InferenceStub(self._channel)
@@ -267,7 +270,7 @@ class RemotePolicy(PolicySource):
     ) -> tuple[np.ndarray, int] | None:
         request = inference_pb2.ActRequest(
             robot_id=robot_id,
-            observation=encode_observation(observation, self.frame_plans.get(robot_id)),
+            observation=encode_observation(observation, self.frame_plans.get(robot_id), robot_id, self.frames),
             deterministic=self._deterministic,
             instruction=self.instruction,
         )
@@ -431,9 +434,13 @@ def robot_experiments(cfg: StackConfig, specs: list[robot_pb2.RobotSpec] | None 
 
 
 def make_policy_source(
-    cfg: StackConfig, client_id: str, specs: list[robot_pb2.RobotSpec] | None = None
+    cfg: StackConfig,
+    client_id: str,
+    specs: list[robot_pb2.RobotSpec] | None = None,
+    frames: EncodedFrames | None = None,
 ) -> PolicySource:
-    """Remote (one Inference address for every robot) or local copies, one per experiment of this agent's robots."""
+    """Remote (one Inference address for every robot) or local copies, one per experiment of this agent's robots.
+    `frames`: where a remote source keeps the frames it encoded, for the edge's FrameEncoder to reuse."""
     if cfg.edge.policy_source == "local":
         routes = robot_experiments(cfg, specs)
         names = sorted(set(routes.values()))
@@ -462,4 +469,5 @@ def make_policy_source(
         cfg.auth,
         robots=len(specs) if specs else len(cfg.edge.robots),
         frame_plans=robot_plans(cfg.edge.robots, specs or [], act=True),
+        frames=frames,
     )

@@ -11,7 +11,7 @@ import grpc
 import numpy as np
 import pytest
 
-from edge_agent.agent import RobotLoop, encoding_plans
+from edge_agent.agent import EdgeAgent, RobotLoop, encoding_plans
 from edge_agent.encoder import FrameEncoder, plan_for
 from edge_agent.policy_source import PolicySource, RemotePolicy, make_policy_source
 from edge_agent.replay_client import ReplaySender
@@ -260,6 +260,22 @@ def test_act_frames_follow_image_encoding_unless_set(camera_arm: Robot) -> None:
     cfg.edge.robots = [RobotConfig(id="cam-0", act_image_encoding={"state": "jpeg"})]
     with pytest.raises(ValueError, match=r"edge.robots\[0\].act_image_encoding: 'state' is not a uint8"):
         make_policy_source(cfg, "edge-0", [camera_arm.spec])
+
+
+def test_the_agent_shares_act_encoded_frames_with_its_step_encoder(camera_arm: Robot) -> None:
+    """The edge agent hands its remote policy source and its step encoder one EncodedFrames, so a frame sent
+    with an Act request is not encoded again for its step (tests/test_flow_vla.py runs that path)."""
+    cfg = StackConfig(auth=AuthConfig(token="t"))
+    cfg.edge.policy_source = "remote"
+    cfg.edge.inference_addr = "127.0.0.1:9"  # nothing is called here
+    cfg.edge.robots = [RobotConfig(id="cam-0", params={"camera": True}, image_encoding={"*": "jpeg"})]
+    agent = EdgeAgent(cfg, robots=[camera_arm], sender=ListSink())  # type: ignore[arg-type]
+    try:
+        assert isinstance(agent.policy, RemotePolicy) and agent.encoder is not None
+        assert agent.policy.frames is not None and agent.policy.frames is agent.encoder.frames
+    finally:
+        agent.policy.close()
+        agent.encoder.close()
 
 
 class ListSink:

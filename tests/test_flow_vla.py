@@ -20,7 +20,7 @@ from user.policies.flow_vla import FlowVlaConfig, policy_spec, random_weights
 from user.policy import build_policy
 from user.rpc import make_channel
 from user.text import INSTRUCTION_KEY, encode_instruction
-from user.v1 import inference_pb2, inference_pb2_grpc
+from user.v1 import inference_pb2, inference_pb2_grpc, step_pb2
 from user.v1 import tensor_pb2 as tpb
 from user.weights import WeightSet
 
@@ -348,23 +348,25 @@ def test_weight_swaps_under_grpc_load_fail_no_request(service: InferenceService)
     assert all(v == sorted(v) for v in per_robot.values())  # each robot only ever sees newer versions
 
 
+LANG_CFG = FlowVlaConfig(  # lang_reach_arm's features: a 64x64 camera and 15 floats of state; chunks of 8
+    image_keys=["camera.front"],
+    state_keys=["state"],
+    state_dim=15,
+    action_dim=3,
+    action_low=[-1.0] * 3,
+    action_high=[1.0] * 3,
+    horizon=8,
+    hidden=32,
+    flow_steps=2,
+)
+
+
 def test_robot_loop_runs_served_chunks_at_the_control_rate(service: InferenceService) -> None:
     from edge_agent.agent import RobotLoop
     from edge_agent.robot import make_robot
     from tests.test_edge_agent import ListSink
 
-    lang_cfg = FlowVlaConfig(
-        image_keys=["camera.front"],
-        state_keys=["state"],
-        state_dim=15,
-        action_dim=3,
-        action_low=[-1.0] * 3,
-        action_high=[1.0] * 3,
-        horizon=8,
-        hidden=32,
-        flow_steps=2,
-    )
-    service.load_weights(WeightSet(version=9, policy=policy_spec(lang_cfg), tensors=random_weights(lang_cfg)))
+    service.load_weights(WeightSet(version=9, policy=policy_spec(LANG_CFG), tensors=random_weights(LANG_CFG)))
     served_before = service.batcher.requests
     robot = make_robot("lang_reach_arm", "lang-0", {"control_rate_hz": 20, "max_episode_steps": 1000}, seed=0)
     source = RemotePolicy(service.address, AUTH)
@@ -384,3 +386,75 @@ def test_robot_loop_runs_served_chunks_at_the_control_rate(service: InferenceSer
     assert requests < len(steps) / 2  # one request per chunk of 8 (prefetched), not one per tick
     executor = source._chunks.executors["lang-0"]
     assert executor.received == requests and executor.last_latency_s > 0
+
+
+def test_a_frame_encoded_for_act_is_not_encoded_again_for_its_step(service: InferenceService) -> None:
+    """With the same JPEG plan for Act requests and steps, the edge encodes a frame it asked a chunk with once:
+    the step of that observation carries the very bytes its own encode would give (a real robot loop, a real
+    inference service); frames no Act request sent are still encoded by the step encoder."""
+    from edge_agent.agent import RobotLoop
+    from edge_agent.encoder import EncodedFrames, FrameEncoder
+    from edge_agent.robot import make_robot
+    from tests.test_edge_agent import ListSink
+
+    service.load_weights(WeightSet(version=9, policy=policy_spec(LANG_CFG), tensors=random_weights(LANG_CFG)))
+    plan = {"camera.front": (tpb.ENCODING_JPEG, 80)}
+    frames = EncodedFrames()
+    robot = make_robot("lang_reach_arm", "lang-0", {"control_rate_hz": 20, "max_episode_steps": 1000}, seed=0)
+    source = RemotePolicy(service.address, AUTH, frame_plans={"lang-0": plan}, frames=frames)
+    sink = ListSink()
+    encoder = FrameEncoder(sink, {"lang-0": plan}, threads=1, frames=frames)
+    raw: list[bytes] = []
+
+    class Tap:  # keeps each step's raw frame before the encoder rewrites it
+        def send(self, step: step_pb2.Step, table: str = "") -> int:
+            raw.append(step.observation.tensors["camera.front"].data)
+            return encoder.send(step, table)
+
+        unacked = 0
+
+    loop = RobotLoop(robot, source, Tap(), mode="realtime", action_deadline_s=2.0)
+    loop.start()
+    try:
+        helpers.wait_for(lambda: len(raw) >= 40, "40 control ticks")
+    finally:
+        loop.stop()
+        source.close()
+        robot.close()
+    assert encoder.flush(10.0)
+    encoder.close()
+    steps = sink.snapshot()
+    assert len(steps) == len(raw)
+    requests = source.chunks_received
+    assert 1 <= encoder.reused <= requests < len(steps) / 2  # one Act per chunk of 8, each frame reused at most once
+    assert encoder.reused + encoder.encoded == len(steps)
+    for step, frame in zip(steps, raw, strict=True):
+        tensor = step.observation.tensors["camera.front"]
+        assert tensor.encoding == tpb.ENCODING_JPEG
+        own = wire.encode_image(np.frombuffer(frame, np.uint8).reshape(tuple(tensor.shape)), tpb.ENCODING_JPEG, 80)
+        assert tensor.data == own
+
+
+def test_encoded_frames_match_bytes_not_objects() -> None:
+    """A frame is reused only for the same bytes, shape, encoding and quality: a robot that refills one buffer
+    every tick gets a fresh encode."""
+    from edge_agent.encoder import EncodedFrames
+
+    frames = EncodedFrames(per_feature=2)
+    buffer = np.zeros((8, 8, 3), np.uint8)
+    frames.put("r", "camera.front", buffer, tpb.ENCODING_JPEG, 80, b"first")
+    same = wire.to_tensor(buffer.copy())
+    assert frames.find("r", "camera.front", same, tpb.ENCODING_JPEG, 80) == b"first"
+    assert frames.find("r", "camera.front", same, tpb.ENCODING_JPEG, 90) is None  # another quality
+    assert frames.find("r", "camera.front", same, tpb.ENCODING_PNG, 80) is None
+    assert frames.find("other", "camera.front", same, tpb.ENCODING_JPEG, 80) is None
+    assert frames.find("r", "camera.front", wire.to_tensor(buffer.reshape(16, 4, 3)), tpb.ENCODING_JPEG, 80) is None
+    buffer[0, 0, 0] = 1  # refilled in place after it was encoded
+    assert frames.find("r", "camera.front", wire.to_tensor(buffer), tpb.ENCODING_JPEG, 80) is None
+    for i in range(3):  # only the last per_feature frames are kept
+        frames.put("r", "camera.front", np.full((8, 8, 3), i, np.uint8), tpb.ENCODING_JPEG, 80, bytes([i]))
+    kept = [
+        frames.find("r", "camera.front", wire.to_tensor(np.full((8, 8, 3), i, np.uint8)), tpb.ENCODING_JPEG, 80)
+        for i in range(3)
+    ]
+    assert kept == [None, b"\x01", b"\x02"]
