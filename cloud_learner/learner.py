@@ -51,7 +51,16 @@ from cloud_learner.replay_sampler import ShardedSampler, replay_source
 from cloud_learner.replay_shm import SharedArrays
 from user import rpc
 from user.config import ExperimentConfig, StackConfig
-from user.experiments import EMBODIMENT_KEY, LayoutError, assign, check_plugins, layout_for, pad_action, ready
+from user.experiments import (
+    EMBODIMENT_KEY,
+    LayoutError,
+    assign,
+    check_plugins,
+    layout_for,
+    pad_action,
+    parse_definition,
+    ready,
+)
 from user.log import kv
 from user.policy import POLICIES, PolicyChoice
 from user.spec import action_dim
@@ -1004,11 +1013,31 @@ class Learner:
             if err.code() != grpc.StatusCode.UNIMPLEMENTED:  # an older control has no experiments
                 log.warning("ListExperiments failed", extra=kv(addr=self.lc.control_addr, code=str(err.code())))
             return
+        self._add_defined([e for e in resp.experiments if e.defined_at_runtime])
         self.stopped_experiments = {e.name for e in resp.experiments if e.state == control_pb2.EXPERIMENT_STATE_STOPPED}
         self.experiment_polls += 1
         for name, run in self.runs.items():
             if isinstance(run, ExperimentRun):
                 run.set_stopped(name in self.stopped_experiments)
+
+    def _add_defined(self, infos: list[control_pb2.ExperimentInfo]) -> None:
+        """Experiments defined at run time (Control.DefineExperiment) join after the config's, in control's order;
+        one whose definition does not check here is reported failed, never trained."""
+        for info in infos:
+            if info.name in self.experiment_states:
+                continue
+            try:
+                exp = parse_definition(info.definition_json, info.name)
+            except ValueError as exc:
+                log.error("a defined experiment cannot train", extra=kv(experiment=info.name, error=str(exc)))
+                failed = ExperimentState(info.name, "", state="failed", error=str(exc))
+                self.experiment_states = {**self.experiment_states, info.name: failed}
+                continue
+            log.info("experiment defined at run time", extra=kv(experiment=exp.name, algorithm=exp.algorithm.kind))
+            state = ExperimentState(exp.name, exp.algorithm.kind, policy_kind=exp.policy.kind if exp.policy else "")
+            # Both replaced, not mutated (RPC and report threads iterate them); the state first, as runs look it up.
+            self.experiment_states = {**self.experiment_states, exp.name: state}
+            self.experiments = [*self.experiments, exp]
 
     def _on_robots(self, specs: list[robot_pb2.RobotSpec]) -> None:
         assigned = assign(specs, self.experiments)

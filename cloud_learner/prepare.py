@@ -26,20 +26,19 @@ from user.registry import PluginError
 STAT_FIELDS = ("state_mean", "state_std")
 
 
-def check_prepare(experiments: Sequence[ExperimentConfig]) -> None:
+def check_prepare(experiments: Sequence[ExperimentConfig], where: str = "experiments[{i}]") -> None:
     """normalize needs an algorithm that takes state_mean/state_std, and does not override the user's own."""
     for i, exp in enumerate(experiments):
         if exp.normalize is None:
             continue
+        at = where.format(i=i)
         fields = ALGORITHMS.get(exp.algorithm.kind).params.model_fields
         if not all(f in fields for f in STAT_FIELDS):
-            raise PluginError(
-                f"experiments[{i}].normalize: algorithm {exp.algorithm.kind!r} takes no state_mean/state_std params"
-            )
+            raise PluginError(f"{at}.normalize: algorithm {exp.algorithm.kind!r} takes no state_mean/state_std params")
         given = [f for f in STAT_FIELDS if exp.algorithm.params.get(f)]
         if given:
             raise PluginError(
-                f"experiments[{i}].normalize: algorithm.params.{given[0]} is set too; "
+                f"{at}.normalize: algorithm.params.{given[0]} is set too; "
                 "use one source of statistics (drop normalize, or the params)"
             )
 

@@ -125,7 +125,10 @@ class LearnerService(rpc.GrpcService):
 def run(cfg: StackConfig, ready_file: str | None) -> int:
     service = LearnerService(cfg)
     lc = cfg.learner
-    experiments = [e.name for e in cfg.resolved_experiments()]  # `userctl exp status` lists its learners by these
+
+    def experiments() -> list[str]:  # `userctl exp status` lists its learners by these
+        return [e.name for e in service.learner.experiments]
+
     with report_worker(
         service, "learner", lc.control_addr, cfg.auth, lc.device, experiments, service.learner.preparing
     ):

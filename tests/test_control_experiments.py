@@ -407,6 +407,10 @@ def test_roles_for_the_experiment_rpcs_and_bad_input(tmp_path: Path) -> None:
         "get": lambda st: st.GetExperiment(control_pb2.GetExperimentRequest(name="alpha"), timeout=5),
         "stop": lambda st: st.StopExperiment(control_pb2.StopExperimentRequest(name="alpha"), timeout=5),
         "start": lambda st: st.StartExperiment(control_pb2.StartExperimentRequest(name="alpha"), timeout=5),
+        "define": lambda st: st.DefineExperiment(
+            control_pb2.DefineExperimentRequest(definition_json='{"name": "delta", "robots": {"ids": ["d-0"]}}'),
+            timeout=30,
+        ),
     }
 
     def code(token: str, what: str, call=None) -> grpc.StatusCode:
@@ -418,8 +422,14 @@ def test_roles_for_the_experiment_rpcs_and_bad_input(tmp_path: Path) -> None:
 
     try:
         ok, denied = grpc.StatusCode.OK, grpc.StatusCode.PERMISSION_DENIED
-        assert {w: code(OPERATOR, w) for w in calls} == {"list": ok, "get": ok, "stop": ok, "start": ok}
-        assert {w: code(READER, w) for w in calls} == {"list": ok, "get": ok, "stop": denied, "start": denied}
+        assert {w: code(READER, w) for w in calls} == {
+            "list": ok,
+            "get": ok,
+            "stop": denied,
+            "start": denied,
+            "define": denied,
+        }
+        assert {w: code(OPERATOR, w) for w in calls} == {"list": ok, "get": ok, "stop": ok, "start": ok, "define": ok}
         assert {w: code(EDGE_TOKEN, w) for w in calls} == {w: denied for w in calls}
         assert code("not-a-token-0123456789", "list") == grpc.StatusCode.UNAUTHENTICATED
         assert experiment(stub_for(control.address), "alpha").state == RUNNING  # the refused stops changed nothing

@@ -296,7 +296,7 @@ def test_learner_on_the_gpu_trains_from_replay_and_inference_on_the_gpu_follows(
         assert resp.policy_version >= 1
         # The learner reports the device it computes on to control, with the machine's GPUs as resources.
         control_stub = control_pb2_grpc.ControlStub(make_channel(control.address, cfg.auth))
-        with report_worker(learner, "learner", control.address, cfg.auth, lc.device, ["reach"]):
+        with report_worker(learner, "learner", control.address, cfg.auth, lc.device, lambda: ["reach"]):
 
             def registered():
                 listed = control_stub.ListWorkers(control_pb2.ListWorkersRequest(), timeout=5).workers

@@ -165,7 +165,9 @@ def test_flow_bc_pretrains_on_demos_before_version_1_and_ships_its_statistics(ba
     cfg, control, replay = base(FLOW)
     learner = LearnerService(cfg, start_metrics=False).start()
     # As `userctl learner` does: the learner reports to control, with the experiments it still prepares.
-    reporter = report_worker(learner, "learner", control.address, cfg.auth, "cpu", ["lang"], learner.learner.preparing)
+    reporter = report_worker(
+        learner, "learner", control.address, cfg.auth, "cpu", lambda: ["lang"], learner.learner.preparing
+    )
     reporter.__enter__()
     control_stub = control_pb2_grpc.ControlStub(make_channel(control.address, cfg.auth))
 

@@ -193,12 +193,39 @@ def fit_action(policy: object, kind: str, action: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- plug-in checks at start
 
 
-def check_plugins(experiments: Sequence[ExperimentConfig]) -> None:
-    """Validate every experiment's algorithm and policy params (PluginError names experiments[i]...)."""
+def check_plugins(experiments: Sequence[ExperimentConfig], where: str = "experiments[{i}]") -> None:
+    """Validate every experiment's algorithm and policy params (PluginError names experiments[i]..., or
+    `where` with {i} filled in)."""
     from cloud_learner.algorithm import ALGORITHMS
     from user.policy import POLICIES
 
     for i, exp in enumerate(experiments):
-        ALGORITHMS.params(exp.algorithm.kind, exp.algorithm.params, where=f"experiments[{i}].algorithm.params")
+        at = where.format(i=i)
+        ALGORITHMS.params(exp.algorithm.kind, exp.algorithm.params, where=f"{at}.algorithm.params")
         if exp.policy is not None:
-            POLICIES.params(exp.policy.kind, exp.policy.params, where=f"experiments[{i}].policy.params")
+            POLICIES.params(exp.policy.kind, exp.policy.params, where=f"{at}.policy.params")
+
+
+MAX_DEFINITION_BYTES = 64 * 1024
+
+
+def parse_definition(text: str, name: str | None = None) -> ExperimentConfig:
+    """An experiment defined at run time (one `experiments` entry as JSON), checked as the config's are:
+    fields, plug-in params, normalize/pretrain, and where given that it is named `name` (as control listed
+    it). ValueError names the dotted field under `definition`. Imports the learner's registries (torch)."""
+    from pydantic import ValidationError
+
+    from cloud_learner.prepare import check_prepare
+
+    if len(text.encode()) > MAX_DEFINITION_BYTES:
+        raise ValueError(f"definition: over {MAX_DEFINITION_BYTES} bytes")
+    try:
+        exp = ExperimentConfig.model_validate_json(text)
+    except ValidationError as exc:
+        where = [".".join(["definition", *(str(p) for p in err["loc"])]) + f": {err['msg']}" for err in exc.errors()]
+        raise ValueError("; ".join(where)) from None
+    if name is not None and exp.name != name:
+        raise ValueError(f"definition.name {exp.name!r} is not the experiment's name {name!r}")
+    check_plugins([exp], where="definition")
+    check_prepare([exp], where="definition")
+    return exp

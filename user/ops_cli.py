@@ -6,6 +6,8 @@ userctl command pause|resume|reset [ROBOT]    send a command and print each edge
 userctl exp ls [--json]                       experiments: state, leased robots, episodes, success
 userctl exp start|stop NAME                   lease its robots again / release them (edges hold, learner pauses)
 userctl exp status NAME [--json]              one experiment: its robots, episodes, success, returns, version
+userctl exp define FILE                       a new experiment while the stack runs (one `experiments` entry,
+                                              YAML or JSON); it takes robots no earlier selector picks
 userctl edge discover [--sim KIND ...]        probe cameras and serial ports, print a ready edge config
 userctl edge install-service [--dry-run]      systemd unit for the edge daemon on this robot PC
 
@@ -18,9 +20,11 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 from typing import Any
 
 import grpc
+import yaml
 from google.protobuf.json_format import MessageToDict
 from rich.console import Console
 from rich.table import Table
@@ -44,9 +48,11 @@ def add_parsers(sub: Any) -> None:
     p.add_argument("robot", nargs="?", default="", help="robot id; omitted = every robot of every live agent")
     p.add_argument("--wait", type=float, default=5.0, help="seconds to wait for the edges' results")
     _common(p)
-    p = sub.add_parser("exp", help="experiments: ls | start NAME | stop NAME | status NAME")
-    p.add_argument("action", choices=["ls", "start", "stop", "status"])
-    p.add_argument("name", nargs="?", default="", help="experiment name (start, stop, status)")
+    p = sub.add_parser("exp", help="experiments: ls | start NAME | stop NAME | status NAME | define FILE")
+    p.add_argument("action", choices=["ls", "start", "stop", "status", "define"])
+    p.add_argument(
+        "name", nargs="?", default="", help="experiment name (start, stop, status); define: a YAML/JSON file"
+    )
     p.add_argument("--json", action="store_true", help="one JSON document instead of a table")
     _common(p)
 
@@ -114,7 +120,7 @@ def experiments_table(experiments: list[control_pb2.ExperimentInfo]) -> Table:
     for e in experiments:
         since = e.started_at_ns if e.state == control_pb2.EXPERIMENT_STATE_RUNNING else e.stopped_at_ns
         table.add_row(
-            e.name,
+            e.name + (" (defined)" if e.defined_at_runtime else ""),
             _state(e),
             str(len(e.leased_robots)),
             str(e.max_robots or "all"),
@@ -157,7 +163,15 @@ def _exp(args: argparse.Namespace, stub: control_pb2_grpc.ControlStub, out: Cons
     if not args.name:
         print(f"userctl exp {args.action}: name the experiment (userctl exp ls lists them)", file=sys.stderr)
         return 2
-    if args.action == "status":
+    if args.action == "define":
+        try:
+            definition = yaml.safe_load(Path(args.name).read_text())
+        except (OSError, yaml.YAMLError) as exc:
+            print(f"userctl exp define: cannot read {args.name}: {exc}", file=sys.stderr)
+            return 2
+        request = control_pb2.DefineExperimentRequest(definition_json=json.dumps(definition, default=str))
+        info = stub.DefineExperiment(request, timeout=args.timeout)
+    elif args.action == "status":
         info = stub.GetExperiment(control_pb2.GetExperimentRequest(name=args.name), timeout=args.timeout)
     elif args.action == "start":
         info = stub.StartExperiment(control_pb2.StartExperimentRequest(name=args.name), timeout=args.timeout)
@@ -168,7 +182,8 @@ def _exp(args: argparse.Namespace, stub: control_pb2_grpc.ControlStub, out: Cons
     elif args.action == "status":
         print(experiment_text(info))
     else:
-        print(f"experiment {info.name}: {_state(info)}; leased {', '.join(info.leased_robots) or '-'}")
+        defined = " (defined)" if args.action == "define" else ""
+        print(f"experiment {info.name}{defined}: {_state(info)}; leased {', '.join(info.leased_robots) or '-'}")
     return 0
 
 

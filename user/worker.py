@@ -117,7 +117,7 @@ class WorkerReporter:
             if time.monotonic() >= due:
                 return
             now = self.info()
-            if now is not None and list(now.preparing) != list(sent.preparing):
+            if now is not None and (now.preparing, now.experiments) != (sent.preparing, sent.experiments):
                 return
 
 
@@ -128,18 +128,21 @@ def report_worker(
     control_addr: str,
     auth: AuthConfig,
     device: str,
-    experiments: list[str],
+    experiments: Callable[[], list[str]],
     preparing: Callable[[], list[str]] | None = None,
 ) -> Iterator[WorkerReporter]:
     """Around `serve_until_signal(service, ...)`: report once the service is bound, until it stops.
-    `preparing()`: the learner's experiments without a policy yet (WorkerInfo.preparing), re-read each report."""
+    `experiments()`: those it serves (experiments defined at run time join); `preparing()`: the learner's
+    experiments without a policy yet (WorkerInfo.preparing). Both re-read for each report."""
 
     def info() -> control_pb2.WorkerInfo | None:
         running = getattr(service, "running", None)
         if running is None:
             return None
-        if not hasattr(info, "cached"):
-            info.cached = worker_info(kind, f"{socket.gethostname()}:{running.port}", device, experiments)
+        names = experiments()
+        if getattr(info, "names", None) != names:
+            info.cached = worker_info(kind, f"{socket.gethostname()}:{running.port}", device, names)
+            info.names = names
         if preparing is None:
             return info.cached
         out = control_pb2.WorkerInfo()

@@ -29,7 +29,7 @@ from services.control.state import ControlState
 from user import rpc
 from user.auth import Identity
 from user.config import ExperimentConfig, ReplayShard, StackConfig
-from user.experiments import experiment_for
+from user.experiments import experiment_for, parse_definition
 from user.log import kv
 from user.spec import ROBOT_ID_RE, SpecError, enum_name, validate_spec
 from user.v1 import control_pb2, control_pb2_grpc, robot_pb2
@@ -43,6 +43,7 @@ MAX_COMMAND_WAIT_S = 60.0
 WORKER_ID_RE = re.compile(r"[A-Za-z0-9_.@:\-]{1,128}")
 WORKER_KINDS = frozenset({"learner", "inference"})
 EXPERIMENT_NAME_RE = re.compile(r"[A-Za-z0-9_.\-]{1,64}")  # ExperimentConfig.name
+MAX_EXPERIMENTS = 256  # configured plus defined at run time (a worker reports at most 256 too)
 QUEUE_POLL_S = 0.25  # how often a Connect stream notices its client went away
 
 ROBOTS_ONLINE = prometheus_client.Gauge("user_control_robots_online", "Robots with a live lease")
@@ -224,6 +225,7 @@ class ExperimentRecord:
     running: bool
     started_at_ns: int
     stopped_at_ns: int = 0
+    defined_at_runtime: bool = False  # by DefineExperiment (persisted with its definition), not the config
 
 
 @dataclass
@@ -292,14 +294,41 @@ class Registry:
             self._workers = {w.worker_id: w for w in state.load_workers()}
 
     def _load_experiments(self, experiments: list[ExperimentConfig]) -> None:
-        """The config's experiments; a state file says which were stopped (a new one starts running)."""
+        """The config's experiments, then those defined at run time (in the order they were defined); a state
+        file says which were stopped (a new one starts running). A config entry wins over a definition of
+        the same name (the definition is skipped, with a warning)."""
         saved = self.state.load_experiments() if self.state is not None else {}
+        defined = []
+        for text in self.state.load_definitions() if self.state is not None else []:
+            exp = ExperimentConfig.model_validate_json(text)
+            if any(e.name == exp.name for e in experiments):
+                log.warning(
+                    "a defined experiment's name is now in the config: the config's is used",
+                    extra=kv(experiment=exp.name),
+                )
+                continue
+            defined.append(exp)
         now_ns = time.time_ns()
-        for exp in experiments:
+        for exp in [*experiments, *defined]:
             running, started, stopped = saved.get(exp.name, (True, now_ns, 0))
-            self._experiments[exp.name] = ExperimentRecord(exp, running, started, stopped)
+            self._experiments[exp.name] = ExperimentRecord(exp, running, started, stopped, exp in defined)
             if exp.name not in saved and self.state is not None:
                 self.state.save_experiment(exp.name, running, started, stopped)
+
+    def define_experiment(self, exp: ExperimentConfig) -> control_pb2.ExperimentInfo | None:
+        """Add a validated experiment after the others, running, persisted; None if the name is taken."""
+        with self._lock:
+            if exp.name in self._experiments:
+                return None
+            if self.state is not None:
+                self.state.save_definition(exp.name, exp.model_dump_json())
+            rec = ExperimentRecord(exp, True, time.time_ns(), defined_at_runtime=True)
+            self._experiments[exp.name] = rec
+            if self.state is not None:
+                self.state.save_experiment(exp.name, True, rec.started_at_ns, 0)
+            log.info("experiment defined", extra=kv(experiment=exp.name))
+            self._relay_leases_locked()
+            return self._experiment_info_locked(rec)
 
     def _save_locked(self, rec: RobotRecord) -> None:
         if self.state is not None:
@@ -620,6 +649,7 @@ class Registry:
             started_at_ns=exp.started_at_ns,
             stopped_at_ns=exp.stopped_at_ns,
             max_robots=exp.config.max_robots,
+            defined_at_runtime=exp.defined_at_runtime,
         )
         return_sum = 0.0
         for rid in sorted(rids):
@@ -1050,6 +1080,24 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
     ) -> control_pb2.ExperimentInfo:
         return self._set_running(request.name, False, context)
 
+    def DefineExperiment(
+        self, request: control_pb2.DefineExperimentRequest, context: grpc.ServicerContext
+    ) -> control_pb2.ExperimentInfo:
+        try:
+            exp = parse_definition(request.definition_json)
+        except ValueError as exc:  # PluginError and pydantic's field errors are ValueErrors
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(exc)[:2000])
+        except ImportError as exc:  # plug-in params are checked with the learner's registries (torch)
+            context.abort(grpc.StatusCode.FAILED_PRECONDITION, f"cannot check plug-in params on this host: {exc}")
+        if len(self.registry.experiment_names()) >= MAX_EXPERIMENTS:
+            context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, f"control holds {MAX_EXPERIMENTS} experiments already")
+        info = self.registry.define_experiment(exp)
+        if info is None:
+            context.abort(grpc.StatusCode.ALREADY_EXISTS, f"experiment {exp.name!r} exists (stop it or pick a name)")
+        who = rpc.caller(context)
+        log.info("experiment defined by request", extra=kv(experiment=exp.name, by=who.name if who is not None else ""))
+        return info
+
     def _set_running(self, name: str, running: bool, context: grpc.ServicerContext) -> control_pb2.ExperimentInfo:
         self._check_name(name, context)
         info = self.registry.set_running(name, running)
@@ -1074,7 +1122,7 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
         known = ", ".join(self.registry.experiment_names()) or "none"
         context.abort(
             grpc.StatusCode.NOT_FOUND,
-            f"unknown experiment {name!r} (known: {known}); experiments come from the stack config",
+            f"unknown experiment {name!r} (known: {known}); experiments come from the stack config or DefineExperiment",
         )
 
 

@@ -1,5 +1,6 @@
 """Control's durable state in one SQLite file: robots (spec, owner, last status), every finished episode
-(with the experiment it ran in), workers, experiments (running or stopped), each robot's last lease and
+(with the experiment it ran in), workers, experiments (running or stopped, and the definitions of those
+defined at run time), each robot's last lease and
 the command history. A restarted control knows every robot (offline until its edge reconnects), its
 episode history, the GPU pool, which experiments run and every command it sent with the results edges
 reported; a live edge registers again and gets its lease back (the last holder is preferred at max_robots).
@@ -31,6 +32,9 @@ CREATE TABLE IF NOT EXISTS experiments (
   name TEXT PRIMARY KEY, running INTEGER NOT NULL, started_at_ns INTEGER NOT NULL, stopped_at_ns INTEGER NOT NULL
 );
 CREATE TABLE IF NOT EXISTS leases (robot_id TEXT PRIMARY KEY, experiment TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS defined_experiments (
+  seq INTEGER PRIMARY KEY AUTOINCREMENT, name TEXT NOT NULL UNIQUE, definition TEXT NOT NULL
+);
 CREATE TABLE IF NOT EXISTS commands (command_id TEXT PRIMARY KEY, seq INTEGER NOT NULL, status BLOB NOT NULL);
 """
 # Columns added to `episodes` after the first release (older files get them with these defaults).
@@ -153,6 +157,19 @@ class ControlState:
                 self._db.execute(
                     "INSERT OR REPLACE INTO experiments VALUES (?, ?, ?, ?)",
                     (name, int(running), started_at_ns, stopped_at_ns),
+                )
+
+    def load_definitions(self) -> list[str]:
+        """Experiments defined at run time (DefineExperiment), as ExperimentConfig JSON, oldest first."""
+        with self._lock:
+            rows = self._db.execute("SELECT definition FROM defined_experiments ORDER BY seq").fetchall()
+        return [row[0] for row in rows]
+
+    def save_definition(self, name: str, definition_json: str) -> None:
+        with self._lock:
+            if not self._closed:
+                self._db.execute(
+                    "INSERT INTO defined_experiments (name, definition) VALUES (?, ?)", (name, definition_json)
                 )
 
     def load_leases(self) -> dict[str, str]:

@@ -17,7 +17,7 @@ import time
 from collections.abc import Mapping
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
-from typing import Literal
+from typing import Any, Literal
 
 import grpc
 import numpy as np
@@ -26,7 +26,7 @@ import torch
 
 from services.inference.batcher import ActResult, MicroBatcher, NoPolicyError
 from user import rpc, wire
-from user.config import ConfigError, StackConfig
+from user.config import ConfigError, ExperimentConfig, StackConfig
 from user.experiments import embodiment_inputs, fit_action
 from user.log import kv
 from user.policy import Policy, SteppedSampler, build_policy, check_device
@@ -41,6 +41,7 @@ SERVICE_NAME = inference_pb2.DESCRIPTOR.services_by_name["Inference"].full_name
 MAX_INSTRUCTION_CHARS = 1024  # a task in words, not a document
 MAX_ACT_BATCH = 256  # robots in one ActBatch: an edge process's robots, with room to spare
 MAX_ACT_WAIT_S = 10.0  # a caller without a deadline still gets an answer (or an error) in bounded time
+EXPERIMENTS_POLL_S = 2.0  # how often control is asked for experiments defined at run time
 
 REQUESTS = prometheus_client.Counter("user_inference_requests_total", "Act requests by status code", ["code"])
 _REQUESTS_OK = REQUESTS.labels("OK")  # looked up once: every answered Act counts here
@@ -168,11 +169,13 @@ class Router:
         self._lock = threading.Lock()
         self._refreshed = 0.0
         self._channel: grpc.Channel | None = None
+        self._refused: set[str] = set()  # defined experiments whose definition did not check here
 
     def route(self, robot_id: str) -> tuple[str, str]:
         """(experiment, robot kind); the kind is "" when one experiment of one embodiment needs no lookup."""
-        if len(self.experiments) == 1 and not self.experiments[0].shared_embodiment:
-            return self.experiments[0].name, ""
+        experiments = self.experiments
+        if len(experiments) == 1 and not experiments[0].shared_embodiment:
+            return experiments[0].name, ""
         with self._lock:
             route = self._routes.get(robot_id)
             refresh = route is None and time.monotonic() - self._refreshed >= self.REFRESH_S
@@ -190,14 +193,10 @@ class Router:
 
     def _refresh(self) -> None:
         from user.experiments import experiment_for
-        from user.v1 import control_pb2, control_pb2_grpc
+        from user.v1 import control_pb2
 
-        with self._lock:
-            if self._channel is None:
-                self._channel = rpc.make_channel(self.cfg.inference.control_addr, self.cfg.auth)
-            channel = self._channel
         try:
-            resp = control_pb2_grpc.ControlStub(channel).ListRobots(
+            resp = self._stub().ListRobots(
                 control_pb2.ListRobotsRequest(include_offline=True, without_episodes=True), timeout=2.0
             )
         except grpc.RpcError as err:
@@ -205,12 +204,51 @@ class Router:
                 grpc.StatusCode.UNAVAILABLE, f"control unreachable for routing: {err.code().name}"
             ) from None
         routes = {}
+        experiments = self.experiments
         for info in resp.robots:
-            exp = experiment_for(info.spec, self.experiments)
+            exp = experiment_for(info.spec, experiments)
             if exp is not None:
                 routes[info.spec.robot_id] = (exp.name, info.spec.kind)
         with self._lock:
             self._routes.update(routes)
+
+    def _stub(self) -> Any:
+        from user.v1 import control_pb2_grpc
+
+        with self._lock:
+            if self._channel is None:
+                self._channel = rpc.make_channel(self.cfg.inference.control_addr, self.cfg.auth)
+            return control_pb2_grpc.ControlStub(self._channel)
+
+    def defined_experiments(self) -> list[ExperimentConfig]:
+        """Experiments defined at run time (Control.DefineExperiment) that this router does not know yet, in
+        control's order; [] when control cannot say. One whose definition does not check is logged, skipped."""
+        from user.experiments import parse_definition
+        from user.v1 import control_pb2
+
+        try:
+            resp = self._stub().ListExperiments(control_pb2.ListExperimentsRequest(), timeout=2.0)
+        except grpc.RpcError as err:
+            log.debug("ListExperiments failed", extra=kv(code=err.code().name))
+            return []
+        known = {e.name for e in self.experiments}
+        new = []
+        for info in resp.experiments:
+            if not info.defined_at_runtime or info.name in known or info.name in self._refused:
+                continue
+            try:
+                exp = parse_definition(info.definition_json, info.name)
+            except ValueError as exc:
+                self._refused.add(info.name)
+                log.error("a defined experiment cannot be served", extra=kv(experiment=info.name, error=str(exc)))
+                continue
+            new.append(exp)
+        return new
+
+    def add(self, exp: ExperimentConfig) -> None:
+        """Route to `exp` too (after the others: the first matching selector wins, as everywhere)."""
+        with self._lock:
+            self.experiments = [*self.experiments, exp]  # replaced, not mutated: route() reads it unlocked
 
     def close(self) -> None:
         if self._channel is not None:
@@ -372,7 +410,10 @@ class InferenceService(rpc.GrpcService):
             raise ValueError(f"policy_source must be 'learner' or 'manual', got {policy_source!r}")
         self.start_metrics = start_metrics
         self.router = Router(cfg)
+        # Replaced whole when an experiment defined at run time joins (RPC threads read it without a lock).
         self.slots = {e.name: PolicySlot(self, e.name) for e in self.router.experiments}
+        self._watch_stop = threading.Event()
+        self._watcher: threading.Thread | None = None
         self._first = next(iter(self.slots.values()))
         self.running: rpc.RunningServer | None = None
         try:
@@ -411,20 +452,46 @@ class InferenceService(rpc.GrpcService):
             self.cfg.auth,
             start_metrics=self.start_metrics,
         )
-        if self.policy_source == "learner":
-            for name, slot in self.slots.items():
-                slot.subscriber = WeightSubscriber(
-                    self.cfg.inference.learner_addr,
-                    self.cfg.auth,
-                    client_id=f"inference-{socket.gethostname()}-{self.running.port}-{name}",
-                    on_weights=slot.load_weights,
-                    experiment=name,
-                    allow_lossy=self.cfg.inference.weights_lossy,
-                    shm_dir=self.cfg.inference.weights_shm_dir or None,
-                ).start()
+        for slot in self.slots.values():
+            self._subscribe(slot)
+        self._watcher = threading.Thread(target=self._watch_experiments, name="inference-experiments", daemon=True)
+        self._watcher.start()
         return self
 
+    def _subscribe(self, slot: PolicySlot) -> None:
+        if self.policy_source != "learner" or self.running is None:
+            return
+        slot.subscriber = WeightSubscriber(
+            self.cfg.inference.learner_addr,
+            self.cfg.auth,
+            client_id=f"inference-{socket.gethostname()}-{self.running.port}-{slot.experiment}",
+            on_weights=slot.load_weights,
+            experiment=slot.experiment,
+            allow_lossy=self.cfg.inference.weights_lossy,
+            shm_dir=self.cfg.inference.weights_shm_dir or None,
+        ).start()
+
+    def add_experiment(self, exp: ExperimentConfig) -> PolicySlot:
+        """Serve an experiment defined at run time: its own batcher and weight stream, then its robots' routes."""
+        slot = PolicySlot(self, exp.name)
+        slot.batcher.start()
+        self._subscribe(slot)
+        self.slots = {**self.slots, exp.name: slot}
+        self.router.add(exp)
+        log.info("serving an experiment defined at run time", extra=kv(experiment=exp.name))
+        return slot
+
+    def _watch_experiments(self) -> None:
+        """Every EXPERIMENTS_POLL_S, ask control for experiments defined at run time and serve the new ones."""
+        while not self._watch_stop.wait(EXPERIMENTS_POLL_S):
+            for exp in self.router.defined_experiments():
+                if exp.name not in self.slots and not self._watch_stop.is_set():
+                    self.add_experiment(exp)
+
     def stop(self) -> None:
+        self._watch_stop.set()
+        if self._watcher is not None:
+            self._watcher.join(5.0)
         # Calls in flight finish (the batcher still runs during the server's grace), then the workers go.
         if self.running is not None:
             self.running.stop()
@@ -452,4 +519,4 @@ def report_to_control(service: InferenceService) -> contextlib.AbstractContextMa
     """The worker report run() keeps sending: device and the experiments this process serves a policy for
     (one slot each, the names `userctl exp status` and ListWorkers show)."""
     cfg, ic = service.cfg, service.cfg.inference
-    return report_worker(service, "inference", ic.control_addr, cfg.auth, ic.device, list(service.slots))
+    return report_worker(service, "inference", ic.control_addr, cfg.auth, ic.device, lambda: list(service.slots))
