@@ -373,6 +373,7 @@ class ExperimentRun:
         self._last_ckpt_updates = -1
         self._lock = threading.Lock()  # robot set changes vs. sampling
         self._tables_warned = False
+        self._misfits: dict[str, bytes] = {}  # robot_id -> the spec that did not fit (logged once)
         self.stopped = threading.Event()  # control stopped the experiment: no sampling, no updates
         self.pretrain_updates = 0  # updates done on experiments[].pretrain.table (checkpointed)
         self.normalization: dict[str, Any] | None = None  # state_mean/state_std the algorithm was built with
@@ -613,10 +614,13 @@ class ExperimentRun:
         except LayoutError:
             fits = False
         if not fits:
-            log.error(
-                "robot does not fit the experiment's layout; not trained",
-                extra=kv(experiment=self.exp.name, robot_id=spec.robot_id, kind=spec.kind),
-            )
+            seen = spec.SerializeToString(deterministic=True)
+            if self._misfits.get(spec.robot_id) != seen:  # once per robot and spec, not at every poll
+                self._misfits[spec.robot_id] = seen
+                log.error(
+                    "robot does not fit the experiment's layout; not trained",
+                    extra=kv(experiment=self.exp.name, robot_id=spec.robot_id, kind=spec.kind),
+                )
             return
         with self._lock:
             self.specs[spec.robot_id] = spec

@@ -414,3 +414,27 @@ def test_batcher_workers_run_forwards_side_by_side(policy) -> None:
         batcher.stop()
     with pytest.raises(ValueError, match="workers"):
         MicroBatcher(max_batch=1, max_wait_ms=1.0, workers=0)
+
+
+def test_a_state_of_the_wrong_size_is_invalid_argument_for_its_robot_only(service: InferenceService) -> None:
+    """The learner's "mlp" policy declares its state sizes: a robot sending 14 values where the policy reads 15
+    gets INVALID_ARGUMENT before batching, and the robots batched beside it are answered."""
+    from user.policies.mlp import MlpPolicy, policy_spec
+    from user.policy import module_tensors
+    from user.weights import WeightSet
+
+    config = {"state_keys": ["state"], "state_dims": [15], "hidden": [16], "action_low": [-1.0], "action_high": [1.0]}
+    actor = MlpPolicy.build_actor(config)
+    service.load_weights(WeightSet(version=3, policy=policy_spec("mlp", config), tensors=module_tensors(actor)))
+    stub = inference_pb2_grpc.InferenceStub(make_channel(service.address, AUTH))
+    good = np.zeros(15, np.float32)
+    for bad in (np.zeros(14, np.float32), np.zeros(16, np.float64)):
+        with pytest.raises(grpc.RpcError) as err:
+            stub.Act(act_request(0, state=bad), timeout=10)
+        assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT and "reads 15" in err.value.details()
+    batch = inference_pb2.ActBatchRequest(
+        requests=[act_request(0, f"arm-{i}", state=s) for i, s in enumerate([good, np.zeros(14, np.float32), good])]
+    )
+    results = stub.ActBatch(batch, timeout=10).results
+    assert [r.code for r in results] == [0, grpc.StatusCode.INVALID_ARGUMENT.value[0], 0]
+    assert stub.Act(act_request(0, state=good), timeout=10).policy_version == 3

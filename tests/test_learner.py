@@ -3,6 +3,7 @@ algorithms built from config, and a real in-process stack (control, replay, edge
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import grpc
@@ -18,7 +19,7 @@ from tests import helpers
 from user.config import ConfigError, ServerConfig, StackConfig
 from user.policy import build_policy
 from user.rpc import make_channel
-from user.v1 import learner_pb2, learner_pb2_grpc, replay_pb2
+from user.v1 import learner_pb2, learner_pb2_grpc, replay_pb2, robot_pb2
 from user.weights import WeightAssembler, iter_weight_messages
 from user.wire import WireError, to_tensor
 
@@ -307,3 +308,30 @@ def test_refused_samples_are_errors_but_an_empty_buffer_is_not(tmp_path: Path) -
     assert run.sample_once(layout) is None and run.state.sample_errors == 1
     broken = _RefusingReplay(grpc.StatusCode.INVALID_ARGUMENT, "batch_size must be in 1..4096")
     assert run.sample_once(broken) is None and run.state.sample_errors == 2
+
+
+def test_a_robot_that_does_not_fit_is_not_trained_and_logged_once(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The learner polls control about twice a second: a robot whose spec does not fit the layout is refused
+    each time, but logged once per spec (a new spec is logged again)."""
+    import tests.plugins  # noqa: F401
+    from cloud_learner.learner import ExperimentRun, Learner
+    from tests.test_experiments import ARM
+    from user.weights import WeightStore
+
+    cfg = service_cfg(tmp_path, experiments=[{"name": "a", "algorithm": {"kind": "test_mean"}}])
+    run = ExperimentRun(Learner(cfg, WeightStore()), 0, cfg.experiments[0], [ARM])
+    odd = robot_pb2.RobotSpec()
+    odd.CopyFrom(ARM)
+    odd.robot_id = "odd-0"
+    odd.observation[0].shape[:] = [odd.observation[0].shape[0] + 1]
+    with caplog.at_level(logging.ERROR, logger="cloud_learner.learner"):
+        for _ in range(5):
+            run.add_robot(odd)
+        odd.observation[0].shape[:] = [odd.observation[0].shape[0] + 1]
+        run.add_robot(odd)
+    assert "odd-0" not in run.specs
+    assert [r.getMessage() for r in caplog.records].count(
+        "robot does not fit the experiment's layout; not trained"
+    ) == 2

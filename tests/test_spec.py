@@ -33,6 +33,11 @@ def test_validate_spec_names_the_field() -> None:
         contract.validate_spec(bad)
     with pytest.raises(contract.SpecError, match="robot_id"):
         contract.validate_spec(robot_pb2.RobotSpec(robot_id="a/b"))
+    for shape in ([1 << 40], [1] * 9, [16384, 16384, 3]):  # never sendable: too many bytes or dims
+        bad = arm()
+        bad.observation.add(name="huge", dtype=tpb.DTYPE_UINT8, shape=shape)
+        with pytest.raises(contract.SpecError, match=r"'huge'.*could never be sent"):
+            contract.validate_spec(bad)
 
 
 def test_actions_are_clipped_and_non_finite_becomes_hold() -> None:

@@ -126,10 +126,19 @@ class Policy(ABC):
         """(H, W, C) of each camera feature the policy reads as uint8; None = any size there (it resizes)."""
         return {}
 
+    @property
+    def state_sizes(self) -> Mapping[str, int]:
+        """Values in each float state feature the policy reads (one observation, flattened); {} = not declared."""
+        return {}
+
     def check_observation(self, observation: Mapping[str, np.ndarray]) -> None:
         """ValueError unless one unbatched observation fits the forward. Inference runs it per request before
-        batching, so a robot sending a frame of the wrong shape gets INVALID_ARGUMENT instead of failing the
-        forward of every robot batched with it."""
+        batching, so a robot sending a frame or a state of the wrong shape gets INVALID_ARGUMENT instead of
+        failing the forward of every robot batched with it."""
+        for key, size in self.state_sizes.items():
+            arr = observation.get(key)
+            if arr is not None and arr.size != size:
+                raise ValueError(f"observation {key!r} has {arr.size} values, the policy reads {size}")
         for key, want in self.image_shapes.items():
             arr = observation.get(key)
             if arr is None:

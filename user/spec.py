@@ -28,6 +28,7 @@ ACTION_ATOL = 1e-4
 ACTION_RTOL = 1e-6
 MAX_EPISODE_ID_BYTES = 256  # keys stay well under LMDB's 511-byte limit
 MAX_ROBOT_ID_BYTES = 128
+MAX_FEATURE_RANK = 8  # (H, W, C) images, (T, ...) stacks: far more than any sensor needs
 # Indices and versions travel as uint64 but are stored and sampled as int64 (and key+1 must not wrap).
 MAX_INT64 = (1 << 63) - 1
 
@@ -95,9 +96,14 @@ def validate_features(where: str, features: Sequence[robot_pb2.FeatureSpec]) -> 
                 f"{where}: observation {feat.name!r} needs a non-empty shape with positive dims, got {list(feat.shape)}"
             )
         try:
-            wire.dtype_from_proto(feat.dtype)
+            itemsize = np.dtype(wire.dtype_from_proto(feat.dtype)).itemsize
         except wire.WireError as exc:
             raise SpecError(f"{where}: observation {feat.name!r}: {exc}") from None
+        if len(feat.shape) > MAX_FEATURE_RANK or math.prod(feat.shape) * itemsize > wire.MAX_TENSOR_BYTES:
+            raise SpecError(
+                f"{where}: observation {feat.name!r} of shape {list(feat.shape)} could never be sent "
+                f"(at most {MAX_FEATURE_RANK} dims and {wire.MAX_TENSOR_BYTES} bytes a tensor)"
+            )
 
 
 # --------------------------------------------------------------------------- layout

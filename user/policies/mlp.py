@@ -171,6 +171,10 @@ class ActorPolicy(Policy):
         return 1
 
     @property
+    def state_sizes(self) -> dict[str, int]:
+        return {key: int(dim) for key, dim in zip(self.config["state_keys"], self.config["state_dims"], strict=True)}
+
+    @property
     def image_shapes(self) -> dict[str, tuple[int | None, ...]]:
         pairs = zip(self.config.get("image_keys", []), self.config.get("image_shapes", []), strict=True)
         return {key: tuple(int(d) for d in shape) for key, shape in pairs}

@@ -71,6 +71,14 @@ class PaddedPolicy(Policy):
     def image_shapes(self) -> Mapping[str, tuple[int | None, ...]]:
         return self.inner.image_shapes
 
+    def check_observation(self, observation: Mapping[str, np.ndarray]) -> None:
+        """Images as the inner policy reads them; a state may be narrower than its padded width, never wider."""
+        super().check_observation(observation)
+        for key, width in self.widths.items():
+            arr = observation.get(key)
+            if arr is not None and arr.size > width:
+                raise ValueError(f"observation {key!r} has {arr.size} values, the policy pads to {width}")
+
     def act(self, observation: Mapping[str, np.ndarray], deterministic: bool = False) -> np.ndarray:
         ids = np.asarray(observation[EMBODIMENT_KEY]).astype(np.int64).reshape(-1)
         batch = ids.size
