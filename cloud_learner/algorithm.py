@@ -11,13 +11,24 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 import torch
+from pydantic import Field, StringConstraints
 
 from user.registry import PluginParams, Registry
 from user.v1 import learner_pb2
+
+# Replay tables an algorithm samples and each one's share of a batch: at least one, every share > 0 (finite),
+# names as replay takes them. Checked with the rest of the params at start, naming the table.
+TableShares = Annotated[
+    dict[
+        Annotated[str, StringConstraints(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")],
+        Annotated[float, Field(gt=0, allow_inf_nan=False)],
+    ],
+    Field(min_length=1),
+]
 
 
 @dataclass(frozen=True)

@@ -35,8 +35,9 @@ from edge_agent.spool import open_outbox
 from edge_agent.task import TASKS, Outcome, Task
 from edge_agent.teleop import TELEOPERATORS, Teleoperator
 from user import rpc, wire
-from user.config import RobotConfig, StackConfig
+from user.config import ConfigError, RobotConfig, StackConfig
 from user.log import kv
+from user.registry import PluginError
 from user.v1 import control_pb2, robot_pb2, step_pb2
 
 log = logging.getLogger(__name__)
@@ -957,7 +958,10 @@ def run(cfg: StackConfig, ready_file: str | None) -> int:
         import torch
 
         torch.set_num_threads(1)  # one small forward per tick: extra threads only contend with the loop
-    agent = EdgeAgent(cfg)
+    try:
+        agent = EdgeAgent(cfg)
+    except PluginError as exc:  # a robot, task or teleoperator entry of the config: one line, exit 2
+        raise ConfigError(str(exc)) from None
     httpd, metrics_port = rpc.start_metrics_http(cfg.edge.metrics_host, cfg.edge.metrics_port)
     try:
         agent.start()

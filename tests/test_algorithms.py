@@ -242,10 +242,20 @@ def test_params_are_validated_by_name() -> None:
         ALGORITHMS.params("sac", {"batch_sise": 3}, where="algorithm.params")
     with pytest.raises(PluginError, match="loss"):
         ALGORITHMS.params("bc", {"loss": "l1"})
-    with pytest.raises(ValueError, match="target_subset"):
-        _algorithm("sac", False, num_critics=2, target_subset=3)
-    with pytest.raises(ValueError, match="share > 0"):
-        _algorithm("rlpd", False, tables={"online": 1.0, "demos": 0.0})
+    with pytest.raises(PluginError, match=r"algorithm\.params: .*target_subset 3 exceeds num_critics 2"):
+        ALGORITHMS.params("sac", {"num_critics": 2, "target_subset": 3}, where="algorithm.params")
+    # Table shares are checked with the params at start (they used to fail the learner when it built the algorithm).
+    bad_tables = [
+        ({"online": 1.0, "demos": 0.0}, r"tables\.demos: Input should be greater than 0"),
+        ({"online": -1}, r"tables\.online: Input should be greater than 0"),
+        ({}, r"tables: .*at least 1 item"),
+        ({"a/b": 1.0}, r"tables\.a/b\.\[key\]: String should match pattern"),
+        ({"online": float("inf")}, r"tables\.online: Input should be a finite number"),
+    ]
+    for kind in ("sac", "rlpd", "bc", "flow_bc"):
+        for tables, message in bad_tables:
+            with pytest.raises(PluginError, match=r"algorithm\.params\." + message):
+                ALGORITHMS.params(kind, {"tables": tables}, where="algorithm.params")
     with pytest.raises(ValueError, match="not in the observation"):
         _algorithm("sac", False, features=["camera.back"])
 

@@ -271,6 +271,16 @@ def test_bad_plugin_config_fails_at_start_naming_the_field(entry: RobotConfig, f
     assert str(err.value).startswith(field), str(err.value)
 
 
+def test_userctl_edge_says_a_bad_plugin_entry_in_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    """`userctl edge` with a bad robot entry: one line naming the field and exit code 2, no traceback."""
+    from user import cli
+
+    assert cli.main(["edge", "--set", "edge.robots=[{id: a, kind: toy_slidr}]", "--set", "auth.token=t"]) == 2
+    err = capsys.readouterr().err
+    assert "userctl edge: edge.robots[0].kind: unknown robot kind 'toy_slidr'" in err
+    assert "Traceback" not in err
+
+
 def test_plugins_are_discovered_without_an_import_list() -> None:
     assert {"sim_reach_arm", "gym_hil_panda", "so101", "lerobot", "toy_slider"} <= set(known_robot_kinds())
     assert {"reach", "env", "human_label", "toy_goal"} <= set(TASKS.kinds())

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from pydantic import Field
 
-from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
+from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout, TableShares
 from cloud_learner.algorithms.sac import EncoderParams, augment, make_encoder, publish, trainable
 from user.policies.mlp import GaussianActor, log_prob_of
 from user.v1 import learner_pb2
@@ -28,7 +28,7 @@ class BCParams(EncoderParams):
     lr: float = Field(default=1e-3, gt=0)
     loss: Literal["mse", "nll"] = Field(default="mse", description="mse on the mean action, or Gaussian NLL")
     only_interventions: bool = Field(default=False, description="learn only from rows a human chose")
-    tables: dict[str, float] = Field(
+    tables: TableShares = Field(
         default={"demos": 0.5, "interventions": 0.5}, description="replay table -> share of each batch"
     )
 

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from pydantic import Field
 
-from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
+from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout, TableShares
 from user.policies.flow_vla import ActionScaler, FlowVla, FlowVlaConfig, Preprocessor, policy_spec
 from user.policy import module_tensors
 from user.registry import PluginParams
@@ -34,7 +34,7 @@ class FlowBcParams(PluginParams):
     batch_size: int = Field(64, ge=1, description="rows per update")
     lr: float = Field(3e-4, gt=0, description="Adam learning rate")
     horizon: int = Field(1, ge=1, le=256, description="actions per chunk; > 1 asks replay for action chunks")
-    tables: dict[str, float] = Field(
+    tables: TableShares = Field(
         default_factory=lambda: {"demos": 0.5, "interventions": 0.5}, description="replay tables and their shares"
     )
     human_only: bool = Field(True, description="skip rows the policy chose (intervention false) from mixed tables")

@@ -28,7 +28,7 @@ from typing import Literal
 import torch
 from pydantic import Field
 
-from cloud_learner.algorithm import ALGORITHMS, Batch
+from cloud_learner.algorithm import ALGORITHMS, Batch, TableShares
 from cloud_learner.algorithms.sac import SAC, SACParams, augment, bc_mse, split
 
 
@@ -45,7 +45,7 @@ class RLPDParams(SACParams):
     critic_layer_norm: bool = Field(default=True, description="LayerNorm after each critic hidden layer")
     actor_q: Literal["min", "mean"] = Field(default="mean", description="the actor maximizes the ensemble mean")
     utd: int = Field(default=10, ge=1, description="critic steps per actor step (the paper uses 20)")
-    tables: dict[str, float] = Field(
+    tables: TableShares = Field(
         default={"online": 0.5, "demos": 0.5}, description="50/50 online and offline (demos or interventions)"
     )
     actor_pretrain_updates: int = Field(

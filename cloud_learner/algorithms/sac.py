@@ -31,7 +31,7 @@ import torch
 from pydantic import Field, field_validator, model_validator
 from torch import nn
 
-from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
+from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout, TableShares
 from user.policies.cnn import KIND as CNN_KIND
 from user.policies.cnn import ConvEncoder, random_shift
 from user.policies.mlp import KIND as MLP_KIND
@@ -102,7 +102,7 @@ class SACParams(EncoderParams):
     critic_layer_norm: bool = Field(default=False, description="LayerNorm after each critic hidden layer")
     actor_q: Literal["min", "mean"] = Field(default="min", description="how the actor aggregates the ensemble")
     utd: int = Field(default=1, ge=1, description="critic steps per actor step (update-to-data ratio)")
-    tables: dict[str, float] = Field(default={"online": 1.0}, description="replay table -> share of each batch")
+    tables: TableShares = Field(default={"online": 1.0}, description="replay table -> share of each batch")
     n_step: int = Field(default=1, ge=1, description="n-step returns, summed by the replay service")
     backup_entropy: bool = Field(
         default=True,
@@ -120,6 +120,12 @@ class SACParams(EncoderParams):
         description="the BC term also trains the shared encoder (added to each critic step's loss on its features); "
         "off: critic gradients only",
     )
+
+    @model_validator(mode="after")
+    def _subset_fits(self) -> SACParams:
+        if self.target_subset > self.num_critics:
+            raise ValueError(f"target_subset {self.target_subset} exceeds num_critics {self.num_critics}")
+        return self
 
 
 # --- networks -----------------------------------------------------------------------------------
@@ -279,10 +285,6 @@ class SAC(Algorithm):
     def __init__(self, params: SACParams, layout: Layout, device: torch.device) -> None:
         super().__init__(params, layout, torch.device(device))
         p = self.p = params
-        if p.target_subset > p.num_critics:
-            raise ValueError(f"target_subset {p.target_subset} exceeds num_critics {p.num_critics}")
-        if not p.tables or any(share <= 0 for share in p.tables.values()):
-            raise ValueError(f"tables must name at least one table, each with a share > 0: {p.tables}")
         self.low = np.asarray(layout.action_low, np.float32).reshape(-1)
         self.high = np.asarray(layout.action_high, np.float32).reshape(-1)
         action_dim = self.low.size
