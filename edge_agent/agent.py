@@ -500,10 +500,15 @@ class RobotLoop:
         return status
 
     def _rate_locked(self) -> float:
+        """Env steps per second over the last RATE_WINDOW_S up to now, so a paused robot falls to 0 (samples
+        are only taken when steps happen)."""
+        now = time.monotonic()
+        while self._rate_samples and now - self._rate_samples[0][0] > RATE_WINDOW_S:
+            self._rate_samples.popleft()
         if len(self._rate_samples) < 2:
             return 0.0
-        (t0, n0), (t1, n1) = self._rate_samples[0], self._rate_samples[-1]
-        return (n1 - n0) / (t1 - t0) if t1 > t0 else 0.0
+        t0, n0 = self._rate_samples[0]
+        return (self.env_steps - n0) / (now - t0)
 
     def _state_locked(self) -> int:
         if self._paused.is_set() or self._lease_hold.is_set() or not self._sink_accepting():

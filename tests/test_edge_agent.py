@@ -215,6 +215,28 @@ def test_loop_holds_when_the_policy_never_answers() -> None:
     robot.close()
 
 
+def test_a_paused_robots_step_rate_falls_to_zero(monkeypatch: pytest.MonkeyPatch) -> None:
+    """steps/s is measured up to now: a paused robot reports 0 once its window has passed, not its last rate."""
+    from edge_agent import agent as agent_module
+
+    monkeypatch.setattr(agent_module, "RATE_WINDOW_S", 0.5)
+    robot = make_robot("sim_reach_arm", "arm-0", {"control_rate_hz": 50, "max_episode_steps": 1000}, seed=1)
+    policy = RemotePolicy(f"127.0.0.1:{free_port()}", AUTH)  # nothing listens there: the arm holds, ticking
+    loop = RobotLoop(robot, policy, ListSink(), mode="realtime", action_deadline_s=0.005)
+    loop.start()
+    try:
+        wait_for(lambda: loop.status().env_steps_per_s > 10, "a running rate")
+        loop.pause()
+        wait_for(lambda: loop.status().state == control_pb2.ROBOT_STATE_PAUSED, "paused")
+        paused_at = loop.status().env_steps
+        wait_for(lambda: loop.status().env_steps_per_s == 0.0, "the rate to fall to 0 while paused")
+        assert loop.status().env_steps <= paused_at + 1
+    finally:
+        loop.stop()
+        policy.close()
+        robot.close()
+
+
 def test_robots_asking_together_share_one_act_batch_call(inference: InferenceService) -> None:
     """RemotePolicy for 3 robots: once each has asked, a round of all three is one ActBatch call, and
     every robot gets the action the policy gives its own observation."""
