@@ -11,7 +11,10 @@ import pytest
 from services.replay.lerobot_io import export_dataset
 from services.replay.store import ReplayStore
 from services.replay.tables import Draw
+from user import wire
 from user.cli import main
+from user.v1 import robot_pb2, step_pb2
+from user.v1 import tensor_pb2 as tpb
 
 pytest.importorskip("lerobot.datasets.lerobot_dataset")
 
@@ -109,3 +112,152 @@ def test_lerobot_round_trip(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     with pytest.raises(ValueError, match="no episodes"):
         export_dataset(buffer, tmp_path / "none", "local/none", table="online")
     assert main(["replay", "ls", "--path", str(tmp_path / "nowhere")]) == 2
+
+
+# --------------------------------------------------------------------------- export's checks, from the CLI
+
+
+def robot_spec(robot_id: str, kind: str, state: int, action: int) -> robot_pb2.RobotSpec:
+    return robot_pb2.RobotSpec(
+        robot_id=robot_id,
+        kind=kind,
+        action=robot_pb2.ActionSpace(shape=[action], low=[-1] * action, high=[1] * action, dtype=tpb.DTYPE_FLOAT32),
+        observation=[robot_pb2.FeatureSpec(name="state", dtype=tpb.DTYPE_FLOAT32, shape=[state])],
+        control_rate_hz=20,
+        max_episode_steps=50,
+    )
+
+
+def put_episodes(
+    store: ReplayStore, spec: robot_pb2.RobotSpec, lengths: tuple[int, ...], odd_state_at: int = -1
+) -> None:
+    """Episodes e0, e1, ... of the spec's robot; step odd_state_at of each has one state value too many."""
+    state, action = spec.observation[0].shape[0], spec.action.shape[0]
+    for e, length in enumerate(lengths):
+        steps = [
+            step_pb2.Step(
+                robot_id=spec.robot_id,
+                episode_id=f"{spec.robot_id}-e{e}",
+                step_index=t,
+                observation=wire.to_tensor_map({"state": np.full(state + (t == odd_state_at), t, np.float32)}),
+                action=wire.to_tensor(np.zeros(action, np.float32)),
+                terminated=t == length - 1,
+            )
+            for t in range(length)
+        ]
+        steps[-1].final_observation.CopyFrom(steps[-1].observation)
+        store.put_steps(steps, [spec])
+
+
+ARM = robot_spec("arm-0", "toy_arm", state=4, action=3)
+PANDA = robot_spec("panda-0", "toy_panda", state=5, action=7)
+
+
+@pytest.fixture
+def two_robots(tmp_path: Path) -> Path:
+    """A buffer with two embodiments: arm-0 (episodes of 2, 3 and 4 steps) then panda-0 (2 steps)."""
+    path = tmp_path / "replay"
+    store = ReplayStore(path, 64)
+    try:
+        put_episodes(store, ARM, (2, 3, 4))
+        put_episodes(store, PANDA, (2,))
+    finally:
+        store.close()
+    return path
+
+
+def export_args(buffer: Path, out: Path, *more: str) -> list[str]:
+    return ["replay", "export", str(out), "--repo-id", "local/out", "--path", str(buffer), *more]
+
+
+def test_export_of_two_shapes_is_refused_before_out_exists(
+    two_robots: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    out = tmp_path / "out"
+    assert main(export_args(two_robots, out)) == 2
+    err = capsys.readouterr().err
+    assert "--robot" in err and not out.exists()
+    assert "arm-0 (toy_arm): action (3,)" in err and "observation.state (4,)" in err
+    assert "panda-0 (toy_panda): action (7,)" in err and "observation.state (5,)" in err
+    assert main(export_args(two_robots, out, "--robot", "panda-0")) == 0
+    assert "1 episodes, 2 frames" in capsys.readouterr().out
+    assert LeRobotDataset("local/out", root=out).fps == 20  # --fps not given: the robot's control rate
+
+
+def test_failed_export_removes_only_the_out_it_created(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    buffer, out = tmp_path / "replay", tmp_path / "out"
+    store = ReplayStore(buffer, 64)
+    try:
+        put_episodes(store, ARM, (3, 3), odd_state_at=2)  # lerobot refuses the third frame of the first episode
+    finally:
+        store.close()
+    assert main(export_args(buffer, out)) == 2
+    assert "shape" in capsys.readouterr().err and not out.exists()
+    out.mkdir()
+    (out / "keep.txt").write_text("not the exporter's")
+    assert main(export_args(buffer, out)) == 2
+    assert "already exists" in capsys.readouterr().err and (out / "keep.txt").exists()
+
+
+@pytest.mark.parametrize("fps", ["0", "-5"])
+def test_export_refuses_a_non_positive_fps_before_out_exists(
+    two_robots: Path, tmp_path: Path, fps: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as exited:
+        main(export_args(two_robots, out, "--robot", "arm-0", "--fps", fps))
+    assert exited.value.code == 2 and "--fps" in capsys.readouterr().err and not out.exists()
+    with pytest.raises(ValueError, match="fps must be positive"):
+        export_dataset(two_robots, out, "local/out", robot_id="arm-0", fps=int(fps))
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("episodes", "expected"), [("1", "1 episodes, 3 frames"), ("1:", "2 episodes, 7 frames"), (":2", "2 episodes, 5")]
+)
+def test_export_episodes_n_is_just_episode_n(
+    two_robots: Path, tmp_path: Path, episodes: str, expected: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(export_args(two_robots, tmp_path / "out", "--robot", "arm-0", "--episodes", episodes)) == 0
+    assert expected in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("episodes", ["a:b", "x", "3:1", "-1"])
+def test_export_bad_episodes_names_the_option(
+    two_robots: Path, tmp_path: Path, episodes: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exited:
+        main(export_args(two_robots, tmp_path / "out", f"--episodes={episodes}"))
+    err = capsys.readouterr().err
+    assert exited.value.code == 2 and "--episodes" in err and "invalid literal" not in err
+
+
+def test_replay_help_lists_the_buffer_tools(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exited:
+        main(["replay", "--help"])
+    out = capsys.readouterr().out
+    assert exited.value.code == 0 and "--ready-file" in out
+    for usage in ("userctl replay ls [--json]", "userctl replay export --repo-id", "userctl replay import --repo-id"):
+        assert usage in out
+    assert "--episodes A:B|N" in out and "--robot ROBOT" in out and "--path" in out
+
+
+def test_replay_tools_find_the_buffer_where_up_puts_it(
+    two_robots: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    runs = tmp_path / "runs"
+    (runs / "trial").mkdir(parents=True)
+    two_robots.rename(runs / "trial" / "replay")  # where `userctl up` with this config writes it
+    config = tmp_path / "stack.yaml"
+    config.write_text(f"up:\n  name: trial\n  runs_dir: {runs}\n")
+    assert main(["replay", "ls", "-c", str(config), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["path"] == str(runs / "trial" / "replay")
+
+    elsewhere = tmp_path / "elsewhere"
+    assert main(["replay", "ls", "-c", str(config), "--json", "--set", f"replay.path={elsewhere}"]) == 2
+    hint = f"no replay buffer at {elsewhere} (`userctl up` with this config keeps it in {runs / 'trial' / 'replay'}"
+    assert hint in capsys.readouterr().err
+    assert main(["replay", "ls", "-c", str(config), "--path", str(elsewhere)]) == 2  # --path wins
+    assert f"no replay buffer at {elsewhere}\n" in capsys.readouterr().err

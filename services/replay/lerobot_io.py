@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import re
+import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -106,6 +107,54 @@ def _features(step: step_pb2.Step) -> dict[str, dict[str, Any]]:
     return features
 
 
+def _shapes_text(features: dict[str, dict[str, Any]]) -> str:
+    """What must match across episodes of one dataset: every feature's shape and dtype."""
+    return ", ".join(f"{name} {tuple(f['shape'])} {f['dtype']}" for name, f in sorted(features.items()))
+
+
+def _check_one_embodiment(store: ReplayStore, prefixes: list[bytes]) -> step_pb2.Step:
+    """The first step of the selection; ValueError when its episodes need datasets of different features."""
+    robots_by_shapes: dict[str, set[str]] = {}
+    for prefix in prefixes:
+        step = next(_steps_of(store, prefix))
+        robots_by_shapes.setdefault(_shapes_text(_features(step)), set()).add(step.robot_id)
+    if len(robots_by_shapes) > 1:
+        lines = [f"  {_robots_text(store, robots)}: {shapes}" for shapes, robots in robots_by_shapes.items()]
+        raise ValueError(
+            "the selected episodes come from robots of different shapes and a dataset holds one; "
+            "pick one robot with --robot (or narrow --table/--episodes):\n" + "\n".join(lines)
+        )
+    return next(_steps_of(store, prefixes[0]))
+
+
+def _robots_text(store: ReplayStore, robots: set[str]) -> str:
+    return ", ".join(f"{robot} ({_kind(store.get_spec(robot)) or 'no spec'})" for robot in sorted(robots))
+
+
+def _kind(spec: robot_pb2.RobotSpec | None) -> str:
+    return spec.kind if spec is not None else ""
+
+
+def _control_rate(spec: robot_pb2.RobotSpec | None) -> int:
+    return int(spec.control_rate_hz) if spec is not None and spec.control_rate_hz else 10
+
+
+def _write_episodes(ds: Any, store: ReplayStore, prefixes: list[bytes], task: str) -> int:
+    """Every step of the episodes as frames of ds; the number of frames."""
+    frames = 0
+    for prefix in prefixes:
+        for step in _steps_of(store, prefix):
+            frame: dict[str, Any] = {_dataset_name(n): a for n, a in arrays_of(step.observation).items()}
+            frame["action"] = tensor_array(step.action).astype(np.float32)
+            frame["next.reward"] = np.array([step.reward], np.float32)
+            frame["next.done"] = np.array([step.terminated])
+            frame["task"] = task
+            ds.add_frame(frame)
+            frames += 1
+        ds.save_episode()
+    return frames
+
+
 def export_dataset(
     store_path: str | Path,
     root: str | Path,
@@ -118,38 +167,39 @@ def export_dataset(
     task: str = "",
     fps: int | None = None,
 ) -> Summary:
-    """Write episodes [first_episode, last_episode) of `table` (arrival order) as a LeRobotDataset at root."""
+    """Write episodes [first_episode, last_episode) of `table` (arrival order) as a LeRobotDataset at root.
+
+    Everything is checked before root is created; a failure after that removes root again.
+    """
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
+    if fps is not None and fps <= 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    root = Path(root)
+    if root.exists():
+        raise FileExistsError(f"{root} already exists: export writes a new dataset directory")
     store = ReplayStore(store_path, cache_mb=0, readonly=True)
     try:
         prefixes = _episodes(store, table, robot_id)[first_episode:last_episode]
         if not prefixes:
             raise ValueError(f"no episodes in table {table or '(all)'!r} for that range/robot")
-        first = next(_steps_of(store, prefixes[0]))
+        first = _check_one_embodiment(store, prefixes)
         spec = store.get_spec(first.robot_id)
-        rate = fps or (int(spec.control_rate_hz) if spec is not None and spec.control_rate_hz else 10)
-        features = _features(first)
-        ds = LeRobotDataset.create(
-            repo_id,
-            rate,
-            features,
-            root=root,
-            robot_type=(spec.kind if spec is not None and spec.kind else "user"),
-            use_videos=False,
-        )
-        frames = 0
-        for prefix in prefixes:
-            for step in _steps_of(store, prefix):
-                frame: dict[str, Any] = {_dataset_name(n): a for n, a in arrays_of(step.observation).items()}
-                frame["action"] = tensor_array(step.action).astype(np.float32)
-                frame["next.reward"] = np.array([step.reward], np.float32)
-                frame["next.done"] = np.array([step.terminated])
-                frame["task"] = task or (spec.kind if spec is not None and spec.kind else "user")
-                ds.add_frame(frame)
-                frames += 1
-            ds.save_episode()
-        ds.finalize()
+        kind = _kind(spec) or "user"
+        rate = fps if fps is not None else _control_rate(spec)
+        try:
+            ds = LeRobotDataset.create(repo_id, rate, _features(first), root=root, robot_type=kind, use_videos=False)
+        except FileExistsError:
+            raise  # root appeared after the check above: not ours to remove
+        except BaseException:
+            shutil.rmtree(root, ignore_errors=True)  # create may fail after making root
+            raise
+        try:
+            frames = _write_episodes(ds, store, prefixes, task or kind)
+            ds.finalize()
+        except BaseException:
+            shutil.rmtree(root, ignore_errors=True)  # no half-written dataset left to block a rerun
+            raise
         return Summary(len(prefixes), frames, str(root))
     finally:
         store.close()

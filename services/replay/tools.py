@@ -1,11 +1,13 @@
 """`userctl replay ls|export|import`: look into a replay buffer, LeRobotDataset out and in.
 
   userctl replay ls [--path P | --config C] [--json]
-  userctl replay export OUT --repo-id local/name [--table T] [--robot R] [--episodes A:B] [--task TEXT]
+  userctl replay export OUT --repo-id local/name [--table T] [--robot R] [--episodes A:B|N] [--task TEXT] [--fps F]
   userctl replay import DATASET_ROOT --repo-id local/name [--table demos] [--robot-id R]
 
-The buffer is replay.path of the config unless --path is given. ls and export only read (safe while
-the service runs); import writes, so run it with the service for that path stopped.
+The buffer is --path if given, else replay.path when the config sets it, else, for a config with an
+`up` section, where `userctl up` keeps it (up.runs_dir/up.name/replay), else replay.path's default.
+ls and export only read (safe while the service runs); import writes, so run it with the service for
+that path stopped.
 """
 
 from __future__ import annotations
@@ -15,7 +17,13 @@ import json
 import sys
 from pathlib import Path
 
-from user.config import ConfigError, load_config
+from user.config import ConfigError, StackConfig, load_config
+
+TOOLS = {
+    "ls": "tables, robots, steps and episodes of a replay buffer",
+    "export": "episodes of one robot shape as a new LeRobotDataset v3",
+    "import": "append a LeRobotDataset's episodes to a table of the buffer",
+}
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -23,32 +31,116 @@ def _parser() -> argparse.ArgumentParser:
         prog="userctl replay", description=__doc__, formatter_class=argparse.RawTextHelpFormatter
     )
     sub = p.add_subparsers(dest="tool", required=True)
-    for name in ("ls", "export", "import"):
-        s = sub.add_parser(name)
-        s.add_argument("--config", "-c", help="stack YAML: replay.path is the buffer")
-        s.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE")
+    for name, summary in TOOLS.items():
+        s = sub.add_parser(name, help=summary, description=summary)
+        _add_tool_arguments(s, name)
         s.add_argument("--path", help="the buffer's LMDB directory (overrides the config)")
-        if name == "ls":
-            s.add_argument("--json", action="store_true", help="print JSON instead of a table")
-        if name == "export":
-            s.add_argument("out", help="dataset root to create (must not exist)")
-            s.add_argument("--repo-id", required=True)
-            s.add_argument("--table", default="", help="table to export (default: every episode)")
-            s.add_argument("--robot", help="only this robot's episodes")
-            s.add_argument("--episodes", default=":", help="range A:B of the table's episodes in arrival order")
-            s.add_argument("--task", default="", help="task text of every frame (default: the robot kind)")
-            s.add_argument("--fps", type=int, help="default: the robot's control rate")
-        if name == "import":
-            s.add_argument("root", help="LeRobotDataset root directory")
-            s.add_argument("--repo-id", required=True)
-            s.add_argument("--table", default="demos")
-            s.add_argument("--robot-id", help="robot id the steps are stored under (default: from repo id)")
+        s.add_argument("--config", "-c", help="stack YAML: the buffer is replay.path, or up's when it has `up:`")
+        s.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE")
     return p
 
 
-def _range(text: str) -> tuple[int, int | None]:
-    first, _, last = text.partition(":")
-    return int(first or 0), (int(last) if last else None)
+def _add_tool_arguments(s: argparse.ArgumentParser, tool: str) -> None:
+    if tool == "ls":
+        s.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    if tool == "export":
+        _add_export_arguments(s)
+    if tool == "import":
+        s.add_argument("root", metavar="DATASET_ROOT", help="LeRobotDataset root directory")
+        s.add_argument("--repo-id", required=True)
+        s.add_argument("--table", default="demos")
+        s.add_argument("--robot-id", help="robot id the steps are stored under (default: from repo id)")
+
+
+def _add_export_arguments(s: argparse.ArgumentParser) -> None:
+    s.add_argument("out", metavar="OUT", help="dataset root to create (must not exist)")
+    s.add_argument("--repo-id", required=True)
+    s.add_argument("--table", default="", help="table to export (default: every episode)")
+    s.add_argument("--robot", help="only this robot's episodes (needed when robots of different shapes are selected)")
+    s.add_argument(
+        "--episodes",
+        type=_episode_range,
+        default=":",
+        metavar="A:B|N",
+        help="episodes of the table in arrival order, from 0: A:B (A to B-1), A:, :B, or N (just episode N)",
+    )
+    s.add_argument("--task", default="", help="task text of every frame (default: the robot kind)")
+    s.add_argument("--fps", type=_positive_int, help="frames per second (default: the robot's control rate)")
+
+
+def actions_help() -> str:
+    """The tools and their own options, for `userctl replay --help` (whose flags are the service's)."""
+    lines = ["buffer tools (`userctl replay ACTION --help` for details):"]
+    for name, summary in TOOLS.items():
+        tool = argparse.ArgumentParser(prog=f"userctl replay {name}", add_help=False, formatter_class=_Unwrapped)
+        _add_tool_arguments(tool, name)
+        lines += [f"  {name}: {summary}", "    " + tool.format_usage().removeprefix("usage: ").strip()]
+    lines.append("  every tool also takes --path DIR, or --config YAML [--set SECTION.FIELD=VALUE], for the buffer")
+    return "\n".join(lines)
+
+
+class _Unwrapped(argparse.HelpFormatter):
+    """A usage on one line: argparse's wrapped continuation lines misalign under an indent."""
+
+    def __init__(self, prog: str) -> None:
+        super().__init__(prog, width=1000)
+
+
+def _positive_int(text: str) -> int:
+    value = _int(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
+    return value
+
+
+def _episode_range(text: str) -> tuple[int, int | None]:
+    """A:B, A:, :B or : -> (A, B) for the slice [A:B]; N -> just episode N."""
+    if ":" not in text:
+        first = _index(text)
+        return first, first + 1
+    first_text, _, last_text = text.partition(":")
+    first = _index(first_text) if first_text.strip() else 0
+    last = _index(last_text) if last_text.strip() else None
+    if last is not None and last <= first:
+        raise argparse.ArgumentTypeError(f"range {text!r} holds no episode (B must be above A)")
+    return first, last
+
+
+def _index(text: str) -> int:
+    value = _int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"episode numbers start at 0, got {value}")
+    return value
+
+
+def _int(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text.strip()!r} is not an integer") from None
+
+
+def _buffer_path(path: str | None, cfg: StackConfig) -> Path:
+    """--path, else replay.path when the config sets it, else where `userctl up` puts it for a config with `up:`."""
+    if path:
+        return Path(path)
+    if "path" not in cfg.replay.model_fields_set and "up" in cfg.model_fields_set:
+        return _up_replay_path(cfg)
+    return cfg.replay.path
+
+
+def _up_replay_path(cfg: StackConfig) -> Path:
+    # the rule of user/up.py: run_up's run_dir, and Stack.start_services sets replay.path=<run_dir>/replay
+    return cfg.up.runs_dir / cfg.up.name / "replay"
+
+
+def _missing_hint(path_arg: str | None, path: Path, cfg: StackConfig) -> str:
+    if path_arg:
+        return ""
+    up_path = _up_replay_path(cfg)
+    if path != up_path:
+        return f" (`userctl up` with this config keeps it in {up_path}; give the buffer's directory with --path)"
+    return " (has `userctl up` run with this config yet? or give the buffer's directory with --path)"
 
 
 def main(argv: list[str]) -> int:
@@ -58,9 +150,9 @@ def main(argv: list[str]) -> int:
     except ConfigError as exc:
         print(f"userctl replay: {exc}", file=sys.stderr)
         return 2
-    path = Path(args.path) if args.path else Path(cfg.replay.path)
+    path = _buffer_path(args.path, cfg)
     if args.tool != "import" and not (path / "data.mdb").exists():
-        print(f"userctl replay: no replay buffer at {path}", file=sys.stderr)
+        print(f"userctl replay: no replay buffer at {path}{_missing_hint(args.path, path, cfg)}", file=sys.stderr)
         return 2
     try:
         if args.tool == "ls":
@@ -68,7 +160,7 @@ def main(argv: list[str]) -> int:
         if args.tool == "export":
             from services.replay.lerobot_io import export_dataset
 
-            first, last = _range(args.episodes)
+            first, last = args.episodes
             s = export_dataset(
                 path,
                 args.out,
