@@ -166,13 +166,29 @@ def test_systemd_accepts_the_unit(tmp_path: Path) -> None:
 def test_install_service_writes_the_unit(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from user import cli
 
-    config = tmp_path / "edge.yaml"
-    args = ["edge", "install-service", "-c", str(config), "--unit-dir", str(tmp_path), "--user", "robot"]
+    config = "/etc/user/edge.yaml"
+    args = ["edge", "install-service", "-c", config, "--unit-dir", str(tmp_path), "--user", "robot"]
     assert cli.main([*args, "--dry-run"]) == 0
-    assert "ExecStart=" in capsys.readouterr().out and not (tmp_path / "user-edge.service").exists()
+    out = capsys.readouterr().out
+    assert "ExecStart=" in out and "WARNING" not in out and not (tmp_path / "user-edge.service").exists()
     assert cli.main([*args, "--no-start", "--userctl", "/usr/bin/userctl"]) == 0
-    unit = (tmp_path / "user-edge.service").read_text()
+    unit = (tmp_path / "user-edge.service").read_text().splitlines()
     assert f"ExecStart=/usr/bin/userctl edge --config {config}" in unit
+    assert "WorkingDirectory=/var/lib/user-edge" in unit and "StateDirectory=user-edge" in unit
+
+
+def test_install_service_refuses_a_config_the_service_cannot_see(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The unit runs with PrivateTmp=yes: a config under /tmp would be missing when the service starts."""
+    from user import cli
+
+    config = Path("/tmp") / "edge.yaml"
+    args = ["edge", "install-service", "-c", str(config), "--unit-dir", str(tmp_path), "--user", "robot"]
+    assert cli.main([*args, "--no-start"]) == 2
+    assert "PrivateTmp=yes" in capsys.readouterr().err and not (tmp_path / "user-edge.service").exists()
+    assert cli.main([*args, "--dry-run"]) == 0
+    assert "# WARNING: /tmp/edge.yaml is under a temporary directory" in capsys.readouterr().out
 
 
 # --------------------------------------------------------------------------- edge discover

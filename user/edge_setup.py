@@ -142,6 +142,9 @@ Type=simple
 User={user}
 SupplementaryGroups=dialout video
 ExecStart={userctl} edge --config {config}
+# Relative paths of the config (edge.spool_dir: the outbox of unsent steps) live here, owned by User.
+StateDirectory=user-edge
+WorkingDirectory=/var/lib/user-edge
 EnvironmentFile=-{env_file}
 Environment=MUJOCO_GL=egl PYTHONUNBUFFERED=1 MALLOC_ARENA_MAX=2
 Restart=on-failure
@@ -161,14 +164,26 @@ WantedBy=multi-user.target
 """
 
 
+def _hidden_by_private_tmp(config: str) -> str:
+    """Why the service could not read `config` (the unit has PrivateTmp=yes), or "" when it can."""
+    if any(Path(config).is_relative_to(tmp) for tmp in ("/tmp", "/var/tmp")):
+        why = "which the service (PrivateTmp=yes) cannot see: copy it to /etc/user"
+        return f"{config} is under a temporary directory, {why}"
+    return ""
+
+
 def install_service(args: argparse.Namespace) -> int:
     userctl = args.userctl or shutil.which("userctl") or str(Path(sys.executable).with_name("userctl"))
     config = str(Path(args.config).resolve())
     unit = render_unit(userctl, config, args.user)
     path = Path(args.unit_dir) / f"{args.name}.service"
+    hidden = _hidden_by_private_tmp(config)
     if args.dry_run:
-        print(f"# would write {path}\n{unit}", end="")
+        print(f"# would write {path}\n" + (f"# WARNING: {hidden}\n" if hidden else "") + unit, end="")
         return 0
+    if hidden:
+        print(f"userctl edge install-service: {hidden}", file=sys.stderr)
+        return 2
     try:
         path.write_text(unit)
     except PermissionError:
