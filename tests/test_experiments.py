@@ -384,3 +384,30 @@ def test_a_learner_through_the_socket_trains_on_edge_jpegs_it_decodes_itself(tmp
         assert run.algo.seen[-1]["dtypes"]["camera.front"] == torch.uint8
         assert run.state.sample_errors == 0
         assert kept() - before >= 3 * 8 * 2  # every sampled frame came as replay keeps it (obs and next obs)
+
+
+def test_an_experiment_whose_robots_an_earlier_one_takes_is_reported(caplog: pytest.LogCaptureFixture) -> None:
+    """First match wins, so a later experiment whose selector is covered by an earlier one can never train:
+    control says so at start (the same selector twice, or after a catch-all)."""
+    import logging
+
+    from services.control.server import Registry
+    from user.experiments import shadowed
+
+    def exp(name: str, **robots: object) -> ExperimentConfig:
+        return ExperimentConfig.model_validate({"name": name, "robots": robots})
+
+    exps = [
+        exp("arms", kinds=["sim_reach_arm"]),
+        exp("lab-arms", kinds=["sim_reach_arm"], labels={"site": "lab"}),  # every lab arm is an arm: covered
+        exp("pandas", kinds=["gym_hil_panda"]),
+        exp("two", ids=["p-0", "p-1"]),  # any kind: not covered by the kind selectors
+        exp("one", ids=["p-1"], labels={"x": "y"}),  # covered by "two"
+        exp("all"),
+        exp("after-all", kinds=["so101"]),  # covered by the catch-all
+    ]
+    assert shadowed(exps) == {"lab-arms": "arms", "one": "two", "after-all": "all"}
+    with caplog.at_level(logging.WARNING, logger="services.control.server"):
+        Registry(lease_ttl_s=1.0, episodes_kept=10, experiments=exps)
+    warned = {r.fields["experiment"] for r in caplog.records if "can get no robot" in r.getMessage()}  # type: ignore[attr-defined]
+    assert warned == {"lab-arms", "one", "after-all"}

@@ -43,6 +43,26 @@ def experiment_for(spec: robot_pb2.RobotSpec, experiments: Sequence[ExperimentCo
     return next((e for e in experiments if matches(e.robots, spec)), None)
 
 
+def covers(earlier: RobotSelector, later: RobotSelector) -> bool:
+    """Every robot `later` selects is selected by `earlier` too (so, coming first, it takes them all)."""
+
+    def within(wide: list[str], narrow: list[str]) -> bool:  # an empty list holds for any value
+        return not wide or (bool(narrow) and set(narrow) <= set(wide))
+
+    labels = all(later.labels.get(k) == v for k, v in earlier.labels.items())
+    return within(earlier.kinds, later.kinds) and within(earlier.ids, later.ids) and labels
+
+
+def shadowed(experiments: Sequence[ExperimentConfig]) -> dict[str, str]:
+    """experiment name -> the earlier experiment that takes every robot it selects (it can never train)."""
+    out = {}
+    for i, exp in enumerate(experiments):
+        first = next((e for e in experiments[:i] if covers(e.robots, exp.robots)), None)
+        if first is not None:
+            out[exp.name] = first.name
+    return out
+
+
 def experiment_name(spec: robot_pb2.RobotSpec, cfg: StackConfig) -> str:
     exp = experiment_for(spec, cfg.resolved_experiments())
     return exp.name if exp is not None else ""

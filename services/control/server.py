@@ -29,7 +29,7 @@ from services.control.state import ControlState
 from user import rpc
 from user.auth import Identity
 from user.config import ExperimentConfig, ReplayShard, StackConfig
-from user.experiments import experiment_for, parse_definition
+from user.experiments import experiment_for, parse_definition, shadowed
 from user.log import kv
 from user.spec import ROBOT_ID_RE, SpecError, enum_name, validate_spec
 from user.v1 import control_pb2, control_pb2_grpc, robot_pb2
@@ -308,6 +308,11 @@ class Registry:
                 )
                 continue
             defined.append(exp)
+        for name, first in shadowed([*experiments, *defined]).items():
+            log.warning(
+                "an experiment can get no robot: an earlier one selects all of its robots",
+                extra=kv(experiment=name, taken_by=first),
+            )
         now_ns = time.time_ns()
         for exp in [*experiments, *defined]:
             running, started, stopped = saved.get(exp.name, (True, now_ns, 0))
@@ -326,6 +331,12 @@ class Registry:
             self._experiments[exp.name] = rec
             if self.state is not None:
                 self.state.save_experiment(exp.name, True, rec.started_at_ns, 0)
+            first = shadowed([*(e.config for e in self._experiments.values()), exp]).get(exp.name)
+            if first is not None:
+                log.warning(
+                    "a defined experiment can get no robot: an earlier one selects all of its robots",
+                    extra=kv(experiment=exp.name, taken_by=first),
+                )
             log.info("experiment defined", extra=kv(experiment=exp.name))
             self._relay_leases_locked()
             return self._experiment_info_locked(rec)
