@@ -117,3 +117,44 @@ def test_a_learner_killed_mid_run_comes_back_on_its_port_and_resumes_from_its_ch
         assert stack.restart_dead(max_restarts=1) is learner_child
     finally:
         stack.stop()
+
+
+# Writes its ready file, then runs until SIGTERM, which it exits on cleanly (as a service does).
+SERVE = textwrap.dedent(
+    """
+    import json, signal, sys, time
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    json.dump({"grpc_port": 1}, open(sys.argv[1], "w"))
+    while True:
+        time.sleep(1)
+    """
+)
+
+
+def test_the_summary_counts_a_child_killed_and_restarted_mid_run(tmp_path: Path) -> None:
+    """A kill -9 the supervisor recovered from is not "all clean": the summary names the restart and its code."""
+    import os
+    import signal
+
+    from user.up import exits_text
+
+    script = tmp_path / "serve.py"
+    script.write_text(SERVE)
+    ready = tmp_path / "ready.json"
+    cmd = [sys.executable, str(script), str(ready)]
+    child = Child("worker", None, ready, tmp_path / "worker.log", cmd=cmd)  # type: ignore[arg-type]
+    child.launch()
+    stack = Stack.__new__(Stack)
+    stack.children = [child]
+    try:
+        stack.wait_ready(child)
+        os.kill(child.proc.pid, signal.SIGKILL)
+        child.proc.wait()
+        assert stack.restart_dead(max_restarts=3) is None
+        assert stack.restarts() == {"worker": [-9]}
+    finally:
+        codes = stack.stop()
+    assert codes == {"worker": 0}
+    assert exits_text(codes, stack.restarts()) == "worker restarted 1x (exit -9)"
+    assert exits_text({"worker": 0, "edge-0": None}, {}) == "all clean"
+    assert exits_text({"worker": 1}, {"worker": [-6, -9]}) == "worker restarted 2x (exit -6, -9); worker exited with 1"

@@ -2,7 +2,7 @@
 
 userctl control|replay|inference|learner|edge --config configs/demo.yaml [--set a.b=c] [--ready-file F]
 userctl up --config configs/demo.yaml      # the whole stack locally, with a live console
-userctl health HOST:PORT                   # exit 0 when SERVING (docker health checks)
+userctl health HOST:PORT [HOST:PORT ...]   # a status line each; exit 0 when all are SERVING (docker health checks)
 userctl plugins                            # every registered kind: `interface kind description` per line
 userctl plugins INTERFACE KIND             # the params that kind takes: name, type, default, description
 userctl replay ls|export|import ...        # a replay buffer's tables; LeRobotDataset out and in
@@ -17,8 +17,9 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from typing import Any
 
-from user.config import ConfigError, StackConfig, load_config
+from user.config import AuthConfig, ConfigError, StackConfig, load_config
 from user.log import setup_logging
 
 # Each service module exposes run(cfg: StackConfig, ready_file: str | None) -> int, blocking until SIGTERM/SIGINT.
@@ -36,7 +37,9 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="userctl", description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
     for name in [*SERVICES, "up"]:
-        p = sub.add_parser(name, help=f"run the {name}" if name != "up" else "run the whole stack locally")
+        p = sub.add_parser(
+            name, help=f"run the {name}" if name != "up" else "run the whole stack locally", **_service_help(name)
+        )
         p.add_argument("--config", "-c", help="stack YAML (configs/)")
         p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE")
         if name != "up":
@@ -46,8 +49,8 @@ def _parser() -> argparse.ArgumentParser:
     plugins = sub.add_parser("plugins", help="list registered robots, tasks, teleoperators, policies, algorithms")
     plugins.add_argument("interface", nargs="?", help="with KIND: the params that kind takes (name type default)")
     plugins.add_argument("kind", nargs="?")
-    h = sub.add_parser("health", help="gRPC health check of HOST:PORT")
-    h.add_argument("target")
+    h = sub.add_parser("health", help="gRPC health check of HOST:PORT (one line each)")
+    h.add_argument("targets", nargs="+", metavar="HOST:PORT")
     h.add_argument("--config", "-c")
     h.add_argument("--set", dest="overrides", action="append", default=[])
     h.add_argument("--timeout", type=float, default=2.0)
@@ -64,6 +67,19 @@ def _parser() -> argparse.ArgumentParser:
 
     ops_cli.add_parsers(sub)
     return parser
+
+
+def _service_help(name: str) -> dict[str, Any]:
+    """`userctl replay --help` lists the buffer tools beside the service's flags (main() routes them)."""
+    if name != "replay":
+        return {}
+    from services.replay.tools import actions_help
+
+    return {
+        "description": f"run the replay service, or a buffer tool: userctl replay {'|'.join(REPLAY_TOOLS)} ...",
+        "epilog": actions_help(),
+        "formatter_class": argparse.RawTextHelpFormatter,
+    }
 
 
 def _plugins(interface: str | None = None, kind: str | None = None) -> int:
@@ -84,6 +100,35 @@ def _plugins(interface: str | None = None, kind: str | None = None) -> int:
         for module, error in sorted(reg.import_errors.items()):
             print(f"userctl plugins: {reg.interface} module {module} not loaded: {error}", file=sys.stderr)
     return 0
+
+
+def _health(targets: list[str], auth: AuthConfig, timeout_s: float) -> int:
+    """`HOST:PORT: SERVING` (or NOT_SERVING, or unreachable and why) per target; 1 unless all are SERVING."""
+    try:
+        auth.resolved_token()
+    except ConfigError:  # health checks are exempt from auth: probing needs no token
+        auth = auth.model_copy(update={"enabled": False})
+    serving = [_health_line(target, auth, timeout_s) for target in targets]
+    return 0 if all(serving) else 1
+
+
+def _health_line(target: str, auth: AuthConfig, timeout_s: float) -> bool:
+    """Prints the target's status line; True when it is SERVING."""
+    from grpc import RpcError
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    from user.rpc import make_channel
+
+    with make_channel(target, auth) as channel:
+        try:
+            resp = health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(), timeout=timeout_s)
+        except RpcError as err:
+            details = (err.details() or "").strip().splitlines()[:1]  # one line, as docker's health log shows it
+            print(f"{target}: unreachable ({': '.join([err.code().name, *details])})")
+            return False
+    status = health_pb2.HealthCheckResponse.ServingStatus.Name(resp.status)
+    print(f"{target}: {status}")
+    return resp.status == health_pb2.HealthCheckResponse.SERVING
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -109,14 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"userctl: {exc}", file=sys.stderr)
         return 2
     if args.command == "health":
-        from user.rpc import check_health
-
-        auth = cfg.auth
-        try:
-            auth.resolved_token()
-        except ConfigError:  # health checks are exempt from auth: probing needs no token
-            auth = auth.model_copy(update={"enabled": False})
-        return 0 if check_health(args.target, auth, timeout_s=args.timeout) else 1
+        return _health(args.targets, cfg.auth, args.timeout)
     if args.command in ("robots", "workers", "command", "exp"):
         from user import ops_cli
 

@@ -11,7 +11,8 @@ userctl exp define FILE                       a new experiment while the stack r
 userctl edge discover [--sim KIND ...]        probe cameras and serial ports, print a ready edge config
 userctl edge install-service [--dry-run]      systemd unit for the edge daemon on this robot PC
 
-The control address is --control, else edge.control_addr from the config; the token is auth.* as usual.
+The control address is --control, else the control of a `userctl up` running this config's run dir, else
+edge.control_addr; the token is auth.* as usual, else that run's generated token (user.up.ops_target).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ from google.protobuf.json_format import MessageToDict
 from rich.console import Console
 from rich.table import Table
 
-from user.config import StackConfig
+from user.config import ConfigError, StackConfig
 from user.rpc import make_channel
 from user.v1 import control_pb2, control_pb2_grpc
 
@@ -207,9 +208,16 @@ def workers_table(workers: list[control_pb2.WorkerInfo]) -> Table:
 
 
 def main(args: argparse.Namespace, cfg: StackConfig) -> int:
-    target = args.control or cfg.edge.control_addr
+    from user.up import ops_target
+
+    try:
+        target, auth = ops_target(cfg, args.control)
+        channel = make_channel(target, auth)
+    except (ConfigError, OSError) as exc:  # no token anywhere, an unreadable token or TLS file: say so, no traceback
+        print(f"userctl {args.command}: {exc}", file=sys.stderr)
+        return 2
     out = Console(width=160)
-    with make_channel(target, cfg.auth) as channel:
+    with channel:
         stub = control_pb2_grpc.ControlStub(channel)
         try:
             if args.command == "robots":

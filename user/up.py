@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import fcntl
 import json
 import logging
 import os
@@ -24,11 +25,11 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import grpc
 
-from user.config import StackConfig
+from user.config import AuthConfig, StackConfig
 from user.log import kv
 from user.rpc import make_channel
 from user.v1 import (
@@ -45,6 +46,11 @@ START_RESTARTS = 2  # a child killed by a signal while starting is started again
 SERVICES = ("control", "replay", "learner", "inference")  # servers: restarted on their previous ports
 STOP_TIMEOUT_S = 20.0
 PR_SET_PDEATHSIG = 1
+LOCK_FILE = "up.lock"  # held (flock) by the supervisor running the run dir; holds its pid
+TOKEN_FILE = "token"  # the generated per-run auth token, mode 0600, for operators' commands
+
+if TYPE_CHECKING:
+    from rich.console import Console
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +61,111 @@ def _die_with_parent() -> None:
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
     except OSError:
         pass
+
+
+# --------------------------------------------------------------------------- the run directory
+
+
+class RunDirBusy(RuntimeError):
+    """Another `userctl up` holds the run directory."""
+
+
+def lock_run_dir(run_dir: Path) -> int:
+    """Take the run dir for this process: an exclusive flock on run_dir/up.lock, returned as its fd (keep it
+    open while the stack runs). The kernel drops the lock when the process dies, however it dies, so a
+    `kill -9` leaves no stale lock. Raises RunDirBusy, writing nothing, when another process holds it."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    fd = os.open(run_dir / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)  # not inherited: children never hold it
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.read(fd, 32).decode(errors="replace").strip() or "unknown"
+        os.close(fd)
+        raise RunDirBusy(f"{run_dir} is in use by another `userctl up` (pid {holder})") from None
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    return fd
+
+
+def run_dir_live(run_dir: Path) -> bool:
+    """True while a `userctl up` holds run_dir (probed with a shared lock taken and dropped at once)."""
+    try:
+        fd = os.open(run_dir / LOCK_FILE, os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)  # closing drops the probe's lock too
+    return False
+
+
+def clear_run_dir(run_dir: Path) -> None:
+    """--fresh: delete everything but the lock file, which this process holds."""
+    for entry in run_dir.iterdir():
+        if entry.name == LOCK_FILE:
+            continue
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry)
+        else:
+            entry.unlink()
+
+
+def _token_configured(auth: AuthConfig) -> bool:
+    return bool(auth.token or auth.token_file or os.environ.get("USER_TOKEN"))
+
+
+def write_run_token(run_dir: Path, token: str) -> Path:
+    """run_dir/token, created 0600 before the secret goes in (never readable by others, even briefly)."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    path, tmp = run_dir / TOKEN_FILE, run_dir / f"{TOKEN_FILE}.tmp"
+    tmp.unlink(missing_ok=True)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as out:
+        out.write(token + "\n")
+    os.replace(tmp, path)
+    return path
+
+
+def _same_address(a: str, b: str) -> bool:
+    loopback = {"127.0.0.1", "localhost"}
+    (host_a, _, port_a), (host_b, _, port_b) = a.rpartition(":"), b.rpartition(":")
+    return port_a == port_b and (host_a == host_b or {host_a, host_b} <= loopback)
+
+
+def ops_target(cfg: StackConfig, control: str | None) -> tuple[str, AuthConfig]:
+    """Where operators' commands (`userctl robots|workers|command|exp`) call, and with which auth.
+
+    While a `userctl up` of this config runs (it holds up.runs_dir/up.name), its control is the default
+    address, and its generated token is used when no token is configured (auth.token, $USER_TOKEN,
+    auth.token_file) and the call goes to that control. Otherwise: --control, else edge.control_addr."""
+    run_dir = cfg.up.runs_dir / cfg.up.name
+    run_addr = _live_control_addr(run_dir)
+    target = control or run_addr or cfg.edge.control_addr
+    auth = cfg.auth
+    token_path = run_dir / TOKEN_FILE
+    if (
+        auth.enabled
+        and not _token_configured(auth)
+        and run_addr
+        and _same_address(target, run_addr)
+        and token_path.exists()
+    ):
+        auth = auth.model_copy(update={"token": token_path.read_text().strip()})
+    return target, auth
+
+
+def _live_control_addr(run_dir: Path) -> str | None:
+    """The control address a running `userctl up` announced in run_dir, or None."""
+    if not run_dir_live(run_dir):
+        return None
+    try:
+        port = json.loads((run_dir / "ready" / "control.json").read_text())["grpc_port"]
+    except (OSError, ValueError, KeyError):
+        return None
+    return f"127.0.0.1:{port}"
 
 
 @dataclass
@@ -68,6 +179,7 @@ class Child:
     env: dict[str, str] | None = None
     restarts: int = 0  # while starting
     crashes: int = 0  # mid-run deaths the supervisor started it again after
+    restart_codes: list[int] = field(default_factory=list)  # exit code of each death it was started again after
 
     def launch(self) -> None:
         with open(self.log_path, "ab") as log_file:
@@ -114,9 +226,13 @@ class Stack:
         self.run_dir = run_dir
         self.children: list[Child] = []
         self.env = dict(os.environ)
-        if cfg.auth.enabled and not (cfg.auth.token or cfg.auth.token_file or os.environ.get("USER_TOKEN")):
-            # A fresh secret per run: the children inherit it, nothing else on the host knows it.
+        self.token_path: Path | None = None  # where the generated token is, for operators
+        if cfg.auth.enabled and not _token_configured(cfg.auth):
+            # A fresh secret per run: the children inherit it; operators read it from the run dir (mode 0600).
             self.env["USER_TOKEN"] = secrets.token_hex(16)
+            self.token_path = write_run_token(run_dir, self.env["USER_TOKEN"])
+        else:  # a previous run's token would mislead operators' commands
+            (run_dir / TOKEN_FILE).unlink(missing_ok=True)
         self.env.setdefault("MUJOCO_GL", "egl")
         self.env["PYTHONUNBUFFERED"] = "1"
         for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -161,6 +277,7 @@ class Stack:
             if code is not None and code < 0 and child.restarts < START_RESTARTS:
                 # Killed by a signal while starting (a native library aborting): a supervisor restarts it.
                 child.restarts += 1
+                child.restart_codes.append(code)
                 log.warning("child crashed while starting; restarting", extra=kv(child=child.name, code=code))
                 child.launch()
                 continue
@@ -272,6 +389,7 @@ class Stack:
                 pinned.append(f"{child.name}.server.metrics_port={child.info['metrics_port']}")
             child.cmd = [*child.cmd[:at], *(x for p in pinned for x in ("--set", p)), *child.cmd[at:]]
         child.crashes += 1
+        child.restart_codes.append(child.proc.returncode)
         log.warning(
             "child died mid-run; starting it again",
             extra=kv(child=child.name, code=child.proc.returncode, crashes=child.crashes),
@@ -288,6 +406,10 @@ class Stack:
                 return child
             self.restart(child)
         return None
+
+    def restarts(self) -> dict[str, list[int]]:
+        """Per child started again at least once, the exit code of each death before it."""
+        return {c.name: list(c.restart_codes) for c in self.children if c.restart_codes}
 
     def stop(self) -> dict[str, int | None]:
         """SIGTERM in reverse start order (edges flush first), SIGKILL stragglers; returns exit codes."""
@@ -327,11 +449,16 @@ class Snapshot:
 
 
 class Monitor:
-    """Polls control, learner and replay; accumulates finished episodes."""
+    """Polls control, learner and replay; accumulates this session's finished episodes.
 
-    def __init__(self, stack: Stack, t0: float) -> None:
+    Control keeps episodes across runs: on a resumed run dir, the ones that ended before `session_start_ns`
+    (wall clock) are only counted (`earlier`), so plots, the stop rule and its time cover this session."""
+
+    def __init__(self, stack: Stack, t0: float, session_start_ns: int = 0) -> None:
         auth = stack.auth
         self.t0 = t0
+        self.session_start_ns = session_start_ns
+        self.earlier: set[tuple[str, str]] = set()
         self.control = control_pb2_grpc.ControlStub(make_channel(stack.child("control").grpc_addr, auth))
         self.learner = learner_pb2_grpc.LearnerStub(make_channel(stack.child("learner").grpc_addr, auth))
         self.replay = replay_pb2_grpc.ReplayStub(make_channel(stack.child("replay").grpc_addr, auth))
@@ -354,22 +481,30 @@ class Monitor:
             replay = self.replay.Stats(replay_pb2.StatsRequest(), timeout=2)
         except grpc.RpcError:
             pass
+        self.record_episodes(robots, now)
+        return Snapshot(now, robots, learner, replay)
+
+    def record_episodes(self, robots: list[control_pb2.RobotInfo], now: float) -> None:
+        """Take the episodes not seen yet, stamped `now` (seconds into the session); earlier runs' only counted."""
         for info in robots:
             for ep in info.recent_episodes:
                 key = (ep.robot_id or info.spec.robot_id, ep.episode_id)
-                if key not in self.episodes:
-                    self.episodes[key] = Episode(
-                        key[0],
-                        ep.episode_id,
-                        now,
-                        ep.success,
-                        ep.episode_return,
-                        ep.length,
-                        ep.policy_version,
-                        info.experiment,
-                        ep.intervention_steps,
-                    )
-        return Snapshot(now, robots, learner, replay)
+                if key in self.episodes or key in self.earlier:
+                    continue
+                if 0 < ep.ended_at_ns < self.session_start_ns:
+                    self.earlier.add(key)
+                    continue
+                self.episodes[key] = Episode(
+                    key[0],
+                    ep.episode_id,
+                    now,
+                    ep.success,
+                    ep.episode_return,
+                    ep.length,
+                    ep.policy_version,
+                    info.experiment,
+                    ep.intervention_steps,
+                )
 
     def ordered(self) -> list[Episode]:
         return sorted(self.episodes.values(), key=lambda e: (e.t, e.robot_id, e.episode_id))
@@ -502,7 +637,8 @@ def _sync_cell(lr: learner_pb2.LearnerStatus, experiment: str) -> str:
 
 
 def write_report(run_dir: Path, episodes: list[Episode], summary: dict[str, Any], window: int) -> None:
-    """metrics.json and report.png (rolling success rate and return against wall time)."""
+    """metrics.json and report.png (rolling success rate and return against this session's wall time; a resumed
+    run's earlier episodes are only counted, in summary["earlier_episodes"] and the title)."""
     run_dir.mkdir(parents=True, exist_ok=True)
     rolling = _rolling(episodes, window)
     rolling_autonomous = _rolling(episodes, window, autonomous=True)
@@ -561,13 +697,19 @@ def write_report(run_dir: Path, episodes: list[Episode], summary: dict[str, Any]
     ax2.set_xlabel("wall time (s)")
     if episodes:
         ax2.legend(loc="lower right")
-    title = summary.get("name", "")
-    if summary.get("time_to_target_s") is not None:
-        title += f" — {100 * summary['target_success']:.0f} % success after {summary['time_to_target_s']:.0f} s"
-    fig.suptitle(title)
+    fig.suptitle(_report_title(summary))
     fig.tight_layout()
     fig.savefig(run_dir / "report.png", dpi=100)
     plt.close(fig)
+
+
+def _report_title(summary: dict[str, Any]) -> str:
+    title = summary.get("name", "")
+    if summary.get("time_to_target_s") is not None:
+        title += f" — {100 * summary['target_success']:.0f} % success after {summary['time_to_target_s']:.0f} s"
+    if summary.get("earlier_episodes"):
+        title += f"\nthis session only; {summary['earlier_episodes']} episodes of earlier runs not shown"
+    return title
 
 
 def _rolling(episodes: list[Episode], window: int, autonomous: bool = False) -> list[float | None]:
@@ -583,17 +725,32 @@ def _rolling(episodes: list[Episode], window: int, autonomous: bool = False) -> 
 
 
 def run_up(cfg: StackConfig, config_path: str | None, overrides: list[str], fresh: bool = False) -> int:
+    """The whole stack on one run dir, which this process holds for its life; 2 when another `up` holds it."""
     from rich.console import Console
-    from rich.live import Live
 
     console = Console()
     run_dir = cfg.up.runs_dir / cfg.up.name
-    if fresh and run_dir.exists():
-        shutil.rmtree(run_dir)
-    elif run_dir.exists():
-        console.print(f"[yellow]resuming {run_dir}: replay and learner checkpoints are kept (--fresh starts over)")
-    run_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        lock_fd = lock_run_dir(run_dir)  # before anything else: a live run's data must not be touched
+    except RunDirBusy as exc:
+        print(f"userctl up: {exc}; nothing started or changed", file=sys.stderr)
+        return 2
+    try:
+        if fresh:
+            clear_run_dir(run_dir)
+        elif any(entry.name != LOCK_FILE for entry in run_dir.iterdir()):
+            console.print(f"[yellow]resuming {run_dir}: replay and learner checkpoints are kept (--fresh starts over)")
+        return _run_stack(console, cfg, config_path, overrides, run_dir)
+    finally:
+        os.close(lock_fd)
+
+
+def _run_stack(console: Console, cfg: StackConfig, config_path: str | None, overrides: list[str], run_dir: Path) -> int:
+    from rich.live import Live
+
     stack = Stack(cfg, config_path, overrides, run_dir)
+    if stack.token_path is not None:
+        console.print(f"auth token in {stack.token_path} (mode 0600; `userctl robots ls` etc. use it)", soft_wrap=True)
     stop = threading.Event()
 
     def on_signal(signum: int, _frame: Any) -> None:
@@ -603,13 +760,13 @@ def run_up(cfg: StackConfig, config_path: str | None, overrides: list[str], fres
     signal.signal(signal.SIGTERM, on_signal)
     budget_s = cfg.up.budget_s
     reason, time_to_target, mon = "interrupted", None, None
-    t0 = time.monotonic()
+    t0, session_start_ns = time.monotonic(), time.time_ns()
     try:
         with console.status("starting") as status:
             stack.start(lambda name: status.update(f"starting {name}"))
         console.print(f"[green]stack up in {time.monotonic() - t0:.1f}s; logs in {run_dir / 'logs'}")
         t0 = time.monotonic()
-        mon = Monitor(stack, t0)
+        mon = Monitor(stack, t0, session_start_ns)
         snap = mon.poll()
         live_view = (
             Live(_render(snap, mon, cfg, budget_s), console=console, refresh_per_second=2, transient=False)
@@ -646,7 +803,17 @@ def run_up(cfg: StackConfig, config_path: str | None, overrides: list[str], fres
             codes = stack.stop()
         signal.signal(signal.SIGINT, signal.default_int_handler)
     episodes = mon.ordered() if mon else []
-    summary = _summary(cfg, reason, time_to_target, final, episodes, codes, time.monotonic() - t0)
+    summary = _summary(
+        cfg,
+        reason,
+        time_to_target,
+        final,
+        episodes,
+        codes,
+        time.monotonic() - t0,
+        restarts=stack.restarts(),
+        earlier_episodes=len(mon.earlier) if mon else 0,
+    )
     write_report(run_dir, episodes, summary, cfg.up.window_episodes)
     _print_summary(console, summary, run_dir)
     return 0 if time_to_target is not None else 1
@@ -660,7 +827,10 @@ def _summary(
     episodes: list[Episode],
     codes: dict[str, int | None],
     wall_s: float,
+    restarts: dict[str, list[int]] | None = None,
+    earlier_episodes: int = 0,
 ) -> dict[str, Any]:
+    """metrics.json's document; `episodes` are this session's (`earlier_episodes` more ended in earlier runs)."""
     window = episodes[-cfg.up.window_episodes :]
     unhelped = [e for e in episodes if not e.intervention_steps][-cfg.up.window_episodes :]
     robots = {}
@@ -685,6 +855,7 @@ def _summary(
         "time_to_target_s": None if time_to_target is None else round(time_to_target, 1),
         "wall_s": round(wall_s, 1),
         "episodes_total": len(episodes),
+        "earlier_episodes": earlier_episodes,
         "final_success_rate": round(sum(e.success for e in window) / len(window), 3) if window else None,
         "final_success_rate_autonomous": round(sum(e.success for e in unhelped) / len(unhelped), 3)
         if unhelped
@@ -722,6 +893,7 @@ def _summary(
         },
         "replay_steps": final.replay.steps if final and final.replay else None,
         "exit_codes": codes,
+        "restarts": restarts or {},  # child -> exit code of each death it was started again after
     }
 
 
@@ -730,7 +902,7 @@ def _rate(episodes: list[Episode], window: int) -> float | None:
     return round(sum(e.success for e in recent) / len(recent), 3) if recent else None
 
 
-def _print_summary(console, summary: dict[str, Any], run_dir: Path) -> None:
+def _print_summary(console: Console, summary: dict[str, Any], run_dir: Path) -> None:
     from rich.table import Table
 
     console.print()  # Live leaves the cursor after its last line when stdout is not a terminal
@@ -738,7 +910,8 @@ def _print_summary(console, summary: dict[str, Any], run_dir: Path) -> None:
     table.add_row("stopped because", summary["reason"])
     ttt = summary["time_to_target_s"]
     table.add_row(f"time to {100 * summary['target_success']:.0f} % success", "-" if ttt is None else f"{ttt:.0f} s")
-    table.add_row("episodes", str(summary["episodes_total"]))
+    earlier = summary.get("earlier_episodes")
+    table.add_row("episodes", str(summary["episodes_total"]) + (f" (+{earlier} in earlier runs)" if earlier else ""))
     if summary["final_success_rate"] is not None:
         table.add_row("success, last episodes", f"{100 * summary['final_success_rate']:.0f} %")
     if summary.get("episodes_with_interventions"):
@@ -758,7 +931,17 @@ def _print_summary(console, summary: dict[str, Any], run_dir: Path) -> None:
             )
     for rid, st in summary["robots"].items():
         table.add_row(rid, f"{st['env_steps']} steps, {st['episodes']} episodes, policy v{st['policy_version']}")
-    bad = {k: v for k, v in summary["exit_codes"].items() if v not in (0, None)}
-    table.add_row("process exits", "all clean" if not bad else str(bad))
+    table.add_row("process exits", exits_text(summary["exit_codes"], summary.get("restarts", {})))
     table.add_row("report", f"{run_dir / 'report.png'}, {run_dir / 'metrics.json'}")
     console.print(table)
+
+
+def exits_text(codes: dict[str, int | None], restarts: dict[str, list[int]]) -> str:
+    """The summary's "process exits": restarts during the run (a kill -9 the supervisor recovered from is not
+    clean), then final exits other than 0, else "all clean"."""
+    parts = [
+        f"{name} restarted {len(deaths)}x (exit {', '.join(str(code) for code in deaths)})"
+        for name, deaths in restarts.items()
+    ]
+    parts += [f"{name} exited with {code}" for name, code in codes.items() if code not in (0, None)]
+    return "; ".join(parts) or "all clean"
