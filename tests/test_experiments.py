@@ -310,6 +310,15 @@ def test_console_shows_one_row_per_robot_and_per_experiment(tmp_path: Path) -> N
     console.print(_render(Snapshot(5.0, robots, status, None), mon, cfg, 600))
     text = console.export_text()
     assert all(name in text for name in ("arm-0", "panda-0", "reach", "pick", "alpha=0.1", "waiting_for_data"))
+    # An 80-column terminal: whole headers (the wide columns left out), scalars on lines of their own.
+    narrow = Console(width=80, record=True)
+    narrow.print(_render(Snapshot(5.0, robots, status, None), mon, cfg, 600, width=80))
+    lines = narrow.export_text().splitlines()
+    headers = next(line.split() for line in lines if line.split()[:1] == ["robot"])
+    assert headers == ["robot", "exp", "state", "eps", "success", "steps/s", "policy", "stale", "spool"]
+    headers = next(line.split() for line in lines if line.split()[:1] == ["experiment"])
+    assert headers == ["experiment", "algo", "state", "updates", "updates/s", "weights", "success"]
+    assert "reach: alpha=0.1" in [line.strip() for line in lines] and max(len(line) for line in lines) <= 80
     assert mon.success_rate(2, "reach") == 1.0 and mon.success_rate(2, "pick") is None
     write_report(tmp_path, mon.ordered(), {"name": "t", "target_success": 0.9, "time_to_target_s": None}, window=2)
     assert (tmp_path / "report.png").exists()

@@ -533,10 +533,20 @@ def _scalars_text(scalars: Any, limit: int = 2) -> str:
     return " ".join(f"{k}={v:.3g}" for k, v in sorted(scalars.items())[:limit]) or "-"
 
 
-def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
+NARROW_COLUMNS = 120  # below this terminal width the console leaves out the columns marked wide
+ROBOT_WIDE = ("steps", "p99", "human")
+LEARNER_WIDE = ("sync", "buffer")
+
+
+def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float, width: int = 160):
+    """The live console: a row per robot, a row per experiment. Below NARROW_COLUMNS (an 80-column terminal) it
+    drops the wide columns and the borders' padding so every header stays readable."""
+    from rich import box
     from rich.console import Group
     from rich.table import Table
 
+    narrow = width < NARROW_COLUMNS
+    style: dict[str, Any] = {"box": box.SIMPLE_HEAD, "padding": (0, 1), "pad_edge": False} if narrow else {}
     versions = {e.name: e.weight_version for e in snap.learner.experiments} if snap.learner else {}
     window = cfg.up.window_episodes
     robots = Table(
@@ -546,73 +556,99 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float):
         " · stale = learner version - acting version · p99 = control-loop period (ms)"
         " · spool = steps on the edge awaiting replay's ack (FULL: at its cap)",
         expand=True,
+        **style,
     )
-    # Short headers: the table must stay readable in an 80-column terminal.
-    for col in (
-        "robot",
-        "exp",
-        "state",
-        "eps",
-        "success",
-        "steps",
-        "steps/s",
-        "policy",
-        "stale",
-        "p99",
-        "spool",
-        "human",
-    ):
-        robots.add_column(col, justify="right" if col not in ("robot", "exp") else "left")
-    for info in sorted(snap.robots, key=lambda i: (i.experiment, i.spec.robot_id)):
-        st = info.status
-        rid = info.spec.robot_id
-        mine = [e for e in mon.ordered() if e.robot_id == rid]
-        rate = _rate_cell([e for e in mine if not e.intervention_steps][-window:], mine[-window:])
-        state = control_pb2.RobotState.Name(st.state).removeprefix("ROBOT_STATE_").lower() if info.online else "offline"
-        robots.add_row(
-            rid,
-            info.experiment or "-",
-            state,
-            str(st.episodes),
-            rate,
-            str(st.env_steps),
-            f"{st.env_steps_per_s:.1f}",
-            str(st.policy_version),
-            str(max(0, versions.get(info.experiment, 0) - st.policy_version)),
-            f"{st.loop_period_p99_ms:.1f}",
-            f"{st.spool_steps}{' FULL' if st.spool_full else ''}",
-            str(st.intervention_steps),
-        )
-    learner = Table(expand=True)
-    for col in (
-        "experiment",
-        "algo",
-        "state",
-        "updates",
-        "updates/s",
-        "weights",
-        "sync",
-        "buffer",
-        "scalars",
-        "success",
-    ):
-        learner.add_column(col, justify="left" if col in ("experiment", "algo", "state", "scalars") else "right")
-    for exp in snap.learner.experiments if snap.learner else []:
-        rate, rate_all = mon.success_rate(window, exp.name), mon.success_rate(window, exp.name, autonomous=False)
-        learner.add_row(
-            exp.name,
-            exp.algorithm,
-            exp.state if not exp.error else f"{exp.state}: {exp.error[:40]}",
-            str(exp.updates),
-            f"{exp.updates_per_s:.1f}",
-            str(exp.weight_version),
-            _sync_cell(snap.learner, exp.name),
-            str(exp.buffer_transitions),
-            _scalars_text(exp.scalars),
-            ("-" if rate is None else f"{100 * rate:.0f} %")
-            + ("" if rate_all is None or rate_all == rate else f" ({100 * rate_all:.0f} %)"),
-        )
+    rows = [_robot_cells(info, mon, versions, window) for info in sorted(snap.robots, key=_by_experiment)]
+    _fill(robots, rows, ROBOT_COLUMNS, ROBOT_WIDE if narrow else ())
+    experiments = list(snap.learner.experiments) if snap.learner else []
+    rows = [_experiment_cells(exp, snap.learner, mon, window) for exp in experiments]
+    # Narrow: each experiment's scalars on a line under the table instead of a column folded to a few letters.
+    caption = "\n".join(f"{r['experiment']}: {r['scalars']}" for r in rows) if narrow else None
+    learner = Table(expand=True, caption=caption, caption_justify="left", **style)
+    _fill(learner, rows, LEARNER_COLUMNS, (*LEARNER_WIDE, "scalars") if narrow else ())
     return Group(robots, learner)
+
+
+# Header -> left-justified; headers are short so the tables stay readable in an 80-column terminal.
+ROBOT_COLUMNS = {
+    "robot": True,
+    "exp": True,
+    "state": False,
+    "eps": False,
+    "success": False,
+    "steps": False,
+    "steps/s": False,
+    "policy": False,
+    "stale": False,
+    "p99": False,
+    "spool": False,
+    "human": False,
+}
+LEARNER_COLUMNS = {
+    "experiment": True,
+    "algo": True,
+    "state": True,
+    "updates": False,
+    "updates/s": False,
+    "weights": False,
+    "sync": False,
+    "buffer": False,
+    "scalars": True,
+    "success": False,
+}
+
+
+def _fill(table: Any, rows: list[dict[str, str]], columns: dict[str, bool], leave_out: Sequence[str]) -> None:
+    """Columns whose headers never shrink below their own width (long cells fold), then the rows."""
+    shown = [c for c in columns if c not in leave_out]
+    for col in shown:
+        overflow = "fold" if col == "scalars" else "ellipsis"
+        table.add_column(col, justify="left" if columns[col] else "right", min_width=len(col), overflow=overflow)
+    for row in rows:
+        table.add_row(*(row[c] for c in shown))
+
+
+def _by_experiment(info: control_pb2.RobotInfo) -> tuple[str, str]:
+    return info.experiment, info.spec.robot_id
+
+
+def _robot_cells(info: control_pb2.RobotInfo, mon: Monitor, versions: dict[str, int], window: int) -> dict[str, str]:
+    st, rid = info.status, info.spec.robot_id
+    mine = [e for e in mon.ordered() if e.robot_id == rid]
+    state = control_pb2.RobotState.Name(st.state).removeprefix("ROBOT_STATE_").lower() if info.online else "offline"
+    return {
+        "robot": rid,
+        "exp": info.experiment or "-",
+        "state": state,
+        "eps": str(st.episodes),
+        "success": _rate_cell([e for e in mine if not e.intervention_steps][-window:], mine[-window:]),
+        "steps": str(st.env_steps),
+        "steps/s": f"{st.env_steps_per_s:.1f}",
+        "policy": str(st.policy_version),
+        "stale": str(max(0, versions.get(info.experiment, 0) - st.policy_version)),
+        "p99": f"{st.loop_period_p99_ms:.1f}",
+        "spool": f"{st.spool_steps}{' FULL' if st.spool_full else ''}",
+        "human": str(st.intervention_steps),
+    }
+
+
+def _experiment_cells(
+    exp: learner_pb2.ExperimentStatus, status: learner_pb2.LearnerStatus, mon: Monitor, window: int
+) -> dict[str, str]:
+    rate, rate_all = mon.success_rate(window, exp.name), mon.success_rate(window, exp.name, autonomous=False)
+    return {
+        "experiment": exp.name,
+        "algo": exp.algorithm,
+        "state": exp.state if not exp.error else f"{exp.state}: {exp.error[:40]}",
+        "updates": str(exp.updates),
+        "updates/s": f"{exp.updates_per_s:.1f}",
+        "weights": str(exp.weight_version),
+        "sync": _sync_cell(status, exp.name),
+        "buffer": str(exp.buffer_transitions),
+        "scalars": _scalars_text(exp.scalars),
+        "success": ("-" if rate is None else f"{100 * rate:.0f} %")
+        + ("" if rate_all is None or rate_all == rate else f" ({100 * rate_all:.0f} %)"),
+    }
 
 
 def _rate_cell(autonomous: list[Episode], every: list[Episode]) -> str:
@@ -769,7 +805,12 @@ def _run_stack(console: Console, cfg: StackConfig, config_path: str | None, over
         mon = Monitor(stack, t0, session_start_ns)
         snap = mon.poll()
         live_view = (
-            Live(_render(snap, mon, cfg, budget_s), console=console, refresh_per_second=2, transient=False)
+            Live(
+                _render(snap, mon, cfg, budget_s, console.width),
+                console=console,
+                refresh_per_second=2,
+                transient=False,
+            )
             if cfg.up.console
             else contextlib.nullcontext()
         )
@@ -777,7 +818,7 @@ def _run_stack(console: Console, cfg: StackConfig, config_path: str | None, over
             while not stop.wait(0.5):
                 snap = mon.poll()
                 if live is not None:
-                    live.update(_render(snap, mon, cfg, budget_s))
+                    live.update(_render(snap, mon, cfg, budget_s, console.width))
                 rate = mon.success_rate(cfg.up.window_episodes, target_experiment(cfg))
                 if rate is not None and rate >= cfg.up.target_success:
                     reason, time_to_target = "target reached", snap.t
