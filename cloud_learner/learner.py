@@ -328,6 +328,7 @@ class ExperimentState:
     env_steps: int = 0
     last_publish_ns: int = 0
     last_update_mono: float = 0.0
+    waiting_for: str = ""  # why the last sample gave no batch (replay's words); "" once one does
 
 
 @dataclass
@@ -681,6 +682,7 @@ class ExperimentRun:
                 if err.code() == grpc.StatusCode.FAILED_PRECONDITION and any(
                     d in (details or "") for d in EMPTY_DETAILS
                 ):
+                    self.state.waiting_for = details or "data"
                     return None
                 self._sample_error(err.code().name.lower(), f"{err.code().name}: {details}")
                 return None
@@ -695,9 +697,11 @@ class ExperimentRun:
                 return None
             parts.append(arrays)
         self._set_transitions(transitions)
+        self.state.waiting_for = ""
         return Prefetched(to_batch(_concat(parts), self.lc.device, req.gamma), transitions)
 
     def _sample_error(self, reason: str, message: str) -> None:
+        self.state.waiting_for = f"sample refused: {message}"
         self.state.sample_errors += 1
         SAMPLE_ERRORS.labels(self.exp.name, reason).inc()
         log.error("sample failed", extra=kv(experiment=self.exp.name, reason=reason, error=message))

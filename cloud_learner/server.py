@@ -75,6 +75,7 @@ def experiment_status(st: ExperimentState) -> learner_pb2.ExperimentStatus:
         error=st.error,
         sample_errors=st.sample_errors,
         env_steps=st.env_steps,
+        waiting_for=st.waiting_for,
     )
 
 

@@ -273,7 +273,7 @@ def test_every_server_has_a_userctl_health_check_on_its_grpc_port(
         assert test[:2] == ["CMD", "userctl"], f"{name}: {test}"
         args = parser.parse_args(test[2:])
         assert args.command == "health"
-        assert args.target == f"127.0.0.1:{getattr(cfg, name).server.port}"
+        assert args.targets == [f"127.0.0.1:{getattr(cfg, name).server.port}"]
         assert args.config == CONFIG_IN_IMAGE
 
 

@@ -6,6 +6,7 @@ tmp_path), replay (LMDB), inference, learner and edge agent with MuJoCo arms."""
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import grpc
@@ -45,7 +46,9 @@ def control_at(tmp_path: Path) -> ControlService:
     return ControlService(cfg, start_metrics=False).start()
 
 
-def test_a_defined_experiment_leases_free_robots_and_survives_a_control_restart(tmp_path: Path) -> None:
+def test_a_defined_experiment_leases_free_robots_and_survives_a_control_restart(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     control = control_at(tmp_path)
     edge: Edge | None = None
     try:
@@ -54,8 +57,10 @@ def test_a_defined_experiment_leases_free_robots_and_survives_a_control_restart(
         edge.client.start()
         wait_for(lambda: edge.lease("a-0") == ("alpha", False) and "c-0" in edge.leases, "leases")
         assert edge.lease("c-0") == ("", False)  # no experiment selects it: free
-        info = define(stub, GAMMA)
+        with caplog.at_level(logging.WARNING, logger="services.control.server"):
+            info = define(stub, GAMMA)
         assert info.name == "gamma" and info.state == RUNNING and info.defined_at_runtime
+        assert not [r for r in caplog.records if "can get no robot" in r.getMessage()]  # nothing takes its robots
         wait_for(lambda: edge.lease("c-0") == ("gamma", False), "the free robot leased to gamma")
         assert edge.lease("a-0") == ("alpha", False)
         listed = stub.ListExperiments(control_pb2.ListExperimentsRequest(), timeout=5).experiments
@@ -122,6 +127,9 @@ def test_userctl_exp_define_reads_yaml(tmp_path: Path, capsys: pytest.CaptureFix
         assert "cannot read" in capsys.readouterr().err
         assert cli.main(["exp", "ls", *base]) == 0
         assert "gamma (defined)" in capsys.readouterr().out
+        path.write_text(yaml.safe_dump({**GAMMA, "name": "steal", "robots": {"labels": {"team": "a", "x": "y"}}}))
+        assert cli.main(["exp", "define", str(path), *base]) == 0
+        assert "note: experiment alpha comes first and selects every robot steal selects" in capsys.readouterr().err
     finally:
         control.stop()
 

@@ -133,3 +133,50 @@ def test_inference_routes_by_robot_and_says_why_it_cannot() -> None:
         inference.stop()
         if control is not None:
             control.stop()
+
+
+def test_one_experiment_with_a_selector_serves_only_its_robots() -> None:
+    """One configured experiment that selects arm-0: arm-1, which control knows but no selector picks, is
+    refused (FAILED_PRECONDITION) instead of acting with reach's policy; arm-0 is served."""
+    import grpc
+    import pytest
+
+    from edge_agent.control_client import ControlClient
+    from services.control.server import ControlService
+    from services.inference.server import InferenceService
+    from tests.helpers import wait_for
+    from tests.test_replay_store import spec
+    from user import wire
+    from user.v1 import control_pb2, inference_pb2, inference_pb2_grpc
+
+    cfg = StackConfig.model_validate(
+        {"auth": AUTH.model_dump(), "experiments": [{"name": "reach", "robots": {"ids": ["arm-0"]}}]}
+    )
+    for section in (cfg.control, cfg.inference):
+        section.server.port, section.server.metrics_port, section.server.grace_s = 0, 0, 0.2
+    control = ControlService(cfg, start_metrics=False).start()
+    cfg.inference.control_addr = control.address
+    inference = InferenceService(cfg, policy_source="manual", start_metrics=False).start()
+    actor = {"obs_keys": ["state"], "obs_dim": 15, "action_dim": 3, "hidden": [8], "action_low": [-1.0] * 3}
+    actor["action_high"] = [1.0] * 3
+    inference.load_weights(helpers.random_weights(actor, 4))
+    specs = [spec("arm-0"), spec("arm-1")]
+    status = lambda: [control_pb2.RobotStatus(robot_id=s.robot_id) for s in specs]  # noqa: E731
+    edge = ControlClient(control.address, AUTH, "pc-1", specs, status, lambda cmd: (True, ""))
+    stub = inference_pb2_grpc.InferenceStub(rpc.make_channel(inference.address, AUTH))
+
+    def act(robot_id: str) -> inference_pb2.ActResponse:
+        observation = wire.to_tensor_map({"state": np.zeros(15, np.float32)})
+        return stub.Act(inference_pb2.ActRequest(robot_id=robot_id, observation=observation), timeout=5)
+
+    try:
+        edge.start()
+        assert edge.wait_registered(10)
+        assert wait_for(lambda: act("arm-0").policy_version == 4, "arm-0 served")
+        with pytest.raises(grpc.RpcError) as err:
+            act("arm-1")
+        assert err.value.code() == grpc.StatusCode.FAILED_PRECONDITION and "no experiment" in err.value.details()
+    finally:
+        edge.close()
+        inference.stop()
+        control.stop()

@@ -303,13 +303,22 @@ def test_console_shows_one_row_per_robot_and_per_experiment(tmp_path: Path) -> N
     status = learner_pb2.LearnerStatus(
         experiments=[
             learner_pb2.ExperimentStatus(name="reach", algorithm="sac", state="training", scalars={"alpha": 0.1}),
-            learner_pb2.ExperimentStatus(name="pick", algorithm="sac", state="waiting_for_data"),
+            learner_pb2.ExperimentStatus(
+                name="pick",
+                algorithm="sac",
+                state="waiting_for_data",
+                waiting_for="no sampleable transitions in demos yet",
+                sample_errors=3,
+            ),
         ]
     )
     console = Console(width=160, record=True)
     console.print(_render(Snapshot(5.0, robots, status, None), mon, cfg, 600))
     text = console.export_text()
     assert all(name in text for name in ("arm-0", "panda-0", "reach", "pick", "alpha=0.1", "waiting_for_data"))
+    wide = Console(width=240, record=True)
+    wide.print(_render(Snapshot(5.0, robots, status, None), mon, cfg, 600, width=240))
+    assert "waiting_for_data: no sampleable transitions in demos yet (3 sample errors)" in wide.export_text()
     # An 80-column terminal: whole headers (the wide columns left out), scalars on lines of their own.
     narrow = Console(width=80, record=True)
     narrow.print(_render(Snapshot(5.0, robots, status, None), mon, cfg, 600, width=80))
@@ -351,6 +360,10 @@ def test_stop_rule_counts_only_episodes_without_interventions(tmp_path: Path) ->
     summary = _summary(cfg, "budget exhausted", None, None, mon.ordered(), {}, 10.0)
     assert summary["final_success_rate_autonomous"] == pytest.approx(0.25)
     assert summary["episodes_with_interventions"] == 6
+    # The headline rates are the target experiment's: another experiment's episodes do not move them.
+    other = {("arm-9", f"o{i}"): Episode("arm-9", f"o{i}", 9.0 + i, True, 1.0, 20, 2, "pick") for i in range(8)}
+    mixed = sorted([*mon.ordered(), *other.values()], key=lambda e: e.t)
+    assert _summary(cfg, "budget exhausted", None, None, mixed, {}, 10.0)["final_success_rate_autonomous"] == 0.25
     write_report(tmp_path, mon.ordered(), {**summary, "target_success": 0.9}, window=4)
     doc = json.loads((tmp_path / "metrics.json").read_text())
     assert doc["rolling_success_autonomous"][0] is None  # the first episode was helped: no unhelped one yet

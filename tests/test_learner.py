@@ -304,8 +304,10 @@ def test_refused_samples_are_errors_but_an_empty_buffer_is_not(tmp_path: Path) -
     run = ExperimentRun(learner, 0, cfg.experiments[0], [ARM])
     empty = _RefusingReplay(grpc.StatusCode.FAILED_PRECONDITION, "no sampleable transitions in online yet")
     assert run.sample_once(empty) is None and run.state.sample_errors == 0
+    assert run.state.waiting_for == "no sampleable transitions in online yet"  # shown in the console
     layout = _RefusingReplay(grpc.StatusCode.FAILED_PRECONDITION, "sampled transitions have different layouts")
     assert run.sample_once(layout) is None and run.state.sample_errors == 1
+    assert run.state.waiting_for.startswith("sample refused: FAILED_PRECONDITION: sampled transitions have")
     broken = _RefusingReplay(grpc.StatusCode.INVALID_ARGUMENT, "batch_size must be in 1..4096")
     assert run.sample_once(broken) is None and run.state.sample_errors == 2
 

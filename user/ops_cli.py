@@ -185,7 +185,24 @@ def _exp(args: argparse.Namespace, stub: control_pb2_grpc.ControlStub, out: Cons
     else:
         defined = " (defined)" if args.action == "define" else ""
         print(f"experiment {info.name}{defined}: {_state(info)}; leased {', '.join(info.leased_robots) or '-'}")
+    if args.action == "define":
+        _warn_if_shadowed(stub, info.name, args.timeout)
     return 0
+
+
+def _warn_if_shadowed(stub: control_pb2_grpc.ControlStub, name: str, timeout: float) -> None:
+    """Say so when an earlier experiment selects every robot the new one selects (first match wins)."""
+    from user.config import ExperimentConfig
+    from user.experiments import shadowed
+
+    listed = stub.ListExperiments(control_pb2.ListExperimentsRequest(), timeout=timeout).experiments
+    first = shadowed([ExperimentConfig.model_validate_json(e.definition_json) for e in listed]).get(name)
+    if first is not None:
+        print(
+            f"note: experiment {first} comes first and selects every robot {name} selects, so {name} gets none "
+            f"while {first} exists (stopping {first} holds its robots; it does not hand them on)",
+            file=sys.stderr,
+        )
 
 
 def workers_table(workers: list[control_pb2.WorkerInfo]) -> Table:

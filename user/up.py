@@ -632,6 +632,13 @@ def _robot_cells(info: control_pb2.RobotInfo, mon: Monitor, versions: dict[str, 
     }
 
 
+def _state_cell(exp: learner_pb2.ExperimentStatus) -> str:
+    """The learner's state, with why it failed, or why it has no batch yet (an empty table, a refused sample)."""
+    why = exp.error or (exp.waiting_for if exp.state != "training" else "")
+    errors = f" ({exp.sample_errors} sample errors)" if exp.sample_errors else ""
+    return f"{exp.state}: {why[:60]}{errors}" if why else exp.state + errors
+
+
 def _experiment_cells(
     exp: learner_pb2.ExperimentStatus, status: learner_pb2.LearnerStatus, mon: Monitor, window: int
 ) -> dict[str, str]:
@@ -639,7 +646,7 @@ def _experiment_cells(
     return {
         "experiment": exp.name,
         "algo": exp.algorithm,
-        "state": exp.state if not exp.error else f"{exp.state}: {exp.error[:40]}",
+        "state": _state_cell(exp),
         "updates": str(exp.updates),
         "updates/s": f"{exp.updates_per_s:.1f}",
         "weights": str(exp.weight_version),
@@ -871,9 +878,11 @@ def _summary(
     restarts: dict[str, list[int]] | None = None,
     earlier_episodes: int = 0,
 ) -> dict[str, Any]:
-    """metrics.json's document; `episodes` are this session's (`earlier_episodes` more ended in earlier runs)."""
-    window = episodes[-cfg.up.window_episodes :]
-    unhelped = [e for e in episodes if not e.intervention_steps][-cfg.up.window_episodes :]
+    """metrics.json's document; `episodes` are this session's (`earlier_episodes` more ended in earlier runs).
+    The headline success rates are the target experiment's, the one the stop rule watches."""
+    target = [e for e in episodes if e.experiment == target_experiment(cfg)]
+    window = target[-cfg.up.window_episodes :]
+    unhelped = [e for e in target if not e.intervention_steps][-cfg.up.window_episodes :]
     robots = {}
     if final:
         for info in final.robots:
@@ -954,7 +963,9 @@ def _print_summary(console: Console, summary: dict[str, Any], run_dir: Path) -> 
     earlier = summary.get("earlier_episodes")
     table.add_row("episodes", str(summary["episodes_total"]) + (f" (+{earlier} in earlier runs)" if earlier else ""))
     if summary["final_success_rate"] is not None:
-        table.add_row("success, last episodes", f"{100 * summary['final_success_rate']:.0f} %")
+        table.add_row(
+            f"success, last episodes of {summary['target_experiment']}", f"{100 * summary['final_success_rate']:.0f} %"
+        )
     if summary.get("episodes_with_interventions"):
         auto = summary["final_success_rate_autonomous"]
         table.add_row(

@@ -325,13 +325,13 @@ class Registry:
         with self._lock:
             if exp.name in self._experiments:
                 return None
+            first = shadowed([*(e.config for e in self._experiments.values()), exp]).get(exp.name)
             if self.state is not None:
                 self.state.save_definition(exp.name, exp.model_dump_json())
             rec = ExperimentRecord(exp, True, time.time_ns(), defined_at_runtime=True)
             self._experiments[exp.name] = rec
             if self.state is not None:
                 self.state.save_experiment(exp.name, True, rec.started_at_ns, 0)
-            first = shadowed([*(e.config for e in self._experiments.values()), exp]).get(exp.name)
             if first is not None:
                 log.warning(
                     "a defined experiment can get no robot: an earlier one selects all of its robots",
@@ -1104,7 +1104,10 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
             context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, f"control holds {MAX_EXPERIMENTS} experiments already")
         info = self.registry.define_experiment(exp)
         if info is None:
-            context.abort(grpc.StatusCode.ALREADY_EXISTS, f"experiment {exp.name!r} exists (stop it or pick a name)")
+            context.abort(
+                grpc.StatusCode.ALREADY_EXISTS,
+                f"experiment {exp.name!r} exists (a name keeps its history, stopped or not: pick another name)",
+            )
         who = rpc.caller(context)
         log.info("experiment defined by request", extra=kv(experiment=exp.name, by=who.name if who is not None else ""))
         return info

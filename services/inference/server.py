@@ -26,7 +26,7 @@ import torch
 
 from services.inference.batcher import ActResult, MicroBatcher, NoPolicyError
 from user import rpc, wire
-from user.config import ConfigError, ExperimentConfig, StackConfig
+from user.config import ConfigError, ExperimentConfig, RobotSelector, StackConfig
 from user.experiments import embodiment_inputs, fit_action
 from user.log import kv
 from user.policy import Policy, SteppedSampler, build_policy, check_device
@@ -158,7 +158,8 @@ class PolicySlot:
 
 class Router:
     """robot_id -> experiment: from Control's ListRobots and the experiments' selectors, cached; an
-    unknown robot refreshes the cache (at most every REFRESH_S). One experiment needs no Control."""
+    unknown robot refreshes the cache (at most every REFRESH_S). One experiment that selects every robot
+    (or the implicit default one) needs no Control; a robot no selector picks gets FAILED_PRECONDITION."""
 
     REFRESH_S = 1.0
 
@@ -174,7 +175,7 @@ class Router:
     def route(self, robot_id: str) -> tuple[str, str]:
         """(experiment, robot kind); the kind is "" when one experiment of one embodiment needs no lookup."""
         experiments = self.experiments
-        if len(experiments) == 1 and not experiments[0].shared_embodiment:
+        if len(experiments) == 1 and self._serves_every_robot(experiments[0]):
             return experiments[0].name, ""
         with self._lock:
             route = self._routes.get(robot_id)
@@ -190,6 +191,12 @@ class Router:
                 grpc.StatusCode.FAILED_PRECONDITION, f"robot {robot_id!r} is in no experiment (unknown to control?)"
             )
         return route
+
+    def _serves_every_robot(self, exp: ExperimentConfig) -> bool:
+        """No lookup needed: the experiment takes any robot (no selector, or the deprecated implicit default,
+        which has always served every robot), and one embodiment needs no robot kind."""
+        implicit = not self.cfg.experiments
+        return not exp.shared_embodiment and (implicit or exp.robots == RobotSelector())
 
     def _refresh(self) -> None:
         from user.experiments import experiment_for
