@@ -4,6 +4,8 @@ rewards and ends episodes by it. Frames: a green square (success) or a red one (
 from __future__ import annotations
 
 import json
+import re
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -113,3 +115,73 @@ def test_bad_inputs_fail_with_clear_errors(tmp_path: Path) -> None:
         TASKS.build("classifier", {"model": str(tmp_path)}, spec=_spec([SIZE, SIZE, 3]))
     with pytest.raises(PluginError, match="model"):
         TASKS.params("classifier", {})
+
+
+def _npz(root: Path, **overrides: np.ndarray | None) -> Path:
+    """12 labelled SIZE x SIZE frames with a 3-float state, any array replaced (or dropped, with None)."""
+    rng = np.random.default_rng(2)
+    labels = np.array([1, 0] * 6, np.float32)
+    arrays: dict[str, np.ndarray | None] = {
+        "images": np.stack([_frame(rng, bool(y)) for y in labels]),
+        "labels": labels,
+        "state": rng.normal(size=(12, 3)).astype(np.float32),
+        **overrides,
+    }
+    np.savez(root / "frames.npz", **{k: v for k, v in arrays.items() if v is not None})
+    return root / "frames.npz"
+
+
+def _nan_state() -> np.ndarray:
+    state = np.zeros((12, 3), np.float32)
+    state[4, 1] = np.nan
+    return state
+
+
+def _existing_file(root: Path) -> Path:
+    (root / "taken").write_text("")
+    return root / "taken"
+
+
+# case: (writes the --frames input under tmp_path, extra flags, what the stderr line must say)
+BadInput = tuple[Callable[[Path], Path], list[str], str]
+BAD_INPUTS: dict[str, BadInput] = {
+    "fewer state rows than images": (
+        lambda t: _npz(t, state=np.zeros((5, 3), np.float32)),
+        [],
+        r"state in .* \(5, 3\)",
+    ),
+    "frames smaller than the convs read": (
+        lambda t: _npz(t, images=np.zeros((12, 4, 4, 3), np.uint8)),
+        [],
+        r"4x4, .* need at least \d+x\d+",
+    ),
+    "float images in [0, 1]": (lambda t: _npz(t, images=np.full((12, SIZE, SIZE, 3), 0.5)), [], "float64, need uint8"),
+    "four-channel images": (lambda t: _npz(t, images=np.zeros((12, SIZE, SIZE, 4), np.uint8)), [], "C in"),
+    "NaN in the state": (lambda t: _npz(t, state=_nan_state()), [], "state in .* NaN"),
+    "state beyond float32": (lambda t: _npz(t, state=np.full((12, 3), 1e300)), [], "float32's range"),
+    "no labels": (lambda t: _npz(t, labels=None), [], "lacks labels"),
+    "labels not 0/1": (lambda t: _npz(t, labels=np.array([0, 2] * 6)), [], "must be 0/1"),
+    "labels of strings": (lambda t: _npz(t, labels=np.array(["yes", "no"] * 6)), [], "labels in .* need one 0/1"),
+    "one label per two frames": (lambda t: _npz(t, labels=np.array([0, 1] * 3)), [], r"\(12,\)"),
+    "--batch-size 0": (_npz, ["--batch-size", "0"], "--batch-size must be a positive integer, got 0"),
+    "--epochs -5": (_npz, ["--epochs", "-5"], "--epochs must be a positive integer, got -5"),
+    "--lr nan": (_npz, ["--lr", "nan"], "--lr must be a finite number > 0"),
+    "--seed -1": (_npz, ["--seed", "-1"], "--seed must be an integer >= 0"),
+    "--out an existing file": (_npz, ["--out", "{taken}"], "--out .*taken is a file"),
+    "--out under a file": (_npz, ["--out", "{taken}/model"], "--out .* under .*taken, which is a file"),
+    "--frames absent": (lambda t: t / "absent", [], "neither a folder"),
+    "loss diverges": (_npz, ["--lr", "1e30", "--epochs", "5"], "training loss stopped being finite"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_INPUTS))
+def test_reward_train_refuses_bad_input_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture, case: str) -> None:
+    write_frames, flags, message = BAD_INPUTS[case]
+    frames, taken = write_frames(tmp_path), _existing_file(tmp_path)
+    out_flags = [] if "--out" in flags else ["--out", str(tmp_path / "model")]
+    argv = ["reward", "train", "--frames", str(frames), *out_flags, *(f.format(taken=taken) for f in flags)]
+    assert userctl(argv) == 2
+    captured = capsys.readouterr()
+    assert captured.out == "" and len(captured.err.splitlines()) == 1, captured.err
+    assert re.match(rf"userctl reward train: .*{message}", captured.err), captured.err
+    assert not list(tmp_path.rglob("*.safetensors")) and not list(tmp_path.rglob("config.json"))

@@ -3,7 +3,11 @@
 Train it from labelled frames with `userctl reward train --frames DIR_OR_NPZ --out DIR`:
 
 - a folder with `success/` and `failure/` subfolders of PNG or JPEG frames (all the same size), or
-- an `.npz` with `images` (N, H, W, C) uint8, `labels` (N,) 0/1 and optionally `state` (N, D).
+- an `.npz` with `images` (N, H, W, C) uint8 (C 1 or 3), `labels` (N,) 0/1 and optionally `state` (N, D) finite.
+
+Bad inputs (wrong shapes or dtypes, float pixels, frames smaller than the convolutions read, non-finite state,
+out-of-range flags, an --out that is a file) are refused before training, and a run whose loss stops being finite
+saves nothing: `userctl reward train` reports either in one line and exits 2.
 
 The model is the CNN encoder of the "cnn" policy (user.policies.cnn) plus an MLP giving one logit.
 It is saved as `DIR/model.safetensors` (weights) and `DIR/config.json` (architecture, camera key,
@@ -15,7 +19,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import os
 import sys
+import zipfile
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -25,11 +33,17 @@ from pydantic import BaseModel, ConfigDict, Field
 from safetensors.torch import load_file, save_file
 from torch import nn
 
-from user.policies.cnn import ConvEncoder, random_shift
+from user.policies.cnn import CameraEncoder, ConvEncoder, random_shift
 from user.policies.mlp import mlp
 
 MODEL_FILE, CONFIG_FILE = "model.safetensors", "config.json"
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg"}
+IMAGE_CHANNELS = (1, 3)
+_PROBE_SIDE = 256  # a frame side the default conv stack accepts, so an encoder can be built and its convs read
+
+
+class TrainingDiverged(RuntimeError):
+    """The loss or the weights stopped being finite: the model would be useless, so it is not saved."""
 
 
 class ClassifierConfig(BaseModel):
@@ -90,36 +104,110 @@ class SuccessClassifier(nn.Module):
 # --- labelled frames ------------------------------------------------------------------------------
 
 
+def smallest_frame(channels: Sequence[int], strides: Sequence[int]) -> tuple[int, int]:
+    """The least (H, W) the classifier's convolutions accept: one output pixel after the last conv, walked back
+    through each conv's kernel, stride, padding and dilation (read from the layers, so it follows the model)."""
+    encoder = CameraEncoder((_PROBE_SIDE, _PROBE_SIDE, 1), channels, strides, latent_dim=1)
+    convs = [m for m in encoder.convs if isinstance(m, nn.Conv2d)]
+    sides = [1, 1]
+    for conv in reversed(convs):
+        padding = (0, 0) if isinstance(conv.padding, str) else conv.padding  # a string mode ("valid") pads nothing
+        for dim in (0, 1):
+            reach = conv.dilation[dim] * (conv.kernel_size[dim] - 1) + 1
+            sides[dim] = max(1, (sides[dim] - 1) * conv.stride[dim] + reach - 2 * padding[dim])
+    return sides[0], sides[1]
+
+
+def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {key: data[key] for key in ("images", "labels", "state") if key in data}
+    # empty, truncated or pickled files, object arrays, or a bare .npy (no archive to open as a context)
+    except (ValueError, EOFError, TypeError, zipfile.BadZipFile) as exc:
+        raise ValueError(f"{path} is not a readable .npz of arrays: {exc}") from None
+    missing = [key for key in ("images", "labels") if key not in arrays]
+    if missing:
+        raise ValueError(f"{path} lacks {' and '.join(missing)} (it has {sorted(arrays)})")
+    return arrays["images"], arrays["labels"], arrays.get("state")
+
+
+def _read_folder(path: Path) -> tuple[np.ndarray, np.ndarray, None]:
+    from PIL import Image
+
+    frames, labels_list = [], []
+    for label, folder in ((1.0, "success"), (0.0, "failure")):
+        files = sorted(p for p in (path / folder).glob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
+        for file in files:
+            with Image.open(file) as img:
+                frames.append(np.asarray(img.convert("RGB"), np.uint8))
+            labels_list.append(label)
+    if not frames:
+        raise ValueError(f"{path} has no PNG/JPEG frames in success/ or failure/")
+    shapes = {f.shape for f in frames}
+    if len(shapes) != 1:
+        raise ValueError(f"frames in {path} differ in size: {sorted(shapes)}")
+    return np.stack(frames), np.asarray(labels_list, np.float32), None
+
+
+def _check_images(images: np.ndarray, source: Path) -> np.ndarray:
+    if images.dtype != np.uint8:
+        hint = " (scale [0, 1] floats by 255 and cast them to uint8 yourself)" if images.dtype.kind == "f" else ""
+        raise ValueError(f"images in {source} are {images.dtype}, need uint8 pixels 0..255{hint}")
+    if images.ndim != 4 or images.shape[-1] not in IMAGE_CHANNELS:
+        raise ValueError(f"images in {source} are {images.shape}, need (N, H, W, C) with C in {IMAGE_CHANNELS}")
+    default = ClassifierConfig(image_shape=list(images.shape[1:]))
+    least = smallest_frame(default.channels, default.strides)
+    if images.shape[1] < least[0] or images.shape[2] < least[1]:
+        raise ValueError(
+            f"frames in {source} are {images.shape[1]}x{images.shape[2]}, the classifier's convolutions "
+            f"need at least {least[0]}x{least[1]}"
+        )
+    return images
+
+
+def _check_labels(labels: np.ndarray, frames: int, source: Path) -> np.ndarray:
+    if labels.dtype.kind not in "biuf" or labels.shape != (frames,):
+        raise ValueError(
+            f"labels in {source} are {labels.dtype} {labels.shape}, need one 0/1 number per frame ({frames},)"
+        )
+    values = set(np.unique(labels).tolist())
+    if not values <= {0, 1} or len(values) < 2:
+        raise ValueError(f"labels in {source} must be 0/1 and include both success and failure frames")
+    return labels.astype(np.float32)
+
+
+def _check_state(state: np.ndarray, frames: int, source: Path) -> np.ndarray:
+    if state.dtype.kind not in "biuf" or state.ndim != 2 or len(state) != frames:
+        raise ValueError(
+            f"state in {source} is {state.dtype} {state.shape}, need numbers (N, D) with one row per "
+            f"frame (N = {frames})"
+        )
+    with np.errstate(over="ignore"):  # overflow is what the check below reports
+        state = state.astype(np.float32)
+    if not np.isfinite(state).all():  # after the cast: float64 beyond float32's range becomes inf here
+        raise ValueError(f"state in {source} has values that are NaN, infinite or beyond float32's range")
+    return state
+
+
+def check_frames(
+    images: np.ndarray, labels: np.ndarray, state: np.ndarray | None, source: Path
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """The arrays as training needs them, or ValueError naming `source` and what is wrong."""
+    images = _check_images(np.asarray(images), source)
+    labels = _check_labels(np.asarray(labels), len(images), source)
+    return images, labels, None if state is None else _check_state(np.asarray(state), len(images), source)
+
+
 def load_frames(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """(images uint8 (N, H, W, C), labels float32 (N,), state float32 (N, D) or None)."""
+    """(images uint8 (N, H, W, C), labels float32 (N,), state float32 (N, D) or None), checked by check_frames."""
     path = Path(path)
     if path.is_file() and path.suffix == ".npz":
-        with np.load(path, allow_pickle=False) as data:
-            images, labels = np.asarray(data["images"], np.uint8), np.asarray(data["labels"], np.float32)
-            state = np.asarray(data["state"], np.float32) if "state" in data else None
+        images, labels, state = _read_npz(path)
     elif path.is_dir():
-        from PIL import Image
-
-        frames, labels_list = [], []
-        for label, folder in ((1.0, "success"), (0.0, "failure")):
-            files = sorted(p for p in (path / folder).glob("*") if p.suffix.lower() in IMAGE_SUFFIXES)
-            for file in files:
-                with Image.open(file) as img:
-                    frames.append(np.asarray(img.convert("RGB"), np.uint8))
-                labels_list.append(label)
-        if not frames:
-            raise ValueError(f"{path} has no PNG/JPEG frames in success/ or failure/")
-        shapes = {f.shape for f in frames}
-        if len(shapes) != 1:
-            raise ValueError(f"frames in {path} differ in size: {sorted(shapes)}")
-        images, labels, state = np.stack(frames), np.asarray(labels_list, np.float32), None
+        images, labels, state = _read_folder(path)
     else:
         raise ValueError(f"{path} is neither a folder of success/ and failure/ frames nor an .npz")
-    if images.ndim != 4 or len(images) != len(labels):
-        raise ValueError(f"need images (N, H, W, C) and N labels, got {images.shape} and {labels.shape}")
-    if not set(np.unique(labels).tolist()) <= {0.0, 1.0} or len(np.unique(labels)) < 2:
-        raise ValueError("labels must be 0/1 and include both success and failure frames")
-    return images, labels, state
+    return check_frames(images, labels, state, path)
 
 
 # --- training -------------------------------------------------------------------------------------
@@ -136,7 +224,9 @@ def train_classifier(
     image_pad: int = 2,
     seed: int = 0,
 ) -> SuccessClassifier:
-    """Binary cross-entropy on randomly shifted frames, success rows reweighted to balance the classes."""
+    """Binary cross-entropy on randomly shifted frames, success rows reweighted to balance the classes.
+
+    Takes arrays as load_frames returns them; raises TrainingDiverged when the loss or the weights stop being finite."""
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     config = ClassifierConfig(
@@ -162,16 +252,23 @@ def train_classifier(
     pos_weight = torch.tensor((len(train) - positives) / max(positives, 1.0))
     optimizer = torch.optim.Adam(model.parameters(), lr=lr)
     loss = torch.zeros(())
-    for _ in range(epochs):
+    for epoch in range(epochs):
         shuffled = rng.permutation(train)
         for start in range(0, len(shuffled), batch_size):
             idx = shuffled[start : start + batch_size]
             logits = model(obs(idx, True))  # shifted frames: the DrQ augmentation the RL encoders see
             loss = nn.functional.binary_cross_entropy_with_logits(logits, y[idx], pos_weight=pos_weight)
+            if not torch.isfinite(loss):
+                raise TrainingDiverged(
+                    f"the training loss stopped being finite ({loss.item()}) in epoch {epoch + 1}; "
+                    "lower the learning rate (--lr) or rescale the state"
+                )
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
 
+    if not all(torch.isfinite(p).all() for p in model.parameters()):  # the last step can overflow the weights
+        raise TrainingDiverged("the weights stopped being finite after training; lower the learning rate (--lr)")
     model.eval()
     with torch.no_grad():
         metrics = {"train_loss": float(loss.detach()), "frames": float(len(labels))}
@@ -212,14 +309,78 @@ def load_classifier(path: str | Path, device: str = "cpu") -> SuccessClassifier:
 # --- `userctl reward train` -----------------------------------------------------------------------
 
 
-def run_cli(args: argparse.Namespace) -> int:
-    try:
-        images, labels, state = load_frames(args.frames)
-    except (ValueError, OSError, KeyError) as exc:
-        print(f"userctl reward train: {exc}", file=sys.stderr)
-        return 2
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    """argparse type: an integer >= 0 (a seed)."""
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite float > 0."""
+    value = float(text)
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
+# The ranges of `userctl reward train`'s numeric flags (attribute, flag, argparse type).
+FLAG_TYPES: tuple[tuple[str, str, Callable[[str], Any]], ...] = (
+    ("epochs", "--epochs", positive_int),
+    ("batch_size", "--batch-size", positive_int),
+    ("lr", "--lr", positive_float),
+    ("seed", "--seed", non_negative_int),
+)
+
+
+def check_flags(args: argparse.Namespace) -> None:
+    """Re-apply the argparse types, so a parser that declared plain int/float still gets the ranges enforced."""
+    for attribute, flag, parse in FLAG_TYPES:
+        try:
+            parse(str(getattr(args, attribute)))
+        except (argparse.ArgumentTypeError, ValueError) as exc:
+            raise ValueError(f"{flag} {exc}") from None
+    if not args.camera:
+        raise ValueError("--camera must name an observation key, got an empty string")
+
+
+def check_out_folder(out: Path) -> None:
+    """Refuse before training an --out that cannot become a writable folder: a file, or a path through one."""
+    existing = next(p for p in (out, *out.parents) if p.exists())
+    if existing == out and not out.is_dir():
+        raise ValueError(f"--out {out} is a file, not a folder")
+    if not existing.is_dir():
+        raise ValueError(f"--out {out} lies under {existing}, which is a file, not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ValueError(f"--out {out}: {existing} is not writable")
+
+
+def _train_and_save(args: argparse.Namespace) -> SuccessClassifier:
+    check_flags(args)
+    check_out_folder(Path(args.out))
+    images, labels, state = load_frames(args.frames)
     model = train_classifier(images, labels, state, args.camera, args.epochs, args.batch_size, args.lr, seed=args.seed)
-    out = save_classifier(model, args.out)
-    summary: dict[str, Any] = {"out": str(out), **model.config.metrics}
+    save_classifier(model, args.out)
+    return model
+
+
+def run_cli(args: argparse.Namespace) -> int:
+    """`userctl reward train`: 0 and a JSON summary on stdout, or 2 and one line on stderr saying what is wrong."""
+    try:
+        model = _train_and_save(args)
+    except (ValueError, OSError, TrainingDiverged) as exc:
+        message = " ".join(str(exc).split())  # one line, whatever the exception's text
+        print(f"userctl reward train: {message}", file=sys.stderr)
+        return 2
+    summary: dict[str, Any] = {"out": str(Path(args.out)), **model.config.metrics}
     print(json.dumps(summary))
     return 0
