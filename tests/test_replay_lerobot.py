@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.replay.lerobot_io import export_dataset
+from services.replay.lerobot_io import _as_declared, export_dataset
 from services.replay.store import ReplayStore
 from services.replay.tables import Draw
 from user import wire
@@ -87,7 +87,7 @@ def test_lerobot_round_trip(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     original = LeRobotDataset("local/made", root=src)
     again = LeRobotDataset("local/exported", root=out)
     assert (again.num_episodes, again.num_frames, again.fps) == (2, 8, FPS)
-    assert set(original.features) == set(again.features)
+    assert set(again.features) == set(original.features) | {"next.success"}  # made without it
     for i in range(8):
         a, b = original[i], again[i]
         for key in ("observation.state", "observation.images.front", "action", "next.reward", "next.done"):
@@ -261,3 +261,151 @@ def test_replay_tools_find_the_buffer_where_up_puts_it(
     assert hint in capsys.readouterr().err
     assert main(["replay", "ls", "-c", str(config), "--path", str(elsewhere)]) == 2  # --path wins
     assert f"no replay buffer at {elsewhere}\n" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- dtypes and success through a round trip
+
+
+TOKENS = 64
+
+
+def lang_spec(robot_id: str = "lang-0") -> robot_pb2.RobotSpec:
+    """lang_reach_arm's shape: a float32 state and uint8 instruction tokens (not an image)."""
+    return robot_pb2.RobotSpec(
+        robot_id=robot_id,
+        kind="lang_reach_arm",
+        action=robot_pb2.ActionSpace(shape=[3], low=[-1] * 3, high=[1] * 3, dtype=tpb.DTYPE_FLOAT32),
+        observation=[
+            robot_pb2.FeatureSpec(name="instruction", dtype=tpb.DTYPE_UINT8, shape=[TOKENS]),
+            robot_pb2.FeatureSpec(name="state", dtype=tpb.DTYPE_FLOAT32, shape=[4]),
+        ],
+        control_rate_hz=10,
+        max_episode_steps=50,
+    )
+
+
+def lang_episode(
+    spec: robot_pb2.RobotSpec, name: str, length: int, success: bool, reward: float
+) -> list[step_pb2.Step]:
+    """Tokens up to 255 (so an int64 copy differs from uint8 in dtype only); the last step ends the episode."""
+    steps = []
+    for t in range(length):
+        tokens = (np.arange(TOKENS) * 7 + 250 + t) % 256
+        obs = {"instruction": tokens.astype(np.uint8), "state": np.full(4, t + 0.5, np.float32)}
+        last = t == length - 1
+        steps.append(
+            step_pb2.Step(
+                robot_id=spec.robot_id,
+                episode_id=name,
+                step_index=t,
+                observation=wire.to_tensor_map(obs),
+                action=wire.to_tensor(np.full(3, t / 10, np.float32)),
+                reward=reward if last else 0.0,
+                terminated=last,
+                success=success and last,
+            )
+        )
+    steps[-1].final_observation.CopyFrom(steps[-1].observation)
+    return steps
+
+
+@pytest.fixture
+def lang_buffer(tmp_path: Path) -> Path:
+    """Online: a successful episode, then a failed one whose last reward is 0.98."""
+    path = tmp_path / "replay"
+    spec = lang_spec()
+    store = ReplayStore(path, 64)
+    try:
+        store.put_steps(lang_episode(spec, "won", 4, success=True, reward=1.0), [spec])
+        store.put_steps(lang_episode(spec, "lost", 3, success=False, reward=0.98), [spec])
+    finally:
+        store.close()
+    return path
+
+
+def import_args(src: Path, buffer: Path, *more: str) -> list[str]:
+    return ["replay", "import", str(src), "--repo-id", "local/lang", "--path", str(buffer), *more]
+
+
+def test_round_trip_keeps_dtypes_and_samples_with_the_original(
+    lang_buffer: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "lang"
+    assert main(export_args(lang_buffer, out, "--table", "online")) == 0
+    assert main(import_args(out, lang_buffer, "--table", "demos")) == 0  # under its own robot id
+    assert main(import_args(out, lang_buffer, "--table", "again", "--robot-id", "lang-0")) == 0  # the spec's robot
+    assert "2 episodes, 7 frames" in capsys.readouterr().out
+    store = ReplayStore(lang_buffer, 64)
+    try:
+        assert store.get_spec("lang-0") == lang_spec()  # kept as registered
+        imported = store.get_spec("lerobot-local-lang")
+        assert {f.name: (f.dtype, list(f.shape)) for f in imported.observation} == {
+            "instruction": (tpb.DTYPE_UINT8, [TOKENS]),
+            "state": (tpb.DTYPE_FLOAT32, [4]),
+        }
+        for tables in ({"demos": 1}, {"online": 1, "demos": 1, "again": 1}):
+            batch = store.sample(96, np.random.default_rng(0), draw=Draw(batch_size=96, tables=tables))
+            tokens, state = batch["observation"]["instruction"], batch["observation"]["state"]
+            assert tokens.dtype == np.uint8 and tokens.shape == (96, TOKENS) and state.dtype == np.float32
+            t = np.rint(state[:, 0] - 0.5).astype(np.int64)  # step index
+            np.testing.assert_array_equal(tokens, ((np.arange(TOKENS) * 7 + 250 + t[:, None]) % 256).astype(np.uint8))
+    finally:
+        store.close()
+
+
+def test_round_trip_keeps_a_failed_episode_with_a_positive_reward_failed(
+    lang_buffer: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    out = tmp_path / "lang"
+    assert main(export_args(lang_buffer, out, "--table", "online")) == 0
+    dataset = LeRobotDataset("local/out", root=out)
+    assert [bool(dataset[i]["next.success"]) for i in range(7)] == [False] * 3 + [True] + [False] * 3
+    assert main(import_args(out, lang_buffer, "--table", "demos")) == 0
+    store = ReplayStore(lang_buffer, 0)
+    try:
+        stats = store.table_stats()
+        assert stats["online"]["success_rate"] == 0.5 and stats["demos"]["success_rate"] == 0.5
+        assert stats["demos"]["episodes"] == 2
+    finally:
+        store.close()
+
+
+def test_import_refuses_steps_that_do_not_match_the_known_spec_before_writing(
+    lang_buffer: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    src = tmp_path / "wide"
+    features = {
+        "observation.instruction": {"dtype": "int64", "shape": (TOKENS,), "names": None},
+        "observation.state": {"dtype": "float32", "shape": (4,), "names": None},
+        "action": {"dtype": "float32", "shape": (3,), "names": None},
+    }
+    ds = LeRobotDataset.create("local/lang", 10, features, root=src, use_videos=False)
+    for _ in range(2):
+        frame = {"observation.instruction": np.zeros(TOKENS, np.int64), "observation.state": np.zeros(4, np.float32)}
+        ds.add_frame({**frame, "action": np.zeros(3, np.float32), "task": "reach"})
+    ds.save_episode()
+    ds.finalize()
+    assert main(import_args(src, lang_buffer, "--robot-id", "lang-0")) == 2
+    err = capsys.readouterr().err
+    assert "'instruction'" in err and "dtype int64, spec says uint8" in err and "lang-0" in err
+    store = ReplayStore(lang_buffer, 0)
+    try:
+        assert store.stats()["steps"] == 7 and "demos" not in store.table_stats()  # nothing written
+    finally:
+        store.close()
+
+
+@pytest.mark.parametrize(
+    ("value", "dtype"),
+    [(np.array([1, 300]), "uint8"), (np.array([-1, 2]), "uint8"), (np.array([0.5]), "int64"), (np.array([2]), "bool")],
+)
+def test_import_refuses_a_value_that_does_not_fit_its_declared_dtype(value: np.ndarray, dtype: str) -> None:
+    with pytest.raises(ValueError, match=f"feature 'observation.instruction': value .* the dtype {dtype}"):
+        _as_declared("observation.instruction", value, np.dtype(dtype), value.shape)
+    fits = _as_declared("observation.instruction", np.array([0, 1, 255]), np.dtype("uint8"), (3,))
+    assert fits.dtype == np.uint8 and fits.tolist() == [0, 1, 255]
+    assert _as_declared("next.reward", np.float32(2.5), np.dtype("float32"), (1,)).shape == (1,)

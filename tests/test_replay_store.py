@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -202,6 +203,27 @@ def test_robots_with_different_layouts_are_sampled_separately(store: ReplayStore
         for seed in range(20):
             store.sample(16, np.random.default_rng(seed))
     assert store.sample(16, np.random.default_rng(0), robot_ids=["big-0"])["observation"]["state"].shape == (16, 9)
+
+
+def test_a_cold_layout_mismatch_names_the_odd_step_and_the_feature(tmp_path: Path) -> None:
+    store = ReplayStore(tmp_path / "replay", 64, cache_mb=0)  # no hot tier: every draw is read from LMDB
+    try:
+        store.put_steps(episode("arm-0", "a", 3) + episode("big-0", "b", 3, dim=9))
+        with pytest.raises(LayoutError) as raised:
+            for seed in range(20):
+                store.sample(16, np.random.default_rng(seed))
+    finally:
+        store.close()
+    found = re.search(
+        r"step (\d) of robot '(\S+)' episode '(\w)' has feature 'state' float32 \((\d),\), "
+        r"step \d of robot '(\S+)' episode '\w' float32 \((\d),\)",
+        str(raised.value),
+    )
+    assert found is not None, str(raised.value)
+    odd_robot, odd_episode, odd_dim, first_robot, first_dim = found[2], found[3], found[4], found[5], found[6]
+    dims = {"arm-0": "6", "big-0": "9"}
+    assert odd_robot != first_robot and dims[odd_robot] == odd_dim and dims[first_robot] == first_dim
+    assert odd_episode == {"arm-0": "a", "big-0": "b"}[odd_robot]
 
 
 def test_a_full_map_stores_nothing_of_the_batch(tmp_path: Path) -> None:

@@ -53,6 +53,45 @@ def test_intervention_steps_are_also_in_the_interventions_table(store: ReplaySto
     assert stats["interventions"]["transitions"] == 3 and stats["interventions"]["episodes"] == 1
 
 
+def test_interventions_table_stats_count_the_episodes_a_human_stepped_into(tmp_path: Path) -> None:
+    """Per robot rows add up to the table's; success is the episode's outcome, as the online table counts it."""
+    path = tmp_path / "replay"
+    store = ReplayStore(path, 64)
+    try:
+        rescued = episode("arm-0", "rescued", 6, terminated=True)  # a human took over at step 2, and it succeeded
+        for s in rescued[2:4]:
+            s.intervention = True
+        rescued[-1].success = True
+        failed = episode("arm-1", "failed", 4)  # a human stepped in once; the episode still failed
+        failed[1].intervention = True
+        alone = episode("arm-0", "alone", 5, terminated=True)  # no human step: not in "interventions"
+        alone[-1].success = True
+        store.put_steps(rescued + failed + alone)
+        teleop = episode("arm-0", "teleop", 3, terminated=True, intervention=True)  # inserted there whole
+        teleop[-1].success = True
+        store.put_steps(teleop, table="interventions")
+        before = store.table_stats()
+    finally:
+        store.close()
+    again = ReplayStore(path, 64)  # the index rebuilt from LMDB counts the same
+    try:
+        assert again.table_stats() == before
+    finally:
+        again.close()
+    human = before["interventions"]
+    assert (human["episodes"], human["successes"], human["steps"], human["transitions"]) == (3, 2, 6, 6)
+    assert human["success_rate"] == 2 / 3 and human["bytes"] == before["interventions"]["robots"]["arm-0"]["bytes"]
+    robots = human["robots"]
+    assert {r: (v["episodes"], v["successes"], v["steps"]) for r, v in robots.items()} == {
+        "arm-0": (2, 2, 5),
+        "arm-1": (1, 0, 1),
+    }
+    for key in ("episodes", "successes", "steps", "transitions", "bytes"):
+        assert sum(r[key] for r in robots.values()) == human[key], key
+    online = before["online"]
+    assert (online["episodes"], online["successes"], online["steps"]) == (3, 2, 15)
+
+
 def test_tables_survive_reopen_in_arrival_order(tmp_path: Path) -> None:
     path = tmp_path / "replay"
     store = ReplayStore(path, 64)

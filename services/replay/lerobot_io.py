@@ -2,7 +2,12 @@
 
 Names map one to one: our "state" <-> "observation.state", "camera.<cam>" (H, W, 3 uint8) <->
 "observation.images.<cam>" (dtype "image", stored losslessly), any other observation feature "<f>"
-<-> "observation.<f>", action <-> "action", reward <-> "next.reward", terminated <-> "next.done".
+<-> "observation.<f>", action <-> "action", reward <-> "next.reward", terminated <-> "next.done",
+success <-> "next.success" (a dataset without it: success = done and reward > 0).
+
+Import gives every feature the dtype and shape the dataset declares (lerobot hands back int64 tensors
+for a uint8 feature, and shape () for a (1,) one), refusing a value that does not fit; when the buffer
+already has a spec for the robot id, the steps must match it, checked before anything is written.
 
 A dataset episode of T frames is T steps. A dataset has no observation after its last frame, so on
 import the last step's final_observation is its own observation (as lerobot's own
@@ -16,6 +21,7 @@ in-memory index would not see the new steps), or import into a new path.
 from __future__ import annotations
 
 import logging
+import math
 import re
 import shutil
 from collections.abc import Iterator
@@ -27,12 +33,14 @@ import numpy as np
 
 from services.replay.store import ReplayStore, arrays_of, tensor_array
 from services.replay.tables import ALL, INTERVENTIONS
+from services.replay.validate import StepError, check_tensor_map
 from user import wire
 from user.v1 import robot_pb2, step_pb2
 
 log = logging.getLogger(__name__)
 IMAGE_PREFIX = "camera."
 CHUNK = 256
+CHECK_ROWS = 4096  # frames per read of the columns checked before an import writes
 
 
 def _dataset_name(ours: str) -> str:
@@ -104,6 +112,7 @@ def _features(step: step_pb2.Step) -> dict[str, dict[str, Any]]:
     features["action"] = {"dtype": "float32", "shape": tuple(action.shape), "names": None}
     features["next.reward"] = {"dtype": "float32", "shape": (1,), "names": None}
     features["next.done"] = {"dtype": "bool", "shape": (1,), "names": None}
+    features["next.success"] = {"dtype": "bool", "shape": (1,), "names": None}
     return features
 
 
@@ -148,6 +157,7 @@ def _write_episodes(ds: Any, store: ReplayStore, prefixes: list[bytes], task: st
             frame["action"] = tensor_array(step.action).astype(np.float32)
             frame["next.reward"] = np.array([step.reward], np.float32)
             frame["next.done"] = np.array([step.terminated])
+            frame["next.success"] = np.array([step.success])
             frame["task"] = task
             ds.add_frame(frame)
             frames += 1
@@ -222,6 +232,70 @@ def _uint8_image(value: Any) -> np.ndarray:
     return np.ascontiguousarray(array)
 
 
+@dataclass(frozen=True)
+class _Column:
+    """An observation feature of a dataset: our name for it and the dtype and shape it declares (None: an image)."""
+
+    ours: str
+    dtype: np.dtype | None
+    shape: tuple[int, ...]
+
+
+def _observation_columns(ds: Any) -> dict[str, _Column]:
+    columns = {}
+    for theirs, feature in ds.features.items():
+        ours = _our_name(theirs)
+        if ours is None:
+            continue
+        if feature["dtype"] in ("image", "video"):
+            columns[theirs] = _Column(ours, None, ())
+        else:
+            columns[theirs] = _Column(ours, _declared_dtype(theirs, feature["dtype"]), tuple(feature["shape"]))
+    return columns
+
+
+def _declared_dtype(name: str, text: str) -> np.dtype:
+    try:
+        dtype = np.dtype(text)
+    except TypeError:
+        dtype = np.dtype(object)
+    if dtype.kind not in "biuf":
+        raise ValueError(f"feature {name!r}: dtype {text!r} in meta/info.json is not a number or bool dtype")
+    return dtype
+
+
+def _cast(name: str, array: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """array as dtype; ValueError naming the feature when a value does not fit (out of range, fractional, NaN)."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        out = array.astype(dtype)
+        lost = np.isfinite(array) & ~np.isfinite(out) if dtype.kind == "f" else out.astype(array.dtype) != array
+    if lost.any():
+        value = array[lost].flat[0]
+        raise ValueError(f"feature {name!r}: value {value!r} does not fit the dtype {dtype} meta/info.json declares")
+    return out
+
+
+def _as_declared(name: str, value: Any, dtype: np.dtype, shape: tuple[int, ...]) -> np.ndarray:
+    """One frame's value in the dtype and shape the dataset declares (lerobot returns int64 for uint8, () for (1,))."""
+    array = np.asarray(value.numpy() if hasattr(value, "numpy") else value)
+    if array.size != math.prod(shape):
+        raise ValueError(f"feature {name!r}: {array.size} values where meta/info.json declares shape {shape}")
+    return np.ascontiguousarray(_cast(name, array, dtype).reshape(shape))
+
+
+def _check_columns(ds: Any, columns: dict[str, _Column]) -> None:
+    """Every non-image value fits its declared dtype and shape: read column by column, before anything is written."""
+    numeric = {theirs: (c.dtype, c.shape) for theirs, c in columns.items() if c.dtype is not None}
+    if not numeric:
+        return
+    table = ds.hf_dataset.select_columns(list(numeric))
+    for start in range(0, len(table), CHECK_ROWS):
+        rows = table[start : start + CHECK_ROWS]
+        for theirs, (dtype, shape) in numeric.items():
+            for value in rows[theirs]:
+                _as_declared(theirs, value, dtype, shape)
+
+
 def import_dataset(
     root: str | Path,
     repo_id: str,
@@ -235,56 +309,93 @@ def import_dataset(
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     ds = LeRobotDataset(repo_id, root=root)
-    rid = robot_id or _safe(f"lerobot-{repo_id}")
-    obs_names = {k: _our_name(k) for k, f in ds.features.items() if _our_name(k) is not None}
-    images = {k for k, f in ds.features.items() if f["dtype"] in ("image", "video")}
+    columns = _observation_columns(ds)
+    _check_columns(ds, columns)
     store = ReplayStore(store_path, map_size_mb, cache_mb=0, max_map_mb=max(map_size_mb, 1 << 20))
     try:
-        steps: list[step_pb2.Step] = []
-        spec: robot_pb2.RobotSpec | None = None
-        episodes = frames = 0
-        ep_index = np.asarray(ds.hf_dataset["episode_index"])
-        bounds = np.flatnonzero(np.diff(ep_index)) + 1
-        for start, stop in zip(np.r_[0, bounds], np.r_[bounds, len(ep_index)], strict=True):
-            for i in range(int(start), int(stop)):
-                item = ds[i]
-                obs = {}
-                for theirs, ours in obs_names.items():
-                    value = item[theirs]
-                    if theirs in images:
-                        obs[ours] = _uint8_image(value)
-                    else:
-                        obs[ours] = np.asarray(value.numpy() if hasattr(value, "numpy") else value)
-                last = i == stop - 1
-                done = bool(np.asarray(item["next.done"]).reshape(-1)[0]) if "next.done" in item else False
-                reward = float(np.asarray(item["next.reward"]).reshape(-1)[0]) if "next.reward" in item else 0.0
-                action = np.asarray(item["action"].numpy() if hasattr(item["action"], "numpy") else item["action"])
-                step = step_pb2.Step(
-                    robot_id=rid,
-                    episode_id=f"{_safe(repo_id)}-{int(ep_index[start]):06d}",
-                    step_index=i - int(start),
-                    observation=wire.to_tensor_map(obs),
-                    action=wire.to_tensor(action.astype(np.float32)),
-                    reward=reward,
-                    terminated=last and done,
-                    truncated=last and not done,
-                    success=done and reward > 0,
-                )
-                if last:
-                    step.final_observation.CopyFrom(step.observation)
-                if spec is None:
-                    spec = _spec_for(rid, repo_id, ds, step)
-                steps.append(step)
-                frames += 1
-                if len(steps) >= CHUNK:
-                    store.put_steps(steps, [spec], table)
-                    steps = []
-            episodes += 1
-        if steps:
-            store.put_steps(steps, [spec] if spec is not None else [], table)
+        episodes, frames = _import_into(store, ds, repo_id, robot_id or _safe(f"lerobot-{repo_id}"), columns, table)
         return Summary(episodes, frames, str(store_path))
     finally:
         store.close()
+
+
+def _import_into(
+    store: ReplayStore, ds: Any, repo_id: str, robot_id: str, columns: dict[str, _Column], table: str
+) -> tuple[int, int]:
+    """Every frame of ds as a step of robot_id in `table`; (episodes, frames)."""
+    known = store.get_spec(robot_id)
+    new_specs: list[robot_pb2.RobotSpec] = []  # registered with the steps; a spec the buffer knows stays as it is
+    steps: list[step_pb2.Step] = []
+    frames = 0
+    ep_index = np.asarray(ds.hf_dataset["episode_index"])
+    bounds = np.flatnonzero(np.diff(ep_index)) + 1
+    starts, stops = np.r_[0, bounds].tolist(), np.r_[bounds, len(ep_index)].tolist()
+    for start, stop in zip(starts, stops, strict=True):
+        episode_id = f"{_safe(repo_id)}-{int(ep_index[start]):06d}"
+        for i in range(start, stop):
+            step = _step_of(ds[i], columns, robot_id, episode_id, i - start, last=i == stop - 1)
+            if frames == 0:  # the first step, before anything is written; the others share its dtypes and shapes
+                if known is not None:
+                    _check_spec(step, known)
+                else:
+                    new_specs = [_spec_for(robot_id, repo_id, ds, step)]
+            steps.append(step)
+            frames += 1
+            if len(steps) >= CHUNK:
+                store.put_steps(steps, new_specs, table)
+                steps = []
+    if steps:
+        store.put_steps(steps, new_specs, table)
+    return len(starts), frames
+
+
+def _step_of(
+    item: dict[str, Any], columns: dict[str, _Column], robot_id: str, episode_id: str, index: int, last: bool
+) -> step_pb2.Step:
+    """One dataset frame as a step; the last frame's observation is also its final_observation."""
+    obs = {
+        c.ours: _uint8_image(item[theirs]) if c.dtype is None else _as_declared(theirs, item[theirs], c.dtype, c.shape)
+        for theirs, c in columns.items()
+    }
+    done = _first(item, "next.done", False)
+    reward = float(_first(item, "next.reward", 0.0))
+    # a dataset without next.success (recorded elsewhere): a reward at the end is the best guess
+    success = bool(_first(item, "next.success", False)) if "next.success" in item else bool(done) and reward > 0
+    action = np.asarray(item["action"].numpy() if hasattr(item["action"], "numpy") else item["action"])
+    step = step_pb2.Step(
+        robot_id=robot_id,
+        episode_id=episode_id,
+        step_index=index,
+        observation=wire.to_tensor_map(obs),
+        action=wire.to_tensor(action.astype(np.float32)),
+        reward=reward,
+        terminated=last and bool(done),
+        truncated=last and not done,
+        success=success,
+    )
+    if last:
+        step.final_observation.CopyFrom(step.observation)
+    return step
+
+
+def _first(item: dict[str, Any], name: str, default: Any) -> Any:
+    """A (1,)-shaped dataset value as a Python scalar (default when the dataset lacks the feature)."""
+    if name not in item:
+        return default
+    return np.asarray(item[name]).reshape(-1)[0].item()
+
+
+def _check_spec(step: step_pb2.Step, spec: robot_pb2.RobotSpec) -> None:
+    """The buffer knows this robot id: its steps must keep the features, dtypes and shapes it registered."""
+    hint = f"the dataset does not match the spec the buffer keeps for robot {spec.robot_id!r}"
+    try:
+        check_tensor_map("observation", step.observation, list(spec.observation))
+    except StepError as exc:
+        raise ValueError(f"{hint}: {exc} (import under another --robot-id)") from None
+    if step.action.dtype != spec.action.dtype or list(step.action.shape) != list(spec.action.shape):
+        have = f"{wire.dtype_name(step.action.dtype)} {list(step.action.shape)}"
+        want = f"{wire.dtype_name(spec.action.dtype)} {list(spec.action.shape)}"
+        raise ValueError(f"{hint}: action {have}, spec says {want} (import under another --robot-id)")
 
 
 def _spec_for(robot_id: str, repo_id: str, ds: Any, step: step_pb2.Step) -> robot_pb2.RobotSpec:

@@ -235,6 +235,46 @@ def _rows(actions: list[np.ndarray | None], like: np.ndarray) -> np.ndarray:
     return out
 
 
+def _step_text(step: step_pb2.Step) -> str:
+    return f"step {step.step_index} of robot {step.robot_id!r} episode {step.episode_id!r}"
+
+
+def _layout_difference(got: Layout, expected: Layout, reference: str) -> str:
+    """What a step has that differs from the reference layout: "feature 'x' int64 (64,), <reference> uint8 (64,)"."""
+    have = {name: (dtype, shape) for name, dtype, shape in got[0]}
+    want = {name: (dtype, shape) for name, dtype, shape in expected[0]}
+    parts = [
+        f"feature {name!r} {_dtype_shape(have.get(name))}, {reference} {_dtype_shape(want.get(name))}"
+        for name in sorted(want.keys() | have.keys())
+        if want.get(name) != have.get(name)
+    ]
+    if expected[1] != got[1]:
+        parts.append(f"action {_dtype_shape(got[1])}, {reference} {_dtype_shape(expected[1])}")
+    return "; ".join(parts)
+
+
+def _dtype_shape(item: tuple[np.dtype, tuple[int, ...]] | None) -> str:
+    return "missing" if item is None else f"{item[0]} {item[1]}"
+
+
+def _stats_rows(out: dict[str, dict[str, Any]], table: str, robot: str) -> tuple[dict[str, Any], ...]:
+    """table_stats' total row of a table and its robot's row, made at first use."""
+    total = out.setdefault(table, {**_zero_stats(), "robots": {}})
+    return total, total["robots"].setdefault(robot, _zero_stats())
+
+
+def _zero_stats() -> dict[str, Any]:
+    return {"transitions": 0, "steps": 0, "episodes": 0, "bytes": 0, "successes": 0}
+
+
+def _count_episode(out: dict[str, dict[str, Any]], table: str, ep: Episode, steps: int, nbytes: int) -> None:
+    for target in _stats_rows(out, table, ep.robot):
+        target["steps"] += steps
+        target["episodes"] += 1
+        target["bytes"] += nbytes
+        target["successes"] += ep.success
+
+
 class ReplayStore:
     """Thread-safe: one writer at a time (put_steps), samples and stats from any thread."""
 
@@ -1299,12 +1339,15 @@ class ReplayStore:
         for k in last_keys:
             s = step(k)
             nxt.append(s.final_observation if s.HasField("final_observation") else step(next_key(k)).observation)
-        layout = hot.layout if hot is not None else layout_of(cur[0] if cur else step(last_keys[0]))
-        for i, s in enumerate(cur):
+        first_step = cur[0] if cur else step(last_keys[0])
+        layout = hot.layout if hot is not None else layout_of(first_step)
+        for s in cur:
             if layout_of(s) != layout:
+                reference = "the hot tier's layout" if hot is not None else _step_text(first_step)
                 raise LayoutError(
-                    f"sampled transitions have different observation layouts ({keys[0][:-8]!r} vs "
-                    f"{keys[i][:-8]!r}); sample robots with different specs separately (robot_ids)"
+                    f"sampled transitions have different observation layouts: {_step_text(s)} has "
+                    f"{_layout_difference(layout_of(s), layout, reference)}; "
+                    "sample robots with different specs separately (robot_ids)"
                 )
         try:
             if keep_encoded and hot is None:  # no hot tier: the features the stored steps keep as JPEG/PNG
@@ -1455,36 +1498,28 @@ class ReplayStore:
             }
 
     def table_stats(self) -> dict[str, dict[str, Any]]:
-        """Per table (and per robot within it): transitions, steps, episodes, bytes, success rate."""
+        """Per table (and per robot within it): transitions, steps, episodes, bytes, success rate.
+
+        A step is stored once, in the table it was inserted into, and its bytes count there. "interventions" also
+        indexes the human steps of other tables' episodes; there such an episode counts once (per robot and in the
+        total), its steps are its human steps, its bytes stay with its own table, and it is a success when the
+        episode is (a step of it has success, as every table counts): the success rate of episodes a human
+        stepped into. Episodes inserted into "interventions" count whole, as in any table.
+        """
         with self._lock:
             out: dict[str, dict[str, Any]] = {}
-
-            def row(table: str, robot: str | None) -> dict[str, Any]:
-                t = out.setdefault(table, {"transitions": 0, "steps": 0, "episodes": 0, "bytes": 0, "successes": 0})
-                t.setdefault("robots", {})
-                if robot is None:
-                    return t
-                return t["robots"].setdefault(
-                    robot, {"transitions": 0, "steps": 0, "episodes": 0, "bytes": 0, "successes": 0}
-                )
-
             attached = [e for eps in self._attached_episodes.values() for e in eps.values()]
             for ep in [*self._episodes.values(), *attached]:
-                for target in (row(ep.table, None), row(ep.table, ep.robot)):
-                    target["steps"] += ep.steps
-                    target["episodes"] += 1
-                    target["bytes"] += ep.nbytes
-                    target["successes"] += ep.success
+                _count_episode(out, ep.table, ep, ep.steps, ep.nbytes)
+                if ep.interventions and ep.table != INTERVENTIONS:  # its human steps are indexed there too
+                    _count_episode(out, INTERVENTIONS, ep, ep.interventions, 0)
             for name in self.index.tables:
                 for code, grow in self.index.tables[name].items():
-                    robot = self.index.robots[code]
-                    row(name, None)["transitions"] += grow.n
-                    row(name, robot)["transitions"] += grow.n
+                    for target in _stats_rows(out, name, self.index.robots[code]):
+                        target["transitions"] += grow.n
             for t in out.values():
                 for r in [t, *t["robots"].values()]:
                     r["success_rate"] = r["successes"] / r["episodes"] if r["episodes"] else 0.0
-            if INTERVENTIONS in out:  # its episodes and bytes belong to the tables they were inserted into
-                out[INTERVENTIONS]["episodes"] = sum(e.interventions > 0 for e in self._episodes.values())
             return out
 
     def episode_bounds(self) -> list[tuple[str, str, int, int | None]]:
