@@ -137,7 +137,8 @@ def test_inference_routes_by_robot_and_says_why_it_cannot() -> None:
 
 def test_one_experiment_with_a_selector_serves_only_its_robots() -> None:
     """One configured experiment that selects arm-0: arm-1, which control knows but no selector picks, is
-    refused (FAILED_PRECONDITION) instead of acting with reach's policy; arm-0 is served."""
+    refused (FAILED_PRECONDITION) instead of acting with reach's policy; arm-0 is served, and so is a probe
+    that is no robot of control's."""
     import grpc
     import pytest
 
@@ -176,6 +177,7 @@ def test_one_experiment_with_a_selector_serves_only_its_robots() -> None:
         with pytest.raises(grpc.RpcError) as err:
             act("arm-1")
         assert err.value.code() == grpc.StatusCode.FAILED_PRECONDITION and "no experiment" in err.value.details()
+        assert act("probe").policy_version == 4  # a client control does not know (evaluation) is served
     finally:
         edge.close()
         inference.stop()

@@ -159,7 +159,9 @@ class PolicySlot:
 class Router:
     """robot_id -> experiment: from Control's ListRobots and the experiments' selectors, cached; an
     unknown robot refreshes the cache (at most every REFRESH_S). One experiment that selects every robot
-    (or the implicit default one) needs no Control; a robot no selector picks gets FAILED_PRECONDITION."""
+    (or the implicit default one) needs no Control. A robot control knows and no selector picks gets
+    FAILED_PRECONDITION; with one experiment, a client control does not know (an evaluation probe) is served,
+    and so is every robot while control is unreachable."""
 
     REFRESH_S = 1.0
 
@@ -171,12 +173,32 @@ class Router:
         self._refreshed = 0.0
         self._channel: grpc.Channel | None = None
         self._refused: set[str] = set()  # defined experiments whose definition did not check here
+        self._unselected: set[str] = set()  # robots control knows that no experiment selects (last refresh)
 
     def route(self, robot_id: str) -> tuple[str, str]:
         """(experiment, robot kind); the kind is "" when one experiment of one embodiment needs no lookup."""
         experiments = self.experiments
-        if len(experiments) == 1 and self._serves_every_robot(experiments[0]):
-            return experiments[0].name, ""
+        single = len(experiments) == 1 and not experiments[0].shared_embodiment
+        if single and (not self.cfg.experiments or experiments[0].robots == RobotSelector()):
+            return experiments[0].name, ""  # it takes any robot (the implicit default always has)
+        try:
+            route = self._lookup(robot_id)
+        except RoutingError:
+            if not single:
+                raise
+            return experiments[0].name, ""  # control down: one experiment's robots keep being served
+        if route is not None:
+            return route
+        with self._lock:
+            unselected = robot_id in self._unselected
+        if single and not unselected:
+            return experiments[0].name, ""  # a client control does not know (an evaluation probe): served
+        raise RoutingError(
+            grpc.StatusCode.FAILED_PRECONDITION, f"robot {robot_id!r} is in no experiment (unknown to control?)"
+        )
+
+    def _lookup(self, robot_id: str) -> tuple[str, str] | None:
+        """The cached route, refreshed from control (at most every REFRESH_S) for a robot not routed yet."""
         with self._lock:
             route = self._routes.get(robot_id)
             refresh = route is None and time.monotonic() - self._refreshed >= self.REFRESH_S
@@ -186,17 +208,7 @@ class Router:
             self._refresh()
             with self._lock:
                 route = self._routes.get(robot_id)
-        if route is None:
-            raise RoutingError(
-                grpc.StatusCode.FAILED_PRECONDITION, f"robot {robot_id!r} is in no experiment (unknown to control?)"
-            )
         return route
-
-    def _serves_every_robot(self, exp: ExperimentConfig) -> bool:
-        """No lookup needed: the experiment takes any robot (no selector, or the deprecated implicit default,
-        which has always served every robot), and one embodiment needs no robot kind."""
-        implicit = not self.cfg.experiments
-        return not exp.shared_embodiment and (implicit or exp.robots == RobotSelector())
 
     def _refresh(self) -> None:
         from user.experiments import experiment_for
@@ -210,14 +222,17 @@ class Router:
             raise RoutingError(
                 grpc.StatusCode.UNAVAILABLE, f"control unreachable for routing: {err.code().name}"
             ) from None
-        routes = {}
+        routes, unselected = {}, set()
         experiments = self.experiments
         for info in resp.robots:
             exp = experiment_for(info.spec, experiments)
             if exp is not None:
                 routes[info.spec.robot_id] = (exp.name, info.spec.kind)
+            else:
+                unselected.add(info.spec.robot_id)
         with self._lock:
             self._routes.update(routes)
+            self._unselected = unselected
 
     def _stub(self) -> Any:
         from user.v1 import control_pb2_grpc
