@@ -973,7 +973,8 @@ def run(cfg: StackConfig, ready_file: str | None) -> int:
         rpc.write_ready_file(
             ready_file, metrics_port=metrics_port, agent_id=cfg.edge.agent_id, robots=list(agent.loops)
         )
-        stop.wait()
+        while not stop.wait(0.5):  # wake now and then: a signal taken by another thread runs its handler here
+            pass
     finally:
         agent.stop()
         httpd.shutdown()

@@ -274,15 +274,19 @@ def test_bad_plugin_config_fails_at_start_naming_the_field(entry: RobotConfig, f
 def test_userctl_edge_says_a_bad_plugin_entry_in_one_line(capsys: pytest.CaptureFixture[str]) -> None:
     """`userctl edge` with a bad robot entry: one line naming the field and exit code 2, no traceback."""
     import logging
+    import signal
 
     from user import cli
 
     root = logging.getLogger()
     handlers, level = root.handlers[:], root.level
-    try:  # `userctl edge` sets up its logging on this test's captured stderr: put pytest's back after it
+    on_signal = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:  # `userctl edge` sets up its logging and signal handlers in this process: put pytest's back after it
         assert cli.main(["edge", "--set", "edge.robots=[{id: a, kind: toy_slidr}]", "--set", "auth.token=t"]) == 2
     finally:
         root.handlers[:], root.level = handlers, level
+        for sig, handler in on_signal.items():
+            signal.signal(sig, handler)
     err = capsys.readouterr().err
     assert "userctl edge: edge.robots[0].kind: unknown robot kind 'toy_slidr'" in err
     assert "Traceback" not in err
