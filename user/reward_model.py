@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 import zipfile
@@ -33,6 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from safetensors.torch import load_file, save_file
 from torch import nn
 
+from user.arg_types import non_negative_int, positive_float, positive_int
 from user.policies.cnn import CameraEncoder, ConvEncoder, random_shift
 from user.policies.mlp import mlp
 
@@ -307,30 +307,6 @@ def load_classifier(path: str | Path, device: str = "cpu") -> SuccessClassifier:
 
 
 # --- `userctl reward train` -----------------------------------------------------------------------
-
-
-def positive_int(text: str) -> int:
-    """argparse type: an integer >= 1."""
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
-    return value
-
-
-def non_negative_int(text: str) -> int:
-    """argparse type: an integer >= 0 (a seed)."""
-    value = int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text}")
-    return value
-
-
-def positive_float(text: str) -> float:
-    """argparse type: a finite float > 0."""
-    value = float(text)
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
-    return value
 
 
 # The ranges of `userctl reward train`'s numeric flags (attribute, flag, argparse type).

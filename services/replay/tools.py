@@ -17,6 +17,7 @@ import json
 import sys
 from pathlib import Path
 
+from user.arg_types import non_negative_int, positive_int
 from user.config import ConfigError, StackConfig, load_config
 
 TOOLS = {
@@ -65,7 +66,7 @@ def _add_export_arguments(s: argparse.ArgumentParser) -> None:
         help="episodes of the table in arrival order, from 0: A:B (A to B-1), A:, :B, or N (just episode N)",
     )
     s.add_argument("--task", default="", help="task text of every frame (default: the robot kind)")
-    s.add_argument("--fps", type=_positive_int, help="frames per second (default: the robot's control rate)")
+    s.add_argument("--fps", type=positive_int, help="frames per second (default: the robot's control rate)")
 
 
 def actions_help() -> str:
@@ -86,38 +87,24 @@ class _Unwrapped(argparse.HelpFormatter):
         super().__init__(prog, width=1000)
 
 
-def _positive_int(text: str) -> int:
-    value = _int(text)
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be a positive integer, got {value}")
-    return value
-
-
 def _episode_range(text: str) -> tuple[int, int | None]:
     """A:B, A:, :B or : -> (A, B) for the slice [A:B]; N -> just episode N."""
     if ":" not in text:
-        first = _index(text)
+        first = _episode(text)
         return first, first + 1
     first_text, _, last_text = text.partition(":")
-    first = _index(first_text) if first_text.strip() else 0
-    last = _index(last_text) if last_text.strip() else None
+    first = _episode(first_text) if first_text.strip() else 0
+    last = _episode(last_text) if last_text.strip() else None
     if last is not None and last <= first:
         raise argparse.ArgumentTypeError(f"range {text!r} holds no episode (B must be above A)")
     return first, last
 
 
-def _index(text: str) -> int:
-    value = _int(text)
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"episode numbers start at 0, got {value}")
-    return value
-
-
-def _int(text: str) -> int:
+def _episode(text: str) -> int:
     try:
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text.strip()!r} is not an integer") from None
+        return non_negative_int(text)
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"episode numbers start at 0: {exc}") from None
 
 
 def _buffer_path(path: str | None, cfg: StackConfig) -> Path:
