@@ -88,6 +88,22 @@ def test_a_defined_experiment_leases_free_robots_and_survives_a_control_restart(
         control.stop()
 
 
+def test_a_stored_definition_that_no_longer_checks_is_skipped_not_fatal(tmp_path: Path) -> None:
+    """A definition stored by an older version that this one's config model refuses: control starts without it."""
+    from services.control.state import ControlState
+
+    state = ControlState(tmp_path / "control.sqlite")
+    state.save_definition("old", json.dumps({**GAMMA, "name": "old", "retired_field": 1}))
+    state.save_definition("ok", json.dumps({**GAMMA, "name": "ok"}))
+    state.close()
+    control = control_at(tmp_path)
+    try:
+        listed = stub_for(control.address).ListExperiments(control_pb2.ListExperimentsRequest(), timeout=5)
+        assert [e.name for e in listed.experiments] == ["alpha", "beta", "ok"]
+    finally:
+        control.stop()
+
+
 def test_a_bad_definition_is_refused_naming_the_field_and_changes_nothing(tmp_path: Path) -> None:
     control = control_at(tmp_path)
     try:

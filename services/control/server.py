@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import grpc
 import prometheus_client
+from pydantic import ValidationError
 
 from services.control.state import ControlState
 from user import rpc
@@ -298,9 +299,13 @@ class Registry:
         file says which were stopped (a new one starts running). A config entry wins over a definition of
         the same name (the definition is skipped, with a warning)."""
         saved = self.state.load_experiments() if self.state is not None else {}
-        defined = []
+        defined: list[ExperimentConfig] = []
         for text in self.state.load_definitions() if self.state is not None else []:
-            exp = ExperimentConfig.model_validate_json(text)
+            try:
+                exp = ExperimentConfig.model_validate_json(text)
+            except ValidationError as exc:  # e.g. a field an older version accepted: skipped, not fatal
+                log.error("a stored experiment definition no longer checks; skipped", extra=kv(error=str(exc)))
+                continue
             if any(e.name == exp.name for e in experiments):
                 log.warning(
                     "a defined experiment's name is now in the config: the config's is used",
@@ -314,9 +319,11 @@ class Registry:
                 extra=kv(experiment=name, taken_by=first),
             )
         now_ns = time.time_ns()
+        defined_names = {exp.name for exp in defined}
         for exp in [*experiments, *defined]:
             running, started, stopped = saved.get(exp.name, (True, now_ns, 0))
-            self._experiments[exp.name] = ExperimentRecord(exp, running, started, stopped, exp in defined)
+            at_runtime = exp.name in defined_names
+            self._experiments[exp.name] = ExperimentRecord(exp, running, started, stopped, at_runtime)
             if exp.name not in saved and self.state is not None:
                 self.state.save_experiment(exp.name, running, started, stopped)
 
