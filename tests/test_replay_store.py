@@ -326,7 +326,18 @@ def _resident(arr: np.ndarray) -> float:
 
 @pytest.mark.skipif(not Path("/proc/self/statm").exists(), reason="needs Linux /proc")
 def test_hot_group_prefault_maps_its_columns_up_front() -> None:
-    """replay.cache_prefault: the RAM tier's columns cost their RSS when the layout arrives, not over hours."""
+    """replay.cache_prefault: the RAM tier's columns cost their RSS when the layout arrives, not over hours.
+    Run in a fresh interpreter: in this long-lived one, malloc may hand np.empty pages earlier tests touched."""
+    import subprocess
+    import sys
+
+    code = "from tests.test_replay_store import prefault_check; prefault_check()"
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+
+
+def prefault_check() -> None:
     from services.replay.hot import HotGroup
 
     layout = ((("state", np.dtype(np.float32), (64,)),), (np.dtype(np.float32), (8,)))
