@@ -898,6 +898,7 @@ class EdgeAgent:
             loop = self.loops.get(lease.robot_id)
             if loop is None:
                 continue
+            self.policy.route(lease.robot_id, lease.experiment, loop.robot.spec.kind)
             if loop.lease.hold != lease.hold:
                 log.info(
                     "robot holds: no running experiment" if lease.hold else "robot leased: running",

@@ -71,6 +71,10 @@ class PolicySource(ABC):
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release channels and threads."""
 
+    def route(self, robot_id: str, experiment: str, kind: str = "") -> None:  # noqa: B027 - optional hook
+        """Control leased robot_id (of `kind`) to `experiment` ("" = none): a source holding one copy per
+        experiment sends its next requests there (inference routes remote requests itself)."""
+
 
 def _as_chunk(action: np.ndarray) -> np.ndarray:
     """(A,) or (horizon, A) -> (horizon, A) float32; anything else is flattened to one action."""
@@ -395,28 +399,84 @@ class LocalPolicy(PolicySource):
 
 
 class RoutedPolicy(PolicySource):
-    """Robots of one agent in different experiments: each robot asks its experiment's source."""
+    """Local copies, one per experiment: each robot asks the copy of the experiment it works for.
 
-    def __init__(self, routes: dict[str, PolicySource]) -> None:
-        self.routes = routes
+    Control's leases say which experiment that is (route(), called by the agent on every lease), so a robot
+    leased to an experiment defined while the edge runs, or plugged in later, gets that experiment's own
+    weights; until its first lease the edge's config decides. A copy no robot routes to any more is closed.
+    Robots without a route ask `default` (the config's only experiment, if it has one)."""
+
+    def __init__(
+        self,
+        make: Callable[[str], PolicySource],
+        routes: dict[str, str],
+        kinds: dict[str, str] | None = None,
+        default: str | None = None,
+    ) -> None:
+        """make(experiment) builds a copy; routes: robot id -> experiment; kinds: robot id -> kind, shared with
+        the copies (a policy shared by embodiments pads by kind) and kept current by route()."""
+        self._make = make
+        self._lock = threading.Lock()
+        self.kinds = kinds if kinds is not None else {}
+        self.sources: dict[str, PolicySource] = {}  # experiment -> copy
+        self.routes: dict[str, PolicySource] = {}  # robot id -> copy; replaced whole, read without a lock
+        self._experiment_of: dict[str, str] = {}
+        self._default = self._source(default) if default is not None else None
+        self._default_name = default
+        for robot_id, experiment in routes.items():
+            self.route(robot_id, experiment)
+
+    def _source(self, experiment: str) -> PolicySource:
+        source = self.sources.get(experiment)
+        if source is None:
+            source = self.sources[experiment] = self._make(experiment)
+        return source
+
+    def route(self, robot_id: str, experiment: str, kind: str = "") -> None:
+        if kind:
+            self.kinds[robot_id] = kind
+        if not experiment:  # leased to nothing: the robot holds; keep its copy for when it comes back
+            return
+        with self._lock:
+            if self._experiment_of.get(robot_id) == experiment:
+                return
+            previous = self._experiment_of.get(robot_id)
+            source = self._source(experiment)
+            self._experiment_of[robot_id] = experiment
+            self.routes = {**self.routes, robot_id: source}
+            unused = previous is not None and previous != self._default_name
+            if unused and previous not in self._experiment_of.values():
+                stale = self.sources.pop(previous)
+                self.routes = {rid: s for rid, s in self.routes.items() if s is not stale}
+            else:
+                stale = None
+        if previous is not None:
+            log.info("robot routed to another experiment's policy", extra=kv(robot_id=robot_id, experiment=experiment))
+        if stale is not None:
+            stale.close()
 
     @property
     def version(self) -> int:
-        return max((s.version for s in set(self.routes.values())), default=0)
+        return max((s.version for s in list(self.sources.values())), default=0)
+
+    def _for(self, robot_id: str) -> PolicySource | None:
+        return self.routes.get(robot_id, self._default)
 
     def act(
         self, robot_id: str, observation: dict[str, np.ndarray], deadline_s: float
     ) -> tuple[np.ndarray, int] | None:
-        source = self.routes.get(robot_id)
+        source = self._for(robot_id)
         return source.act(robot_id, observation, deadline_s) if source is not None else None
 
     def reset(self, robot_id: str) -> None:
-        source = self.routes.get(robot_id)
+        source = self._for(robot_id)
         if source is not None:
             source.reset(robot_id)
 
     def close(self) -> None:
-        for source in set(self.routes.values()):
+        with self._lock:
+            sources, self.sources = list(self.sources.values()), {}
+        for source in sources:
             source.close()
 
 
@@ -446,24 +506,20 @@ def make_policy_source(
         names = sorted(set(routes.values()))
         lossy, shm = cfg.edge.weights_lossy, cfg.edge.weights_shm_dir or None
         kinds = {s.robot_id: s.kind for s in specs} if specs else {r.id: r.kind for r in cfg.edge.robots}
-        if len(names) <= 1:
-            name = names[0] if names else ""
+        sole = names[0] if len(names) <= 1 else None  # "" when no robot is known yet: the learner's default
+
+        def local_copy(name: str) -> PolicySource:
             return LocalPolicy(
-                cfg.edge.learner_addr, cfg.auth, client_id, experiment=name, kinds=kinds, allow_lossy=lossy, shm_dir=shm
-            )
-        sources = {
-            n: LocalPolicy(
                 cfg.edge.learner_addr,
                 cfg.auth,
-                f"{client_id}-{n}",
-                experiment=n,
+                client_id if name == sole else f"{client_id}-{name}",
+                experiment=name,
                 kinds=kinds,
                 allow_lossy=lossy,
                 shm_dir=shm,
             )
-            for n in names
-        }
-        return RoutedPolicy({rid: sources[name] for rid, name in routes.items()})
+
+        return RoutedPolicy(local_copy, routes, kinds, default=sole)
     return RemotePolicy(
         cfg.edge.inference_addr,
         cfg.auth,

@@ -155,10 +155,14 @@ def served(stub: control_pb2_grpc.ControlStub) -> set[str]:
     return {name for w in workers if w.kind == "inference" for name in w.experiments}
 
 
-def test_a_running_stack_trains_and_serves_an_experiment_defined_while_it_runs(tmp_path: Path) -> None:
+@pytest.mark.parametrize("policy_source", ["remote", "local"])
+def test_a_running_stack_trains_and_serves_an_experiment_defined_while_it_runs(
+    tmp_path: Path, policy_source: str
+) -> None:
     """Two sim arms on one edge; the config's experiments select arm-0 only, so arm-1 holds. Defined while
     everything runs, `late` gets arm-1 leased by control, an algorithm instance in the learner, a policy slot
-    and weight stream in inference, and arm-1 acts with `late`'s weights: nothing restarted."""
+    and weight stream in inference, and arm-1 acts with `late`'s weights: nothing restarted. With a local
+    policy the edge follows control's lease to a copy subscribed to `late` (its config names no `late`)."""
     import torch
 
     from cloud_learner.server import LearnerService
@@ -189,6 +193,7 @@ def test_a_running_stack_trains_and_serves_an_experiment_defined_while_it_runs(t
     cfg.edge.robots = [
         RobotConfig(id=f"arm-{i}", kind="sim_reach_arm", params={"max_episode_steps": 20}) for i in range(2)
     ]
+    cfg.edge.policy_source, cfg.edge.learner_addr = policy_source, learner.address
     agent = EdgeAgent(cfg)
     agent.start()
     stub = control_pb2_grpc.ControlStub(make_channel(control.address, cfg.auth))
@@ -211,7 +216,13 @@ def test_a_running_stack_trains_and_serves_an_experiment_defined_while_it_runs(t
             "late trained and acting with its own weights",
             limit_s=180,
         )
+        if policy_source == "local":
+            routes = agent.policy.routes  # type: ignore[attr-defined]
+            assert routes["arm-1"]._subscriber.experiment == "late"
+            assert routes["arm-0"]._subscriber.experiment == "first"
+        wait_for(lambda: "late" in inference.slots, "inference to open a slot for it", limit_s=30)
         slot = inference.slots["late"]
+        wait_for(lambda: slot.policy is not None, "late's weights in inference", limit_s=60)
         assert slot.policy is not None and slot.subscriber is not None
         assert inference.router.route("arm-1")[0] == "late" and inference.router.route("arm-0")[0] == "first"
         states = learner.learner.experiment_states

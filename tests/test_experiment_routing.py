@@ -95,6 +95,49 @@ def test_local_copies_follow_their_robots_experiment() -> None:
         server.stop()
 
 
+def test_a_lease_to_another_experiment_moves_the_robot_to_that_experiments_copy() -> None:
+    """Control's lease is the truth: a robot leased to an experiment the edge's config does not name (defined
+    while the edge runs) gets a copy subscribed to it; the copy no robot uses any more is closed."""
+    cfg = StackConfig.model_validate(
+        {"auth": AUTH.model_dump(), "experiments": [{"name": "reach", "robots": {"kinds": ["sim_reach_arm"]}}]}
+    )
+    store = WeightStore()
+    server = rpc.start_server(
+        "learner-weights",
+        lambda s: learner_pb2_grpc.add_LearnerServicer_to_server(WeightServicer(store, poll_s=0.1), s),
+        ["user.v1.Learner"],
+        ServerConfig(port=0, metrics_port=0, grace_s=0.2),
+        AUTH,
+        start_metrics=False,
+    )
+    cfg.edge.learner_addr, cfg.edge.policy_source = server.address(), "local"
+    specs = [robot_pb2.RobotSpec(robot_id=f"arm-{i}", kind="sim_reach_arm") for i in range(2)]
+    source = make_policy_source(cfg, "edge-0", specs)
+    obs = {"state": np.zeros(15, np.float32)}
+    try:
+        assert isinstance(source, RoutedPolicy) and set(source.sources) == {"reach"}
+        a, late = arm_weights(3), arm_weights(7)
+        store.publish(3, a.policy, a.tensors, experiment="reach")
+        store.publish(7, late.policy, late.tensors, experiment="late")
+        assert wait_for(lambda: source.act("arm-1", obs, 5.0), "reach's weights")[1] == 3
+        source.route("arm-1", "late", "sim_reach_arm")  # as the agent does on control's lease
+        assert set(source.sources) == {"reach", "late"}
+        assert wait_for(lambda: source.act("arm-1", obs, 5.0), "late's weights")[1] == 7
+        assert source.act("arm-0", obs, 5.0)[1] == 3  # the other robot stays where it was
+        source.route("arm-0", "late")
+        source.route("arm-1", "")  # leased to nothing: holds, keeps its copy
+        assert source.act("arm-0", obs, 5.0)[1] == 7 and source.routes["arm-1"] is source.sources["late"]
+        assert set(source.sources) == {"reach", "late"}  # the config's experiment is the default copy: kept
+        source.route("plugged-later", "other", "sim_reach_arm")
+        source.route("plugged-later", "late")
+        assert set(source.sources) == {"reach", "late"}  # `other` lost its only robot: closed
+        assert source.kinds["plugged-later"] == "sim_reach_arm"
+    finally:
+        source.close()
+        store.close()
+        server.stop()
+
+
 def test_inference_routes_by_robot_and_says_why_it_cannot() -> None:
     import grpc
     import pytest

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from edge_agent.policy_source import LocalPolicy, RemotePolicy, make_policy_source
+from edge_agent.policy_source import LocalPolicy, RemotePolicy, RoutedPolicy, make_policy_source
 from services.inference.server import InferenceService
 from tests import helpers
 from tests.helpers import free_port, wait_for
@@ -128,7 +128,7 @@ def test_make_policy_source_chooses_by_config() -> None:
     local = make_policy_source(cfg, "edge-0")
     try:
         assert isinstance(remote, RemotePolicy)
-        assert isinstance(local, LocalPolicy)
+        assert isinstance(local, RoutedPolicy) and isinstance(local.sources["default"], LocalPolicy)
         assert local.act("arm-0", OBS, 0.05) is None
     finally:
         remote.close()
