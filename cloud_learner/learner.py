@@ -368,7 +368,7 @@ class ExperimentRun:
         self.state.robot_ids = sorted(self.specs)
         self.ckpt_dir = Path(self.lc.checkpoint_dir) / exp.name
         self.algo = build_algorithm(index, exp, self.layout, self.lc.device)
-        self._stop = learner._stop
+        self._stop = threading.Event()  # this run's threads end (set by the learner's stop, a failure, a removal)
         self._queue: queue.Queue[Prefetched] = queue.Queue(maxsize=self.lc.prefetch_batches)
         self._threads: list[threading.Thread] = []
         self._last_ckpt_updates = -1
@@ -600,6 +600,11 @@ class ExperimentRun:
         self.state.state, self.state.error = "failed", f"{type(exc).__name__}: {exc}"
         log.error("experiment failed", exc_info=exc, extra=kv(experiment=self.exp.name))
         self.learner.error = self.learner.error or exc
+        self._stop.set()
+        self.learner._stop.set()  # a failed experiment stops the learner (the service reports it failed)
+
+    def halt(self) -> None:
+        """End this run's threads (join() waits for them)."""
         self._stop.set()
 
     def join(self, timeout: float) -> None:
@@ -940,6 +945,7 @@ class Learner:
         }
         self.runs: dict[str, ExperimentRun] = {}
         self.stopped_experiments: set[str] = set()  # by control (Control.ListExperiments)
+        self.defined: set[str] = set()  # experiments added from control's definitions (Control.DefineExperiment)
         self.experiment_polls = 0  # answers from control so far
         self.error: BaseException | None = None
         self._stop = threading.Event()
@@ -988,6 +994,8 @@ class Learner:
         finally:
             self._stop.set()
             for run in self.runs.values():
+                run.halt()
+            for run in self.runs.values():
                 run.join(self.lc.rpc_timeout_s + 1)
             for run in self.runs.values():
                 if run.state.state != "failed":
@@ -1022,6 +1030,7 @@ class Learner:
                 log.warning("ListExperiments failed", extra=kv(addr=self.lc.control_addr, code=str(err.code())))
             return
         self._add_defined([e for e in resp.experiments if e.defined_at_runtime])
+        self._drop_removed({e.name for e in resp.experiments})
         self.stopped_experiments = {e.name for e in resp.experiments if e.state == control_pb2.EXPERIMENT_STATE_STOPPED}
         self.experiment_polls += 1
         for name, run in self.runs.items():
@@ -1040,12 +1049,31 @@ class Learner:
                 log.error("a defined experiment cannot train", extra=kv(experiment=info.name, error=str(exc)))
                 failed = ExperimentState(info.name, "", state="failed", error=str(exc))
                 self.experiment_states = {**self.experiment_states, info.name: failed}
+                self.defined.add(info.name)
                 continue
             log.info("experiment defined at run time", extra=kv(experiment=exp.name, algorithm=exp.algorithm.kind))
             state = ExperimentState(exp.name, exp.algorithm.kind, policy_kind=exp.policy.kind if exp.policy else "")
             # Both replaced, not mutated (RPC and report threads iterate them); the state first, as runs look it up.
             self.experiment_states = {**self.experiment_states, exp.name: state}
             self.experiments = [*self.experiments, exp]
+            self.defined.add(exp.name)
+
+    def _drop_removed(self, listed: set[str]) -> None:
+        """Experiments defined at run time that control lists no more (Control.RemoveExperiment) stop here: their
+        threads end and their last checkpoint stays on disk (the name is never defined again)."""
+        for name in sorted(self.defined - listed):
+            self.defined.discard(name)
+            run = self.runs.get(name)
+            if run is not None:
+                run.halt()
+                run.join(self.lc.rpc_timeout_s + 1)
+                if run.state.state != "failed":
+                    run.checkpoint()
+            # Replaced, not mutated: RPC and report threads iterate them.
+            self.runs = {n: r for n, r in self.runs.items() if n != name}
+            self.experiments = [e for e in self.experiments if e.name != name]
+            self.experiment_states = {n: st for n, st in self.experiment_states.items() if n != name}
+            log.info("experiment removed by control; training ends", extra=kv(experiment=name))
 
     def _on_robots(self, specs: list[robot_pb2.RobotSpec]) -> None:
         assigned = assign(specs, self.experiments)
@@ -1084,6 +1112,9 @@ class _FailedRun:
         self.specs[spec.robot_id] = spec
 
     def join(self, timeout: float) -> None:
+        pass
+
+    def halt(self) -> None:
         pass
 
     def checkpoint(self) -> None:

@@ -898,7 +898,8 @@ class EdgeAgent:
             loop = self.loops.get(lease.robot_id)
             if loop is None:
                 continue
-            self.policy.route(lease.robot_id, lease.experiment, loop.robot.spec.kind)
+            if not lease.hold:  # a hold names no experiment; the robot keeps its route for when it is released
+                self.policy.route(lease.robot_id, lease.experiment, loop.robot.spec.kind)
             if loop.lease.hold != lease.hold:
                 log.info(
                     "robot holds: no running experiment" if lease.hold else "robot leased: running",

@@ -72,8 +72,8 @@ class PolicySource(ABC):
         """Release channels and threads."""
 
     def route(self, robot_id: str, experiment: str, kind: str = "") -> None:  # noqa: B027 - optional hook
-        """Control leased robot_id (of `kind`) to `experiment` ("" = none): a source holding one copy per
-        experiment sends its next requests there (inference routes remote requests itself)."""
+        """Control leased robot_id (of `kind`) to `experiment` ("" = to none: the robot holds): a source holding one
+        copy per experiment sends its next requests there (inference routes remote requests itself)."""
 
 
 def _as_chunk(action: np.ndarray) -> np.ndarray:
@@ -401,10 +401,11 @@ class LocalPolicy(PolicySource):
 class RoutedPolicy(PolicySource):
     """Local copies, one per experiment: each robot asks the copy of the experiment it works for.
 
-    Control's leases say which experiment that is (route(), called by the agent on every lease), so a robot
-    leased to an experiment defined while the edge runs, or plugged in later, gets that experiment's own
-    weights; until its first lease the edge's config decides. A copy no robot routes to any more is closed.
-    Robots without a route ask `default` (the config's only experiment, if it has one)."""
+    Control's leases say which experiment that is (route(), called by the agent on every lease that is not a
+    hold), so a robot leased to an experiment defined while the edge runs, or plugged in later, gets that
+    experiment's own weights, and one leased to none holds; until its first lease the edge's config decides.
+    A copy no robot routes to any more is closed. Robots without a route ask `default` (the config's only
+    experiment, if it has one)."""
 
     def __init__(
         self,
@@ -419,7 +420,7 @@ class RoutedPolicy(PolicySource):
         self._lock = threading.Lock()
         self.kinds = kinds if kinds is not None else {}
         self.sources: dict[str, PolicySource] = {}  # experiment -> copy
-        self.routes: dict[str, PolicySource] = {}  # robot id -> copy; replaced whole, read without a lock
+        self.routes: dict[str, PolicySource | None] = {}  # robot id -> copy (None: holds); replaced whole
         self._experiment_of: dict[str, str] = {}
         self._default = self._source(default) if default is not None else None
         self._default_name = default
@@ -435,21 +436,17 @@ class RoutedPolicy(PolicySource):
     def route(self, robot_id: str, experiment: str, kind: str = "") -> None:
         if kind:
             self.kinds[robot_id] = kind
-        if not experiment:  # leased to nothing: the robot holds; keep its copy for when it comes back
-            return
         with self._lock:
-            if self._experiment_of.get(robot_id) == experiment:
+            if robot_id in self.routes and self._experiment_of.get(robot_id, "") == experiment:
                 return
-            previous = self._experiment_of.get(robot_id)
-            source = self._source(experiment)
-            self._experiment_of[robot_id] = experiment
+            previous = self._experiment_of.pop(robot_id, None)
+            source = self._source(experiment) if experiment else None  # leased to none: it holds
+            if experiment:
+                self._experiment_of[robot_id] = experiment
             self.routes = {**self.routes, robot_id: source}
-            unused = previous is not None and previous != self._default_name
-            if unused and previous not in self._experiment_of.values():
+            stale = None
+            if previous not in (None, self._default_name) and previous not in self._experiment_of.values():
                 stale = self.sources.pop(previous)
-                self.routes = {rid: s for rid, s in self.routes.items() if s is not stale}
-            else:
-                stale = None
         if previous is not None:
             log.info("robot routed to another experiment's policy", extra=kv(robot_id=robot_id, experiment=experiment))
         if stale is not None:

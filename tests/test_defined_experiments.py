@@ -129,6 +129,52 @@ def test_a_bad_definition_is_refused_naming_the_field_and_changes_nothing(tmp_pa
         control.stop()
 
 
+def remove(stub: control_pb2_grpc.ControlStub, name: str) -> control_pb2.ExperimentInfo:
+    return stub.RemoveExperiment(control_pb2.RemoveExperimentRequest(name=name), timeout=5)
+
+
+def test_a_stopped_defined_experiment_is_removed_its_robots_go_on_and_its_name_stays_taken(tmp_path: Path) -> None:
+    control = control_at(tmp_path)
+    edge: Edge | None = None
+    try:
+        stub = stub_for(control.address)
+        edge = Edge(control.address, "pc-1", [team_spec("c-0", "c")])
+        edge.client.start()
+        define(stub, GAMMA)
+        define(stub, {**GAMMA, "name": "next"})  # selects c-0 too, after gamma: it gets it once gamma is gone
+        wait_for(lambda: edge.lease("c-0") == ("gamma", False), "c-0 leased to gamma")
+
+        def code(name: str) -> tuple[grpc.StatusCode, str]:
+            with pytest.raises(grpc.RpcError) as err:
+                remove(stub, name)
+            return err.value.code(), err.value.details()
+
+        assert code("gamma")[0] == grpc.StatusCode.FAILED_PRECONDITION and "stop it first" in code("gamma")[1]
+        assert code("alpha")[0] == grpc.StatusCode.FAILED_PRECONDITION and "stack config" in code("alpha")[1]
+        assert code("nope")[0] == grpc.StatusCode.NOT_FOUND and code("a/b")[0] == grpc.StatusCode.INVALID_ARGUMENT
+        stub.StopExperiment(control_pb2.StopExperimentRequest(name="gamma"), timeout=5)
+        wait_for(lambda: edge.lease("c-0") == ("", True), "c-0 held by the stopped gamma")
+        assert remove(stub, "gamma").name == "gamma"
+        wait_for(lambda: edge.lease("c-0") == ("next", False), "c-0 leased to the next experiment selecting it")
+        names = [e.name for e in stub.ListExperiments(control_pb2.ListExperimentsRequest(), timeout=5).experiments]
+        assert names == ["alpha", "beta", "next"]
+        assert code("gamma")[0] == grpc.StatusCode.NOT_FOUND
+        assert refused(stub, GAMMA) == (grpc.StatusCode.ALREADY_EXISTS, refused(stub, GAMMA)[1])
+        assert "was removed" in refused(stub, GAMMA)[1]
+    finally:
+        if edge is not None:
+            edge.client.close()
+        control.stop()
+    control = control_at(tmp_path)  # the same SQLite file: gone for good, the name still taken
+    try:
+        stub = stub_for(control.address)
+        names = [e.name for e in stub.ListExperiments(control_pb2.ListExperimentsRequest(), timeout=5).experiments]
+        assert names == ["alpha", "beta", "next"]
+        assert "was removed" in refused(stub, GAMMA)[1]
+    finally:
+        control.stop()
+
+
 def test_userctl_exp_define_reads_yaml(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     control = control_at(tmp_path)
     try:
@@ -143,6 +189,11 @@ def test_userctl_exp_define_reads_yaml(tmp_path: Path, capsys: pytest.CaptureFix
         assert "cannot read" in capsys.readouterr().err
         assert cli.main(["exp", "ls", *base]) == 0
         assert "gamma (defined)" in capsys.readouterr().out
+        assert cli.main(["exp", "remove", "gamma", *base]) == 1
+        assert "FAILED_PRECONDITION" in capsys.readouterr().err
+        assert cli.main(["exp", "stop", "gamma", *base]) == 0
+        assert cli.main(["exp", "remove", "gamma", *base]) == 0
+        assert "experiment gamma removed" in capsys.readouterr().out
         path.write_text(yaml.safe_dump({**GAMMA, "name": "steal", "robots": {"labels": {"team": "a", "x": "y"}}}))
         assert cli.main(["exp", "define", str(path), *base]) == 0
         assert "note: experiment alpha comes first and selects every robot steal selects" in capsys.readouterr().err
@@ -231,6 +282,18 @@ def test_a_running_stack_trains_and_serves_an_experiment_defined_while_it_runs(
         info = stub.GetExperiment(control_pb2.GetExperimentRequest(name="late"), timeout=5)
         assert list(info.leased_robots) == ["arm-1"] and info.defined_at_runtime
         wait_for(lambda: served(stub) == {"first", "elsewhere", "late"}, "the worker report to name all", limit_s=30)
+        # Stopped and removed: the learner ends its training (checkpoint kept), inference its slot, arm-1 holds.
+        stub.StopExperiment(control_pb2.StopExperimentRequest(name="late"), timeout=5)
+        stub.RemoveExperiment(control_pb2.RemoveExperimentRequest(name="late"), timeout=5)
+        wait_for(lambda: "late" not in learner.learner.experiment_states, "the learner to drop it", limit_s=60)
+        wait_for(lambda: "late" not in inference.slots, "inference to drop it", limit_s=30)
+        assert "late" not in learner.learner.runs and (tmp_path / "ckpt" / "late").is_dir()
+        assert slot.batcher._stop.is_set() and slot.subscriber is None
+        wait_for(lambda: served(stub) == {"first", "elsewhere"}, "the worker report to drop it", limit_s=30)
+        steps = late.env_steps
+        wait_for(lambda: first.env_steps > steps + 40, "arm-0 acting on")
+        assert late.env_steps <= steps + 1  # no experiment selects it now: it holds (inference or its local route)
+        assert states["first"].state != "failed" and not learner.learner.failed
     finally:
         reporter.__exit__(None, None, None)
         agent.stop()

@@ -125,8 +125,8 @@ def test_a_lease_to_another_experiment_moves_the_robot_to_that_experiments_copy(
         assert wait_for(lambda: source.act("arm-1", obs, 5.0), "late's weights")[1] == 7
         assert source.act("arm-0", obs, 5.0)[1] == 3  # the other robot stays where it was
         source.route("arm-0", "late")
-        source.route("arm-1", "")  # leased to nothing: holds, keeps its copy
-        assert source.act("arm-0", obs, 5.0)[1] == 7 and source.routes["arm-1"] is source.sources["late"]
+        source.route("arm-1", "")  # leased to no experiment: it holds
+        assert source.act("arm-0", obs, 5.0)[1] == 7 and source.act("arm-1", obs, 5.0) is None
         assert set(source.sources) == {"reach", "late"}  # the config's experiment is the default copy: kept
         source.route("plugged-later", "other", "sim_reach_arm")
         source.route("plugged-later", "late")

@@ -8,6 +8,8 @@ userctl exp start|stop NAME                   lease its robots again / release t
 userctl exp status NAME [--json]              one experiment: its robots, episodes, success, returns, version
 userctl exp define FILE                       a new experiment while the stack runs (one `experiments` entry,
                                               YAML or JSON); it takes robots no earlier selector picks
+userctl exp remove NAME                       take away a stopped experiment that `define` added (its name
+                                              stays taken: episodes, checkpoint and replay table keep it)
 userctl edge discover [--sim KIND ...]        probe cameras and serial ports, print a ready edge config
 userctl edge install-service [--dry-run]      systemd unit for the edge daemon on this robot PC
 
@@ -49,10 +51,10 @@ def add_parsers(sub: Any) -> None:
     p.add_argument("robot", nargs="?", default="", help="robot id; omitted = every robot of every live agent")
     p.add_argument("--wait", type=float, default=5.0, help="seconds to wait for the edges' results")
     _common(p)
-    p = sub.add_parser("exp", help="experiments: ls | start NAME | stop NAME | status NAME | define FILE")
-    p.add_argument("action", choices=["ls", "start", "stop", "status", "define"])
+    p = sub.add_parser("exp", help="experiments: ls | start NAME | stop NAME | status NAME | define FILE | remove NAME")
+    p.add_argument("action", choices=["ls", "start", "stop", "status", "define", "remove"])
     p.add_argument(
-        "name", nargs="?", default="", help="experiment name (start, stop, status); define: a YAML/JSON file"
+        "name", nargs="?", default="", help="experiment name (start, stop, status, remove); define: a YAML/JSON file"
     )
     p.add_argument("--json", action="store_true", help="one JSON document instead of a table")
     _common(p)
@@ -176,6 +178,13 @@ def _exp(args: argparse.Namespace, stub: control_pb2_grpc.ControlStub, out: Cons
         info = stub.GetExperiment(control_pb2.GetExperimentRequest(name=args.name), timeout=args.timeout)
     elif args.action == "start":
         info = stub.StartExperiment(control_pb2.StartExperimentRequest(name=args.name), timeout=args.timeout)
+    elif args.action == "remove":
+        info = stub.RemoveExperiment(control_pb2.RemoveExperimentRequest(name=args.name), timeout=args.timeout)
+        if args.json:
+            print(json.dumps(MessageToDict(info), indent=1))
+        else:
+            print(f"experiment {info.name} removed ({info.episodes} episodes kept in control's history)")
+        return 0
     else:
         info = stub.StopExperiment(control_pb2.StopExperimentRequest(name=args.name), timeout=args.timeout)
     if args.json:

@@ -270,6 +270,7 @@ class Registry:
         self._preparing: set[str] = set()  # experiments an online learner is still preparing: robots hold
         self._commands: OrderedDict[str, CommandRecord] = OrderedDict()
         self._experiments: dict[str, ExperimentRecord] = {}  # config order: the first matching selector wins
+        self._removed: set[str] = state.load_removed() if state is not None else set()  # names never reused
         self._last_lease: dict[str, str] = state.load_leases() if state is not None else {}
         self._totals: dict[tuple[str, str], EpisodeTotals] = {}  # (experiment, robot_id) -> whole history
         self._load_experiments(experiments or [])
@@ -330,7 +331,7 @@ class Registry:
     def define_experiment(self, exp: ExperimentConfig) -> control_pb2.ExperimentInfo | None:
         """Add a validated experiment after the others, running, persisted; None if the name is taken."""
         with self._lock:
-            if exp.name in self._experiments:
+            if exp.name in self._experiments or exp.name in self._removed:
                 return None
             first = shadowed([*(e.config for e in self._experiments.values()), exp]).get(exp.name)
             if self.state is not None:
@@ -642,6 +643,30 @@ class Registry:
                 log.info("experiment " + ("started" if running else "stopped"), extra=kv(experiment=name))
                 self._relay_leases_locked()
             return self._experiment_info_locked(exp)
+
+    def remove_experiment(self, name: str) -> tuple[control_pb2.ExperimentInfo | None, str]:
+        """Take away a stopped experiment defined at run time: (its last info, "") or (None, why not; "" = unknown).
+        Robots its selector held go to the next experiment that selects them."""
+        with self._lock:
+            exp = self._experiments.get(name)
+            if exp is None:
+                return None, ""
+            if not exp.defined_at_runtime:
+                return None, f"experiment {name!r} comes from the stack config: remove it there (and restart control)"
+            if exp.running:
+                return None, f"experiment {name!r} is running: stop it first (userctl exp stop {name})"
+            info = self._experiment_info_locked(exp)
+            if self.state is not None:
+                self.state.remove_definition(name, time.time_ns())
+            del self._experiments[name]
+            self._removed.add(name)
+            log.info("experiment removed", extra=kv(experiment=name))
+            self._relay_leases_locked()
+            return info, ""
+
+    def was_removed(self, name: str) -> bool:
+        with self._lock:
+            return name in self._removed
 
     def experiment_info(self, name: str) -> control_pb2.ExperimentInfo | None:
         with self._lock:
@@ -1111,12 +1136,26 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
             context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, f"control holds {MAX_EXPERIMENTS} experiments already")
         info = self.registry.define_experiment(exp)
         if info is None:
+            was = "was removed" if self.registry.was_removed(exp.name) else "exists"
             context.abort(
                 grpc.StatusCode.ALREADY_EXISTS,
-                f"experiment {exp.name!r} exists (a name keeps its history, stopped or not: pick another name)",
+                f"experiment {exp.name!r} {was} (a name keeps its history, stopped, removed or not: pick another name)",
             )
         who = rpc.caller(context)
         log.info("experiment defined by request", extra=kv(experiment=exp.name, by=who.name if who is not None else ""))
+        return info
+
+    def RemoveExperiment(
+        self, request: control_pb2.RemoveExperimentRequest, context: grpc.ServicerContext
+    ) -> control_pb2.ExperimentInfo:
+        self._check_name(request.name, context)
+        info, why = self.registry.remove_experiment(request.name)
+        if info is None and why:
+            context.abort(grpc.StatusCode.FAILED_PRECONDITION, why)
+        if info is None:
+            self._not_found(request.name, context)
+        who = rpc.caller(context)
+        log.info("experiment removed by request", extra=kv(experiment=request.name, by=who.name if who else ""))
         return info
 
     def _set_running(self, name: str, running: bool, context: grpc.ServicerContext) -> control_pb2.ExperimentInfo:

@@ -35,6 +35,7 @@ CREATE TABLE IF NOT EXISTS leases (robot_id TEXT PRIMARY KEY, experiment TEXT NO
 CREATE TABLE IF NOT EXISTS defined_experiments (
   seq INTEGER PRIMARY KEY AUTOINCREMENT, name TEXT NOT NULL UNIQUE, definition TEXT NOT NULL
 );
+CREATE TABLE IF NOT EXISTS removed_experiments (name TEXT PRIMARY KEY, removed_at_ns INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS commands (command_id TEXT PRIMARY KEY, seq INTEGER NOT NULL, status BLOB NOT NULL);
 """
 # Columns added to `episodes` after the first release (older files get them with these defaults).
@@ -171,6 +172,25 @@ class ControlState:
                 self._db.execute(
                     "INSERT INTO defined_experiments (name, definition) VALUES (?, ?)", (name, definition_json)
                 )
+
+    def remove_definition(self, name: str, removed_at_ns: int) -> None:
+        """RemoveExperiment: the definition and run state go; the name stays taken (its history keeps it)."""
+        with self._lock:
+            if not self._closed:
+                self._db.execute("BEGIN")  # all three or none (autocommit otherwise)
+                try:
+                    self._db.execute("DELETE FROM defined_experiments WHERE name = ?", (name,))
+                    self._db.execute("DELETE FROM experiments WHERE name = ?", (name,))
+                    self._db.execute("INSERT OR REPLACE INTO removed_experiments VALUES (?, ?)", (name, removed_at_ns))
+                except BaseException:
+                    self._db.execute("ROLLBACK")
+                    raise
+                self._db.execute("COMMIT")
+
+    def load_removed(self) -> set[str]:
+        """Names of experiments removed by RemoveExperiment (never defined again)."""
+        with self._lock:
+            return {row[0] for row in self._db.execute("SELECT name FROM removed_experiments").fetchall()}
 
     def load_leases(self) -> dict[str, str]:
         """robot_id -> the experiment it was last leased to."""

@@ -67,6 +67,10 @@ class NoPolicyError(RuntimeError):
     """No policy has been loaded yet."""
 
 
+class BatcherStopped(RuntimeError):
+    """The batcher stopped (the service is stopping, or its experiment was removed)."""
+
+
 @dataclass
 class ActResult:
     action: np.ndarray  # this request's row: (action_dim,) or (horizon, action_dim)
@@ -196,10 +200,10 @@ class MicroBatcher:
         for thread in self._threads:
             thread.join(timeout)
         self._threads = []
-        self._fail_pending(RuntimeError("batcher stopped"))
+        self._fail_pending(BatcherStopped("batcher stopped"))
         while True:  # groups encoded after the step thread left
             try:
-                self._fail(self._ready.get_nowait().requests(), RuntimeError("batcher stopped"))
+                self._fail(self._ready.get_nowait().requests(), BatcherStopped("batcher stopped"))
             except queue.Empty:
                 break
 
@@ -236,7 +240,7 @@ class MicroBatcher:
         recently active key is in it. `instruction` reaches the policy's preprocess.
         """
         if self._stop.is_set():
-            raise RuntimeError("batcher stopped")
+            raise BatcherStopped("batcher stopped")
         if self.version is None:
             raise NoPolicyError("no policy yet")
         arrays = {k: np.asarray(v) for k, v in observation.items()}
@@ -276,7 +280,7 @@ class MicroBatcher:
                 self._step(rolling)
         finally:
             for batch in rolling + pending + self._ready_groups(wait=False):
-                self._fail(batch.requests(), RuntimeError("batcher stopped"))
+                self._fail(batch.requests(), BatcherStopped("batcher stopped"))
 
     def _ready_groups(self, wait: bool) -> list[_Rolling]:
         groups: list[_Rolling] = []

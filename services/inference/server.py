@@ -24,7 +24,7 @@ import numpy as np
 import prometheus_client
 import torch
 
-from services.inference.batcher import ActResult, MicroBatcher, NoPolicyError
+from services.inference.batcher import ActResult, BatcherStopped, MicroBatcher, NoPolicyError
 from user import rpc, wire
 from user.config import ConfigError, ExperimentConfig, RobotSelector, StackConfig
 from user.experiments import embodiment_inputs, fit_action
@@ -242,9 +242,10 @@ class Router:
                 self._channel = rpc.make_channel(self.cfg.inference.control_addr, self.cfg.auth)
             return control_pb2_grpc.ControlStub(self._channel)
 
-    def defined_experiments(self) -> list[ExperimentConfig]:
-        """Experiments defined at run time (Control.DefineExperiment) that this router does not know yet, in
-        control's order; [] when control cannot say. One whose definition does not check is logged, skipped."""
+    def defined_experiments(self) -> tuple[list[ExperimentConfig], set[str] | None]:
+        """(experiments defined at run time (Control.DefineExperiment) that this router does not know yet, in
+        control's order; every name control lists, None when control cannot say). One whose definition does not
+        check is logged, skipped."""
         from user.experiments import parse_definition
         from user.v1 import control_pb2
 
@@ -252,7 +253,7 @@ class Router:
             resp = self._stub().ListExperiments(control_pb2.ListExperimentsRequest(), timeout=2.0)
         except grpc.RpcError as err:
             log.debug("ListExperiments failed", extra=kv(code=err.code().name))
-            return []
+            return [], None
         known = {e.name for e in self.experiments}
         new = []
         for info in resp.experiments:
@@ -265,12 +266,19 @@ class Router:
                 log.error("a defined experiment cannot be served", extra=kv(experiment=info.name, error=str(exc)))
                 continue
             new.append(exp)
-        return new
+        return new, {info.name for info in resp.experiments}
 
     def add(self, exp: ExperimentConfig) -> None:
         """Route to `exp` too (after the others: the first matching selector wins, as everywhere)."""
         with self._lock:
             self.experiments = [*self.experiments, exp]  # replaced, not mutated: route() reads it unlocked
+
+    def remove(self, name: str) -> None:
+        """Route to `name` no more (Control.RemoveExperiment): its robots are looked up again."""
+        with self._lock:
+            self.experiments = [e for e in self.experiments if e.name != name]
+            self._routes = {rid: route for rid, route in self._routes.items() if route[0] != name}
+            self._refreshed = 0.0
 
     def close(self) -> None:
         if self._channel is not None:
@@ -308,7 +316,9 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
             experiment, kind = self.service.router.route(request.robot_id)
         except RoutingError as exc:
             raise _ActError(exc.code, str(exc)) from None
-        slot = self.service.slots[experiment]
+        slot = self.service.slots.get(experiment)
+        if slot is None:  # removed between routing and here (Control.RemoveExperiment)
+            raise _ActError(grpc.StatusCode.FAILED_PRECONDITION, f"experiment {experiment!r} is no longer served")
         policy = slot.policy
         if policy is None:
             raise _ActError(grpc.StatusCode.UNAVAILABLE, "no policy yet")
@@ -330,6 +340,8 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
             )
         except NoPolicyError:
             raise _ActError(grpc.StatusCode.UNAVAILABLE, "no policy yet") from None
+        except BatcherStopped:
+            raise _ActError(grpc.StatusCode.UNAVAILABLE, f"experiment {experiment!r} is no longer served") from None
         return future, policy, kind
 
     @staticmethod
@@ -343,6 +355,8 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
             raise _ActError(grpc.StatusCode.DEADLINE_EXCEEDED, f"no action within {wait_s * 1000:.0f} ms") from None
         except NoPolicyError:
             raise _ActError(grpc.StatusCode.UNAVAILABLE, "no policy yet") from None
+        except BatcherStopped:
+            raise _ActError(grpc.StatusCode.UNAVAILABLE, "the policy stopped serving (shutdown or removal)") from None
         except Exception as exc:
             raise _ActError(grpc.StatusCode.INTERNAL, f"policy forward failed: {exc}") from None
         QUEUE_SECONDS.observe(result.queue_us / 1e6)
@@ -435,6 +449,7 @@ class InferenceService(rpc.GrpcService):
         # Replaced whole when an experiment defined at run time joins (RPC threads read it without a lock).
         self.slots = {e.name: PolicySlot(self, e.name) for e in self.router.experiments}
         self._watch_stop = threading.Event()
+        self._defined: set[str] = set()  # experiments added from control's definitions (removable)
         self._watcher: threading.Thread | None = None
         self._first = next(iter(self.slots.values()))
         self.running: rpc.RunningServer | None = None
@@ -499,16 +514,35 @@ class InferenceService(rpc.GrpcService):
         slot.batcher.start()
         self._subscribe(slot)
         self.slots = {**self.slots, exp.name: slot}
+        self._defined.add(exp.name)
         self.router.add(exp)
         log.info("serving an experiment defined at run time", extra=kv(experiment=exp.name))
         return slot
 
+    def remove_experiment(self, name: str) -> None:
+        """Serve a removed experiment no more: routes first, then its slot, weight stream and batcher."""
+        self.router.remove(name)
+        slot = self.slots.get(name)
+        self.slots = {n: s for n, s in self.slots.items() if n != name}
+        self._defined.discard(name)
+        if slot is not None:
+            if slot.subscriber is not None:
+                slot.subscriber.stop()
+                slot.subscriber = None
+            slot.batcher.stop()
+        log.info("experiment removed by control; no longer served", extra=kv(experiment=name))
+
     def _watch_experiments(self) -> None:
-        """Every EXPERIMENTS_POLL_S, ask control for experiments defined at run time and serve the new ones."""
+        """Every EXPERIMENTS_POLL_S, ask control for experiments defined at run time: serve the new ones, drop
+        the removed ones (Control.RemoveExperiment)."""
         while not self._watch_stop.wait(EXPERIMENTS_POLL_S):
-            for exp in self.router.defined_experiments():
+            new, listed = self.router.defined_experiments()
+            for exp in new:
                 if exp.name not in self.slots and not self._watch_stop.is_set():
                     self.add_experiment(exp)
+            for name in sorted(self._defined - listed) if listed is not None else []:
+                if not self._watch_stop.is_set():
+                    self.remove_experiment(name)
 
     def stop(self) -> None:
         self._watch_stop.set()
