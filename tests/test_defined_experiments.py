@@ -288,7 +288,7 @@ def test_a_running_stack_trains_and_serves_an_experiment_defined_while_it_runs(
         wait_for(lambda: "late" not in learner.learner.experiment_states, "the learner to drop it", limit_s=60)
         wait_for(lambda: "late" not in inference.slots, "inference to drop it", limit_s=30)
         assert "late" not in learner.learner.runs and (tmp_path / "ckpt" / "late").is_dir()
-        assert slot.batcher._stop.is_set() and slot.subscriber is None
+        wait_for(lambda: slot.batcher._stop.is_set() and slot.subscriber is None, "its batcher and stream to stop")
         wait_for(lambda: served(stub) == {"first", "elsewhere"}, "the worker report to drop it", limit_s=30)
         steps = late.env_steps
         wait_for(lambda: first.env_steps > steps + 40, "arm-0 acting on")
