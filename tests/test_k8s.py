@@ -163,17 +163,27 @@ def test_systemd_accepts_the_unit(tmp_path: Path) -> None:
     assert out.returncode == 0 and not out.stderr.strip(), out.stderr
 
 
-def test_install_service_writes_the_unit(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from user import cli
+def test_install_service_writes_the_unit(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import getpass
+    import sys
 
-    config = "/etc/user/edge.yaml"
-    args = ["edge", "install-service", "-c", config, "--unit-dir", str(tmp_path), "--user", "robot"]
-    assert cli.main([*args, "--dry-run"]) == 0
+    from user import cli, edge_setup
+
+    # tmp_path is under /tmp, which the unit (PrivateTmp=yes) refuses; the next test checks that refusal.
+    monkeypatch.setattr(edge_setup, "_hidden_by_private_tmp", lambda config: "")
+    config = tmp_path / "edge.yaml"
+    config.write_text(edge_setup.discover("cloud.lab:50051", ["sim_reach_arm"], serial=list, cameras=list))
+    units = tmp_path / "units"
+    units.mkdir()
+    args = ["edge", "install-service", "-c", str(config), "--unit-dir", str(units), "--user", getpass.getuser()]
+    assert cli.main([*args, "--dry-run", "--userctl", sys.executable]) == 0
     out = capsys.readouterr().out
-    assert "ExecStart=" in out and "WARNING" not in out and not (tmp_path / "user-edge.service").exists()
-    assert cli.main([*args, "--no-start", "--userctl", "/usr/bin/userctl"]) == 0
-    unit = (tmp_path / "user-edge.service").read_text().splitlines()
-    assert f"ExecStart=/usr/bin/userctl edge --config {config}" in unit
+    assert "ExecStart=" in out and "WARNING" not in out and not (units / "user-edge.service").exists()
+    assert cli.main([*args, "--no-start", "--userctl", sys.executable]) == 0
+    unit = (units / "user-edge.service").read_text().splitlines()
+    assert f"ExecStart={sys.executable} edge --config {config}" in unit
     assert "WorkingDirectory=/var/lib/user-edge" in unit and "StateDirectory=user-edge" in unit
 
 

@@ -2,10 +2,12 @@
 
 discover probes what is attached — OpenCV cameras (through lerobot's finder), serial ports of
 Feetech/Dynamixel bus adapters (the lerobot arms: SO-100/101, Koch), and the simulated robots this build
-knows — and prints an edge config that validates (`userctl edge -c` runs it). Hardware without a USER
-robot kind yet is listed as commented entries with its port, so nothing is guessed into a broken config.
+knows — and prints an edge config that validates (`userctl edge -c` runs it). `--sim` adds simulators only;
+arms found are listed as commented lerobot entries with their port, so nothing is guessed into a broken config.
 
-install-service writes the systemd unit (restart on failure, logs to journald) and enables it.
+install-service writes the systemd unit (restart on failure, logs to journald) and enables it. The unit
+restarts forever, so what would only crash-loop is refused first: an edge config `userctl edge -c` would
+refuse, a missing --user or --userctl, an invalid unit name.
 """
 
 from __future__ import annotations
@@ -13,6 +15,8 @@ from __future__ import annotations
 import argparse
 import getpass
 import os
+import pwd
+import re
 import shutil
 import socket
 import subprocess
@@ -33,6 +37,14 @@ ARM_BRIDGES = {
     ("0403", "6001"): "FTDI FT232R (Dynamixel)",
 }
 SERIAL_GLOBS = ("ttyACM*", "ttyUSB*")
+# How to add a hardware robot kind by hand, for `--sim KIND` of one (discover only adds simulators).
+HARDWARE_EXAMPLES = {
+    "lerobot": "{id: arm-0, kind: lerobot, params: {type: so101_follower, config: {port: /dev/ttyACM0}}}",
+}
+# systemd's unit-name characters (unit_name_is_valid); "@" is left out: a template/instance name would need
+# the template unit this command does not write.
+UNIT_NAME = re.compile(r"[A-Za-z0-9:_.\\-]+")
+UNIT_NAME_MAX = 255  # systemd's limit, ".service" included
 
 
 @dataclass
@@ -76,6 +88,48 @@ def find_cameras() -> list[dict[str, Any]]:
         return []
 
 
+def _sim_refusal(kind: str) -> str:
+    """Why `--sim kind` cannot add a bare `{id, kind}` entry (a hardware robot, or params it needs), or ""."""
+    from edge_agent.robot import ROBOTS, Robot
+    from user.registry import PluginError
+
+    if ROBOTS.get(kind).cls.connect is not Robot.connect:  # connect opens hardware; sims are ready when built
+        example = f", e.g. {HARDWARE_EXAMPLES[kind]}" if kind in HARDWARE_EXAMPLES else ""
+        return (
+            f"{kind} drives real hardware, not a simulator: add it to edge.robots by hand{example} "
+            f"(`userctl plugins robot {kind}` lists its params; discover without --sim lists serial ports)"
+        )
+    try:
+        ROBOTS.params(kind, {}, where="params")
+    except PluginError as exc:
+        return f"{kind} needs params ({exc}): add it to edge.robots by hand"
+    return ""
+
+
+def simulated_kinds() -> list[str]:
+    """Robot kinds `discover --sim` can add: simulators that run without params."""
+    from edge_agent.robot import known_robot_kinds
+
+    return [kind for kind in known_robot_kinds() if not _sim_refusal(kind)]
+
+
+def _camera_size(camera: dict[str, Any]) -> str:
+    """A lerobot robot's camera needs width, height and fps: the probed defaults, else common ones."""
+    prof = camera.get("default_stream_profile") or {}
+    size = {"width": 640, "height": 480, "fps": 30} | {k: prof[k] for k in ("width", "height", "fps") if prof.get(k)}
+    return ", ".join(f"{k}: {v}" for k, v in size.items())
+
+
+def _arm_hint(port: SerialPort, index: int, cams: list[dict[str, Any]]) -> str:
+    """A commented lerobot robot entry for an arm on `port` (its lerobot type guessed from the bus adapter)."""
+    lerobot_type = "koch_follower" if "Dynamixel" in (port.arm_bridge or "") else "so101_follower"
+    cameras = ", ".join(
+        f"cam{j}: {{type: opencv, index_or_path: {c.get('id')}, {_camera_size(c)}}}" for j, c in enumerate(cams)
+    )
+    config = f"port: {port.device}" + (f", cameras: {{{cameras}}}" if cams else "")
+    return f"#   - {{id: arm-{index}, kind: lerobot, params: {{type: {lerobot_type}, config: {{{config}}}}}}}"
+
+
 def discover(
     control_addr: str,
     sims: list[str],
@@ -85,10 +139,13 @@ def discover(
     """A commented edge config (YAML) for this PC."""
     from edge_agent.robot import known_robot_kinds
 
-    kinds = known_robot_kinds()
+    kinds, sim_kinds = known_robot_kinds(), simulated_kinds()
     unknown = [s for s in sims if s not in kinds]
     if unknown:
-        raise ValueError(f"unknown simulated robot kind(s) {unknown}; known: {kinds}")
+        raise ValueError(f"unknown simulated robot kind(s) {unknown}; known: {sim_kinds}")
+    for kind in sims:
+        if why := _sim_refusal(kind):
+            raise ValueError(f"--sim {kind}: {why}; --sim takes {sim_kinds}")
     host = socket.gethostname().split(".")[0] or "edge"
     agent = "".join(c if c.isalnum() or c in "-_." else "-" for c in host)[:64]
     robots = [{"id": f"{kind.replace('_', '-')}-{i}", "kind": kind} for i, kind in enumerate(sims)]
@@ -115,12 +172,9 @@ def discover(
         )
     arms = [p for p in ports if p.arm_bridge]
     if arms:
-        lines.append("# Arms found; add a robot entry once a USER robot kind wraps its lerobot driver, e.g.:")
-        for i, p in enumerate(arms):
-            cams_yaml = ", ".join(f"{{id: {c.get('id')}}}" for c in cams)
-            lines.append(
-                f"#   - {{id: arm-{i}, kind: so101_follower, params: {{port: {p.device}, cameras: [{cams_yaml}]}}}}"
-            )
+        needs = "" if "lerobot" in kinds else " (the lerobot kind needs the lerobot package)"
+        lines.append(f"# Arms found; to drive one, add it to edge.robots (type: its lerobot robot type){needs}:")
+        lines += [_arm_hint(p, i, cams) for i, p in enumerate(arms)]
     if not robots:
         lines.append("# No simulated robot asked for (--sim KIND); add robots before starting the agent.")
     return "\n".join(lines) + "\n" + yaml.safe_dump(config, sort_keys=False)
@@ -129,7 +183,24 @@ def discover(
 # --------------------------------------------------------------------------- systemd
 
 
+def _exec_word(arg: str, executable: bool = False) -> str:
+    """`arg` as one word of an ExecStart= line (systemd.service, "Command lines").
+
+    systemd expands %specifiers on the whole line, splits it on whitespace, unquotes and C-unescapes each
+    word, then expands $VARS in the arguments (not in the executable's path, where "$$" would stay "$$").
+    """
+    word = arg.replace("%", "%%") if executable else arg.replace("%", "%%").replace("$", "$$")
+    if word and not any(c in word for c in " \t\"'\\"):
+        return word  # plain paths stay as they were
+    return '"' + word.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
 def render_unit(userctl: str, config: str, user: str, env_file: str = "/etc/user/edge.env") -> str:
+    for value in (userctl, config, user, env_file):
+        if not value.isprintable():  # a newline would end the setting and start another
+            raise ValueError(f"{value!r} has a control character, which a unit file cannot hold")
+    exec_start = f"{_exec_word(userctl, executable=True)} edge --config {_exec_word(config)}"
+    user, env_file = user.replace("%", "%%"), env_file.replace("%", "%%")  # specifiers; these are not unquoted
     return f"""[Unit]
 Description=USER edge agent (the robots of this PC)
 Wants=network-online.target
@@ -141,7 +212,7 @@ StartLimitIntervalSec=0
 Type=simple
 User={user}
 SupplementaryGroups=dialout video
-ExecStart={userctl} edge --config {config}
+ExecStart={exec_start}
 # Relative paths of the config (edge.spool_dir: the outbox of unsent steps) live here, owned by User.
 StateDirectory=user-edge
 WorkingDirectory=/var/lib/user-edge
@@ -172,31 +243,115 @@ def _hidden_by_private_tmp(config: str) -> str:
     return ""
 
 
+def edge_config_problem(config: str) -> str:
+    """Why `userctl edge --config config` would refuse to start (naming the field), or "" when it would not.
+
+    The checks the agent makes before touching a robot: the file loads as a stack config, and every robot,
+    task and teleoperator entry names a registered kind with valid params.
+    """
+    from user.config import ConfigError, load_config
+    from user.registry import PluginError
+
+    if not Path(config).is_file():
+        return f"edge config {config} " + ("is not a file" if Path(config).exists() else "does not exist")
+    try:
+        cfg = load_config(config, environ={})  # the installer's USER__* variables are not the service's
+    except ConfigError as exc:
+        message = " ".join(str(exc).split())  # YAML errors span lines
+        return message if config in message else f"{config}: {message}"
+    from edge_agent.robot import ROBOTS
+    from edge_agent.task import TASKS
+    from edge_agent.teleop import TELEOPERATORS
+
+    try:
+        for i, rc in enumerate(cfg.edge.robots):
+            ROBOTS.params(rc.kind, rc.params, where=f"edge.robots[{i}].params")
+            if rc.task is not None:
+                TASKS.params(rc.task.kind, rc.task.params, where=f"edge.robots[{i}].task.params")
+            if rc.teleop is not None:
+                TELEOPERATORS.params(rc.teleop.kind, rc.teleop.params, where=f"edge.robots[{i}].teleop.params")
+    except PluginError as exc:
+        return f"{config}: {exc}"
+    return ""
+
+
+def _unit_name_problem(name: str) -> str:
+    if UNIT_NAME.fullmatch(name) and not name.startswith("-") and len(f"{name}.service") <= UNIT_NAME_MAX:
+        return ""
+    return (
+        f"invalid unit name {name!r} (--name): systemd allows letters, digits and : _ . - \\ "
+        f"(not first -), at most {UNIT_NAME_MAX - len('.service')} characters"
+    )
+
+
+def _userctl_problem(userctl: str) -> str:
+    if any(c in userctl for c in "\"'\\"):  # systemd refuses such an executable path
+        return f"systemd cannot run {userctl} (--userctl): its path has a quote or backslash"
+    if not (os.path.isfile(userctl) and os.access(userctl, os.X_OK)):
+        return f"{userctl} is not an executable file (--userctl)"
+    return ""
+
+
+def _user_problem(user: str) -> str:
+    if user.isdigit():  # systemd takes a numeric uid as is
+        return ""
+    try:
+        pwd.getpwnam(user)
+    except KeyError:
+        return f"user {user!r} does not exist on this machine (--user); the service could not start"
+    return ""
+
+
+def _unit_dir_problem(unit_dir: str) -> str:
+    if Path(unit_dir).is_dir():
+        return ""
+    return f"unit directory {unit_dir} " + ("is not a directory" if Path(unit_dir).exists() else "does not exist")
+
+
 def install_service(args: argparse.Namespace) -> int:
+    def fail(message: str, code: int = 2) -> int:
+        print(f"userctl edge install-service: {message}", file=sys.stderr)
+        return code
+
+    name = args.name.removesuffix(".service")
+    if problem := _unit_name_problem(name):
+        return fail(problem)
     userctl = args.userctl or shutil.which("userctl") or str(Path(sys.executable).with_name("userctl"))
-    config = str(Path(args.config).resolve())
+    # ExecStart needs an absolute path (a bare name is looked up on PATH); abspath keeps the venv's symlink.
+    userctl = os.path.abspath(userctl if "/" in userctl else shutil.which(userctl) or userctl)
+    config = os.path.realpath(args.config)
+    for option, value in (("--config", config), ("--userctl", userctl), ("--user", args.user)):
+        if not value.isprintable():
+            return fail(f"{option} {value!r} has a control character, which a unit file cannot hold")
     unit = render_unit(userctl, config, args.user)
-    path = Path(args.unit_dir) / f"{args.name}.service"
-    hidden = _hidden_by_private_tmp(config)
+    path = Path(args.unit_dir) / f"{name}.service"
+    # Each of these would leave a unit that fails at every start, restarted every 2 s for ever.
+    problems = [
+        _hidden_by_private_tmp(config),
+        edge_config_problem(config),
+        _user_problem(args.user),
+        _userctl_problem(userctl),
+        _unit_dir_problem(args.unit_dir),
+    ]
+    problems = [p for p in problems if p]
     if args.dry_run:
-        print(f"# would write {path}\n" + (f"# WARNING: {hidden}\n" if hidden else "") + unit, end="")
+        print(f"# would write {path}\n" + "".join(f"# WARNING: {p}\n" for p in problems) + unit, end="")
         return 0
-    if hidden:
-        print(f"userctl edge install-service: {hidden}", file=sys.stderr)
-        return 2
+    if problems:
+        return fail(problems[0])
     try:
         path.write_text(unit)
     except PermissionError:
-        print(f"userctl edge install-service: cannot write {path}; run with sudo (or --dry-run)", file=sys.stderr)
-        return 1
+        return fail(f"cannot write {path}; run with sudo (or --dry-run)", 1)
+    except OSError as exc:
+        return fail(f"cannot write {path}: {exc.strerror or exc}", 1)
     print(f"wrote {path}")
     if args.no_start:
         return 0
-    for cmd in (["systemctl", "daemon-reload"], ["systemctl", "enable", "--now", args.name]):
+    for cmd in (["systemctl", "daemon-reload"], ["systemctl", "enable", "--now", name]):
         if subprocess.run(cmd).returncode != 0:
-            print(f"userctl edge install-service: {' '.join(cmd)} failed", file=sys.stderr)
-            return 1
-    print(f"started; logs: journalctl -u {args.name} -f")
+            return fail(f"{' '.join(cmd)} failed", 1)
+    print(f"started; logs: journalctl -u {name} -f")
     return 0
 
 
@@ -224,7 +379,11 @@ def main(argv: list[str]) -> int:
         print(f"userctl edge discover: {exc}", file=sys.stderr)
         return 2
     if args.output:
-        Path(args.output).write_text(text)
+        try:
+            Path(args.output).write_text(text)
+        except OSError as exc:  # a missing folder, a directory, no permission
+            print(f"userctl edge discover: cannot write {args.output}: {exc.strerror or exc}", file=sys.stderr)
+            return 1 if isinstance(exc, PermissionError) else 2
         print(f"wrote {args.output}")
     else:
         print(text, end="")
