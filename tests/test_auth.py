@@ -288,3 +288,52 @@ def test_mtls_and_certificate_identity(tmp_path: Path) -> None:
         assert code_of(cert_only.ListRobots, req, timeout=5) == grpc.StatusCode.PERMISSION_DENIED
     finally:
         control.stop()
+
+
+# --------------------------------------------------------------------------- tokens file errors never show a value
+
+SECRET = "SECRET-x"  # in every value below: an error message must never contain it
+
+
+def test_a_bad_tokens_file_names_entry_and_field_but_no_value(tmp_path: Path) -> None:
+    tokens = tmp_path / "tokens.yaml"
+    entries = [
+        {"token": SECRET, "role": "operator"},  # too short
+        {"token": OPERATOR, "role": SECRET},  # a token pasted into the wrong field
+        {"token": READER, "role": "reader", "name": [SECRET]},
+        {"cert_cn": {SECRET: 1}, "role": "edge", "agent_id": "a", "robots": SECRET},
+    ]
+    tokens.write_text(yaml.safe_dump(entries))
+    with pytest.raises(user.auth.AuthError) as err:
+        user.auth.AuthTable(tokens_file=tokens)
+    said = str(err.value)
+    assert SECRET not in said and "input_value" not in said and "\n" not in said, said
+    assert said.startswith(f"auth.tokens_file {tokens}: entry 0: token: String should have at least 16 characters; ")
+    assert (
+        "; entry 1: role: Input should be 'admin'" in said and "entry 2: name: Input should be a valid string" in said
+    )
+    assert said.endswith("; and 2 more"), said  # entry 3's cert_cn and robots: counted, not listed
+    # Not YAML at all: where, without PyYAML's excerpt of the line.
+    tokens.write_text(f'- {{token: "{SECRET}-0123456789, role: operator}}\n')
+    with pytest.raises(user.auth.AuthError, match=r"not valid YAML: line \d+, column \d+: ") as err:
+        user.auth.load_entries(tokens)
+    assert SECRET not in str(err.value) and "\n" not in str(err.value)
+    # Entry-level rules name the entry too.
+    tokens.write_text(yaml.safe_dump([{"token": READER, "role": "reader"}, {"token": EDGE, "role": "edge"}]))
+    with pytest.raises(user.auth.AuthError, match=r": entry 1: an edge entry needs agent_id$"):
+        user.auth.load_entries(tokens)
+
+
+def test_a_reload_of_a_bad_tokens_file_logs_no_value(
+    stack, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    control, _, tokens = stack
+    monkeypatch.setattr(user.auth, "RELOAD_CHECK_S", 0.0)  # every call re-reads the file
+    tokens.write_text(yaml.safe_dump([{"token": SECRET, "role": "operator"}, {"token": READER, "role": SECRET}]))
+    with caplog.at_level("ERROR", logger="user.auth"):
+        assert code_of(control_stub(control, READER).ListRobots, control_pb2.ListRobotsRequest(), timeout=5) == (
+            grpc.StatusCode.OK  # the last good tokens stay
+        )
+    errors = [getattr(r, "fields", {}).get("error", "") for r in caplog.records if r.name == "user.auth"]
+    assert any("entry 0: token: String should have at least 16 characters" in e for e in errors), errors
+    assert all(SECRET not in f"{r.getMessage()} {getattr(r, 'fields', '')}" for r in caplog.records)

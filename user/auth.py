@@ -15,9 +15,9 @@ Roles:
 The tokens file (auth.tokens_file) is a YAML list, re-read when it changes, so tokens rotate without
 restarting anything: add the new token, move clients to it, remove the old one.
 
-    - {token: "s3cret-op", role: operator, name: alice}
-    - {token: "s3cret-dash", role: reader, name: grafana}
-    - {token: "s3cret-pc1", role: edge, agent_id: lab-pc-1, robots: ["so100-*"]}
+    - {token: "s3cret-operator-alice", role: operator, name: alice}    # tokens: 16+ characters
+    - {token: "s3cret-dashboard-grafana", role: reader, name: grafana}
+    - {token: "s3cret-edge-lab-pc-1", role: edge, agent_id: lab-pc-1, robots: ["so100-*"]}
     - {cert_cn: "lab-pc-2", role: edge, agent_id: lab-pc-2}     # identified by its mTLS client certificate
 """
 
@@ -104,17 +104,48 @@ class AuthError(ValueError):
     """A tokens file that cannot be used (names the file and the problem)."""
 
 
+def _yaml_problem(exc: yaml.YAMLError) -> str:
+    """Where and what, without the excerpt of the offending line PyYAML adds (it would show a token)."""
+    mark = getattr(exc, "problem_mark", None)
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    return f"not valid YAML: {where}{getattr(exc, 'problem', None) or 'cannot parse'}"
+
+
+def _validation_problem(exc: ValidationError) -> str:
+    """One line naming each bad entry and field. Only pydantic's messages, never the input: a token pasted
+    into the wrong field would be printed and logged otherwise."""
+    problems = []
+    for err in exc.errors(include_url=False, include_context=False, include_input=False):
+        loc = err["loc"]
+        if not loc:
+            problems.append(f"must be a YAML list of entries ({err['msg']})")
+            continue
+        field = ".".join(str(part) for part in loc[1:])
+        problems.append(f"entry {loc[0]}{': ' + field if field else ''}: {err['msg']}")
+    shown = "; ".join(problems[:3])
+    return shown + (f"; and {len(problems) - 3} more" if len(problems) > 3 else "")
+
+
 def load_entries(path: Path) -> list[TokenEntry]:
+    """The entries of a tokens file; an AuthError names the file, the entry (index from 0) and the field,
+    never a value."""
     try:
         raw = yaml.safe_load(path.read_text()) or []
+    except OSError as exc:
+        raise AuthError(f"auth.tokens_file {path}: cannot read it ({exc.strerror or exc})") from None
+    except UnicodeDecodeError:
+        raise AuthError(f"auth.tokens_file {path}: not UTF-8 text") from None
+    except yaml.YAMLError as exc:
+        raise AuthError(f"auth.tokens_file {path}: {_yaml_problem(exc)}") from None
+    try:
         entries = _ENTRIES.validate_python(raw)
-    except (OSError, yaml.YAMLError, ValidationError) as exc:
-        raise AuthError(f"auth.tokens_file {path}: {exc}") from None
-    for e in entries:
+    except ValidationError as exc:
+        raise AuthError(f"auth.tokens_file {path}: {_validation_problem(exc)}") from None
+    for i, e in enumerate(entries):
         if (e.token is None) == (e.cert_cn is None):
-            raise AuthError(f"auth.tokens_file {path}: each entry needs exactly one of token or cert_cn")
+            raise AuthError(f"auth.tokens_file {path}: entry {i}: needs exactly one of token or cert_cn")
         if e.role == "edge" and not e.agent_id:
-            raise AuthError(f"auth.tokens_file {path}: edge entry {e.name or e.cert_cn!r} needs agent_id")
+            raise AuthError(f"auth.tokens_file {path}: entry {i}: an edge entry needs agent_id")
     return entries
 
 

@@ -19,6 +19,7 @@ import importlib
 import sys
 from typing import Any
 
+from user import arg_types
 from user.config import AuthConfig, ConfigError, StackConfig, load_config
 from user.log import setup_logging
 
@@ -50,10 +51,10 @@ def _parser() -> argparse.ArgumentParser:
     plugins.add_argument("interface", nargs="?", help="with KIND: the params that kind takes (name type default)")
     plugins.add_argument("kind", nargs="?")
     h = sub.add_parser("health", help="gRPC health check of HOST:PORT (one line each)")
-    h.add_argument("targets", nargs="+", metavar="HOST:PORT")
+    h.add_argument("targets", nargs="+", metavar="HOST:PORT", type=arg_types.host_port)
     h.add_argument("--config", "-c")
     h.add_argument("--set", dest="overrides", action="append", default=[])
-    h.add_argument("--timeout", type=float, default=2.0)
+    h.add_argument("--timeout", type=arg_types.positive_float, default=2.0, help="seconds per target")
     reward = sub.add_parser("reward", help="learned rewards").add_subparsers(dest="reward_command", required=True)
     train = reward.add_parser("train", help="train a success classifier from labelled frames (user/reward_model.py)")
     train.add_argument("--frames", required=True, help="folder with success/ and failure/ frames, or an .npz")
@@ -108,7 +109,11 @@ def _health(targets: list[str], auth: AuthConfig, timeout_s: float) -> int:
         auth.resolved_token()
     except ConfigError:  # health checks are exempt from auth: probing needs no token
         auth = auth.model_copy(update={"enabled": False})
-    serving = [_health_line(target, auth, timeout_s) for target in targets]
+    try:
+        serving = [_health_line(target, auth, timeout_s) for target in targets]
+    except ConfigError as exc:  # e.g. auth.tls_ca unreadable
+        print(f"userctl health: {exc}", file=sys.stderr)
+        return 2
     return 0 if all(serving) else 1
 
 

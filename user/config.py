@@ -24,7 +24,11 @@ class Strict(BaseModel):
 
 class AuthConfig(Strict):
     enabled: bool = Field(default=True, description="require `authorization: Bearer <token>` on every call")
-    token: str | None = Field(default=None, description="shared token; default from $USER_TOKEN")
+    token: str | None = Field(
+        default=None,
+        description="shared (admin) token; default from $USER_TOKEN. Any length, unlike tokens_file entries "
+        "(16+): use 16+ random characters",
+    )
     token_file: Path | None = Field(default=None, description="file holding the token (docker/k8s secrets)")
     tls_cert: Path | None = Field(default=None, description="server cert (PEM); enables TLS")
     tls_key: Path | None = Field(default=None, description="server private key (PEM)")

@@ -6,11 +6,14 @@ A service is `start_server(...)` + `wait_for_shutdown(...)`; a client is `make_c
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
 import random
+import re
 import signal
+import socket
 import threading
 import time
 from abc import ABC, abstractmethod
@@ -263,17 +266,109 @@ class RunningServer:
             self._metrics_http.server_close()
 
 
+_PEM_CERT = b"-----BEGIN CERTIFICATE-----"
+_PEM_KEY = re.compile(rb"-----BEGIN (?:(RSA|EC|DSA|ENCRYPTED|OPENSSH) )?PRIVATE KEY-----")
+
+
+def _read_file(setting: str, path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError as exc:
+        raise ConfigError(f"{setting} {path}: cannot read it ({exc.strerror or exc})") from None
+
+
+def _pem_certificates(setting: str, path: Path) -> tuple[bytes, list[Any] | None]:
+    """The file's bytes, checked to hold PEM certificates; with `cryptography` installed (a dev dependency)
+    also parsed, and returned parsed so the key can be matched. Never echoes the file's contents."""
+    data = _read_file(setting, path)
+    if _PEM_CERT not in data:
+        raise ConfigError(f"{setting} {path}: not a PEM certificate (no BEGIN CERTIFICATE block)")
+    try:
+        from cryptography import x509
+    except ImportError:
+        return data, None
+    try:
+        return data, x509.load_pem_x509_certificates(data)
+    except ValueError:
+        raise ConfigError(f"{setting} {path}: not a valid PEM certificate") from None
+
+
+def _pem_private_key(setting: str, path: Path) -> tuple[bytes, Any | None]:
+    """Like _pem_certificates for an unencrypted PEM private key (gRPC cannot ask for a passphrase)."""
+    data = _read_file(setting, path)
+    found = _PEM_KEY.search(data)
+    if found is None:
+        raise ConfigError(f"{setting} {path}: not a PEM private key (no BEGIN PRIVATE KEY block)")
+    if found.group(1) == b"ENCRYPTED" or b"Proc-Type: 4,ENCRYPTED" in data:
+        raise ConfigError(f"{setting} {path}: the private key is encrypted; gRPC needs it unencrypted")
+    if found.group(1) == b"OPENSSH":
+        raise ConfigError(f"{setting} {path}: an OpenSSH key, not a PEM (PKCS#1/PKCS#8) private key")
+    try:
+        from cryptography.exceptions import UnsupportedAlgorithm
+        from cryptography.hazmat.primitives.serialization import load_pem_private_key
+    except ImportError:
+        return data, None
+    try:
+        return data, load_pem_private_key(data, password=None)
+    except (ValueError, TypeError, UnsupportedAlgorithm):  # never the library's text: it may quote the file
+        raise ConfigError(f"{setting} {path}: not a valid PEM private key") from None
+
+
+def _public_der(key: Any) -> bytes:
+    from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
+
+    return key.public_bytes(Encoding.DER, PublicFormat.SubjectPublicKeyInfo)
+
+
 def _server_credentials(auth: AuthConfig) -> grpc.ServerCredentials | None:
+    """TLS credentials from auth.tls_*, each file checked first so a bad one is named (gRPC would only
+    fail the bind, which reads like a port problem)."""
     if not auth.tls_cert:
+        for setting, value in (("auth.tls_key", auth.tls_key), ("auth.tls_client_ca", auth.tls_client_ca)):
+            if value:  # silently serving plaintext (or without mTLS) would be worse than refusing to start
+                raise ConfigError(f"{setting} is set but auth.tls_cert is not: a server needs both for TLS")
         return None
     if not auth.tls_key:
-        raise ValueError("auth.tls_key is required with auth.tls_cert")
-    pairs = [(auth.tls_key.read_bytes(), auth.tls_cert.read_bytes())]
+        raise ConfigError("auth.tls_key is required with auth.tls_cert")
+    cert, certs = _pem_certificates("auth.tls_cert", auth.tls_cert)
+    key, private = _pem_private_key("auth.tls_key", auth.tls_key)
+    if certs and private is not None and _public_der(certs[0].public_key()) != _public_der(private.public_key()):
+        raise ConfigError(f"auth.tls_key {auth.tls_key} does not match auth.tls_cert {auth.tls_cert}")
     if auth.tls_client_ca:  # mTLS: only clients with a certificate from this CA get a connection
-        return grpc.ssl_server_credentials(
-            pairs, root_certificates=auth.tls_client_ca.read_bytes(), require_client_auth=True
-        )
-    return grpc.ssl_server_credentials(pairs)
+        client_ca, _ = _pem_certificates("auth.tls_client_ca", auth.tls_client_ca)
+        return grpc.ssl_server_credentials([(key, cert)], root_certificates=client_ca, require_client_auth=True)
+    return grpc.ssl_server_credentials([(key, cert)])
+
+
+def _bind_error(host_setting: str, port_setting: str, host: str, port: int) -> str | None:
+    """Why host:port cannot be bound, naming the setting to change; None when it can.
+
+    Found by binding a probe socket the way gRPC does (SO_REUSEADDR; every resolved address, and like
+    gRPC, one that binds is enough): gRPC itself says only "Failed to bind" after logging the cause."""
+    try:
+        infos = socket.getaddrinfo(host.strip("[]") or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (socket.gaierror, UnicodeError):
+        return f"{host_setting} {host!r} is not a known host name or address"
+    errors: list[OSError] = []
+    for family, kind, proto, _, addr in infos:
+        with socket.socket(family, kind, proto) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                probe.bind(addr)
+                return None
+            except OSError as exc:
+                errors.append(exc)
+    if not errors:
+        return f"{host_setting} {host!r} resolves to no address"
+    exc = errors[0]
+    if exc.errno == errno.EADDRINUSE:
+        return f"{port_setting} {port} is in use on {host}"
+    if exc.errno == errno.EACCES:
+        hint = " (ports below 1024 need root)" if 0 < port < 1024 else ""
+        return f"{port_setting} {port} on {host}: permission denied{hint}"
+    if exc.errno == errno.EADDRNOTAVAIL:
+        return f"{host_setting} {host!r} is not an address of this machine"
+    return f"{port_setting} {port} on {host}: {exc.strerror or exc}"
 
 
 def start_server(
@@ -304,17 +399,33 @@ def start_server(
     health_servicer = health.HealthServicer(experimental_non_blocking=True)
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     reflection.enable_server_reflection([*names, health.SERVICE_NAME, reflection.SERVICE_NAME], server)
-    bind = f"{server_cfg.host}:{server_cfg.port}"
+    host, bind = server_cfg.host, f"{server_cfg.host}:{server_cfg.port}"
     creds = _server_credentials(auth)
-    port = server.add_secure_port(bind, creds) if creds else server.add_insecure_port(bind)
-    if port == 0:
-        raise OSError(f"{name}: cannot bind {bind}")
+    settings = (f"{name}.server.host", f"{name}.server.port")
+    # Probe first: a busy port then fails with our line alone, not after a C-core error log line too.
+    why = _bind_error(*settings, host, server_cfg.port)
+    if why is not None:
+        raise ConfigError(why)
+    metrics_http, metrics_port = None, 0
+    if start_metrics:  # before gRPC binds: an unstarted gRPC server does not let go of its port on stop()
+        metrics_http, metrics_port = start_metrics_http(
+            host, server_cfg.metrics_port, f"{name}.server.host", f"{name}.server.metrics_port"
+        )
+    try:
+        port = server.add_secure_port(bind, creds) if creds else server.add_insecure_port(bind)
+    except RuntimeError:  # grpcio >= 1.60 raises; older versions return 0
+        port = 0
+    if port == 0:  # taken since the probe, or (the port being free) gRPC refused the certificate or key
+        if metrics_http is not None:
+            metrics_http.shutdown()
+            metrics_http.server_close()
+        why = _bind_error(*settings, host, server_cfg.port)
+        if why is None and creds:
+            why = f"{name}: gRPC could not serve TLS with auth.tls_cert {auth.tls_cert} and auth.tls_key {auth.tls_key}"
+        raise ConfigError(why or f"{name}: cannot bind {bind}")
     server.start()
     for svc in [*names, ""]:
         health_servicer.set(svc, health_pb2.HealthCheckResponse.SERVING)
-    metrics_http, metrics_port = None, 0
-    if start_metrics:
-        metrics_http, metrics_port = start_metrics_http(server_cfg.host, server_cfg.metrics_port)
     log.info(
         "serving",
         extra={"fields": {"grpc_port": port, "metrics_port": metrics_port, "tls": bool(creds), "auth": bool(token)}},
@@ -322,8 +433,15 @@ def start_server(
     return RunningServer(name, server, port, metrics_port, health_servicer, names, server_cfg.grace_s, metrics_http)
 
 
-def start_metrics_http(host: str, port: int) -> tuple[Any, int]:
-    httpd, _thread = prometheus_client.start_http_server(port, addr=host)
+def start_metrics_http(
+    host: str, port: int, host_setting: str = "metrics host", port_setting: str = "metrics port"
+) -> tuple[Any, int]:
+    """Serve /metrics on host:port; a port in use (or a bad host) is a ConfigError naming the setting."""
+    try:
+        httpd, _thread = prometheus_client.start_http_server(port, addr=host)
+    except OSError as exc:
+        why = _bind_error(host_setting, port_setting, host, port)
+        raise ConfigError(why or f"{port_setting} {port} on {host}: {exc.strerror or exc}") from None
     return httpd, httpd.server_port
 
 
@@ -431,11 +549,11 @@ class TokenClientInterceptor(
 
 def make_channel(target: str, auth: AuthConfig) -> grpc.Channel:
     """A channel that sends the token on every call; TLS when auth.tls_ca is set."""
-    if auth.tls_ca:
-        key = auth.tls_client_key.read_bytes() if auth.tls_client_key else None
-        cert = auth.tls_client_cert.read_bytes() if auth.tls_client_cert else None
+    if auth.tls_ca:  # an unreadable file is a ConfigError naming its field, like the server's
+        key = _read_file("auth.tls_client_key", auth.tls_client_key) if auth.tls_client_key else None
+        cert = _read_file("auth.tls_client_cert", auth.tls_client_cert) if auth.tls_client_cert else None
         creds = grpc.ssl_channel_credentials(
-            root_certificates=auth.tls_ca.read_bytes(), private_key=key, certificate_chain=cert
+            root_certificates=_read_file("auth.tls_ca", auth.tls_ca), private_key=key, certificate_chain=cert
         )
         channel = grpc.secure_channel(target, creds, options=CHANNEL_OPTIONS)
     else:
