@@ -8,7 +8,7 @@ userctl plugins INTERFACE KIND             # the params that kind takes: name, t
 userctl replay ls|export|import ...        # a replay buffer's tables; LeRobotDataset out and in
 userctl reward train --frames DIR --out DIR  # success classifier for the `classifier` task
 userctl robots ls | workers ls | command pause|resume|reset [ROBOT]   # operators (see user/ops_cli.py)
-userctl exp ls | exp start|stop|status NAME                          # experiments and their leases
+userctl exp ls | exp start|stop|status|remove NAME | exp define FILE   # experiments and their leases
 userctl edge discover | edge install-service                         # robot-PC setup (user/edge_setup.py)
 """
 

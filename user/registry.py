@@ -23,6 +23,7 @@ import json
 import logging
 import pkgutil
 import threading
+import types
 import typing
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
@@ -195,10 +196,21 @@ def params_lines(interface: str, kind: str) -> list[str]:
 
 
 def _type_name(annotation: Any) -> str:
-    if typing.get_origin(annotation) is typing.Literal:
-        return " | ".join(str(a) for a in typing.get_args(annotation))
-    if isinstance(annotation, type) and not typing.get_args(annotation):
+    """A short readable type: constraints (Annotated metadata) left out, as the description states them."""
+    origin, args = typing.get_origin(annotation), typing.get_args(annotation)
+    if origin is typing.Annotated:
+        return _type_name(args[0])
+    if origin is typing.Literal:
+        return " | ".join(str(a) for a in args)
+    if annotation is type(None):
+        return "None"
+    if isinstance(annotation, type) and not args:
         return annotation.__name__
+    if origin is types.UnionType or origin is typing.Union:
+        return " | ".join(_type_name(a) for a in args)
+    if origin is not None and args:
+        name = getattr(origin, "__name__", str(origin).replace("typing.", ""))
+        return f"{name}[{', '.join(_type_name(a) for a in args)}]"
     return str(annotation).replace("typing.", "")
 
 
