@@ -91,3 +91,19 @@ def test_an_unknown_kind_lists_the_known_ones(registry: Registry[Widget]) -> Non
 def test_a_class_of_the_wrong_interface_is_refused(registry: Registry[Widget]) -> None:
     with pytest.raises(TypeError, match="does not subclass Widget"):
         registry.register("nope")(int)  # type: ignore[arg-type]
+
+
+def test_param_types_print_short_without_constraint_reprs() -> None:
+    """`userctl plugins INTERFACE KIND` prints one line per param: types as a user writes them."""
+    from typing import Annotated, Literal
+
+    from pydantic import Field, StringConstraints
+
+    from user.registry import _type_name
+
+    name = Annotated[str, StringConstraints(pattern="^[a-z]+$")]
+    share = Annotated[float, Field(gt=0)]
+    assert _type_name(dict[name, share]) == "dict[str, float]"
+    assert _type_name(list[str] | None) == "list[str] | None"
+    assert _type_name(Literal["min", "mean"]) == "min | mean"
+    assert _type_name(int) == "int"
