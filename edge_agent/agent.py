@@ -23,6 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
+import grpc
 import numpy as np
 import prometheus_client
 
@@ -97,6 +98,7 @@ WATCH_POLL_S = 0.25  # hot-plug: how often the agent looks for failed loops and 
 REPLUG_MAX_S = 60.0  # hot-plug: the longest wait between connect tries of an absent robot
 TELEOP_DETACH_S = 1.0  # hot-plug: a teleoperator whose polls fail this long is released and reconnected
 START_ALIGN_S = 0.1  # realtime: the robots' common first tick, this long after the agent starts them
+REFUSED = "control refused this agent"  # the reason of the hold a refusal puts on every robot
 
 
 class _RobotMetrics:
@@ -594,6 +596,7 @@ class EdgeAgent:
             site=edge.site,
             start=False,
             on_leases=self.on_leases,
+            on_refused=self.on_refused,
         )
 
     @staticmethod
@@ -601,8 +604,7 @@ class EdgeAgent:
         robots: list[Robot] = []
         try:
             for index, rc in enumerate(cfg.edge.robots):
-                where = f"edge.robots[{index}].params"
-                robots.append(make_robot(rc.kind, rc.id, rc.params, seed=cfg.edge.seed + index, where=where))
+                robots.append(_build_robot(cfg, index, rc))
         except Exception:
             for robot in robots:
                 robot.close()
@@ -628,8 +630,9 @@ class EdgeAgent:
             self._connect_teleop_at_start(rid, teleop)
         self.control.set_robots(self._attached_specs())
         self.control.start()
-        # Control names this agent's replay shard on registration: wait briefly so the first steps go there.
-        self.control.wait_registered(self.cfg.edge.rpc_timeout_s)
+        # Control names this agent's replay shard on registration: wait briefly so the first steps go there
+        # (a refusal ends the wait: the robots start held, see on_refused).
+        self.control.wait_answered(self.cfg.edge.rpc_timeout_s)
         self.sender.start()
         # One grid for every robot: they tick together (their Acts share a call) and the first tick
         # leaves each loop time to reset its robot.
@@ -834,6 +837,8 @@ class EdgeAgent:
             loop.set_lease(control_pb2.RobotLease(robot_id=rid, hold=True, reason="attached; waiting for a lease"))
         del self._absent[rid]
         self.loops = {**self.loops, rid: loop}  # before control hears of it: its lease must find the loop
+        if (refusal := self.control.refusal) is not None:  # after the swap: a refusal from now on finds it too
+            loop.set_lease(_refused_lease(rid, *refusal))
         self.control.set_robots(self._attached_specs())
         loop.start(self._next_tick(loop.period_s))
         self._attached_at[rid] = time.monotonic()
@@ -889,6 +894,26 @@ class EdgeAgent:
     def on_registered(self, registered: control_pb2.Registered) -> None:
         if registered.replay_addr:
             self.sender.retarget(registered.replay_addr)
+        # Registered after a refusal: a robot with a lease in this message gets it next, in place of the
+        # refusal's hold; one without (an older control) acts as it did before the refusal.
+        leased = {lease.robot_id for lease in registered.leases}
+        for rid, loop in self.loops.items():
+            if rid not in leased and loop.lease.hold and loop.lease.reason.startswith(REFUSED):
+                loop.set_lease(control_pb2.RobotLease(robot_id=rid))
+                log.info("robot no longer held: control registered this agent", extra=kv(robot_id=rid))
+
+    def on_refused(self, code: grpc.StatusCode, details: str) -> None:
+        """Control refused this agent (a token that may not register these robots, a robot id another agent holds,
+        a bad spec). Replay would refuse their steps too, or mix them with another agent's: every robot holds (no
+        actions, no steps) while the control client retries, and acts again once control registers and leases it.
+        Not an exit: tokens files are re-read by the servers, so an operator's fix needs no restart here."""
+        for rid, loop in self.loops.items():
+            if not (loop.lease.hold and loop.lease.reason.startswith(REFUSED)):
+                log.warning(
+                    "robot holds: control refused this agent; it acts again once control registers it",
+                    extra=kv(robot_id=rid, code=code.name, details=details),
+                )
+            loop.set_lease(_refused_lease(rid, code, details))
 
     def on_command(self, cmd: control_pb2.Command) -> tuple[bool, str]:
         return apply_command(self.loops, cmd)
@@ -906,6 +931,32 @@ class EdgeAgent:
                     extra=kv(robot_id=lease.robot_id, experiment=lease.experiment, reason=lease.reason),
                 )
             loop.set_lease(lease)
+
+
+def _refused_lease(robot_id: str, code: grpc.StatusCode, details: str) -> control_pb2.RobotLease:
+    return control_pb2.RobotLease(robot_id=robot_id, hold=True, reason=f"{REFUSED} ({code.name}): {details}")
+
+
+def _build_robot(cfg: StackConfig, index: int, rc: RobotConfig) -> Robot:
+    """One edge.robots entry's robot. One that cannot be built is a config error naming the entry (one line, exit
+    2), not an absent robot: hot-plug retries connecting an instance, whose spec (features, cameras) the tasks,
+    frame encoders and policy source are set up from at start; and lerobot remembers a missing driver package for
+    the life of the process, so retrying the build could not see it installed. A device that is not there fails in
+    connect(), which hot-plug retries while the other robots run."""
+    where = f"edge.robots[{index}]"
+    try:
+        return make_robot(rc.kind, rc.id, rc.params, seed=cfg.edge.seed + index, where=f"{where}.params")
+    except PluginError:
+        raise
+    except ImportError as exc:
+        log.debug("robot build failed", exc_info=True, extra=kv(robot_id=rc.id))
+        raise PluginError(f"{where} (robot {rc.id!r}, kind {rc.kind}): a driver it needs is missing: {exc}") from None
+    except ValueError as exc:  # params valid one by one but not together (e.g. action limits vs. the device's joints)
+        log.debug("robot build failed", exc_info=True, extra=kv(robot_id=rc.id))
+        raise PluginError(f"{where}.params (robot {rc.id!r}): {exc}") from None
+    except OSError as exc:
+        log.debug("robot build failed", exc_info=True, extra=kv(robot_id=rc.id))
+        raise PluginError(f"{where} (robot {rc.id!r}, kind {rc.kind}): cannot build the robot: {exc}") from None
 
 
 def build_judges_and_teleops(cfg: StackConfig, robots: list[Robot]) -> tuple[dict[str, Task], dict[str, Teleoperator]]:
@@ -933,7 +984,7 @@ def build_judges_and_teleops(cfg: StackConfig, robots: list[Robot]) -> tuple[dic
             try:
                 attach(teleops.get(spec.robot_id))
             except ValueError as exc:
-                raise ValueError(f"{where}.task: {exc}") from None
+                raise PluginError(f"{where}.task: {exc}") from None
     return tasks, teleops
 
 

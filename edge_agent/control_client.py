@@ -4,7 +4,8 @@ One background thread owns the Control.Connect stream. Heartbeats carry a RobotS
 from `status_fn()`; the finished-episode summaries inside them are not lost when a stream breaks:
 the ones of the last heartbeat written on a broken stream go out again with the next one.
 `set_robots` (hot-plug) sends the agent's new robot set on the live stream, and every later
-registration carries it.
+registration carries it. A refusal (`_FATALISH`: control answered, and said no) is kept in `refusal`
+and handed to `on_refused` until a registration succeeds: the agent holds its robots meanwhile.
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ StatusFn = Callable[[], list[control_pb2.RobotStatus]]
 CommandFn = Callable[[control_pb2.Command], "tuple[bool, str] | None"]
 RegisteredFn = Callable[[control_pb2.Registered], None]
 LeasesFn = Callable[[list[control_pb2.RobotLease]], None]
+RefusedFn = Callable[[grpc.StatusCode, str], None]
 
 
 class ControlClient:
@@ -64,6 +66,7 @@ class ControlClient:
         on_registered: RegisteredFn | None = None,
         site: str = "",
         on_leases: LeasesFn | None = None,
+        on_refused: RefusedFn | None = None,
     ) -> None:
         self.addr = addr
         self.agent_id = agent_id
@@ -76,6 +79,7 @@ class ControlClient:
         )
         self._on_registered = on_registered
         self._on_leases = on_leases
+        self._on_refused = on_refused
         self._status_fn = status_fn
         self._on_command = on_command
         self._channel = make_channel(addr, auth)
@@ -92,6 +96,8 @@ class ControlClient:
         self._stream_gen = 0
         self._registered: control_pb2.Registered | None = None
         self._registered_event = threading.Event()
+        self._refusal: tuple[grpc.StatusCode, str] | None = None  # the last refusal, until a registration
+        self._answered = threading.Event()  # control registered or refused this agent at least once
         self._robots_changed = threading.Event()  # set_robots since the stream last told control
         self.heartbeats = self.reconnects = 0
         self.last_error: grpc.StatusCode | None = None
@@ -109,6 +115,16 @@ class ControlClient:
 
     def wait_registered(self, timeout: float) -> bool:
         return self._registered_event.wait(timeout)
+
+    @property
+    def refusal(self) -> tuple[grpc.StatusCode, str] | None:
+        """(code, details) of control's last refusal of this agent; None once registered (or never refused)."""
+        return self._refusal
+
+    def wait_answered(self, timeout: float) -> bool:
+        """Wait until control registers or refuses this agent (or `timeout`); True when registered."""
+        self._answered.wait(timeout)
+        return self._registered is not None
 
     def set_robots(self, specs: list[robot_pb2.RobotSpec]) -> None:
         """The robots attached now (hot-plug): told to control on the live stream, and on every reconnect."""
@@ -151,9 +167,17 @@ class ControlClient:
             if self._stopping.is_set():
                 return
             if code in _FATALISH:
+                details = self._refusal[1] if self._refusal is not None else ""
                 log.error(
-                    "control refused this agent; fix the config or the duplicate agent. Retrying slowly",
-                    extra=kv(addr=self.addr, agent_id=self.agent_id, code=code.name, retry_s=self._slow_retry_s),
+                    "control refused this agent; its robots hold. Fix the config, the token or the duplicate agent. "
+                    "Retrying slowly",
+                    extra=kv(
+                        addr=self.addr,
+                        agent_id=self.agent_id,
+                        code=code.name,
+                        details=details,
+                        retry_s=self._slow_retry_s,
+                    ),
                 )
                 self._stopping.wait(self._slow_retry_s)
             else:
@@ -178,6 +202,8 @@ class ControlClient:
                 CLIENT_ERRORS.labels("/user.v1.Control/Connect", code.name).inc()
             if not self._stopping.is_set() and code not in _FATALISH:
                 log.warning("control stream broken", extra=kv(addr=self.addr, code=code.name, details=err.details()))
+            if not self._stopping.is_set() and code in _FATALISH:
+                self._refused(code, err.details() or "")
         finally:
             with self._lock:
                 self._call = None
@@ -189,10 +215,20 @@ class ControlClient:
         self.last_error = code
         return code
 
+    def _refused(self, code: grpc.StatusCode, details: str) -> None:
+        self._refusal = (code, details)
+        if self._on_refused is not None:
+            try:
+                self._on_refused(code, details)
+            except Exception:  # a bad callback must not kill the stream thread
+                log.exception("on_refused handler failed", extra=kv(agent_id=self.agent_id))
+        self._answered.set()
+
     def _on_message(self, msg: control_pb2.ControlMessage) -> None:
         kind = msg.WhichOneof("msg")
         if kind == "registered":
             self._registered = msg.registered
+            self._refusal = None
             if self._on_registered is not None:  # before wait_registered() returns: the shard is set first
                 try:
                     self._on_registered(msg.registered)
@@ -200,6 +236,7 @@ class ControlClient:
                     log.exception("on_registered handler failed", extra=kv(agent_id=self.agent_id))
             self._apply_leases(list(msg.registered.leases))
             self._registered_event.set()
+            self._answered.set()
             self._backoff.reset()
             CONNECTED.set(1)
             log.info(

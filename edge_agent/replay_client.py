@@ -8,6 +8,14 @@ seq, so after a broken stream, a restart of the edge or a kill -9, every unacked
 
 retarget(addr) moves the stream to another replay shard (control's assignment): the current stream
 is half-closed so replay commits and acks what it holds, then the unacked rest goes to the new shard.
+
+A step replay refuses for this agent's identity (PERMISSION_DENIED naming its seq: the token may not
+write its robot) would end every stream at the same place. That step, and the kept steps of the same
+robot after it, are set aside (Outbox.quarantine: a spool keeps them, and tries them again when next
+opened) so the other steps go on. The robot's new steps are set aside unsent for a while (DENIED_RETRY_S,
+doubling per refusal up to DENIED_RETRY_MAX_S), then one goes out again: tokens files are re-read, and
+control and replay may each see a change at another moment. Once replay takes such a step, what was set
+aside is sent again at once.
 """
 
 from __future__ import annotations
@@ -17,6 +25,7 @@ import re
 import threading
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 
 import grpc
 import prometheus_client
@@ -37,6 +46,12 @@ STEPS_UNACKED = prometheus_client.Gauge("user_edge_steps_unacked", "Steps kept i
 STEPS_REJECTED = prometheus_client.Counter(
     "user_edge_steps_rejected_total", "Steps replay refused with INVALID_ARGUMENT (dropped, never retried)"
 )
+STEPS_QUARANTINED = prometheus_client.Counter(
+    "user_edge_steps_quarantined_total",
+    "Steps replay refused for this agent's identity, set aside so later steps go on (a spool keeps them and "
+    "sends them again once replay takes the robot's steps, or when next opened; a RAM outbox drops them)",
+    ["robot_id", "reason"],
+)
 RECONNECTS = prometheus_client.Counter("user_edge_replay_reconnects_total", "Replay Insert streams re-opened")
 RETARGETS = prometheus_client.Counter("user_edge_replay_retargets_total", "Moves to another replay shard")
 ACK_LATENCY = prometheus_client.Histogram(
@@ -51,6 +66,17 @@ _POLL_S = 0.2  # how often an idle request iterator re-checks for shutdown or a 
 _READ_CHUNK = 64  # steps read from the outbox at a time
 _BATCH_BYTES = 4 << 20  # an InsertBatch message stays far below gRPC's message limit (camera steps are big)
 _ACK_TIMES_KEPT = 200_000  # put times remembered for the ack-latency histogram (dropped steps never ack)
+DENIED_RETRY_S = 1.0  # a refused robot's new steps are set aside unsent this long before one is sent again
+DENIED_RETRY_MAX_S = 60.0  # that wait doubles per refusal up to this
+
+
+@dataclass
+class _Denied:
+    """A robot whose steps replay refuses for this identity."""
+
+    until: float  # monotonic: its steps are set aside unsent until then
+    refusals: int = 1
+    probe: int = 0  # seq of its first step sent after `until` (0: none yet); an ack past it means allowed
 
 
 class ReplaySender:
@@ -77,7 +103,9 @@ class ReplaySender:
         self._call: grpc.Call | None = None
         self._batched = True  # InsertBatch until a replay answers UNIMPLEMENTED
         # per-instance counters (the Prometheus ones are process-wide)
-        self.sent = self.acked = self.rejected = self.reconnects = self.retargets = 0
+        self.sent = self.acked = self.rejected = self.reconnects = self.retargets = self.quarantined = 0
+        self._denied: dict[str, _Denied] = {}  # robots replay refuses for us; touched by both stream threads
+        self._resume_now = False  # the stream ended on a step now set aside, or to send released ones: no backoff
         self._put_at: dict[int, float] = {}  # seq -> monotonic time of send(), until its ack
         self._put_lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name="replay-sender", daemon=True)
@@ -177,11 +205,16 @@ class ReplaySender:
                 self.reconnects += 1
                 RECONNECTS.inc()
             first = False
+            self._resume_now = False
             code = self._stream_once()
             if self._stopping.is_set():
                 return
-            if self._next_addr is not None or code in (grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.UNIMPLEMENTED):
-                continue  # a new shard, the bad step is gone, or one step a message from now on: resume at once
+            if (
+                self._next_addr is not None
+                or self._resume_now
+                or code in (grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.UNIMPLEMENTED)
+            ):
+                continue  # a new shard, the bad or refused step is gone, or one step a message: resume at once
             if code == grpc.StatusCode.UNAUTHENTICATED:
                 log.error("replay rejects our token; retrying", extra=kv(addr=self.addr))
             self._backoff.sleep(self._stopping)
@@ -208,6 +241,8 @@ class ReplaySender:
                 self._batched = False
             elif code == grpc.StatusCode.INVALID_ARGUMENT:
                 self._drop_rejected(err.details() or "")
+            elif code == grpc.StatusCode.PERMISSION_DENIED and not self._stopping.is_set():
+                self._resume_now = self._quarantine_denied(err.details() or "")
             elif not self._stopping.is_set():
                 log.warning(
                     "replay stream broken; will re-send unacked steps",
@@ -237,7 +272,10 @@ class ReplaySender:
             if gen != self._stream_gen:
                 return
             cursor = batch[-1].seq
-            yield batch
+            if self._denied:
+                batch = self._without_denied(batch)
+            if batch:
+                yield batch
 
     def _requests(self, gen: int) -> Iterator[replay_pb2.InsertRequest]:
         for batch in self._unsent(gen):
@@ -269,6 +307,8 @@ class ReplaySender:
         STEPS_SENT.inc(n)
 
     def _on_ack(self, ack: replay_pb2.InsertAck) -> None:
+        if self._denied and ack.seqs:
+            self._check_probes(max(ack.seqs))
         n = self.outbox.ack(ack.seqs)
         now = time.monotonic()
         with self._put_lock:
@@ -282,6 +322,87 @@ class ReplaySender:
         with self._cond:
             self._cond.notify_all()
         self._backoff.reset()
+
+    def _without_denied(self, batch: list[replay_pb2.InsertRequest]) -> list[replay_pb2.InsertRequest]:
+        """The batch less the steps of robots replay refuses us, which are set aside unsent. Once a robot's wait
+        is over its steps go out again, the first of them noted as the probe (see _check_probes)."""
+        now = time.monotonic()
+        waiting = set()
+        for robot_id, denied in list(self._denied.items()):
+            if denied.until > now:
+                waiting.add(robot_id)
+            elif not denied.probe:
+                denied.probe = next((req.seq for req in batch if req.step.robot_id == robot_id), 0)
+        refused = [req for req in batch if req.step.robot_id in waiting]
+        for robot_id in {req.step.robot_id for req in refused}:
+            self._set_aside([req.seq for req in refused if req.step.robot_id == robot_id], robot_id)
+        return [req for req in batch if req.step.robot_id not in waiting] if refused else batch
+
+    def _check_probes(self, top: int) -> None:
+        """Replay checks who may write a step before anything else and ends the stream at a refused one, acking
+        only the steps before it: an ack reaching a robot's probe means replay lets us write it again. What was
+        set aside (any robot's) goes back to the outbox and a new stream sends it; still-refused robots' steps
+        are set aside again as they come up."""
+        allowed = [robot_id for robot_id, d in list(self._denied.items()) if d.probe and top >= d.probe]
+        if not allowed:
+            return
+        for robot_id in allowed:
+            self._denied.pop(robot_id, None)
+        released = self.outbox.release_quarantined()
+        log.info(
+            "replay accepts steps of these robots again; steps set aside are sent now",
+            extra=kv(addr=self.addr, robots=allowed, released=released),
+        )
+        if released:
+            STEPS_UNACKED.set(self.outbox.count)
+            with self._cond:  # their seqs are behind this stream's cursor: half-close it, a new one sends them
+                self._resume_now = True
+                self._stream_gen += 1
+                self._cond.notify_all()
+
+    def _quarantine_denied(self, details: str) -> bool:
+        """PERMISSION_DENIED. Naming a kept step's seq, it refuses that step's robot for this identity: set the
+        step aside, and the robot's later ones as they come up (True: resume at once). Otherwise replay refuses
+        the identity itself (its role): False, retried with backoff like a bad token."""
+        match = _SEQ_IN_MESSAGE.search(details)
+        named = int(match.group(1)) if match else 0
+        found = self.outbox.read(named - 1, 1) if named else []
+        if not found or found[0].seq != named:
+            log.error(
+                "replay refuses this agent's token; retrying. Give the token a role that may insert steps (edge)",
+                extra=kv(addr=self.addr, details=details),
+            )
+            return False
+        robot_id = found[0].step.robot_id
+        denied = self._denied.get(robot_id)
+        refusals = denied.refusals + 1 if denied is not None else 1
+        wait = min(DENIED_RETRY_MAX_S, DENIED_RETRY_S * 2 ** min(refusals - 1, 8))
+        self._denied[robot_id] = _Denied(until=time.monotonic() + wait, refusals=refusals)
+        self._set_aside([named], robot_id)
+        if denied is None:  # once per robot until replay takes its steps again: they come up by the thousand
+            fate = (
+                "dropped (no spool to keep them)"
+                if isinstance(self.outbox, MemoryOutbox)
+                else "set aside in the spool (sent once replay takes a new step of it, or at the next start)"
+            )
+            log.error(
+                f"replay refuses steps of robot {robot_id!r} for this agent's token; its steps are {fate} so the "
+                f"other steps go on. To store them, add a pattern matching {robot_id!r} to this edge token's "
+                "`robots` in auth.tokens_file (servers re-read it)",
+                extra=kv(addr=self.addr, robot_id=robot_id, details=details),
+            )
+        return True
+
+    def _set_aside(self, seqs: list[int], robot_id: str) -> None:
+        n = self.outbox.quarantine(seqs)
+        with self._put_lock:  # set-aside steps never ack here
+            for seq in seqs:
+                self._put_at.pop(seq, None)
+        self.quarantined += n
+        STEPS_QUARANTINED.labels(robot_id, "permission_denied").inc(n)
+        STEPS_UNACKED.set(self.outbox.count)
+        with self._cond:
+            self._cond.notify_all()
 
     def _drop_rejected(self, details: str) -> None:
         """Replay acks every step before the bad one, so the bad one is named or the oldest kept."""

@@ -9,7 +9,9 @@ Two kinds behind one small interface:
   `steps` maps seq (8-byte big-endian, so key order is send order) to the serialized Step; table
   `meta` holds next_seq (never reused, even after every step was acked), the byte total and the
   dropped count, each updated in the same transaction as the steps; table `tables` maps the seq of a
-  step bound for a replay table other than the default to that table's name. Without `fsync` a commit
+  step bound for a replay table other than the default to that table's name; table `held` keeps steps
+  replay refused for this agent's identity (PERMISSION_DENIED), set aside so the steps after them go on
+  (see `quarantine`). Without `fsync` a commit
   survives the death of the process (the kernel holds the pages) and is flushed to the device
   every second; with it, every commit is flushed (power loss too, ~2 ms a step on these disks).
 - `MemoryOutbox`: the same in RAM, bounded by a step count (today's behaviour; lost on a crash).
@@ -17,7 +19,11 @@ Two kinds behind one small interface:
 A full spool (the next step would pass `max_bytes`, itself at most what half the free disk holds)
 follows its policy: `drop_oldest` deletes the oldest steps
 to make room (counted); `pause` keeps every step and reports `accepting = False`, which the robot
-loop obeys by holding still until acks free space.
+loop obeys by holding still until acks free space. Steps set aside (`quarantine`) are not awaiting an
+ack: they leave `count`, are moved back and tried again when the spool is next opened or when the sender
+sees replay take their robot's steps again (`release_quarantined`: an operator may have let the token
+write it meanwhile), and are the first to go when room is needed under either policy, so refused steps
+never make the robots hold.
 """
 
 from __future__ import annotations
@@ -50,6 +56,11 @@ SPOOL_BYTES = prometheus_client.Gauge("user_edge_spool_bytes", "Serialized step 
 SPOOL_DROPPED = prometheus_client.Counter(
     "user_edge_spool_dropped_total", "Oldest unacked steps dropped because the outbox was full"
 )
+SPOOL_QUARANTINED = prometheus_client.Gauge(
+    "user_edge_spool_quarantined_steps",
+    "Steps replay refused for this agent's identity, set aside in the spool until replay takes their robot's "
+    "steps again or the spool is next opened",
+)
 SPOOL_FULL = prometheus_client.Gauge(
     "user_edge_spool_full", "1 while the outbox is at its cap (pause: robots hold; drop_oldest: dropping)"
 )
@@ -77,6 +88,20 @@ class Outbox(ABC):
     @abstractmethod
     def ack(self, seqs: Iterable[int]) -> int:
         """Forget these seqs (acknowledged or rejected); returns how many were still kept."""
+
+    def quarantine(self, seqs: Iterable[int]) -> int:
+        """Set these kept seqs aside: no longer sent nor counted as awaiting an ack, so later steps go on.
+        Only a spool keeps them (see release_quarantined); in RAM they are dropped. Returns how many."""
+        return self.ack(seqs)
+
+    @property
+    def quarantined(self) -> int:
+        """Steps set aside and still kept."""
+        return 0
+
+    def release_quarantined(self) -> int:
+        """Put every step set aside back among the kept ones, under its old seq; returns how many."""
+        return 0
 
     @property
     @abstractmethod
@@ -106,6 +131,7 @@ class Outbox(ABC):
     def _publish_metrics(self) -> None:
         SPOOL_STEPS.set(self.count)
         SPOOL_BYTES.set(self.nbytes)
+        SPOOL_QUARANTINED.set(self.quarantined)
         SPOOL_FULL.set(int(self.full))
 
 
@@ -212,11 +238,14 @@ class LmdbSpool(Outbox):
         self._disk_error = False
         self._last_drop_log = -float("inf")
         self._env = lmdb.open(
-            str(self.path), map_size=2 * max_bytes + _MAP_HEADROOM, max_dbs=3, sync=fsync, metasync=fsync
+            str(self.path), map_size=2 * max_bytes + _MAP_HEADROOM, max_dbs=4, sync=fsync, metasync=fsync
         )
         self._steps = self._env.open_db(b"steps")
         self._meta = self._env.open_db(b"meta")
         self._tables = self._env.open_db(b"tables")  # seq -> replay table, only for steps not in the default
+        self._held = self._env.open_db(b"held")  # seq -> step replay refused for this identity (quarantine)
+        self._held_count = self._held_bytes = 0
+        restored, _ = self._restore_held()
         with self._env.begin() as txn:
             self._next_seq = self._meta_int(txn, b"next_seq", 1)
             self._bytes = self._meta_int(txn, b"bytes", 0)
@@ -244,6 +273,40 @@ class LmdbSpool(Outbox):
             "spool opened",
             extra=kv(path=str(self.path), steps=self._count, bytes=self._bytes, policy=policy, cap=self.max_bytes),
         )
+        if restored:
+            log.warning(
+                "steps replay refused earlier for this agent's token are tried again",
+                extra=kv(path=str(self.path), steps=restored),
+            )
+
+    def _restore_held(self) -> tuple[int, int]:
+        """Move steps set aside back among the kept ones (same seqs, so send order holds), at open (the token
+        may write their robot by now; if not, replay refuses them again and they go back aside) or when replay
+        took a refused robot's step again. The caller updates the counts. Returns (steps, bytes)."""
+        with self._env.begin(write=True) as txn:
+            cursor, moved, nbytes = txn.cursor(self._held), 0, 0
+            for key, value in cursor:
+                txn.put(key, value, db=self._steps)
+                moved, nbytes = moved + 1, nbytes + len(value)
+            cursor.close()
+            if moved:
+                txn.drop(self._held, delete=False)
+                txn.put(b"bytes", _key(self._meta_int(txn, b"bytes", 0) + nbytes), db=self._meta)
+        return moved, nbytes
+
+    def release_quarantined(self) -> int:
+        with self._lock:
+            if not self._held_count:
+                return 0
+            try:
+                moved, nbytes = self._restore_held()
+            except lmdb.Error as exc:  # a full disk: they stay aside until the next open
+                log.warning("spool could not release steps set aside", extra=kv(path=str(self.path), error=str(exc)))
+                return 0
+            self._bytes, self._count = self._bytes + nbytes, self._count + moved
+            self._held_count = self._held_bytes = 0
+        self._publish_metrics()
+        return moved
 
     def _meta_int(self, txn: lmdb.Transaction, name: bytes, default: int) -> int:
         raw = txn.get(name, db=self._meta)
@@ -282,16 +345,38 @@ class LmdbSpool(Outbox):
         if not self._disk_error:
             log.error("spool disk full; cap lowered to what it holds", extra=kv(path=str(self.path), error=str(exc)))
         self._disk_error = True
-        self.max_bytes = max(1, self._bytes)
+        self.max_bytes = max(1, self._bytes + self._held_bytes)
         freed = 0
+        if self._held_count:  # refused steps go first, whatever the policy
+            try:
+                with self._env.begin(write=True) as txn:
+                    held, _ = self._drop_held(txn, self._held_bytes)
+                    txn.put(b"dropped", _key(self.dropped + held), db=self._meta)
+                self._held_count = self._held_bytes = 0
+                self.dropped += held
+                freed += held
+                return freed + self._write(seq, data, table)
+            except lmdb.Error:
+                pass
         if self.policy == "drop_oldest":
             try:
-                freed = self._drop_oldest(max(1, self._count // 100))
+                freed += self._drop_oldest(max(1, self._count // 100))
                 return freed + self._write(seq, data, table)
             except lmdb.Error:
                 pass
         self.dropped += 1
         return freed + 1
+
+    def _drop_held(self, txn: lmdb.Transaction, need: int) -> tuple[int, int]:
+        """Caller holds the lock, in `txn`. Drop the oldest steps set aside until `need` bytes are free or none
+        is left: refused steps go before any awaiting an ack. Returns (steps, bytes) dropped."""
+        cursor, dropped, freed = txn.cursor(self._held), 0, 0
+        while freed < need and cursor.first():
+            freed += len(cursor.value())
+            txn.delete(cursor.key(), db=self._tables)
+            cursor.delete()
+            dropped += 1
+        return dropped, freed
 
     def _drop_oldest(self, n: int) -> int:
         with self._env.begin(write=True) as txn:
@@ -313,6 +398,11 @@ class LmdbSpool(Outbox):
             try:
                 with self._env.begin(write=True) as txn:
                     nbytes, count, dropped = self._bytes, self._count, 0
+                    held, held_bytes = self._held_count, self._held_bytes
+                    over = nbytes + held_bytes + len(data) - self.max_bytes
+                    if held and over > 0:  # refused steps make room first: they never make the robots hold
+                        gone, freed = self._drop_held(txn, over)
+                        held, held_bytes, dropped = held - gone, held_bytes - freed, gone
                     if self.policy == "drop_oldest":
                         cursor = txn.cursor(self._steps)
                         while count and nbytes + len(data) > self.max_bytes and cursor.first():
@@ -328,6 +418,7 @@ class LmdbSpool(Outbox):
                     txn.put(b"bytes", _key(nbytes), db=self._meta)
                     txn.put(b"dropped", _key(self.dropped + dropped), db=self._meta)
                 self._bytes, self._count = nbytes, count
+                self._held_count, self._held_bytes = held, held_bytes
                 self.dropped += dropped
                 return dropped
             except lmdb.MapFullError:
@@ -362,8 +453,8 @@ class LmdbSpool(Outbox):
                     nbytes = self._bytes
                     for seq in seqs:
                         value = txn.pop(_key(seq), db=self._steps)
-                        txn.delete(_key(seq), db=self._tables)
-                        if value is not None:
+                        if value is not None:  # a step set aside keeps its table for when it is tried again
+                            txn.delete(_key(seq), db=self._tables)
                             nbytes -= len(value)
                             n += 1
                     if n:
@@ -374,6 +465,31 @@ class LmdbSpool(Outbox):
             self._bytes, self._count = nbytes, self._count - n
         self._publish_metrics()
         return n
+
+    def quarantine(self, seqs: Iterable[int]) -> int:
+        n = 0
+        with self._lock:
+            try:
+                with self._env.begin(write=True) as txn:
+                    nbytes, moved = self._bytes, 0
+                    for seq in seqs:
+                        value = txn.pop(_key(seq), db=self._steps)
+                        if value is not None:  # its `tables` entry stays: it goes to that table when retried
+                            txn.put(_key(seq), value, db=self._held)
+                            nbytes, moved, n = nbytes - len(value), moved + len(value), n + 1
+                    if n:
+                        txn.put(b"bytes", _key(nbytes), db=self._meta)
+            except lmdb.Error as exc:  # a full disk: the steps stay and are refused again later
+                log.warning("spool could not set steps aside", extra=kv(path=str(self.path), error=str(exc)))
+                return 0
+            self._bytes, self._count = nbytes, self._count - n
+            self._held_count, self._held_bytes = self._held_count + n, self._held_bytes + moved
+        self._publish_metrics()
+        return n
+
+    @property
+    def quarantined(self) -> int:
+        return self._held_count
 
     @property
     def count(self) -> int:
@@ -388,7 +504,7 @@ class LmdbSpool(Outbox):
         return self._next_seq - 1
 
     @property
-    def full(self) -> bool:
+    def full(self) -> bool:  # steps set aside are not counted: they make room when needed (see _write)
         return self._bytes + self._last_size > self.max_bytes
 
     def _sync_loop(self) -> None:

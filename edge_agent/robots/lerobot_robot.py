@@ -11,6 +11,9 @@ last observed position of every commanded joint, so the arm stays where it is. A
 simulator judging it: its default task is `human_label` (a key marks success).
 
 lerobot (and torch, which it imports) loads on first build, so discovering robot kinds stays fast.
+The type and config are checked with the params (an unknown type or a config lerobot cannot decode names
+`...params.type` / `...params.config`); a driver package the device needs is only found missing when it is
+built (an ImportError, which the edge agent reports as one line naming the robot).
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ import importlib.util
 from typing import Any
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from edge_agent.robot import ROBOTS, Observation, Robot, clip_action
 from user.registry import PluginParams
@@ -29,6 +32,24 @@ if importlib.util.find_spec("lerobot") is None:
     raise ImportError("the lerobot robot adapter needs the lerobot package")
 
 KIND = "lerobot"
+
+
+def _config_class(type_name: str) -> type:
+    """lerobot's config class of a robot type; ValueError naming the known types when there is none."""
+    from lerobot.robots import RobotConfig
+
+    from edge_agent.lerobot_devices import _import_device_packages
+
+    try:
+        return RobotConfig.get_choice_class(type_name)
+    except KeyError:
+        _import_device_packages("lerobot.robots")  # devices register on import
+    try:
+        return RobotConfig.get_choice_class(type_name)
+    except KeyError:
+        raise ValueError(
+            f"unknown lerobot type {type_name!r}; known: {sorted(RobotConfig.get_known_choices())}"
+        ) from None
 
 
 @ROBOTS.register(KIND)
@@ -44,6 +65,27 @@ class LerobotRobot(Robot):
         action_high: float | list[float] = 100.0
         calibrate: bool = Field(default=False, description="calibrate on connect if the robot needs it")
         task: str = Field(default="", description="what the robot should do, in words")
+
+        @field_validator("type")
+        @classmethod
+        def _known_type(cls, value: str) -> str:
+            _config_class(value)
+            return value
+
+        @field_validator("config")
+        @classmethod
+        def _decodes(cls, value: dict[str, Any], info: ValidationInfo) -> dict[str, Any]:
+            """Decoded as lerobot will decode it when building, so a bad key fails here naming this field."""
+            type_name = info.data.get("type")
+            if type_name is None:  # the type itself was refused: that error says enough
+                return value
+            import draccus
+
+            try:
+                draccus.decode(_config_class(type_name), dict(value))
+            except Exception as exc:  # draccus errors are not ValueErrors; some span lines
+                raise ValueError(" ".join(str(exc).split())) from None
+            return value
 
         @model_validator(mode="after")
         def _ordered(self) -> LerobotRobot.Params:
