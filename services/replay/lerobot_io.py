@@ -14,16 +14,24 @@ import the last step's final_observation is its own observation (as lerobot's ow
 ReplayBuffer.from_lerobot_dataset does); on export a step's final_observation is dropped. Hence
 import -> export -> import gives the same steps.
 
-Import writes to the LMDB directly: run it while the replay service for that path is stopped (its
-in-memory index would not see the new steps), or import into a new path.
+Import writes to the LMDB directly, so it refuses a buffer a replay service holds (the service's
+in-memory index would never see the new steps; see store.hold_buffer): stop the service first, or import
+into a new path. Steps already in the buffer (the same robot id, episode and index) are not stored again,
+and the summary says how many episodes and frames were new and how many were already there.
+
+lerobot is never allowed to reach the Hugging Face hub here: import reads a dataset on disk only (a root
+without meta/info.json is refused before lerobot sees it), export writes one; both run with the hub's
+offline switch set (_hub_offline).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import re
 import shutil
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,10 +39,20 @@ from typing import Any
 
 import numpy as np
 
-from services.replay.store import ReplayStore, arrays_of, tensor_array
+from services.replay.store import (
+    BufferHeld,
+    ReplayStore,
+    arrays_of,
+    buffer_holder,
+    episode_prefix,
+    hold_buffer,
+    release_buffer,
+    tensor_array,
+)
 from services.replay.tables import ALL, INTERVENTIONS
 from services.replay.validate import StepError, check_tensor_map
 from user import wire
+from user.config import TABLE_NAME
 from user.v1 import robot_pb2, step_pb2
 
 log = logging.getLogger(__name__)
@@ -67,9 +85,36 @@ def _is_image(array: np.ndarray) -> bool:
 
 @dataclass
 class Summary:
-    episodes: int
-    frames: int
+    episodes: int  # written (import: episodes the buffer did not have before)
+    frames: int  # written (import: steps stored now)
     path: str
+    present_episodes: int = 0  # import: episodes the buffer already had (re-imported)
+    present_frames: int = 0  # import: steps already stored, not stored again
+
+
+def check_table(table: str) -> None:
+    """ValueError unless `table` is a name the config accepts for a replay table (user.config.TABLE_NAME)."""
+    if not re.fullmatch(TABLE_NAME, table):
+        raise ValueError(f"table {table[:80]!r} must be 1-64 characters of A-Z a-z 0-9 _ . -")
+
+
+@contextlib.contextmanager
+def _hub_offline() -> Iterator[None]:
+    """Around our lerobot calls: huggingface_hub (and datasets) refuse every request to the hub, so lerobot
+    cannot download a dataset (it would, for a root it finds incomplete) or look up its versions."""
+    from huggingface_hub import constants
+
+    saved: list[tuple[Any, str, Any]] = [(constants, "HF_HUB_OFFLINE", constants.HF_HUB_OFFLINE)]
+    datasets_config = sys.modules.get("datasets.config")  # lerobot imports it; only patch what is loaded
+    if datasets_config is not None:
+        saved += [(datasets_config, n, getattr(datasets_config, n)) for n in ("HF_HUB_OFFLINE", "HF_DATASETS_OFFLINE")]
+    for module, name, _ in saved:
+        setattr(module, name, True)
+    try:
+        yield
+    finally:
+        for module, name, value in saved:
+            setattr(module, name, value)
 
 
 # --------------------------------------------------------------------------- export
@@ -185,6 +230,8 @@ def export_dataset(
 
     if fps is not None and fps <= 0:
         raise ValueError(f"fps must be positive, got {fps}")
+    if table != ALL:
+        check_table(table)
     root = Path(root)
     if root.exists():
         raise FileExistsError(f"{root} already exists: export writes a new dataset directory")
@@ -197,19 +244,22 @@ def export_dataset(
         spec = store.get_spec(first.robot_id)
         kind = _kind(spec) or "user"
         rate = fps if fps is not None else _control_rate(spec)
-        try:
-            ds = LeRobotDataset.create(repo_id, rate, _features(first), root=root, robot_type=kind, use_videos=False)
-        except FileExistsError:
-            raise  # root appeared after the check above: not ours to remove
-        except BaseException:
-            shutil.rmtree(root, ignore_errors=True)  # create may fail after making root
-            raise
-        try:
-            frames = _write_episodes(ds, store, prefixes, task or kind)
-            ds.finalize()
-        except BaseException:
-            shutil.rmtree(root, ignore_errors=True)  # no half-written dataset left to block a rerun
-            raise
+        with _hub_offline():
+            try:
+                ds = LeRobotDataset.create(
+                    repo_id, rate, _features(first), root=root, robot_type=kind, use_videos=False
+                )
+            except FileExistsError:
+                raise  # root appeared after the check above: not ours to remove
+            except BaseException:
+                shutil.rmtree(root, ignore_errors=True)  # create may fail after making root
+                raise
+            try:
+                frames = _write_episodes(ds, store, prefixes, task or kind)
+                ds.finalize()
+            except BaseException:
+                shutil.rmtree(root, ignore_errors=True)  # no half-written dataset left to block a rerun
+                raise
         return Summary(len(prefixes), frames, str(root))
     finally:
         store.close()
@@ -305,33 +355,105 @@ def import_dataset(
     robot_id: str | None = None,
     map_size_mb: int = 4096,
 ) -> Summary:
-    """Append every episode of the LeRobotDataset at root to `table` of the buffer at store_path."""
+    """Append every episode of the LeRobotDataset at root to `table` of the buffer at store_path.
+
+    Checked before the buffer is created or changed: the table name, that root holds a dataset on disk (never
+    fetched from the hub), that no replay service holds the buffer (BufferHeld), every value of the dataset;
+    the buffer is held (store.hold_buffer) while the steps are written, so a service cannot start meanwhile.
+    """
+    check_table(table)
+    root = Path(root)
+    _check_dataset_root(root)
+    holder = buffer_holder(store_path)  # a probe, before the dataset is read; the real hold comes below
+    if holder is not None:
+        raise BufferHeld(_held_text(store_path, holder), holder)
+    with _hub_offline():
+        ds = _open_dataset(root, repo_id)
+        columns = _observation_columns(ds)
+        _check_columns(ds, columns)
+        try:
+            fd = hold_buffer(store_path, "`userctl replay import`")
+        except BufferHeld as exc:  # a service started meanwhile
+            raise BufferHeld(_held_text(store_path, exc.holder), exc.holder) from None
+        try:
+            store = ReplayStore(store_path, map_size_mb, cache_mb=0, max_map_mb=max(map_size_mb, 1 << 20))
+            try:
+                counts = _import_into(store, ds, repo_id, robot_id or _safe(f"lerobot-{repo_id}"), columns, table)
+            finally:
+                store.close()
+        finally:
+            release_buffer(fd)
+    return Summary(counts.episodes, counts.frames, str(store_path), counts.present_episodes, counts.present_frames)
+
+
+def _held_text(store_path: str | Path, holder: str) -> str:
+    return (
+        f"the buffer {store_path} is held by {holder}, whose index would never see imported steps: "
+        "stop it, import, then start it again (or import into another --path)"
+    )
+
+
+def _check_dataset_root(root: Path) -> None:
+    """ValueError unless root looks like a LeRobotDataset on disk (lerobot would create it and download one)."""
+    if not root.is_dir():
+        reason = "not a directory" if root.exists() else "no such directory"
+        raise ValueError(f"no LeRobotDataset at {root} ({reason})")
+    if not (root / "meta" / "info.json").is_file():
+        raise ValueError(f"no LeRobotDataset at {root} (meta/info.json missing)")
+
+
+def _open_dataset(root: Path, repo_id: str) -> Any:
+    """lerobot's LeRobotDataset at root (call inside _hub_offline); ValueError when it cannot be read from disk."""
+    from huggingface_hub.errors import OfflineModeIsEnabled
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
-    ds = LeRobotDataset(repo_id, root=root)
-    columns = _observation_columns(ds)
-    _check_columns(ds, columns)
-    store = ReplayStore(store_path, map_size_mb, cache_mb=0, max_map_mb=max(map_size_mb, 1 << 20))
     try:
-        episodes, frames = _import_into(store, ds, repo_id, robot_id or _safe(f"lerobot-{repo_id}"), columns, table)
-        return Summary(episodes, frames, str(store_path))
-    finally:
-        store.close()
+        return LeRobotDataset(repo_id, root=root)
+    except OfflineModeIsEnabled:  # files lerobot needs are missing: it tried the hub for them
+        raise ValueError(
+            f"the LeRobotDataset at {root} is incomplete (lerobot would fetch the rest of {repo_id!r} from the "
+            "Hugging Face hub; import reads a dataset on disk only)"
+        ) from None
+    except Exception as exc:  # a damaged dataset: whatever lerobot raised, as one line
+        text = str(exc).strip().splitlines()
+        raise ValueError(
+            f"cannot read the LeRobotDataset at {root}: {type(exc).__name__}: {text[0] if text else ''}"
+        ) from None
+
+
+@dataclass
+class _Counts:
+    episodes: int = 0  # episodes the buffer did not have
+    frames: int = 0  # steps stored
+    present_episodes: int = 0  # episodes the buffer had before (an earlier import)
+    present_frames: int = 0  # steps it already had
 
 
 def _import_into(
     store: ReplayStore, ds: Any, repo_id: str, robot_id: str, columns: dict[str, _Column], table: str
-) -> tuple[int, int]:
-    """Every frame of ds as a step of robot_id in `table`; (episodes, frames)."""
+) -> _Counts:
+    """Every frame of ds as a step of robot_id in `table`; what was new and what the buffer already had."""
     known = store.get_spec(robot_id)
     new_specs: list[robot_pb2.RobotSpec] = []  # registered with the steps; a spec the buffer knows stays as it is
     steps: list[step_pb2.Step] = []
+    counts = _Counts()
     frames = 0
     ep_index = np.asarray(ds.hf_dataset["episode_index"])
     bounds = np.flatnonzero(np.diff(ep_index)) + 1
     starts, stops = np.r_[0, bounds].tolist(), np.r_[bounds, len(ep_index)].tolist()
+
+    def put() -> None:
+        stored, duplicates = store.put_steps(steps, new_specs, table)
+        counts.frames += stored
+        counts.present_frames += duplicates
+        steps.clear()
+
     for start, stop in zip(starts, stops, strict=True):
         episode_id = f"{_safe(repo_id)}-{int(ep_index[start]):06d}"
+        if episode_prefix(robot_id, episode_id) in store._episodes:  # we are the buffer's only writer
+            counts.present_episodes += 1
+        else:
+            counts.episodes += 1
         for i in range(start, stop):
             step = _step_of(ds[i], columns, robot_id, episode_id, i - start, last=i == stop - 1)
             if frames == 0:  # the first step, before anything is written; the others share its dtypes and shapes
@@ -342,11 +464,10 @@ def _import_into(
             steps.append(step)
             frames += 1
             if len(steps) >= CHUNK:
-                store.put_steps(steps, new_specs, table)
-                steps = []
+                put()
     if steps:
-        store.put_steps(steps, new_specs, table)
-    return len(starts), frames
+        put()
+    return counts
 
 
 def _step_of(

@@ -36,17 +36,20 @@ from services.replay.prefetch import Prefetcher
 from services.replay.shared import NAME as SHARED_NAME
 from services.replay.shared import SHARED_FALLBACK, SharedBatches
 from services.replay.store import (
+    BufferHeld,
     EmptyBufferError,
     LayoutError,
     ReplayFullError,
     ReplayStore,
     StoreClosedError,
+    hold_buffer,
+    release_buffer,
 )
 from services.replay.tables import ONLINE, Draw
 from services.replay.validate import EpisodeGuard, StepError, validate_step
 from user import rpc, wire
 from user.auth import Identity
-from user.config import AuthConfig, StackConfig
+from user.config import AuthConfig, ConfigError, StackConfig
 from user.log import kv
 from user.shm_files import PROBE_BYTES
 from user.v1 import control_pb2, control_pb2_grpc, replay_pb2, replay_pb2_grpc, robot_pb2, step_pb2
@@ -862,22 +865,33 @@ class ReplayService(rpc.GrpcService):
     ) -> None:
         self.cfg = cfg
         rc = cfg.replay
-        self.store = ReplayStore(
-            rc.path,
-            rc.map_size_mb,
-            cache_mb=rc.cache_mb,
-            max_map_mb=rc.max_map_mb or 4 * rc.map_size_mb,
-            capacity_mb=rc.capacity_mb,
-            durability=rc.durability,
-            image_encoding=rc.image_encoding,
-            decoded_mb=rc.decoded_mb,
-            cache_prefault=rc.cache_prefault,
-        )
+        # held while the service lives, so `userctl replay import` refuses to write behind its index (and a
+        # second service on this path refuses to start)
+        try:
+            self._holder = hold_buffer(rc.path, "the replay service")
+        except BufferHeld as exc:
+            raise ConfigError(f"replay.path: {exc}") from None
+        try:
+            self.store = ReplayStore(
+                rc.path,
+                rc.map_size_mb,
+                cache_mb=rc.cache_mb,
+                max_map_mb=rc.max_map_mb or 4 * rc.map_size_mb,
+                capacity_mb=rc.capacity_mb,
+                durability=rc.durability,
+                image_encoding=rc.image_encoding,
+                decoded_mb=rc.decoded_mb,
+                cache_prefault=rc.cache_prefault,
+            )
+        except BaseException:
+            release_buffer(self._holder)
+            raise
         try:
             for table, path in rc.attach.items():
                 self.store.attach(path, table)
         except BaseException:
             self.store.close()
+            release_buffer(self._holder)
             raise
         self.shared = SharedBatches(rc.shm_dir, rc.shm_max_mb << 20, rc.shm_slots) if rc.shm_dir else None
         self._control: ControlSpecSource | None = None
@@ -925,6 +939,7 @@ class ReplayService(rpc.GrpcService):
         if not self.servicer.wait_streams(grace + 1.0):
             log.warning("insert streams still open at shutdown")
         self.store.close()
+        release_buffer(self._holder)
         if self.shared is not None:
             self.shared.close()
         if self._control is not None:

@@ -12,7 +12,9 @@ stored steps exceed capacity_mb, whole episodes leave, oldest first (FIFO), from
 
 from __future__ import annotations
 
+import fcntl
 import logging
+import os
 import threading
 from collections import deque
 from collections.abc import Callable, Iterable
@@ -53,6 +55,7 @@ from user.v1 import tensor_pb2 as tpb
 from user.wire import EncodedFrames, stack_frames
 
 __all__ = [
+    "BufferHeld",
     "EmptyBufferError",
     "LayoutError",
     "ReplayError",
@@ -82,6 +85,54 @@ COMPACTIONS = prometheus_client.Counter(
 
 class LayoutError(ReplayError):
     """Sampled transitions do not share one observation layout (robots with different specs)."""
+
+
+HOLDER_FILE = "holder.lock"  # in the buffer's directory: flocked by the process writing it (service or import)
+
+
+class BufferHeld(ReplayError):
+    """Another live process (the replay service, an import) holds the buffer for writing."""
+
+    def __init__(self, message: str, holder: str = "") -> None:
+        super().__init__(message)
+        self.holder = holder  # "the replay service (pid N)"
+
+
+def hold_buffer(path: str | Path, holder: str) -> int:
+    """Take the buffer at path for this process: an exclusive flock on path/holder.lock, which names `holder`
+    and this pid. Returns its fd (keep it open while writing; release_buffer closes it). The kernel drops the
+    lock when the process dies, however it dies, so a kill -9 leaves no stale holder. Raises BufferHeld,
+    writing nothing, when another process (or another fd of this one) holds it."""
+    Path(path).mkdir(parents=True, exist_ok=True)
+    fd = os.open(Path(path) / HOLDER_FILE, os.O_RDWR | os.O_CREAT, 0o644)  # not inherited by exec'd children
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        who = os.read(fd, 256).decode(errors="replace").strip() or "another process"
+        os.close(fd)
+        raise BufferHeld(f"{path} is held by {who}", who) from None
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{holder} (pid {os.getpid()})\n".encode())
+    return fd
+
+
+def buffer_holder(path: str | Path) -> str | None:
+    """Who holds the buffer at path now ("the replay service (pid N)"), or None; a probe that creates nothing."""
+    try:
+        fd = os.open(Path(path) / HOLDER_FILE, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return os.read(fd, 256).decode(errors="replace").strip() or "another process"
+    finally:
+        os.close(fd)  # closing drops the probe's own lock too
+    return None
+
+
+def release_buffer(fd: int) -> None:
+    os.close(fd)  # closing the fd drops its flock
 
 
 def tensor_array(tensor: tpb.Tensor) -> np.ndarray:

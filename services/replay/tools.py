@@ -6,8 +6,9 @@
 
 The buffer is --path if given, else replay.path when the config sets it, else, for a config with an
 `up` section, where `userctl up` keeps it (up.runs_dir/up.name/replay), else replay.path's default.
-ls and export only read (safe while the service runs); import writes, so run it with the service for
-that path stopped.
+ls and export only read (safe while the service runs); import writes, so it refuses a buffer that a
+running replay service holds (stop the service, import, start it again), and reports which episodes and
+frames were new and which the buffer already had.
 """
 
 from __future__ import annotations
@@ -141,6 +142,8 @@ def main(argv: list[str]) -> int:
     if args.tool != "import" and not (path / "data.mdb").exists():
         print(f"userctl replay: no replay buffer at {path}{_missing_hint(args.path, path, cfg)}", file=sys.stderr)
         return 2
+    from services.replay.store import BufferHeld
+
     try:
         if args.tool == "ls":
             return _ls(path, args.json)
@@ -163,10 +166,13 @@ def main(argv: list[str]) -> int:
             from services.replay.lerobot_io import import_dataset
 
             s = import_dataset(args.root, args.repo_id, path, table=args.table, robot_id=args.robot_id)
-    except (ValueError, FileNotFoundError, FileExistsError) as exc:
+    except (ValueError, FileNotFoundError, FileExistsError, BufferHeld) as exc:
         print(f"userctl replay {args.tool}: {exc}", file=sys.stderr)
         return 2
-    print(f"{args.tool}: {s.episodes} episodes, {s.frames} frames -> {s.path}")
+    already = ""
+    if s.present_episodes or s.present_frames:
+        already = f" (already there, not stored again: {s.present_episodes} episodes, {s.present_frames} frames)"
+    print(f"{args.tool}: {s.episodes} episodes, {s.frames} frames -> {s.path}{already}")
     return 0
 
 
