@@ -79,6 +79,16 @@ def experiment_status(st: ExperimentState) -> learner_pb2.ExperimentStatus:
     )
 
 
+def failed_experiments(learner: Learner) -> dict[str, str]:
+    """WorkerInfo.failed: experiments this learner cannot train and why, so control's `exp status` / `exp ls`
+    do not call an experiment running whose robots are leased while nothing learns from them."""
+    return {
+        name: st.error or "failed (no reason given)"
+        for name, st in learner.experiment_states.items()
+        if st.state == "failed"
+    }
+
+
 class LearnerService(rpc.GrpcService):
     """In-process learner service (tests, userctl): start() serves and trains, stop() shuts down cleanly."""
 
@@ -131,7 +141,14 @@ def run(cfg: StackConfig, ready_file: str | None) -> int:
         return [e.name for e in service.learner.experiments]
 
     with report_worker(
-        service, "learner", lc.control_addr, cfg.auth, lc.device, experiments, service.learner.preparing
+        service,
+        "learner",
+        lc.control_addr,
+        cfg.auth,
+        lc.device,
+        experiments,
+        service.learner.preparing,
+        lambda: failed_experiments(service.learner),
     ):
         rpc.serve_until_signal(service, "learner", ready_file, healthy=lambda: not service.learner.failed)
     if service.learner.failed:

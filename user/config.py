@@ -177,6 +177,10 @@ class InferenceConfig(_ServerSection):
     )
 
 
+def _shortcut(what: str) -> str:
+    return f"{what}; shortcut for the default experiment only (empty `experiments`)"
+
+
 class LearnerConfig(_ServerSection):
     server: ServerConfig = ServerConfig(port=50054, metrics_port=9104)
     replay_addr: str = Field(default="127.0.0.1:50052", description="replay service to sample from")
@@ -191,14 +195,15 @@ class LearnerConfig(_ServerSection):
     device: str = DEVICE
     torch_threads: int = Field(default=1, ge=1, description="intra-op threads for training")
     seed: int = 0
-    hidden: list[int] = Field(default=[128, 128], description="MLP widths of actor and critics")
-    batch_size: int = Field(default=128, ge=1, description="transitions per update")
-    gamma: float = Field(default=0.95, gt=0, le=1, description="discount")
-    tau: float = Field(default=0.005, gt=0, le=1, description="Polyak rate of the target critics")
-    actor_lr: float = Field(default=1e-3, gt=0)
-    critic_lr: float = Field(default=1e-3, gt=0)
-    alpha_lr: float = Field(default=1e-3, gt=0)
-    init_alpha: float = Field(default=0.1, gt=0, description="initial entropy temperature (then tuned)")
+    # The implicit default experiment's SAC params (LEGACY_SAC_FIELDS): a changed one is refused with `experiments` set.
+    hidden: list[int] = Field(default=[128, 128], description=_shortcut("MLP widths of actor and critics"))
+    batch_size: int = Field(default=128, ge=1, description=_shortcut("transitions per update"))
+    gamma: float = Field(default=0.95, gt=0, le=1, description=_shortcut("discount"))
+    tau: float = Field(default=0.005, gt=0, le=1, description=_shortcut("Polyak rate of the target critics"))
+    actor_lr: float = Field(default=1e-3, gt=0, description=_shortcut("actor learning rate"))
+    critic_lr: float = Field(default=1e-3, gt=0, description=_shortcut("critic learning rate"))
+    alpha_lr: float = Field(default=1e-3, gt=0, description=_shortcut("entropy temperature learning rate"))
+    init_alpha: float = Field(default=0.1, gt=0, description=_shortcut("initial entropy temperature (then tuned)"))
     min_transitions: int = Field(default=250, ge=1, description="wait for this many before training")
     max_updates_per_transition: float = Field(
         default=4.0, gt=0, description="caps the update-to-data ratio so the learner cannot overfit a tiny buffer"
@@ -418,7 +423,9 @@ class UpConfig(Strict):
         default=2, ge=1, description="processes driving copies of the first edge.robots entry; others run once each"
     )
     console: bool = Field(default=True, description="live table; false prints only the summary")
-    target_experiment: str = Field(default="", description="whose success stops the run; empty = the first")
+    target_experiment: str = Field(
+        default="", description="the experiment (of `experiments`) whose success stops the run; empty = the first"
+    )
     max_restarts: int = Field(
         default=3,
         ge=0,
@@ -446,6 +453,32 @@ class StackConfig(Strict):
         names = [e.name for e in self.experiments]
         if len(names) != len(set(names)):
             raise ValueError(f"experiments: names must be unique, got {names}")
+        return self
+
+    @model_validator(mode="after")
+    def _no_ignored_learner_params(self) -> StackConfig:
+        """The learner's SAC fields only reach the implicit default experiment: with `experiments` set a
+        changed one would be silently ignored, so it is refused, pointing at where it takes effect."""
+        if not self.experiments:
+            return self
+        defaults = LearnerConfig.model_fields
+        for name in LEGACY_SAC_FIELDS:
+            if getattr(self.learner, name) != defaults[name].default:
+                raise ValueError(
+                    f"learner.{name}: ignored because `experiments` is set; set "
+                    f"experiments[i].algorithm.params.{name} instead"
+                )
+        return self
+
+    @model_validator(mode="after")
+    def _target_experiment_known(self) -> StackConfig:
+        # A typo would not stop the run at its target: it would run the whole budget and report no success.
+        names = [e.name for e in self.resolved_experiments()]
+        if self.up.target_experiment and self.up.target_experiment not in names:
+            raise ValueError(
+                f"up.target_experiment: {self.up.target_experiment!r} is not an experiment of this config; "
+                f"known: {', '.join(names)}"
+            )
         return self
 
     def resolved_experiments(self) -> list[ExperimentConfig]:
@@ -514,6 +547,9 @@ def load_config(
     except ValidationError as exc:
         lines = []
         for err in exc.errors():
+            if not err["loc"] and err["type"] == "value_error":  # a cross-field check names its field itself
+                lines.append(str(err["ctx"]["error"]))
+                continue
             where = ".".join(str(p) for p in err["loc"]) or "<root>"
             lines.append(f"{where}: {err['msg']}")
         raise ConfigError("invalid config: " + "; ".join(lines)) from None

@@ -3,7 +3,8 @@
 userctl robots ls [--all] [--json]            robots, their agent, state, episodes (Control.ListRobots)
 userctl workers ls [--all] [--json]           learner/inference hosts with CPUs and GPUs (Control.ListWorkers)
 userctl command pause|resume|reset [ROBOT]    send a command and print each edge's result
-userctl exp ls [--json]                       experiments: state, leased robots, episodes, success
+userctl exp ls [--json]                       experiments: state (failed when the learner cannot train it), leased
+                                              robots, episodes, success (without human help)
 userctl exp start|stop NAME                   lease its robots again / release them (edges hold, learner pauses)
 userctl exp status NAME [--json]              one experiment: its robots, episodes, success, returns, version
 userctl exp define FILE                       a new experiment while the stack runs (one `experiments` entry,
@@ -111,15 +112,40 @@ def _lease(r: control_pb2.RobotInfo) -> str:
 
 
 def _state(e: control_pb2.ExperimentInfo) -> str:
-    return control_pb2.ExperimentState.Name(e.state).removeprefix("EXPERIMENT_STATE_").lower()
+    """Control's state, unless a learner reports it cannot train the experiment: control still leases its
+    robots then, but "running" would be false (why: ExperimentInfo.learner_error, shown by `exp status`)."""
+    state = control_pb2.ExperimentState.Name(e.state).removeprefix("EXPERIMENT_STATE_").lower()
+    if not e.learner_failed:
+        return state
+    return "failed (learner)" if e.state == control_pb2.EXPERIMENT_STATE_RUNNING else f"{state}, failed (learner)"
 
 
 def _rate(successes: int, episodes: int) -> str:
     return f"{successes / episodes:.0%}" if episodes else "-"
 
 
+def _success(e: control_pb2.ExperimentInfo) -> str:
+    """Success over the episodes nobody intervened in (an expert's rescue is not the policy's success), with
+    the rate over every episode in brackets when some were helped: "-" when all were."""
+    cell = _rate(e.unhelped_successes, e.unhelped_episodes)
+    if e.unhelped_episodes != e.episodes:
+        cell += f" [{_rate(e.successes, e.episodes)} all]"
+    return cell
+
+
 def experiments_table(experiments: list[control_pb2.ExperimentInfo]) -> Table:
-    table = Table("experiment", "state", "leased", "max", "episodes", "success", "mean return", "policy", "since")
+    table = Table(
+        "experiment",
+        "state",
+        "leased",
+        "max",
+        "episodes",
+        "success",
+        "mean return",
+        "policy",
+        "since",
+        caption="success: episodes without human help (in brackets: every episode's, when some were helped)",
+    )
     for e in experiments:
         since = e.started_at_ns if e.state == control_pb2.EXPERIMENT_STATE_RUNNING else e.stopped_at_ns
         table.add_row(
@@ -128,7 +154,7 @@ def experiments_table(experiments: list[control_pb2.ExperimentInfo]) -> Table:
             str(len(e.leased_robots)),
             str(e.max_robots or "all"),
             str(e.episodes),
-            _rate(e.successes, e.episodes),
+            _success(e),
             f"{e.mean_return:.2f}" if e.episodes else "-",
             str(e.policy_version),
             _ago(since),
@@ -138,20 +164,27 @@ def experiments_table(experiments: list[control_pb2.ExperimentInfo]) -> Table:
 
 def experiment_text(e: control_pb2.ExperimentInfo) -> str:
     """`exp status`: a header and one line per robot (stable columns, for people and grep)."""
+    helped = e.episodes - e.unhelped_episodes
     lines = [
         f"experiment {e.name}: {_state(e)}",
+        *([f"  learner error: {e.learner_error}"] if e.learner_failed else []),
         f"  started {_ago(e.started_at_ns)}; stopped {_ago(e.stopped_at_ns)}; max_robots {e.max_robots or 'all'}",
         f"  leased {len(e.leased_robots)}: {', '.join(e.leased_robots) or '-'}",
-        f"  episodes {e.episodes}, success {_rate(e.successes, e.episodes)}, "
+        f"  episodes {e.episodes}{f' ({helped} with interventions)' if helped else ''}, success {_success(e)}, "
         f"mean return {e.mean_return:.2f}, policy version {e.policy_version}",
         f"  learners: {', '.join(e.learners) or '-'}",
-        f"  {'robot':<24} {'online':<7} {'leased':<7} {'episodes':>8} {'success':>8} {'return':>8} {'policy':>7}",
+        f"  {'robot':<24} {'online':<7} {'leased':<7} {'episodes':>8} {'success':>8} {'return':>8} {'policy':>7}"
+        f" {'helped':>7}",
     ]
     for r in e.robots:
         lines.append(
             f"  {r.robot_id:<24} {'yes' if r.online else 'no':<7} {'yes' if r.leased else 'no':<7} "
-            f"{r.episodes:>8} {_rate(r.successes, r.episodes):>8} {r.mean_return:>8.2f} {r.policy_version:>7}"
+            f"{r.episodes:>8} {_rate(r.unhelped_successes, r.unhelped_episodes):>8} {r.mean_return:>8.2f} "
+            f"{r.policy_version:>7} {r.episodes - r.unhelped_episodes:>7}"
         )
+    lines.append(
+        "  success: episodes no teleoperator helped in (every episode's rate in brackets; helped = the others)"
+    )
     return "\n".join(lines)
 
 

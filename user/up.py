@@ -925,6 +925,7 @@ def _summary(
                 e.name: {
                     "algorithm": e.algorithm,
                     "state": e.state,
+                    "error": e.error,
                     "updates": e.updates,
                     "weight_version": e.weight_version,
                     "robots": list(e.robot_ids),
@@ -964,28 +965,39 @@ def _print_summary(console: Console, summary: dict[str, Any], run_dir: Path) -> 
     table.add_row("episodes", str(summary["episodes_total"]) + (f" (+{earlier} in earlier runs)" if earlier else ""))
     if summary["final_success_rate"] is not None:
         table.add_row(
-            f"success, last episodes of {summary['target_experiment']}", f"{100 * summary['final_success_rate']:.0f} %"
+            f"success, last episodes of {summary['target_experiment']}",
+            _summary_rate(summary["final_success_rate_autonomous"], summary["final_success_rate"]),
         )
     if summary.get("episodes_with_interventions"):
-        auto = summary["final_success_rate_autonomous"]
         table.add_row(
-            "success without human help",
-            ("-" if auto is None else f"{100 * auto:.0f} %")
-            + f" ({summary['episodes_with_interventions']} episodes had interventions)",
+            "episodes with interventions",
+            f"{summary['episodes_with_interventions']} (left out of success, counted in the all-episodes rate)",
         )
     if summary["learner"]:
         table.add_row("learner updates", str(summary["learner"]["updates"]))
         for name, exp in summary["learner"]["experiments"].items():
-            rate = "-" if exp["final_success_rate"] is None else f"{100 * exp['final_success_rate']:.0f} %"
+            # A learner that cannot train the experiment says so first: its robots were leased all the same.
+            failed = f"FAILED: {exp.get('error') or 'no reason given'}; " if exp.get("state") == "failed" else ""
+            rate = _summary_rate(exp["final_success_rate_autonomous"], exp["final_success_rate"])
             table.add_row(
                 f"experiment {name}",
-                f"{exp['algorithm']}, {exp['updates']} updates, weights v{exp['weight_version']}, success {rate}",
+                f"{failed}{exp['algorithm']}, {exp['updates']} updates, weights v{exp['weight_version']}, "
+                f"success {rate}",
             )
     for rid, st in summary["robots"].items():
         table.add_row(rid, f"{st['env_steps']} steps, {st['episodes']} episodes, policy v{st['policy_version']}")
     table.add_row("process exits", exits_text(summary["exit_codes"], summary.get("restarts", {})))
     table.add_row("report", f"{run_dir / 'report.png'}, {run_dir / 'metrics.json'}")
     console.print(table)
+
+
+def _summary_rate(unhelped: float | None, every: float | None) -> str:
+    """The summary's success: over episodes without human help ("-" when every one was helped), the rate
+    over all episodes in brackets when it differs."""
+    if every is None:
+        return "-"
+    cell = "-" if unhelped is None else f"{100 * unhelped:.0f} %"
+    return cell if unhelped == every else f"{cell} [{100 * every:.0f} % all]"
 
 
 def exits_text(codes: dict[str, int | None], restarts: dict[str, list[int]]) -> str:

@@ -2,7 +2,8 @@
 GPUs with memory, the device they compute on and what they serve, re-sent as a heartbeat. Operators see
 the GPU pool beside the robots (`userctl workers ls`, Control.ListWorkers).
 
-Never raises into the service: control being away only delays the report.
+Never raises into the service once started: control being away only delays the report. A config that cannot
+make a channel (no token, an unreadable TLS file) raises ConfigError from start(), in the caller's thread.
 """
 
 from __future__ import annotations
@@ -77,8 +78,12 @@ class WorkerReporter:
         self.reported = threading.Event()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="worker-report", daemon=True)
+        self._channel: grpc.Channel | None = None
 
     def start(self) -> WorkerReporter:
+        # Here, not in the thread: a missing token must reach the caller as its one-line ConfigError, not
+        # as a thread's traceback printed before it.
+        self._channel = make_channel(self.control_addr, self.auth)
         self._thread.start()
         return self
 
@@ -89,7 +94,8 @@ class WorkerReporter:
     def _run(self) -> None:
         backoff = Backoff(initial_s=0.5, max_s=self.interval_s)
         warned = False
-        with make_channel(self.control_addr, self.auth) as channel:
+        assert self._channel is not None  # set by start()
+        with self._channel as channel:
             stub = control_pb2_grpc.ControlStub(channel)
             while not self._stop.is_set():
                 info = self.info()
@@ -117,7 +123,11 @@ class WorkerReporter:
             if time.monotonic() >= due:
                 return
             now = self.info()
-            if now is not None and (now.preparing, now.experiments) != (sent.preparing, sent.experiments):
+            if now is not None and (now.preparing, now.experiments, now.failed) != (
+                sent.preparing,
+                sent.experiments,
+                sent.failed,
+            ):
                 return
 
 
@@ -130,10 +140,12 @@ def report_worker(
     device: str,
     experiments: Callable[[], list[str]],
     preparing: Callable[[], list[str]] | None = None,
+    failed: Callable[[], dict[str, str]] | None = None,
 ) -> Iterator[WorkerReporter]:
     """Around `serve_until_signal(service, ...)`: report once the service is bound, until it stops.
     `experiments()`: those it serves (experiments defined at run time join); `preparing()`: the learner's
-    experiments without a policy yet (WorkerInfo.preparing). Both re-read for each report."""
+    experiments without a policy yet (WorkerInfo.preparing); `failed()`: those it cannot train, with why
+    (WorkerInfo.failed). All re-read for each report."""
 
     def info() -> control_pb2.WorkerInfo | None:
         running = getattr(service, "running", None)
@@ -143,11 +155,14 @@ def report_worker(
         if getattr(info, "names", None) != names:
             info.cached = worker_info(kind, f"{socket.gethostname()}:{running.port}", device, names)
             info.names = names
-        if preparing is None:
+        if preparing is None and failed is None:
             return info.cached
         out = control_pb2.WorkerInfo()
         out.CopyFrom(info.cached)
-        out.preparing.extend(preparing())
+        if preparing is not None:
+            out.preparing.extend(preparing())
+        if failed is not None:
+            out.failed.update(failed())
         return out
 
     reporter = WorkerReporter(control_addr, auth, info).start()

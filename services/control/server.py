@@ -39,6 +39,7 @@ log = logging.getLogger(__name__)
 
 SERVICE_NAME = control_pb2.DESCRIPTOR.services_by_name["Control"].full_name
 MAX_TEXT_BYTES = 256  # hostname, software_version, command ids: enough for any real value, bounded in memory
+MAX_ERROR_BYTES = 1024  # a learner's reason an experiment failed (WorkerInfo.failed), cut beyond this
 MAX_ROBOTS_PER_AGENT = 256
 MAX_COMMAND_WAIT_S = 60.0
 WORKER_ID_RE = re.compile(r"[A-Za-z0-9_.@:\-]{1,128}")
@@ -116,6 +117,9 @@ def worker_problem(w: control_pb2.WorkerInfo) -> str | None:
         return "at most 64 devices and 256 experiments"
     if any(name not in w.experiments for name in w.preparing):
         return f"preparing {sorted(set(w.preparing) - set(w.experiments))} are not among its experiments"
+    # `failed` may name an experiment outside `experiments` (a defined one whose definition did not check).
+    if len(w.failed) > 256 or any(not EXPERIMENT_NAME_RE.fullmatch(name) for name in w.failed):
+        return "failed: at most 256 entries, keyed by experiment name"
     return None
 
 
@@ -234,6 +238,8 @@ class EpisodeTotals:
     episodes: int = 0
     successes: int = 0
     return_sum: float = 0.0
+    unhelped: int = 0  # episodes no teleoperator drove a step of: the policy's own record
+    unhelped_successes: int = 0
 
 
 class Registry:
@@ -275,8 +281,10 @@ class Registry:
         self._totals: dict[tuple[str, str], EpisodeTotals] = {}  # (experiment, robot_id) -> whole history
         self._load_experiments(experiments or [])
         if state is not None:
-            for exp, rid, n, succ, ret in state.episode_totals():
-                self._totals[(exp, rid)] = EpisodeTotals(int(n), int(succ or 0), float(ret or 0.0))
+            for exp, rid, n, succ, ret, alone, alone_succ in state.episode_totals():
+                self._totals[(exp, rid)] = EpisodeTotals(
+                    int(n), int(succ or 0), float(ret or 0.0), int(alone or 0), int(alone_succ or 0)
+                )
             for st in state.load_commands(commands_kept):
                 rec = CommandRecord(st.command, st.sent_at_ns, list(st.agents), list(st.results))
                 self._commands[st.command.command_id] = rec
@@ -491,6 +499,9 @@ class Registry:
                 totals.episodes += 1
                 totals.successes += int(ep.success)
                 totals.return_sum += float(ep.episode_return)
+                if not ep.intervention_steps:
+                    totals.unhelped += 1
+                    totals.unhelped_successes += int(ep.success)
             if self.state is not None:
                 self.state.add_episodes(fresh, experiment)
         kept = control_pb2.RobotStatus()
@@ -709,21 +720,25 @@ class Registry:
                     successes=totals.successes,
                     mean_return=totals.return_sum / totals.episodes if totals.episodes else 0.0,
                     policy_version=version,
+                    unhelped_episodes=totals.unhelped,
+                    unhelped_successes=totals.unhelped_successes,
                 )
             )
             if leased:
                 info.leased_robots.append(rid)
             info.episodes += totals.episodes
             info.successes += totals.successes
+            info.unhelped_episodes += totals.unhelped
+            info.unhelped_successes += totals.unhelped_successes
             return_sum += totals.return_sum
             info.policy_version = max(info.policy_version, version)
         info.mean_return = return_sum / info.episodes if info.episodes else 0.0
         cutoff = time.time_ns() - int(self.worker_ttl_s * 1e9)
-        info.learners.extend(
-            w.worker_id
-            for w in self._workers.values()
-            if w.kind == "learner" and name in w.experiments and w.last_seen_ns >= cutoff
-        )
+        online = [w for w in self._workers.values() if w.kind == "learner" and w.last_seen_ns >= cutoff]
+        info.learners.extend(w.worker_id for w in online if name in w.experiments)
+        errors = [w.failed[name] for w in online if name in w.failed]
+        if errors:  # leased robots and a running state say nothing about whether it learns: say it does not
+            info.learner_failed, info.learner_error = True, errors[0]
         return info
 
     def _update_gauge_locked(self) -> None:
@@ -815,6 +830,8 @@ class Registry:
             old = self._workers.get(info.worker_id)
             kept = control_pb2.WorkerInfo()
             kept.CopyFrom(info)
+            for name, error in info.failed.items():  # an exception's text can be long: bounded in memory and SQLite
+                kept.failed[name] = error.encode()[:MAX_ERROR_BYTES].decode(errors="ignore")
             kept.registered_at_ns = old.registered_at_ns if old and old.online else now_ns
             kept.last_seen_ns = now_ns
             kept.online = True

@@ -43,6 +43,7 @@ EPISODE_COLUMNS = {
     "experiment": "TEXT NOT NULL DEFAULT ''",
     "success": "INTEGER NOT NULL DEFAULT 0",
     "episode_return": "REAL NOT NULL DEFAULT 0",
+    "intervention_steps": "INTEGER NOT NULL DEFAULT 0",  # success without human help counts the 0 rows
 }
 
 
@@ -73,6 +74,8 @@ class ControlState:
             for name, decl in EPISODE_COLUMNS.items():
                 if name not in have:
                     self._db.execute(f"ALTER TABLE episodes ADD COLUMN {name} {decl}")
+            if "intervention_steps" not in have:
+                self._backfill_interventions()
 
     def load_robots(self, episodes_kept: int) -> list[SavedRobot]:
         with self._lock:
@@ -120,6 +123,16 @@ class ControlState:
                 ),
             )
 
+    def _backfill_interventions(self) -> None:
+        """A file from before the column: its episodes' intervention steps come from their stored summaries."""
+        rows = self._db.execute("SELECT seq, summary FROM episodes").fetchall()
+        helped = []
+        for seq, blob in rows:
+            steps = control_pb2.EpisodeSummary.FromString(blob).intervention_steps
+            if steps:
+                helped.append((steps, seq))
+        self._db.executemany("UPDATE episodes SET intervention_steps = ? WHERE seq = ?", helped)
+
     def add_episodes(self, episodes: list[control_pb2.EpisodeSummary], experiment: str = "") -> None:
         """Idempotent: an episode re-sent after a broken stream is stored once."""
         if not episodes:
@@ -128,19 +141,30 @@ class ControlState:
             if self._closed:
                 return
             self._db.executemany(
-                "INSERT OR IGNORE INTO episodes (robot_id, episode_id, summary, experiment, success, episode_return)"
-                " VALUES (?, ?, ?, ?, ?, ?)",
+                "INSERT OR IGNORE INTO episodes"
+                " (robot_id, episode_id, summary, experiment, success, episode_return, intervention_steps)"
+                " VALUES (?, ?, ?, ?, ?, ?, ?)",
                 [
-                    (e.robot_id, e.episode_id, e.SerializeToString(), experiment, int(e.success), e.episode_return)
+                    (
+                        e.robot_id,
+                        e.episode_id,
+                        e.SerializeToString(),
+                        experiment,
+                        int(e.success),
+                        e.episode_return,
+                        e.intervention_steps,
+                    )
                     for e in episodes
                 ],
             )
 
-    def episode_totals(self) -> list[tuple[str, str, int, int, float]]:
-        """(experiment, robot_id, episodes, successes, sum of returns) over the whole history."""
+    def episode_totals(self) -> list[tuple[str, str, int, int, float, int, int]]:
+        """(experiment, robot_id, episodes, successes, sum of returns, episodes without interventions,
+        successes among those) over the whole history."""
         with self._lock:
             return self._db.execute(
-                "SELECT experiment, robot_id, COUNT(*), SUM(success), SUM(episode_return) FROM episodes"
+                "SELECT experiment, robot_id, COUNT(*), SUM(success), SUM(episode_return),"
+                " SUM(intervention_steps = 0), SUM(success AND intervention_steps = 0) FROM episodes"
                 " GROUP BY experiment, robot_id"
             ).fetchall()
 
