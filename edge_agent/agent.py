@@ -19,9 +19,9 @@ import secrets
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, Protocol
 
 import grpc
 import numpy as np
@@ -33,12 +33,12 @@ from edge_agent.policy_source import PolicySource, make_policy_source
 from edge_agent.replay_client import ReplaySender
 from edge_agent.robot import Observation, Robot, action_bounds, clip_action, make_robot
 from edge_agent.spool import open_outbox
-from edge_agent.task import TASKS, Outcome, Task
+from edge_agent.task import TASKS, Outcome, ParamError, Task
 from edge_agent.teleop import TELEOPERATORS, Teleoperator
 from user import rpc, wire
 from user.config import ConfigError, RobotConfig, StackConfig
 from user.log import kv
-from user.registry import PluginError
+from user.registry import PluginError, Registry
 from user.v1 import control_pb2, robot_pb2, step_pb2
 
 log = logging.getLogger(__name__)
@@ -97,6 +97,7 @@ PAUSED_POLL_S = 0.05  # fast mode: how often a paused loop re-checks
 WATCH_POLL_S = 0.25  # hot-plug: how often the agent looks for failed loops and retries absent robots
 REPLUG_MAX_S = 60.0  # hot-plug: the longest wait between connect tries of an absent robot
 TELEOP_DETACH_S = 1.0  # hot-plug: a teleoperator whose polls fail this long is released and reconnected
+TELEOP_ERRORS_REMEMBERED = 8  # distinct teleoperator errors whose traceback a loop logged (not logged again)
 START_ALIGN_S = 0.1  # realtime: the robots' common first tick, this long after the agent starts them
 REFUSED = "control refused this agent"  # the reason of the hold a refusal puts on every robot
 
@@ -184,6 +185,10 @@ class RobotLoop:
         self.task = task if task is not None else TASKS.build("env", spec=self.spec)
         self.teleop = teleop  # replaced whole by the agent's hot-plug watcher; read once per use
         self.teleop_failing_since: float | None = None  # monotonic start of the current streak of failed polls
+        self.teleop_error: str | None = None  # the latest failed poll's error, for the detach line
+        # Errors whose traceback was logged: the same error again (the next streak, a re-attached instance that
+        # fails alike) is one debug line, so a teleoperator that always fails does not repeat its traceback.
+        self._teleop_errors_logged: deque[str] = deque(maxlen=TELEOP_ERRORS_REMEMBERED)
         self.robot_id = self.spec.robot_id
         self.mode = mode
         self.deadline_s = action_deadline_s
@@ -343,11 +348,11 @@ class RobotLoop:
             return None
         try:
             human = teleop.poll(obs)
-        except Exception:
+        except Exception as exc:
             TELEOP_ERRORS.labels(**self._labels).inc()
             if self.teleop_failing_since is None:  # once per failure streak, not at the control rate
-                log.exception("teleoperator poll failed; the policy drives", extra=kv(robot_id=self.robot_id))
                 self.teleop_failing_since = time.monotonic()
+                self._log_teleop_error(exc)
             return None
         self.teleop_failing_since = None
         if human is None:
@@ -361,6 +366,15 @@ class RobotLoop:
             )
             return None
         return human.reshape(self._hold_action.shape)
+
+    def _log_teleop_error(self, exc: Exception) -> None:
+        """A failed poll starting a streak: its traceback the first time this error is seen, one debug line after."""
+        self.teleop_error = error = f"{type(exc).__name__}: {exc}"
+        if error in self._teleop_errors_logged:
+            log.debug("teleoperator poll failed again", extra=kv(robot_id=self.robot_id, error=error))
+            return
+        self._teleop_errors_logged.append(error)
+        log.exception("teleoperator poll failed; the policy drives", extra=kv(robot_id=self.robot_id))
 
     def _decide(self, obs: Observation) -> tuple[np.ndarray, int, bool, bool]:
         """(applied action, policy version, held, intervention). A human action wins; no answer in time -> hold."""
@@ -709,7 +723,7 @@ class EdgeAgent:
 
     def _detach_teleop(self, rid: str, loop: RobotLoop) -> None:
         """Its polls kept failing (unplugged): the policy drives, and a fresh instance is connected when it can be."""
-        old = loop.teleop
+        old, error = loop.teleop, loop.teleop_error
         if old is None:
             return
         loop.set_teleop(None)
@@ -717,7 +731,7 @@ class EdgeAgent:
         TELEOP_ATTACHED.labels(rid).set(0)
         log.warning(
             "teleoperator detached: its polls kept failing; the policy drives until it connects again",
-            extra=kv(robot_id=rid, retry_s=self.cfg.edge.replug_s),
+            extra=kv(robot_id=rid, error=error, retry_s=self.cfg.edge.replug_s),
         )
         wait = self._backoff_after_detach(rid, self._teleop_attached_at, self._teleop_flaps)
         self._absent_teleops[rid] = _Absent(self._fresh_teleop(rid, old), next_try=time.monotonic() + wait)
@@ -962,7 +976,9 @@ def _build_robot(cfg: StackConfig, index: int, rc: RobotConfig) -> Robot:
 def build_judges_and_teleops(cfg: StackConfig, robots: list[Robot]) -> tuple[dict[str, Task], dict[str, Teleoperator]]:
     """Each robot's task (its config's, else the robot's default) and teleoperator (if configured).
 
-    Params are validated here, at start, and errors name the dotted field (edge.robots[1].task.params.x).
+    Params are validated here, at start, and errors name the dotted field (edge.robots[1].task.params.x); so do
+    a task or teleoperator that refuses its robot (a classifier trained on a camera the robot lacks, a scripted
+    expert for another robot kind): a PluginError, one line at `userctl edge`, not a traceback or a failing loop.
     """
     entries = {rc.id: (i, rc) for i, rc in enumerate(cfg.edge.robots)}
     tasks: dict[str, Task] = {}
@@ -971,21 +987,48 @@ def build_judges_and_teleops(cfg: StackConfig, robots: list[Robot]) -> tuple[dic
         spec = robot.spec
         index, rc = entries.get(spec.robot_id, (None, RobotConfig(id=spec.robot_id, kind=spec.kind)))
         where = f"edge.robots[{index}]" if index is not None else f"robot {spec.robot_id}"
-        if rc.task is not None:
-            tasks[spec.robot_id] = TASKS.build(rc.task.kind, rc.task.params, where=f"{where}.task.params", spec=spec)
-        else:
-            tasks[spec.robot_id] = TASKS.build(robot.default_task, {}, where=f"{where}.task.params", spec=spec)
+        task_kind, task_params = (rc.task.kind, rc.task.params) if rc.task is not None else (robot.default_task, {})
+        tasks[spec.robot_id] = _build_plugin(TASKS, task_kind, task_params, f"{where}.task", spec)
         if rc.teleop is not None:
-            teleops[spec.robot_id] = TELEOPERATORS.build(
-                rc.teleop.kind, rc.teleop.params, where=f"{where}.teleop.params", spec=spec
+            entry = TELEOPERATORS.get(rc.teleop.kind, f"{where}.teleop.kind")
+            if (why := entry.cls.unsupported(spec)) is not None:
+                raise PluginError(
+                    f"{where}.teleop.kind: {rc.teleop.kind} cannot drive robot {spec.robot_id!r} "
+                    f"(kind {spec.kind}): {why}"
+                )
+            teleops[spec.robot_id] = _build_plugin(
+                TELEOPERATORS, rc.teleop.kind, rc.teleop.params, f"{where}.teleop", spec
             )
         attach = getattr(tasks[spec.robot_id], "attach_teleop", None)  # a task judged from the teleop's events
         if attach is not None:
             try:
                 attach(teleops.get(spec.robot_id))
             except ValueError as exc:
-                raise PluginError(f"{where}.task: {exc}") from None
+                raise PluginError(f"{where}.task: {_one_line(exc)}") from None
     return tasks, teleops
+
+
+def _build_plugin[T](
+    registry: Registry[T], kind: str, params: Mapping[str, Any], where: str, spec: robot_pb2.RobotSpec
+) -> T:
+    """A task or teleoperator of a robot entry (`where`: edge.robots[i].task). What its constructor refuses (a model
+    folder without a model, a device that is not there) is a PluginError naming the entry, or with a ParamError the
+    param (edge.robots[i].task.params.model), with the traceback at debug level."""
+    try:
+        return registry.build(kind, params, where=f"{where}.params", spec=spec)
+    except PluginError:
+        raise
+    except ParamError as exc:
+        log.debug("%s build failed", registry.interface, exc_info=True, extra=kv(robot_id=spec.robot_id))
+        raise PluginError(f"{where}.params.{exc.field}: {_one_line(exc)}") from None
+    except (ValueError, OSError, ImportError, RuntimeError) as exc:
+        log.debug("%s build failed", registry.interface, exc_info=True, extra=kv(robot_id=spec.robot_id))
+        raise PluginError(f"{where} ({registry.interface} {kind}, robot {spec.robot_id!r}): {_one_line(exc)}") from None
+
+
+def _one_line(exc: BaseException) -> str:
+    """An error's message on one line (a torch or pydantic message spans several)."""
+    return "; ".join(line.strip() for line in str(exc).splitlines() if line.strip()) or type(exc).__name__
 
 
 _COMMANDS: dict[int, Callable[[RobotLoop], None]] = {
@@ -1020,7 +1063,9 @@ def run(cfg: StackConfig, ready_file: str | None) -> int:
         agent = EdgeAgent(cfg)
     except PluginError as exc:  # a robot, task or teleoperator entry of the config: one line, exit 2
         raise ConfigError(str(exc)) from None
-    httpd, metrics_port = rpc.start_metrics_http(cfg.edge.metrics_host, cfg.edge.metrics_port)
+    httpd, metrics_port = rpc.start_metrics_http(
+        cfg.edge.metrics_host, cfg.edge.metrics_port, "edge.metrics_host", "edge.metrics_port"
+    )
     try:
         agent.start()
         rpc.write_ready_file(

@@ -6,7 +6,9 @@ robot's own simulator reward and termination (gym envs have them) reach a task t
 `Observation.reward/terminated/success` and `info`; the `env` task passes them through, others
 compute their own (a dense distance reward, a human success key, a trained success classifier).
 
-New tasks are one class plus `@TASKS.register("kind")` in a module of `edge_agent.tasks`.
+New tasks are one class plus `@TASKS.register("kind")` in a module of `edge_agent.tasks`. A constructor
+that refuses its params raises `ParamError(field, why)`; the edge agent names the entry's field
+(`edge.robots[0].task.params.model: ...`) and stops at start with one line.
 """
 
 from __future__ import annotations
@@ -19,6 +21,15 @@ import numpy as np
 from edge_agent.robot import Observation
 from user.registry import PluginParams, Registry
 from user.v1 import robot_pb2
+
+
+class ParamError(ValueError):
+    """A task's or teleoperator's param that validates alone but cannot be used (a model folder without a model,
+    a model for an observation the robot lacks); `field` is the param's name, for the error's dotted field."""
+
+    def __init__(self, field: str, message: str) -> None:
+        super().__init__(message)
+        self.field = field
 
 
 @dataclass(frozen=True)

@@ -8,10 +8,11 @@ folder. After every step it scores the new camera frame: P(success) >= `threshol
 from __future__ import annotations
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, ValidationError
+from safetensors import SafetensorError
 
 from edge_agent.robot import Observation
-from edge_agent.task import TASKS, Outcome, Task
+from edge_agent.task import TASKS, Outcome, ParamError, Task
 from user.policy import check_device
 from user.registry import PluginParams
 from user.reward_model import load_classifier
@@ -31,16 +32,29 @@ class ClassifierTask(Task):
 
     def __init__(self, params: Params, spec: robot_pb2.RobotSpec) -> None:
         super().__init__(params, spec)
-        self.model = load_classifier(params.model, str(check_device(params.device)))
+        try:
+            device = str(check_device(params.device))
+        except ValueError as exc:
+            raise ParamError("device", str(exc)) from None
+        try:
+            self.model = load_classifier(params.model, device)
+        except ValidationError as exc:  # config.json that is not a classifier's: one line per wrong field
+            wrong = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'config'}: {e['msg']}" for e in exc.errors())
+            raise ParamError("model", f"{params.model}/config.json is not a classifier config: {wrong}") from None
+        except (ValueError, OSError, SafetensorError) as exc:  # no model there, unreadable, or weights not matching
+            raise ParamError("model", str(exc)) from None
         config = self.model.config
         features = {f.name: f for f in spec.observation}
         for key in [config.camera, *([config.state_key] if config.state_key else [])]:
             if key not in features:
-                raise ValueError(f"robot {spec.robot_id!r} has no observation {key!r}; the classifier needs it")
+                raise ParamError(
+                    "model", f"robot {spec.robot_id!r} has no observation {key!r}; the classifier needs it"
+                )
         if list(features[config.camera].shape) != config.image_shape:
-            raise ValueError(
+            raise ParamError(
+                "model",
                 f"camera {config.camera!r} gives {list(features[config.camera].shape)} frames, "
-                f"the classifier was trained on {config.image_shape}"
+                f"the classifier was trained on {config.image_shape}",
             )
         self.last_probability = 0.0
 

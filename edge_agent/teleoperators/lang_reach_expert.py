@@ -21,6 +21,7 @@ import numpy as np
 from pydantic import Field
 
 from edge_agent.robot import Observation
+from edge_agent.robots.lang_reach import KIND as LANG_REACH_ARM
 from edge_agent.robots.sim_arm import MAX_SPEED
 from edge_agent.teleop import TELEOPERATORS, Teleoperator
 from user.registry import PluginParams
@@ -40,6 +41,10 @@ def expert_action(ee: np.ndarray, goal: np.ndarray, period_s: float) -> np.ndarr
 @TELEOPERATORS.register("lang_reach_expert")
 class LangReachExpert(Teleoperator):
     """Scripted expert for lang_reach_arm (demonstrations and HG-DAgger interventions)."""
+
+    robot_kinds = (LANG_REACH_ARM,)  # the named target's position is that simulator's privileged info
+    observation_keys = ("state",)  # the end-effector: its first three values
+    info_keys = ("goal_pos",)
 
     class Params(PluginParams):
         mode: Literal["always", "intervene", "never"] = "intervene"

@@ -165,10 +165,18 @@ class ScriptedExpert(Teleoperator):
 
     params: Params
 
-    def __init__(self, params: Params, spec: robot_pb2.RobotSpec) -> None:
-        super().__init__(params, spec)
+    @classmethod
+    def needs(cls) -> str:
+        return f"robot kind {' or '.join(sorted(EXPERTS))} (each expert reads its simulator's privileged info)"
+
+    @classmethod
+    def unsupported(cls, spec: robot_pb2.RobotSpec) -> str | None:
         if spec.kind not in EXPERTS:
-            raise ValueError(f"scripted_expert: no expert for robot kind {spec.kind!r}; have {sorted(EXPERTS)}")
+            return f"no expert for robot kind {spec.kind!r}; have {sorted(EXPERTS)}"
+        return None
+
+    def __init__(self, params: Params, spec: robot_pb2.RobotSpec) -> None:
+        super().__init__(params, spec)  # refuses a robot kind without an expert (unsupported)
         self.expert = EXPERTS[spec.kind](spec)
         self.takeovers = 0  # takeovers started, for tests and logs
         self._best = np.inf
