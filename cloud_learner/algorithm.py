@@ -5,20 +5,30 @@ online/demos), decodes it into a `Batch`, calls `update(batch)` and logs the sca
 publishes `policy()` as a weight version and checkpoints `state_dict()`. It never names an
 algorithm. New algorithms are one class plus `@ALGORITHMS.register("kind")` in a module of
 `cloud_learner.algorithms`, readable top to bottom like CleanRL.
+
+Resuming: a checkpoint records the params it was trained with. A restart whose config differs in a param is
+refused (naming it) unless the algorithm lists the param in `resumable_params`: those only steer how the next
+updates are made (learning rates, batch size, utd, table shares, loss weights, ...) and take effect on resume;
+the rest shape the networks or their inputs, or only the initialization, which a resume would ignore.
+Learning rates are the config's after a restore, not the checkpoint optimizer's (see `configured_lr`).
 """
 
 from __future__ import annotations
 
+import logging
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Annotated, Any
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 import torch
 from pydantic import Field, StringConstraints
 
+from user.log import kv
 from user.registry import PluginParams, Registry
 from user.v1 import learner_pb2
+
+log = logging.getLogger(__name__)
 
 # Replay tables an algorithm samples and each one's share of a batch: at least one, every share > 0 (finite),
 # names as replay takes them. Checked with the rest of the params at start, naming the table.
@@ -97,6 +107,8 @@ class Algorithm(ABC):
     """update(batch) -> scalars; policy() -> what to publish; state_dict() -> what to checkpoint."""
 
     Params: type[PluginParams] = PluginParams
+    # Params a resume may change (see the module docstring); none unless an algorithm says so.
+    resumable_params: ClassVar[frozenset[str]] = frozenset()
 
     def __init__(self, params: PluginParams, layout: Layout, device: torch.device) -> None:
         self.params, self.layout, self.device = params, layout, device
@@ -120,6 +132,18 @@ class Algorithm(ABC):
 
     @abstractmethod
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+def configured_lr(optimizer: torch.optim.Optimizer, lr: float, name: str) -> None:
+    """After optimizer.load_state_dict, which brings back the checkpoint's learning rate: the config's again
+    (a changed rate would be silently ignored otherwise), with a log line when they differ."""
+    before = sorted({float(group["lr"]) for group in optimizer.param_groups})
+    for group in optimizer.param_groups:
+        group["lr"] = lr
+    if before != [lr]:
+        log.info(
+            "learning rate from the config, not the checkpoint", extra=kv(optimizer=name, checkpoint=before, config=lr)
+        )
 
 
 ALGORITHMS: Registry[Algorithm] = Registry("algorithm", Algorithm, "cloud_learner.algorithms")

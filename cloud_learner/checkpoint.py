@@ -4,6 +4,9 @@ Each checkpoint is written to a temp file in the same directory, fsynced, rename
 `ckpt-<updates:09d>.pt`, and only then named by the `latest` pointer file (itself replaced
 atomically). A crash at any point leaves the previous checkpoint loadable; stray `.tmp` files
 are never read. Loading uses torch.load(weights_only=True): these files are ours, never wire bytes.
+A checkpoint that does not load (a torn disk write, `truncate`) is skipped with a warning for the next
+older one, never deleted; pruning keeps the newest files at or below the one just written, so files of a
+higher count (such a skipped one) neither push this run's own checkpoints out nor get deleted.
 """
 
 from __future__ import annotations
@@ -25,6 +28,10 @@ LATEST = "latest"
 VERSION_MARK = "weight_version"  # the highest weight version ever published from this directory
 KEEP = 3
 _NAME = re.compile(r"^ckpt-(\d{9,})\.pt$")
+
+
+class CheckpointError(RuntimeError):
+    """Checkpoints exist but none of them can be read: training must not silently start over."""
 
 
 def _fsync_dir(path: Path) -> None:
@@ -57,6 +64,11 @@ def checkpoint_name(updates: int) -> str:
     return f"ckpt-{updates:09d}.pt"
 
 
+def _updates_of(path: Path) -> int:
+    m = _NAME.match(path.name)
+    return int(m.group(1)) if m else -1
+
+
 def list_checkpoints(ckpt_dir: str | Path) -> list[Path]:
     """Complete checkpoints, oldest first (temp files are ignored)."""
     ckpt_dir = Path(ckpt_dir)
@@ -74,9 +86,11 @@ def save_checkpoint(ckpt_dir: str | Path, state: dict[str, Any], keep: int = KEE
     _write_atomic(path, lambda f: torch.save(state, f))
     _write_atomic(ckpt_dir / LATEST, lambda f: f.write(path.name.encode() + b"\n"))
     _fsync_dir(ckpt_dir)
-    for old in list_checkpoints(ckpt_dir)[:-keep]:
-        if old != path:
-            old.unlink(missing_ok=True)
+    # Only files below this one are pruned: a higher count is not this run's (e.g. an unreadable newest one it
+    # fell back from) and must not push this run's own recent checkpoints out.
+    below = [p for p in list_checkpoints(ckpt_dir) if _updates_of(p) < _updates_of(path)]
+    for old in below[: max(0, len(below) - (keep - 1))]:
+        old.unlink(missing_ok=True)
     log.info("checkpoint saved", extra=kv(path=str(path), updates=int(state["updates"])))
     return path
 
@@ -94,13 +108,35 @@ def latest_path(ckpt_dir: str | Path) -> Path | None:
     return found[-1] if found else None
 
 
+def _read(path: Path, map_location: str | torch.device) -> dict[str, Any]:
+    state = torch.load(path, map_location=map_location, weights_only=True)
+    if not isinstance(state, dict) or not isinstance(state.get("updates"), int | torch.Tensor):
+        raise ValueError("not a checkpoint (no update count)")
+    return state
+
+
 def load_latest(ckpt_dir: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any] | None:
+    """The checkpoint `latest` names; if it cannot be read, the next older readable one (with a warning).
+    None when there is none; CheckpointError when there are some but none reads."""
     path = latest_path(ckpt_dir)
     if path is None:
         return None
-    state = torch.load(path, map_location=map_location, weights_only=True)
-    log.info("checkpoint loaded", extra=kv(path=str(path), updates=int(state.get("updates", 0))))
-    return state
+    # Older ones only: a file above the one `latest` names was never completed as this run's newest.
+    candidates = [path, *(p for p in reversed(list_checkpoints(ckpt_dir)) if _updates_of(p) < _updates_of(path))]
+    errors = []
+    for candidate in candidates:
+        try:
+            state = _read(candidate, map_location)
+        except Exception as exc:  # torch raises many kinds (RuntimeError, EOFError, UnpicklingError, ...)
+            errors.append(f"{candidate.name}: {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}")
+            log.warning(
+                "checkpoint unreadable; trying the previous one (the file is kept)",
+                extra=kv(path=str(candidate), error=errors[-1]),
+            )
+            continue
+        log.info("checkpoint loaded", extra=kv(path=str(candidate), updates=int(state.get("updates", 0))))
+        return state
+    raise CheckpointError(f"no checkpoint in {ckpt_dir} can be read ({'; '.join(errors)}); training would start over")
 
 
 def read_version_mark(ckpt_dir: str | Path) -> int:

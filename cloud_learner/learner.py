@@ -4,7 +4,8 @@ The loop knows no algorithm by name. For each experiment of the stack config it 
 knows robots the experiment's selector picks, derives the `Layout` from their specs, builds the
 algorithm (`ALGORITHMS.build`, params checked against its typed model), resumes it from the
 experiment's checkpoint directory and publishes version 1 at once (actors get a policy before any
-training). Then:
+training). An experiment that cannot start (robots of different layouts, params that do not fit them, a
+checkpoint this config cannot resume) is reported failed and writes no checkpoint; the others train. Then:
 
 - async (default): a sampler thread keeps `prefetch_batches` decoded batches ready while the training
   thread updates as fast as it can, bounded by the update-to-data cap (max_updates_per_transition x
@@ -28,7 +29,6 @@ from __future__ import annotations
 
 import ctypes
 import dataclasses
-import inspect
 import json
 import logging
 import queue
@@ -45,8 +45,14 @@ import prometheus_client
 import torch
 
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
-from cloud_learner.checkpoint import load_latest, read_version_mark, save_checkpoint, write_version_mark
-from cloud_learner.prepare import check_prepare, normalize_keys, state_stats, with_stats
+from cloud_learner.checkpoint import (
+    CheckpointError,
+    load_latest,
+    read_version_mark,
+    save_checkpoint,
+    write_version_mark,
+)
+from cloud_learner.prepare import STAT_FIELDS, check_prepare, normalize_keys, state_stats, with_stats
 from cloud_learner.replay_sampler import ShardedSampler, replay_source
 from cloud_learner.replay_shm import SharedArrays
 from user import rpc
@@ -60,9 +66,11 @@ from user.experiments import (
     pad_action,
     parse_definition,
     ready,
+    takes_policy,
 )
 from user.log import kv
 from user.policy import POLICIES, PolicyChoice
+from user.registry import PluginError
 from user.spec import action_dim
 from user.v1 import control_pb2, control_pb2_grpc, replay_pb2, replay_pb2_grpc, robot_pb2
 from user.weights import WeightStore
@@ -279,12 +287,30 @@ def layout_fingerprint(layout: Layout) -> str:
     )
 
 
+def trained_with(exp: ExperimentConfig) -> dict[str, Any]:
+    """What a checkpoint records of the experiment's config: the algorithm's kind and params and the policy
+    choice, each with every default filled in (so `{}` and the defaults spelled out compare equal). Plain JSON
+    values: torch.load(weights_only=True) reads them back. The normalization statistics are stored apart."""
+    params = ALGORITHMS.params(exp.algorithm.kind, exp.algorithm.params).model_dump(mode="json")
+    policy = None
+    if exp.policy is not None:
+        policy_params = POLICIES.params(exp.policy.kind, exp.policy.params).model_dump(mode="json")
+        policy = {"kind": exp.policy.kind, "params": policy_params}
+    return {"algorithm": {"kind": exp.algorithm.kind, "params": params}, "policy": policy}
+
+
 def checkpoint_state(
-    algo: Algorithm, kind: str, weight_version: int, layout: Layout, extra: dict[str, Any] | None = None
+    algo: Algorithm,
+    kind: str,
+    weight_version: int,
+    layout: Layout,
+    extra: dict[str, Any] | None = None,
+    config: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Tensors, ints, floats, strings, lists and dicts only, so torch.load(weights_only=True) reads it back.
-    `extra`: the learner's own state beside the algorithm's (pretrain progress, normalization statistics)."""
-    return {
+    `extra`: the learner's own state beside the algorithm's (pretrain progress, normalization statistics);
+    `config`: trained_with(experiment), checked against the config on restore."""
+    state = {
         "algorithm": algo.state_dict(),
         "kind": kind,
         "weight_version": int(weight_version),
@@ -292,16 +318,88 @@ def checkpoint_state(
         "layout": layout_fingerprint(layout),
         **(extra or {}),
     }
+    if config is not None:
+        state["trained_with"] = config
+    return state
 
 
-def restore_checkpoint(algo: Algorithm, ckpt: dict[str, Any], kind: str, layout: Layout, where: object) -> int:
-    """Load `ckpt` after checking it was trained by this algorithm for this layout; returns the weight version."""
-    if ckpt.get("kind") != kind or ckpt.get("layout") != layout_fingerprint(layout):
+_ELSEWHERE = "use another learner.checkpoint_dir or experiment name"
+
+
+def _config_differences(stored: dict[str, Any], now: dict[str, Any], at: str, where: object) -> list[str]:
+    """One `field: the checkpoint ... the config says ...` per difference that a resume cannot take: the
+    algorithm's params outside its `resumable_params`, and the policy choice. Params only one side knows
+    (added or retired by a code update) are not compared."""
+
+    def differs(field: str, old: Any, new: Any) -> str:
+        return f"{at}.{field}: the checkpoint in {where} was trained with {old!r}, the config says {new!r}"
+
+    out = []
+    kind = now["algorithm"]["kind"]
+    resumable = ALGORITHMS.get(kind).cls.resumable_params
+    old_params, new_params = stored.get("algorithm", {}).get("params", {}), now["algorithm"]["params"]
+    for name in sorted(set(old_params) & set(new_params) - resumable):
+        if old_params[name] != new_params[name]:
+            out.append(differs(f"algorithm.params.{name}", old_params[name], new_params[name]))
+    old_policy, new_policy = stored.get("policy"), now["policy"]
+    if (old_policy is None) != (new_policy is None) or (old_policy and old_policy["kind"] != new_policy["kind"]):
+        out.append(differs("policy", old_policy and old_policy["kind"], new_policy and new_policy["kind"]))
+    elif old_policy is not None:
+        old_pp, new_pp = old_policy.get("params", {}), new_policy["params"]
+        for name in sorted(set(old_pp) & set(new_pp)):
+            if old_pp[name] != new_pp[name]:
+                out.append(differs(f"policy.params.{name}", old_pp[name], new_pp[name]))
+    return out
+
+
+def check_checkpoint(
+    ckpt: dict[str, Any],
+    kind: str,
+    layout: Layout,
+    where: object,
+    config: dict[str, Any] | None = None,
+    at: str = "experiment",
+) -> None:
+    """LearnerError naming the field when `ckpt` was not trained by this algorithm, for this layout, with a
+    config the experiment's (`config`: trained_with(exp)) may resume from. Checkpoints written before
+    `trained_with` was recorded are checked for kind and layout only."""
+    if ckpt.get("kind") != kind:
         raise LearnerError(
-            f"{where} holds a {ckpt.get('kind')!r} checkpoint for layout {ckpt.get('layout')}, the experiment runs "
-            f"{kind!r} on {layout_fingerprint(layout)}; use another learner.checkpoint_dir or experiment name"
+            f"{at}.algorithm.kind: the checkpoint in {where} was trained with {ckpt.get('kind')!r}, "
+            f"the config says {kind!r}; {_ELSEWHERE}"
         )
-    algo.load_state_dict(ckpt["algorithm"])
+    if ckpt.get("layout") != layout_fingerprint(layout):
+        raise LearnerError(
+            f"{at}: the checkpoint in {where} was trained for robots of layout {ckpt.get('layout')}, the experiment's "
+            f"robots give {layout_fingerprint(layout)}; {_ELSEWHERE}"
+        )
+    stored = ckpt.get("trained_with")
+    if stored is not None and config is not None:
+        differences = _config_differences(stored, config, at, where)
+        if differences:
+            raise LearnerError("; ".join([*differences, _ELSEWHERE]))
+
+
+def restore_checkpoint(
+    algo: Algorithm,
+    ckpt: dict[str, Any],
+    kind: str,
+    layout: Layout,
+    where: object,
+    config: dict[str, Any] | None = None,
+    at: str = "experiment",
+) -> int:
+    """Load `ckpt` after check_checkpoint; returns the weight version. LearnerError when it does not load into
+    `algo` (e.g. an old checkpoint of other network widths): nothing of it is half-trained on."""
+    check_checkpoint(ckpt, kind, layout, where, config, at)
+    try:
+        algo.load_state_dict(ckpt["algorithm"])
+    except (RuntimeError, KeyError, ValueError, TypeError) as exc:
+        first = str(exc).strip().splitlines()
+        raise LearnerError(
+            f"{at}: the checkpoint in {where} does not fit the {kind!r} the config builds "
+            f"({type(exc).__name__}: {' '.join(line.strip() for line in first[:3])}); {_ELSEWHERE}"
+        ) from None
     algo.updates = int(ckpt["updates"])
     return max(1, int(ckpt["weight_version"]))
 
@@ -349,11 +447,18 @@ def build_algorithm(
         choice = PolicyChoice(
             exp.policy.kind, POLICIES.params(exp.policy.kind, exp.policy.params, f"{where}.policy.params")
         )
-        if "policy" not in inspect.signature(entry.cls.__init__).parameters:
+        if not takes_policy(entry.cls):
             raise LearnerError(f"{where}.policy: algorithm {exp.algorithm.kind!r} does not take a policy choice")
         context["policy"] = choice
     params = with_stats(exp.algorithm.params, stats)
-    return ALGORITHMS.build(exp.algorithm.kind, params, where=f"{where}.algorithm.params", **context)
+    try:
+        return ALGORITHMS.build(exp.algorithm.kind, params, where=f"{where}.algorithm.params", **context)
+    except (PluginError, LearnerError):
+        raise
+    except Exception as exc:  # what the params cannot say alone: they do not fit these robots (e.g. features)
+        raise LearnerError(
+            f"{where}.algorithm.params: {exc}" if isinstance(exc, ValueError) else f"{where}.algorithm: {exc!r}"
+        ) from exc
 
 
 class ExperimentRun:
@@ -367,7 +472,12 @@ class ExperimentRun:
         self.specs = {s.robot_id: s for s in specs}
         self.state.robot_ids = sorted(self.specs)
         self.ckpt_dir = Path(self.lc.checkpoint_dir) / exp.name
+        self.at = f"experiments[{index}]"
+        self.config = trained_with(exp)  # recorded in each checkpoint, checked against the config on restore
         self.algo = build_algorithm(index, exp, self.layout, self.lc.device)
+        # Set once the checkpoint (if any) is in self.algo: before that a checkpoint would save a fresh network
+        # over the trained one (`latest` would name it), and after a failed restore it must never be written.
+        self._resumed = False
         self._stop = threading.Event()  # this run's threads end (set by the learner's stop, a failure, a removal)
         self._queue: queue.Queue[Prefetched] = queue.Queue(maxsize=self.lc.prefetch_batches)
         self._threads: list[threading.Thread] = []
@@ -405,22 +515,64 @@ class ExperimentRun:
     # ------------------------------------------------------------------ lifecycle
 
     def start(self) -> None:
+        """LearnerError (raised here or, when preparing, reported as this experiment's failure) when the
+        checkpoint cannot be resumed with this config: the experiment fails, nothing is overwritten."""
         if self.exp.pretrain is None and self.exp.normalize is None:
-            self._run(self._restore(load_latest(self.ckpt_dir, map_location=self.lc.device)))
+            ckpt = self._load_checkpoint()
+            stats = self._checkpoint_stats(ckpt)
+            if stats is not None:  # normalize dropped from the config: the trained network still needs its inputs
+                log.info(
+                    "normalization statistics reused from the checkpoint",
+                    extra=kv(experiment=self.exp.name, from_table=stats.get("from_table", "")),
+                )
+                self._rebuild(stats)
+            self._run(self._restore(ckpt))
         else:  # statistics and pretraining wait for replay: off the discovery thread
             self.state.state = "preparing"
             self._spawn(self._prepare, "prepare")
+
+    def _load_checkpoint(self) -> dict[str, Any] | None:
+        """The newest readable checkpoint, checked against the config before anything is built or computed
+        from it (LearnerError naming the field that differs)."""
+        try:
+            ckpt = load_latest(self.ckpt_dir, map_location=self.lc.device)
+        except CheckpointError as exc:
+            raise LearnerError(f"{self.at}: {exc}") from None
+        if ckpt is not None:
+            check_checkpoint(ckpt, self.exp.algorithm.kind, self.layout, self.ckpt_dir, self.config, self.at)
+        return ckpt
+
+    def _checkpoint_stats(self, ckpt: dict[str, Any] | None) -> dict[str, Any] | None:
+        """The normalization statistics the checkpoint's networks were trained with (None: none). They stay
+        whether or not the config still says normalize; statistics given as params too would be two sources."""
+        stats = ckpt.get("normalization") if ckpt is not None else None
+        given = [f for f in STAT_FIELDS if self.exp.algorithm.params.get(f)]
+        if stats is not None and given:
+            raise LearnerError(
+                f"{self.at}.algorithm.params.{given[0]}: the checkpoint in {self.ckpt_dir} holds the normalization "
+                f"statistics its networks were trained with; drop the param or {_ELSEWHERE}"
+            )
+        return stats
+
+    def _rebuild(self, stats: dict[str, Any]) -> None:
+        """The algorithm again, with the normalization statistics as its state_mean/state_std params."""
+        self.normalization = stats
+        self._resumed = False  # the new algorithm holds nothing of the checkpoint until _restore
+        self.algo = build_algorithm(self.index, self.exp, self.layout, self.lc.device, stats)
 
     def _restore(self, ckpt: dict[str, Any] | None) -> int:
         """Load the checkpoint (if any) into the algorithm; returns the weight version it had published."""
         restored = 0
         if ckpt is not None:
-            restored = restore_checkpoint(self.algo, ckpt, self.exp.algorithm.kind, self.layout, self.ckpt_dir)
+            restored = restore_checkpoint(
+                self.algo, ckpt, self.exp.algorithm.kind, self.layout, self.ckpt_dir, self.config, self.at
+            )
             self._last_ckpt_updates = int(ckpt["updates"])
             # A checkpoint without pretrain progress but with updates predates pretraining: it is past that.
             past = self._pretrain_steps() if int(ckpt["updates"]) > 0 else 0
             self.pretrain_updates = int(ckpt.get("pretrain_updates", past))
             log.info("resumed", extra=kv(experiment=self.exp.name, updates=self.algo.updates, weight_version=restored))
+        self._resumed = True
         self.state.updates = int(self.algo.updates)
         return restored
 
@@ -443,9 +595,16 @@ class ExperimentRun:
 
     def _prepare(self) -> None:
         """Statistics, then pretraining, then version 1 and the training loops. Until version 1 exists the
-        inference service answers "no policy yet" and the robots hold (see docs/notes/core.md)."""
-        ckpt = load_latest(self.ckpt_dir, map_location=self.lc.device)
-        stats = ckpt.get("normalization") if ckpt is not None else None
+        inference service answers "no policy yet" and the robots hold (see docs/notes/core.md). A checkpoint
+        this config cannot resume fails this experiment only, as it would at start."""
+        try:
+            self._prepare_and_run()
+        except LearnerError as exc:
+            self.fail(exc, stop_learner=False)
+
+    def _prepare_and_run(self) -> None:
+        ckpt = self._load_checkpoint()
+        stats = self._checkpoint_stats(ckpt)
         norm = self.exp.normalize
         if ckpt is not None and stats is None and norm is not None and int(ckpt["updates"]) > 0:
             raise LearnerError(
@@ -462,8 +621,7 @@ class ExperimentRun:
                     if stats is None:  # stopping
                         return
                 if stats is not None:
-                    self.normalization = stats
-                    self.algo = build_algorithm(self.index, self.exp, self.layout, self.lc.device, stats)
+                    self._rebuild(stats)
                 restored = self._restore(ckpt)
                 if self.pretrain_updates < self._pretrain_steps():
                     self._pretrain(replay)
@@ -596,12 +754,18 @@ class ExperimentRun:
         thread.start()
         self._threads.append(thread)
 
-    def fail(self, exc: BaseException) -> None:
-        self.state.state, self.state.error = "failed", f"{type(exc).__name__}: {exc}"
+    def fail(self, exc: BaseException, stop_learner: bool = True) -> None:
+        """This experiment fails. While training, the learner stops too (the service reports it failed); one that
+        cannot start (`stop_learner` False: its checkpoint does not fit the config) fails alone, as at start."""
+        self.state.state = "failed"
+        self.state.error = str(exc) if isinstance(exc, LearnerError) else f"{type(exc).__name__}: {exc}"
+        self._stop.set()
+        if not stop_learner:
+            log.error("experiment cannot start", extra=kv(experiment=self.exp.name, error=self.state.error))
+            return
         log.error("experiment failed", exc_info=exc, extra=kv(experiment=self.exp.name))
         self.learner.error = self.learner.error or exc
-        self._stop.set()
-        self.learner._stop.set()  # a failed experiment stops the learner (the service reports it failed)
+        self.learner._stop.set()
 
     def halt(self) -> None:
         """End this run's threads (join() waits for them)."""
@@ -889,13 +1053,14 @@ class ExperimentRun:
 
     def checkpoint(self) -> None:
         updates = int(self.algo.updates)
-        if updates == self._last_ckpt_updates:
+        if not self._resumed or updates == self._last_ckpt_updates:
             return
         start = time.perf_counter()
         extra: dict[str, Any] = {"pretrain_updates": int(self.pretrain_updates)}
         if self.normalization is not None:
             extra["normalization"] = self.normalization
-        state = checkpoint_state(self.algo, self.exp.algorithm.kind, self.state.weight_version, self.layout, extra)
+        kind, version = self.exp.algorithm.kind, self.state.weight_version
+        state = checkpoint_state(self.algo, kind, version, self.layout, extra, self.config)
         save_checkpoint(self.ckpt_dir, state)
         self._last_ckpt_updates = updates
         CHECKPOINT_SECONDS.observe(time.perf_counter() - start)
@@ -1088,21 +1253,33 @@ class Learner:
             if not ready(exp, mine):
                 continue
             log.info("experiment starts", extra=kv(experiment=exp.name, robots=[s.robot_id for s in mine]))
+            run = None
             try:
                 run = ExperimentRun(self, index, exp, mine)
-            except LayoutError as exc:  # this experiment cannot train; the others go on
-                state = self.experiment_states[exp.name]
-                state.state, state.error = "failed", str(exc)
-                log.error("experiment cannot start", extra=kv(experiment=exp.name, error=str(exc)))
-                self.runs[exp.name] = _FailedRun(exp, mine)  # type: ignore[assignment]
+                run.set_stopped(exp.name in self.stopped_experiments)
+                run.start()
+            except (LearnerError, ValueError) as exc:  # this experiment cannot train (robots, params, checkpoint)
+                if run is not None:
+                    run.halt()
+                self._cannot_start(exp, mine, exc)
                 continue
             self.runs[exp.name] = run
-            run.set_stopped(exp.name in self.stopped_experiments)
-            run.start()
+
+    def _cannot_start(self, exp: ExperimentConfig, specs: list[robot_pb2.RobotSpec], exc: Exception) -> None:
+        """Report the experiment failed with why (GetStatus, the console) while the others train; never retried
+        silently, never checkpointed (its checkpoint directory stays as it was)."""
+        ours = isinstance(exc, LearnerError | LayoutError | PluginError)  # their messages name the field or robots
+        state = self.experiment_states[exp.name]
+        state.state, state.error = "failed", str(exc)
+        log.error(
+            "experiment cannot start", exc_info=None if ours else exc, extra=kv(experiment=exp.name, error=str(exc))
+        )
+        self.runs[exp.name] = _FailedRun(exp, specs)  # type: ignore[assignment]
 
 
 class _FailedRun:
-    """Placeholder for an experiment whose robots cannot share a layout (reported, never retried silently)."""
+    """Placeholder for an experiment that cannot start: robots that cannot share a layout, params that do not fit
+    them, a checkpoint the config cannot resume (reported, never retried silently)."""
 
     def __init__(self, exp: ExperimentConfig, specs: list[robot_pb2.RobotSpec]) -> None:
         self.exp, self.specs = exp, {s.robot_id: s for s in specs}

@@ -214,16 +214,30 @@ def fit_action(policy: object, kind: str, action: np.ndarray) -> np.ndarray:
 
 
 def check_plugins(experiments: Sequence[ExperimentConfig], where: str = "experiments[{i}]") -> None:
-    """Validate every experiment's algorithm and policy params (PluginError names experiments[i]..., or
-    `where` with {i} filled in)."""
+    """Validate every experiment's algorithm and policy params, and that its algorithm takes a policy choice
+    if it makes one (PluginError names experiments[i]..., or `where` with {i} filled in). What needs the robots'
+    layout (feature names, statistics sizes) is checked when the learner builds the experiment."""
     from cloud_learner.algorithm import ALGORITHMS
     from user.policy import POLICIES
+    from user.registry import PluginError
 
     for i, exp in enumerate(experiments):
         at = where.format(i=i)
         ALGORITHMS.params(exp.algorithm.kind, exp.algorithm.params, where=f"{at}.algorithm.params")
         if exp.policy is not None:
             POLICIES.params(exp.policy.kind, exp.policy.params, where=f"{at}.policy.params")
+            if not takes_policy(ALGORITHMS.get(exp.algorithm.kind).cls):
+                raise PluginError(
+                    f"{at}.policy: algorithm {exp.algorithm.kind!r} does not take a policy choice "
+                    "(drop policy: the algorithm publishes its own)"
+                )
+
+
+def takes_policy(algorithm: type) -> bool:
+    """An algorithm takes the experiment's policy choice when its __init__ has a `policy` argument."""
+    import inspect
+
+    return "policy" in inspect.signature(algorithm.__init__).parameters
 
 
 MAX_DEFINITION_BYTES = 64 * 1024

@@ -16,14 +16,14 @@ import numpy as np
 import torch
 from pydantic import Field
 
-from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout, TableShares
-from cloud_learner.algorithms.sac import EncoderParams, augment, make_encoder, publish, trainable
+from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout, TableShares, configured_lr
+from cloud_learner.algorithms.sac import EncoderParams, Widths, augment, make_encoder, publish, trainable
 from user.policies.mlp import GaussianActor, log_prob_of
 from user.v1 import learner_pb2
 
 
 class BCParams(EncoderParams):
-    hidden: list[int] = Field(default=[256, 256], description="MLP widths of the policy head")
+    hidden: Widths = Field(default=[256, 256], description="MLP widths of the policy head")
     batch_size: int = Field(default=256, ge=1)
     lr: float = Field(default=1e-3, gt=0)
     loss: Literal["mse", "nll"] = Field(default="mse", description="mse on the mean action, or Gaussian NLL")
@@ -36,6 +36,7 @@ class BCParams(EncoderParams):
 @ALGORITHMS.register("bc", description="Behaviour cloning on demos and interventions (MSE or Gaussian NLL)")
 class BC(Algorithm):
     Params = BCParams
+    resumable_params = frozenset({"lr", "batch_size", "loss", "only_interventions", "tables", "image_pad"})
 
     def __init__(self, params: BCParams, layout: Layout, device: torch.device) -> None:
         super().__init__(params, layout, torch.device(device))
@@ -72,4 +73,5 @@ class BC(Algorithm):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.actor.load_state_dict(state["actor"])
         self.optimizer.load_state_dict(state["optimizer"])
+        configured_lr(self.optimizer, self.p.lr, "policy")
         self.updates = int(state["updates"])

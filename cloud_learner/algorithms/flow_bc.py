@@ -22,7 +22,8 @@ import numpy as np
 import torch
 from pydantic import Field
 
-from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout, TableShares
+from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout, TableShares, configured_lr
+from cloud_learner.algorithms.sac import StateMean, StateStd
 from user.policies.flow_vla import ActionScaler, FlowVla, FlowVlaConfig, Preprocessor, policy_spec
 from user.policy import module_tensors
 from user.registry import PluginParams
@@ -44,10 +45,10 @@ class FlowBcParams(PluginParams):
     flow_steps: int = Field(5, ge=1)
     default_instruction: str = ""
     seed: int = 0
-    state_mean: dict[str, list[float]] = Field(
+    state_mean: StateMean = Field(
         default={}, description="per state feature, values subtracted before the network (learner.normalize sets it)"
     )
-    state_std: dict[str, list[float]] = Field(default={}, description="per state feature, divisors after state_mean")
+    state_std: StateStd = Field(default={}, description="per state feature, divisors (> 0) after state_mean")
 
 
 def config_for(layout: Layout, params: FlowBcParams) -> FlowVlaConfig:
@@ -84,6 +85,7 @@ def config_for(layout: Layout, params: FlowBcParams) -> FlowVlaConfig:
 @ALGORITHMS.register("flow_bc", description="HG-DAgger learner: flow-matching BC of flow_vla on demos + interventions")
 class FlowBc(Algorithm):
     Params = FlowBcParams
+    resumable_params = frozenset({"lr", "batch_size", "tables", "human_only", "demo_tables"})
 
     def __init__(self, params: FlowBcParams, layout: Layout, device: torch.device) -> None:
         super().__init__(params, layout, device)
@@ -156,4 +158,5 @@ class FlowBc(Algorithm):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.model.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
+        configured_lr(self.optimizer, self.p.lr, "policy")
         self.updates = int(state["updates"])

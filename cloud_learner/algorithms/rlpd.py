@@ -61,6 +61,8 @@ class RLPDParams(SACParams):
 class RLPD(SAC):
     Params = RLPDParams
     p: RLPDParams
+    # The warm start's phases are counted in updates: changing them moves where a resumed run switches phase.
+    resumable_params = SAC.resumable_params | {"actor_pretrain_updates", "critic_warmup_updates", "actor_pretrain_lr"}
 
     @property
     def warm_updates(self) -> int:
@@ -72,6 +74,9 @@ class RLPD(SAC):
             return "actor_bc"
         return "critic_warmup" if self.updates < self.warm_updates else "rl"
 
+    def actor_lr(self) -> float:
+        return self.p.actor_pretrain_lr if self.phase() == "actor_bc" else self.p.actor_lr
+
     def bc_weight(self) -> float:
         """As SAC's, with the decay counted from the end of the warm start."""
         if self.p.bc_decay_updates == 0:
@@ -82,7 +87,7 @@ class RLPD(SAC):
     def update(self, batch: Batch) -> dict[str, float]:
         phase = self.phase()
         # One actor optimizer for both phases (a checkpoint holds it); only its step size differs.
-        lr = self.p.actor_pretrain_lr if phase == "actor_bc" else self.p.actor_lr
+        lr = self.actor_lr()
         for group in self.actor_optimizer.param_groups:
             group["lr"] = lr
         if phase == "rl":

@@ -24,14 +24,14 @@ import itertools
 import math
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import torch
-from pydantic import Field, field_validator, model_validator
+from pydantic import AfterValidator, Field, field_validator, model_validator
 from torch import nn
 
-from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout, TableShares
+from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout, TableShares, configured_lr
 from user.policies.cnn import KIND as CNN_KIND
 from user.policies.cnn import ConvEncoder, random_shift
 from user.policies.mlp import KIND as MLP_KIND
@@ -39,6 +39,37 @@ from user.policies.mlp import GaussianActor, StateEncoder, policy_spec
 from user.policy import module_tensors
 from user.registry import PluginParams
 from user.v1 import learner_pb2
+
+# Layer widths, conv channels and strides: a 0 builds no network (a division by zero deep in the init).
+Widths = list[Annotated[int, Field(ge=1)]]
+
+
+def _positive_std(std: dict[str, list[float]]) -> dict[str, list[float]]:
+    bad = {k: v for k, values in std.items() for v in values if not (math.isfinite(v) and v > 0)}
+    if bad:
+        raise ValueError(f"state_std must be > 0 and finite (a divisor); got {bad}")
+    return std
+
+
+# Per state feature, one finite value per dim; a std of 0 would divide by zero.
+StateMean = dict[str, list[Annotated[float, Field(allow_inf_nan=False)]]]
+StateStd = Annotated[dict[str, list[float]], AfterValidator(_positive_std)]
+
+
+def readable_safetensors(path: str) -> str:
+    """`path` is a file whose safetensors header reads (checked at start, not when the learner builds)."""
+    if not path:
+        return path
+    if not Path(path).is_file():
+        raise ValueError(f"no such file: {path}")
+    from safetensors import SafetensorError, safe_open
+
+    try:
+        with safe_open(path, "pt") as f:
+            f.keys()
+    except (SafetensorError, OSError) as exc:
+        raise ValueError(f"{path} is not a readable safetensors file: {exc}") from None
+    return path
 
 
 class EncoderParams(PluginParams):
@@ -48,18 +79,18 @@ class EncoderParams(PluginParams):
         default=None, description="observation keys the networks see (default all; e.g. leave out privileged state)"
     )
 
-    channels: list[int] = Field(default=[16, 32, 32], description="conv channels per camera encoder layer")
-    strides: list[int] = Field(default=[2, 2, 2], description="conv strides per camera encoder layer")
+    channels: Widths = Field(default=[16, 32, 32], min_length=1, description="conv channels per camera encoder layer")
+    strides: Widths = Field(default=[2, 2, 2], min_length=1, description="conv strides per camera encoder layer")
     latent_dim: int = Field(default=50, ge=1, description="per-camera latent size")
     image_pad: int = Field(default=4, ge=0, description="DrQ random shift in pixels; 0 turns augmentation off")
     image_size: int = Field(
         default=0, ge=0, description="cameras are area-downsampled to this square size before the convs (0: native)"
     )
-    state_mean: dict[str, list[float]] = Field(
+    state_mean: StateMean = Field(
         default={}, description="per state feature, values subtracted before the networks (cameras or not)"
     )
-    state_std: dict[str, list[float]] = Field(
-        default={}, description="per state feature, divisors after state_mean (e.g. from the demos' statistics)"
+    state_std: StateStd = Field(
+        default={}, description="per state feature, divisors (> 0) after state_mean (e.g. from the demos' statistics)"
     )
     backbone: Literal["conv", "resnet18"] = Field(
         default="conv",
@@ -76,19 +107,26 @@ class EncoderParams(PluginParams):
     @field_validator("pretrained")
     @classmethod
     def _pretrained_file(cls, path: str) -> str:
-        if path and not Path(path).is_file():
-            raise ValueError(f"no such file: {path}")
-        return path
+        return readable_safetensors(path)
+
+    @field_validator("features")
+    @classmethod
+    def _some_features(cls, features: list[str] | None) -> list[str] | None:
+        if features is not None and not features:
+            raise ValueError("an empty list leaves the networks no input; leave features out to use every feature")
+        return features
 
     @model_validator(mode="after")
     def _backbone_options(self) -> EncoderParams:
         if self.backbone != "resnet18" and (self.pretrained or self.freeze_backbone):
             raise ValueError("pretrained and freeze_backbone need backbone: resnet18")
+        if len(self.channels) != len(self.strides):
+            raise ValueError(f"channels {self.channels} and strides {self.strides} differ in length (one per layer)")
         return self
 
 
 class SACParams(EncoderParams):
-    hidden: list[int] = Field(default=[128, 128], description="MLP widths of the actor and critic heads")
+    hidden: Widths = Field(default=[128, 128], description="MLP widths of the actor and critic heads")
     batch_size: int = Field(default=128, ge=1, description="transitions per critic step")
     gamma: float = Field(default=0.95, gt=0, le=1, description="discount (replaced by gamma**n rows when n-step)")
     tau: float = Field(default=0.005, gt=0, le=1, description="Polyak rate of the target critics (and encoder)")
@@ -170,7 +208,7 @@ def make_encoder(layout: Layout, p: EncoderParams) -> nn.Module:
     unknown = sorted(set(p.features or []) - set(layout.observation))
     if unknown:
         raise ValueError(f"features {unknown} are not in the observation {sorted(layout.observation)}")
-    wanted = set(p.features or layout.observation)
+    wanted = set(layout.observation if p.features is None else p.features)
     state_keys = [k for k in layout.state_keys() if layout.observation[k].dtype.startswith("float") and k in wanted]
     state_dims = [int(np.prod(layout.observation[k].shape)) for k in state_keys]
     image_keys = [k for k in layout.image_keys() if k in wanted]
@@ -191,7 +229,12 @@ def make_encoder(layout: Layout, p: EncoderParams) -> nn.Module:
     args = (p.channels, p.strides, p.latent_dim, p.image_size, mean, std, p.backbone)
     encoder = ConvEncoder(image_keys, shapes, state_keys, state_dims, *args)
     if encoder.trunk is not None and p.pretrained:
-        encoder.trunk.load_pretrained(p.pretrained)
+        try:
+            encoder.trunk.load_pretrained(p.pretrained)
+        except ValueError:
+            raise
+        except Exception as exc:  # safetensors' own error type (e.g. the file changed since the start check)
+            raise ValueError(f"pretrained: {p.pretrained} cannot be read: {exc}") from None
     if encoder.trunk is not None and p.freeze_backbone:
         encoder.trunk.freeze()
     return encoder
@@ -281,6 +324,28 @@ def publish(
 @ALGORITHMS.register("sac", description="Soft Actor-Critic from state or pixels (DrQ shift, shared CNN encoder)")
 class SAC(Algorithm):
     Params = SACParams
+    # What the next updates do, not what the networks are: a resume may change these (see cloud_learner.algorithm).
+    resumable_params = frozenset(
+        {
+            "actor_lr",
+            "critic_lr",
+            "alpha_lr",
+            "batch_size",
+            "utd",
+            "tables",
+            "n_step",
+            "gamma",
+            "tau",
+            "target_entropy_scale",
+            "target_subset",
+            "actor_q",
+            "backup_entropy",
+            "bc_weight",
+            "bc_decay_updates",
+            "bc_encoder",
+            "image_pad",
+        }
+    )
 
     def __init__(self, params: SACParams, layout: Layout, device: torch.device) -> None:
         super().__init__(params, layout, torch.device(device))
@@ -459,3 +524,10 @@ class SAC(Algorithm):
         with torch.no_grad():
             self.log_alpha.copy_(torch.as_tensor(state["log_alpha"], device=self.device))
         self.updates = int(state["updates"])
+        configured_lr(self.actor_optimizer, self.actor_lr(), "actor")
+        configured_lr(self.critic_optimizer, self.p.critic_lr, "critic")
+        configured_lr(self.alpha_optimizer, self.p.alpha_lr, "alpha")
+
+    def actor_lr(self) -> float:
+        """The actor's learning rate at the current update (RLPD's warm start uses another)."""
+        return self.p.actor_lr

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from pydantic import Field, field_validator
 
-from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout, TableShares
+from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout, TableShares, configured_lr
 from user.policies.smolvla import KIND as SMOLVLA
 from user.policies.smolvla import SmolVlaSpec, load_checkpoint, policy_spec
 from user.policy import module_tensors
@@ -307,6 +307,5 @@ class SmolVlaBc(Algorithm):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.model.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
-        for group in self.optimizer.param_groups:  # the config's learning rate, not the checkpoint optimizer's
-            group["lr"] = self.lr
+        configured_lr(self.optimizer, self.lr, "policy")  # the config's learning rate, not the checkpoint's
         self.updates = int(state["updates"])
