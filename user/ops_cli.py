@@ -80,8 +80,20 @@ def _gib(n: int) -> str:
 
 
 def robots_table(robots: list[control_pb2.RobotInfo]) -> Table:
+    # The edge's own counters: every episode, helped or not (`exp status` counts success without human help).
     table = Table(
-        "robot", "kind", "agent", "host", "state", "lease", "episodes", "success", "steps/s", "policy", "last beat"
+        "robot",
+        "kind",
+        "agent",
+        "host",
+        "state",
+        "lease",
+        "episodes",
+        "success (all)",
+        "steps/s",
+        "policy",
+        "last beat",
+        caption="success (all): every episode, those a teleoperator helped included; exp status counts unhelped ones",
     )
     for r in robots:
         st = r.status
