@@ -40,6 +40,14 @@ class LearnerServicer(WeightServicer):
         super().__init__(store, default_chunk_bytes, freshness_s=freshness_s, shm=shm)
         self.learner = learner
 
+    def unknown_experiment(self, experiment: str) -> str:
+        # "" is the first experiment. One defined at run time is known from the learner's next poll of control:
+        # a subscriber that asks before then is told NOT_FOUND and retries with its backoff.
+        known = self.learner.experiment_states
+        if not experiment or experiment in known:
+            return ""
+        return f"this learner trains no experiment {experiment[:64]!r} (it trains: {', '.join(known) or 'none'})"
+
     def GetStatus(
         self, request: learner_pb2.LearnerStatusRequest, context: grpc.ServicerContext
     ) -> learner_pb2.LearnerStatus:

@@ -19,7 +19,7 @@ from tests.test_control_experiments import AUTH, Edge, experiments, stub_for, te
 from user import cli
 from user.config import StackConfig
 from user.rpc import make_channel
-from user.v1 import control_pb2, control_pb2_grpc
+from user.v1 import control_pb2, control_pb2_grpc, learner_pb2, learner_pb2_grpc
 
 RUNNING, STOPPED = control_pb2.EXPERIMENT_STATE_RUNNING, control_pb2.EXPERIMENT_STATE_STOPPED
 GAMMA = {"name": "gamma", "robots": {"labels": {"team": "c"}}, "algorithm": {"kind": "sac", "params": {"hidden": [16]}}}
@@ -253,7 +253,7 @@ def test_a_running_stack_trains_and_serves_an_experiment_defined_while_it_runs(
     try:
         first, late = agent.loops["arm-0"], agent.loops["arm-1"]
         wait_for(lambda: first.env_steps > 50 and first.policy_version >= 1, "arm-0 acting", limit_s=120)
-        assert late.policy_version == 0  # no experiment: inference routes it nowhere, it holds
+        assert late.policy_version == 0 and late.held_by_lease  # no experiment selects it: it holds
         definition = {
             "name": "late",
             "robots": {"ids": ["arm-1"]},
@@ -282,6 +282,11 @@ def test_a_running_stack_trains_and_serves_an_experiment_defined_while_it_runs(
         info = stub.GetExperiment(control_pb2.GetExperimentRequest(name="late"), timeout=5)
         assert list(info.leased_robots) == ["arm-1"] and info.defined_at_runtime
         wait_for(lambda: served(stub) == {"first", "elsewhere", "late"}, "the worker report to name all", limit_s=30)
+        # A name the learner does not train is NOT_FOUND at once, not a weight stream that never delivers.
+        weights = learner_pb2_grpc.LearnerStub(make_channel(learner.address, cfg.auth))
+        with pytest.raises(grpc.RpcError) as err:
+            next(weights.SubscribeWeights(learner_pb2.SubscribeWeightsRequest(experiment="nope"), timeout=30))
+        assert err.value.code() == grpc.StatusCode.NOT_FOUND and "late" in err.value.details()
         # Stopped and removed: the learner ends its training (checkpoint kept), inference its slot, arm-1 holds.
         stub.StopExperiment(control_pb2.StopExperimentRequest(name="late"), timeout=5)
         stub.RemoveExperiment(control_pb2.RemoveExperimentRequest(name="late"), timeout=5)
@@ -292,7 +297,7 @@ def test_a_running_stack_trains_and_serves_an_experiment_defined_while_it_runs(
         wait_for(lambda: served(stub) == {"first", "elsewhere"}, "the worker report to drop it", limit_s=30)
         steps = late.env_steps
         wait_for(lambda: first.env_steps > steps + 40, "arm-0 acting on")
-        assert late.env_steps <= steps + 1  # no experiment selects it now: it holds (inference or its local route)
+        assert late.held_by_lease and late.env_steps <= steps + 1  # no experiment selects it now: it holds
         assert states["first"].state != "failed" and not learner.learner.failed
     finally:
         reporter.__exit__(None, None, None)

@@ -698,6 +698,11 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         threading.Thread(target=read_acks, name=f"weight-acks-{link.client_id}", daemon=True).start()
         yield from self._serve(link, first.subscribe.have_version, chunk_bytes, context, acks)
 
+    def unknown_experiment(self, experiment: str) -> str:
+        """Why no weights of `experiment` can ever come from here ("" = they may): a learner says so for a name it
+        does not train, so a subscriber's typo is NOT_FOUND at once rather than a stream that never delivers."""
+        return ""
+
     # ------------------------------------------------------------------ one stream
 
     def _open(
@@ -725,6 +730,9 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         if not acked and not pinned:
             pinned = WE.WEIGHT_ENCODING_FP32_ZSTD if self.store.encoding == ENCODING_ZSTD else WE.WEIGHT_ENCODING_FP32
         experiment = request.experiment
+        unknown = self.unknown_experiment(experiment)
+        if unknown:
+            context.abort(grpc.StatusCode.NOT_FOUND, unknown)
         link = Link(
             client_id=request.client_id,
             experiment=experiment,
