@@ -66,6 +66,11 @@ HELD_STEPS = prometheus_client.Counter(
 INTERVENTION_STEPS = prometheus_client.Counter(
     "user_edge_intervention_steps_total", "Steps where a teleoperator drove instead of the policy", ["robot_id"]
 )
+NON_FINITE_ACTIONS = prometheus_client.Counter(
+    "user_edge_non_finite_actions_total",
+    "Actions with NaN/Inf from the policy or the teleoperator: never sent to the robot, which held instead",
+    ["robot_id", "source"],
+)
 TELEOP_ERRORS = prometheus_client.Counter(
     "user_edge_teleop_errors_total", "Teleoperator polls that raised or answered a wrong-sized action", ["robot_id"]
 )
@@ -196,7 +201,10 @@ class RobotLoop:
         rate = self.spec.control_rate_hz or 20.0
         self.period_s = 1.0 / rate
         self.max_episode_steps = int(self.spec.max_episode_steps) or 0
-        self._hold_action = clip_action(self.spec, np.zeros(action_bounds(self.spec)[0].shape, np.float32))
+        self._low, self._high = action_bounds(self.spec)
+        self._hold_action = clip_action(self.spec, np.zeros(self._low.shape, np.float32))
+        self._non_finite = {src: NON_FINITE_ACTIONS.labels(self.robot_id, src) for src in ("policy", "teleop")}
+        self._non_finite_run = 0  # non-finite actions since the last applied one (logged once a run)
         self._stop = threading.Event()
         self._paused = threading.Event()
         self._lease_hold = threading.Event()  # control: no running experiment for this robot (see set_lease)
@@ -378,10 +386,15 @@ class RobotLoop:
         log.exception("teleoperator poll failed; the policy drives", extra=kv(robot_id=self.robot_id))
 
     def _decide(self, obs: Observation) -> tuple[np.ndarray, int, bool, bool]:
-        """(applied action, policy version, held, intervention). A human action wins; no answer in time -> hold."""
+        """(applied action, policy version, held, intervention). A human action wins; no answer in time -> hold.
+        An action with a NaN or Inf is never sent to the robot (it holds); every other is clipped to the spec's
+        limits here, whatever the robot plug-in does."""
         human = self._poll_teleop(obs)
         if human is not None:
-            return self.robot.act(human), 0, False, True
+            if not self._finite(human, "teleop"):
+                self.robot.hold()
+                return self._hold_action, 0, True, False
+            return self.robot.act(self._clip(human)), 0, False, True
         answer = self.policy.act(self.robot_id, obs.features, self.deadline_s)
         if answer is not None and np.asarray(answer[0]).size != self._hold_action.size:
             log.warning(
@@ -393,8 +406,37 @@ class RobotLoop:
             self.robot.hold()
             return self._hold_action, 0, True, False
         action, version = answer
-        applied = self.robot.act(np.asarray(action, np.float32).reshape(self._hold_action.shape))
+        action = np.asarray(action, np.float32).reshape(self._hold_action.shape)
+        if not self._finite(action, "policy", int(version)):
+            self.robot.hold()
+            return self._hold_action, 0, True, False
+        applied = self.robot.act(self._clip(action))
         return applied, int(version), False, False
+
+    def _clip(self, action: np.ndarray) -> np.ndarray:
+        """A finite action clipped to the spec's limits (as clip_action, bounds computed once): the README's
+        promise holds whatever a robot plug-in's act() does."""
+        return np.clip(action, self._low, self._high).astype(np.float32)
+
+    def _finite(self, action: np.ndarray, source: str, version: int = 0) -> bool:
+        """Is every value finite? A non-finite action is counted; the first of a run of them is logged (and the
+        run's end, with its length)."""
+        if np.isfinite(action).all():
+            if self._non_finite_run:
+                log.info(
+                    "finite actions again; the robot acts",
+                    extra=kv(robot_id=self.robot_id, non_finite_actions=self._non_finite_run),
+                )
+                self._non_finite_run = 0
+            return True
+        self._non_finite[source].inc()
+        if not self._non_finite_run:
+            log.warning(
+                "non-finite action (NaN/Inf); the robot holds instead (logged once until a finite one comes)",
+                extra=kv(robot_id=self.robot_id, source=source, version=version, action=action.reshape(-1).tolist()),
+            )
+        self._non_finite_run += 1
+        return False
 
     def _step(self, obs: Observation) -> Observation:
         started = time.monotonic()

@@ -23,7 +23,8 @@ from user.v1 import tensor_pb2 as tpb
 
 ROBOT_ID_RE = re.compile(r"[A-Za-z0-9_.\-]{1,64}")  # always fullmatch: `$` would let a trailing newline in
 FLOAT_DTYPES = (tpb.DTYPE_UNSPECIFIED, tpb.DTYPE_FLOAT32, tpb.DTYPE_FLOAT64, tpb.DTYPE_FLOAT16)
-# The edge clips every action; beyond float noise an out-of-range action is a bug upstream.
+# The edge clips every action (and holds on a non-finite one); beyond float noise an out-of-range action is a bug
+# upstream.
 ACTION_ATOL = 1e-4
 ACTION_RTOL = 1e-6
 MAX_EPISODE_ID_BYTES = 256  # keys stay well under LMDB's 511-byte limit
@@ -140,10 +141,20 @@ def action_bounds(spec: robot_pb2.RobotSpec) -> tuple[np.ndarray, np.ndarray]:
 
 
 def clip_action(spec: robot_pb2.RobotSpec, action: np.ndarray) -> np.ndarray:
-    """Clip to declared limits; NaN/Inf become the hold value 0 clipped into range."""
+    """Clip to declared limits. A NaN/Inf element becomes the hold value 0 where 0 is within its limits (velocity
+    or delta control: 0 is "stay"); where it is not (a position-controlled joint), no value is a safe stand-in
+    (clipping 0 would command a jump to the limit): ValueError. The edge agent never sends a non-finite action to
+    a robot (it holds instead), so this only guards plug-ins' own callers."""
     low, high = action_bounds(spec)
     act = np.asarray(action, dtype=np.float32).reshape(low.shape)
-    act = np.where(np.isfinite(act), act, 0.0)
+    finite = np.isfinite(act)
+    if not finite.all():
+        if ((low > 0) | (high < 0))[~finite].any():
+            raise ValueError(
+                f"robot {spec.robot_id}: non-finite action {act.reshape(-1).tolist()} where 0 is outside the "
+                "limits: no safe value to substitute (hold the robot instead)"
+            )
+        act = np.where(finite, act, 0.0)
     return np.clip(act, low, high).astype(np.float32)
 
 

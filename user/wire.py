@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -158,7 +158,7 @@ def from_tensor(tensor: tpb.Tensor, strict: bool = False) -> np.ndarray:
     if enc == tpb.ENCODING_RAW:
         raw = tensor.data
     elif enc in (tpb.ENCODING_JPEG, tpb.ENCODING_PNG):
-        return _decode_image(tensor.data, shape, dtype, strict=strict)
+        return _decode_image(tensor.data, shape, dtype, strict=strict, encoding=enc)
     elif enc == tpb.ENCODING_ZSTD:
         import zstandard
 
@@ -195,11 +195,18 @@ def encode_image(arr: np.ndarray, encoding: int, jpeg_quality: int = DEFAULT_JPE
     return buf.tobytes()
 
 
-def _check_image_header(data: bytes, shape: tuple[int, ...], dtype: np.dtype) -> None:
+_MAGIC = {tpb.ENCODING_JPEG: b"\xff\xd8", tpb.ENCODING_PNG: b"\x89PNG\r\n\x1a\n"}
+
+
+def _check_image_header(data: bytes, shape: tuple[int, ...], dtype: np.dtype, encoding: int | None = None) -> None:
     if dtype != np.uint8:
         raise WireError("JPEG/PNG tensors must be uint8")
     if not is_image_shape(shape):
         raise WireError(f"JPEG/PNG tensors are images (H, W), (H, W, 1) or (H, W, 3), got shape {shape}")
+    magic = _MAGIC.get(encoding) if encoding is not None else None
+    if magic is not None and bytes(data[: len(magic)]) != magic:
+        name = tpb.Encoding.Name(encoding).removeprefix("ENCODING_")
+        raise WireError(f"payload declared {name} does not start with {name}'s magic bytes")
     found = _image_size(data, shape)
     size, components = (found[:2], found[2]) if found else (None, None)
     if size != shape[:2]:  # checked before decoding: a tiny payload may claim a huge image
@@ -223,9 +230,10 @@ def check_image(tensor: tpb.Tensor) -> None:
     if tensor.frame_bytes or tensor.batch_dims:
         raise WireError("frame_bytes and batch_dims are for batches of images, not one image")
     data = tensor.data
-    _check_image_header(data, shape, _UINT8 if tensor.dtype == tpb.DTYPE_UINT8 else dtype_from_proto(tensor.dtype))
+    dtype = _UINT8 if tensor.dtype == tpb.DTYPE_UINT8 else dtype_from_proto(tensor.dtype)
+    _check_image_header(data, shape, dtype, encoding)
     if encoding == tpb.ENCODING_PNG:
-        _decode_image(data, shape, np.dtype(np.uint8))
+        _decode_image(data, shape, np.dtype(np.uint8), encoding=encoding)
         return
     if data[-2:] != b"\xff\xd9":
         raise WireError("JPEG payload has no end-of-image marker (truncated?)")
@@ -248,9 +256,11 @@ def _decode_image(
     dtype: np.dtype,
     out: np.ndarray | None = None,
     strict: bool = False,
+    encoding: int | None = None,
 ) -> np.ndarray:
-    """One JPEG/PNG image of the declared shape (decoded into `out` when given)."""
-    _check_image_header(data, shape, dtype)
+    """One JPEG/PNG image of the declared shape (decoded into `out` when given); `encoding`, when given, is what
+    the payload must be (its magic bytes are checked)."""
+    _check_image_header(data, shape, dtype, encoding)
     grey = len(shape) == 2 or shape[-1] == 1
     if data[:2] == b"\xff\xd8":  # JPEG (the header check found its frame header)
         return decode_jpeg(data, shape, out, strict)
@@ -362,7 +372,7 @@ def _decode_frames(tensor: tpb.Tensor, shape: tuple[int, ...], dtype: np.dtype) 
 
     def run(lo: int, hi: int) -> None:
         for i in range(lo, hi):
-            _decode_image(data[starts[i] : ends[i]], image, dtype, flat[i])
+            _decode_image(data[starts[i] : ends[i]], image, dtype, flat[i], encoding=enc)
 
     tasks = max(1, min(_FRAME_WORKERS, count // _MIN_FRAMES_PER_TASK))
     if tasks == 1:
@@ -409,5 +419,25 @@ def to_tensor_map(arrays: Mapping[str, np.ndarray | EncodedFrames]) -> tpb.Tenso
     return out
 
 
-def from_tensor_map(tmap: tpb.TensorMap, strict: bool = False) -> dict[str, np.ndarray]:
-    return {name: from_tensor(t, strict) for name, t in tmap.tensors.items()}
+def from_tensor_map(
+    tmap: tpb.TensorMap, strict: bool = False, keys: Iterable[str] | None = None
+) -> dict[str, np.ndarray]:
+    """Decode every tensor, or only those named in `keys` that the map has (the others are not touched)."""
+    if keys is None:
+        return {name: from_tensor(t, strict) for name, t in tmap.tensors.items()}
+    tensors = tmap.tensors
+    return {name: from_tensor(tensors[name], strict) for name in keys if name in tensors}
+
+
+def declared_nbytes(tensor: tpb.Tensor) -> int:
+    """Bytes the tensor claims to decode to (dtype x shape, as decoded: bf16 becomes float32), without decoding;
+    WireError for an unknown dtype or a negative dimension."""
+    shape = [int(d) for d in tensor.shape]
+    if any(d < 0 for d in shape):
+        raise WireError(f"negative dimension in shape {shape}")
+    return math.prod(shape) * decoded_dtype(tensor.dtype).itemsize
+
+
+def decoded_dtype(code: int) -> np.dtype:
+    """The numpy dtype from_tensor returns for a wire dtype (bf16 decodes to float32)."""
+    return np.dtype(np.float32) if code == tpb.DTYPE_BFLOAT16 else dtype_from_proto(code).newbyteorder("=")

@@ -196,9 +196,17 @@ class LerobotRobot(Robot):
         return self._send(clip_action(self._spec, action))
 
     def hold(self) -> None:
-        """Command every joint to where it was last seen (or to the last command if it is not observed)."""
+        """Command every joint to where it was last seen (or to the last command if it is not observed, or its
+        reading is not finite: a glitching encoder must not become a jump)."""
         seen = self._last_obs or {}
         position = np.asarray(
-            [float(seen.get(k, last)) for k, last in zip(self.action_keys, self._last_action, strict=True)], np.float32
+            [_finite_or(seen.get(k, last), last) for k, last in zip(self.action_keys, self._last_action, strict=True)],
+            np.float32,
         )
         self._send(clip_action(self._spec, position))
+
+
+def _finite_or(value: object, fallback: float) -> float:
+    """float(value) when finite, else `fallback` (itself a finite command this robot was sent)."""
+    x = float(value)  # type: ignore[arg-type]
+    return x if np.isfinite(x) else float(fallback)

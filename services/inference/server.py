@@ -14,7 +14,7 @@ import logging
 import socket
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from concurrent.futures import Future
 from concurrent.futures import TimeoutError as FutureTimeout
 from typing import Any, Literal
@@ -27,9 +27,10 @@ import torch
 from services.inference.batcher import ActResult, BatcherStopped, MicroBatcher, NoPolicyError
 from user import rpc, wire
 from user.config import ConfigError, ExperimentConfig, RobotSelector, StackConfig
-from user.experiments import embodiment_inputs, fit_action
+from user.experiments import EMBODIMENT_KEY, embodiment_inputs, fit_action
 from user.log import kv
 from user.policy import Policy, SteppedSampler, build_policy, check_device
+from user.spec import MAX_ROBOT_ID_BYTES
 from user.v1 import inference_pb2, inference_pb2_grpc
 from user.v1 import tensor_pb2 as tpb
 from user.weights import WeightSet, WeightSubscriber
@@ -42,6 +43,10 @@ MAX_INSTRUCTION_CHARS = 1024  # a task in words, not a document
 MAX_ACT_BATCH = 256  # robots in one ActBatch: an edge process's robots, with room to spare
 MAX_ACT_WAIT_S = 10.0  # a caller without a deadline still gets an answer (or an error) in bounded time
 EXPERIMENTS_POLL_S = 2.0  # how often control is asked for experiments defined at run time
+# What one Act's observation may decode to, over all the keys the policy reads (checked from the declared dtypes
+# and shapes before anything is decoded): several cameras at MAX_IMAGE_SIDE, with room to spare. A request's keys
+# are also checked against what the policy reads first, so this bounds policies that resize or declare no sizes.
+MAX_ACT_DECODED_BYTES = 64 * 2**20
 
 REQUESTS = prometheus_client.Counter("user_inference_requests_total", "Act requests by status code", ["code"])
 _REQUESTS_OK = REQUESTS.labels("OK")  # looked up once: every answered Act counts here
@@ -68,8 +73,15 @@ ENCODED_FRAMES = prometheus_client.Counter(
     ["encoding"],
 )
 _FRAME_LABELS = {tpb.ENCODING_JPEG: ENCODED_FRAMES.labels("jpeg"), tpb.ENCODING_PNG: ENCODED_FRAMES.labels("png")}
-POLICY_VERSION = prometheus_client.Gauge("user_inference_policy_version", "Version of the policy being served")
+POLICY_VERSION = prometheus_client.Gauge(
+    "user_inference_policy_version", "Version of the policy being served, per experiment", ["experiment"]
+)
 WEIGHT_UPDATES = prometheus_client.Counter("user_inference_weight_updates_total", "Weight sets loaded")
+NON_FINITE_ACTIONS = prometheus_client.Counter(
+    "user_inference_non_finite_actions_total",
+    "Acts answered INTERNAL because the policy produced NaN/Inf actions (never sent to a robot)",
+    ["experiment"],
+)
 
 
 def _observe_batch(size: int, compute_s: float) -> None:
@@ -77,8 +89,13 @@ def _observe_batch(size: int, compute_s: float) -> None:
     COMPUTE_SECONDS.observe(compute_s)
 
 
-def validate_observation(observation: Mapping[str, np.ndarray], policy: Policy) -> dict[str, np.ndarray]:
-    """Keep the keys the policy reads, as float32 (uint8 images stay uint8); ValueError on a mismatch."""
+class RequestTooLarge(ValueError):
+    """An observation whose declared tensors would decode to more than MAX_ACT_DECODED_BYTES (-> RESOURCE_EXHAUSTED)."""
+
+
+def _read_keys(policy: Policy, observation: Collection[str]) -> list[str]:
+    """The keys of `observation` the policy reads (every key when it does not say); ValueError if one it needs
+    is missing. Other keys are ignored (an edge sends its robot's whole observation)."""
     # A feature the policy can do without (e.g. the instruction, which may come in the request instead).
     optional = list(getattr(policy, "optional_obs_keys", ()))
     keys: list[str] = [k for k in (policy.observation_keys or observation) if k not in optional]
@@ -86,21 +103,70 @@ def validate_observation(observation: Mapping[str, np.ndarray], policy: Policy) 
     missing = [k for k in keys if k not in observation]
     if missing:
         raise ValueError(f"observation lacks {missing}; the policy reads {keys}")
+    return keys
+
+
+def _check_sizes(observation: Mapping[str, np.ndarray], policy: Policy) -> None:
+    """The total feature count of a policy that declares one (obs_dim), then the policy's own per-key checks."""
+    obs_dim = getattr(policy, "obs_dim", None)
+    if obs_dim is not None:
+        got = sum(int(a.size) for a in observation.values())
+        if got != int(obs_dim):
+            shapes = {k: list(a.shape) for k, a in observation.items()}
+            raise ValueError(f"observation has {got} features {shapes}, the policy expects {obs_dim}")
+    policy.check_observation(observation)
+
+
+def validate_observation(observation: Mapping[str, np.ndarray], policy: Policy) -> dict[str, np.ndarray]:
+    """Keep the keys the policy reads, as float32 (uint8 stays uint8; an image keeps the dtype it came in, for the
+    policy's check to name); ValueError on a mismatch."""
+    images = policy.image_shapes
     out: dict[str, np.ndarray] = {}
-    for k in keys:
+    for k in _read_keys(policy, observation):
         arr = observation[k]
-        if arr.dtype != np.uint8:
+        if arr.dtype != np.uint8 and k not in images:
             arr = arr.astype(np.float32, copy=False)
             if not np.isfinite(arr).all():
                 raise ValueError(f"observation {k!r} has NaN or Inf")
         out[k] = arr
-    obs_dim = getattr(policy, "obs_dim", None)
-    if obs_dim is not None:
-        got = sum(int(a.size) for a in out.values())
-        if got != int(obs_dim):
-            shapes = {k: list(a.shape) for k, a in out.items()}
-            raise ValueError(f"observation has {got} features {shapes}, the policy expects {obs_dim}")
+    _check_sizes(out, policy)
     return out
+
+
+def decode_observation(
+    tmap: tpb.TensorMap, policy: Policy, kind: str = "", spec_shapes: Mapping[str, tuple[int, ...]] | None = None
+) -> dict[str, np.ndarray]:
+    """An Act's observation, checked against the policy before anything is decoded: the keys it reads are checked
+    from their declared dtype and shape (as zero-cost placeholders: keys, feature counts, image sizes; and each
+    key's shape against the robot's spec when `spec_shapes` has it), their declared bytes are capped
+    (RequestTooLarge), and only then are those keys decoded; keys the policy does not read are never decoded.
+    ValueError (WireError) on a mismatch."""
+    tensors = tmap.tensors
+    # A policy across embodiments gets EMBODIMENT_KEY from the robot's kind (embodiment_inputs), never from the wire.
+    added = [EMBODIMENT_KEY] if getattr(policy, "embodiments", None) else []
+    keys = [k for k in _read_keys(policy, [*tensors, *added]) if k not in added]
+    images = policy.image_shapes
+    placeholders: dict[str, np.ndarray] = {}
+    total = 0
+    for key in keys:
+        tensor = tensors[key]
+        try:
+            total += wire.declared_nbytes(tensor)
+            dtype = wire.decoded_dtype(tensor.dtype)
+        except wire.WireError as exc:
+            raise wire.WireError(f"observation {key!r}: {exc}") from None
+        if dtype != np.uint8 and key not in images:
+            dtype = np.dtype(np.float32)  # as validate_observation casts it
+        shape = tuple(int(d) for d in tensor.shape)
+        declared = spec_shapes.get(key) if spec_shapes is not None else None
+        if declared is not None and shape != declared:
+            raise ValueError(f"observation {key!r} has shape {list(shape)}, the robot's spec declares {list(declared)}")
+        placeholders[key] = np.broadcast_to(np.zeros((), dtype), shape)
+    _check_sizes(embodiment_inputs(policy, kind, placeholders), policy)
+    if total > MAX_ACT_DECODED_BYTES:
+        raise RequestTooLarge(f"observation would decode to {total} bytes, over the {MAX_ACT_DECODED_BYTES} of an Act")
+    raw = wire.from_tensor_map(tmap, strict=True, keys=keys)
+    return validate_observation(embodiment_inputs(policy, kind, raw), policy)
 
 
 class RoutingError(LookupError):
@@ -128,13 +194,16 @@ class PolicySlot:
         self.policy: Policy | None = None
         self.subscriber: WeightSubscriber | None = None
         self._load_lock = threading.Lock()
+        self._non_finite_logged = -1  # the policy version whose non-finite actions were logged (once a version)
+        self.non_finite = NON_FINITE_ACTIONS.labels(experiment)
 
     def load_weights(self, weights: WeightSet) -> Policy:
-        """Rebuild the policy from a weight set and serve it; raises ValueError (keeping the old one) if bad."""
+        """Rebuild the policy from a weight set and serve it; raises ValueError (keeping the old one) if bad,
+        weights with NaN/Inf values included (the weight subscriber logs it and keeps the previous version)."""
         start = time.perf_counter()
-        policy = build_policy(
-            weights.policy, weights.policy_tensors(), weights.version, self.service.cfg.inference.device
-        )
+        tensors = weights.policy_tensors()
+        check_finite_weights(tensors, weights.version)
+        policy = build_policy(weights.policy, tensors, weights.version, self.service.cfg.inference.device)
         with self._load_lock:
             self.policy = policy
             # A policy with its own batched preprocess gets it run in the batcher thread, not per request.
@@ -143,7 +212,7 @@ class PolicySlot:
             continuous = self.service.cfg.inference.continuous_batching and isinstance(policy, SteppedSampler)
             self.batcher.set_policy(act, policy.version, preprocess, policy if continuous else None)
         WEIGHT_UPDATES.inc()
-        POLICY_VERSION.set(policy.version)
+        POLICY_VERSION.labels(self.experiment).set(policy.version)
         log.info(
             "policy loaded",
             extra=kv(
@@ -154,6 +223,24 @@ class PolicySlot:
             ),
         )
         return policy
+
+    def note_non_finite(self, version: int) -> None:
+        """The policy of `version` produced a NaN/Inf action: counted always, logged once per version."""
+        self.non_finite.inc()
+        if self._non_finite_logged != version:
+            self._non_finite_logged = version
+            log.error(
+                "the policy produced non-finite actions; those robots get INTERNAL and hold (logged once a version)",
+                extra=kv(experiment=self.experiment, version=version),
+            )
+
+
+def check_finite_weights(tensors: Mapping[str, np.ndarray], version: int) -> None:
+    """ValueError naming the first float tensor with a NaN or Inf (min/max: no temporary the tensor's size)."""
+    for name, tensor in tensors.items():
+        arr = np.asarray(tensor)
+        if arr.size and arr.dtype.kind in "fc" and not (np.isfinite(arr.min()) and np.isfinite(arr.max())):
+            raise ValueError(f"weight version {version}: tensor {name!r} has non-finite values (NaN or Inf); refused")
 
 
 class Router:
@@ -169,6 +256,7 @@ class Router:
         self.cfg = cfg
         self.experiments = cfg.resolved_experiments()
         self._routes: dict[str, tuple[str, str]] = {}  # robot_id -> (experiment, robot kind)
+        self._shapes: dict[str, dict[str, tuple[int, ...]]] = {}  # robot_id -> its spec's feature shapes
         self._lock = threading.Lock()
         self._refreshed = 0.0
         self._channel: grpc.Channel | None = None
@@ -222,17 +310,24 @@ class Router:
             raise RoutingError(
                 grpc.StatusCode.UNAVAILABLE, f"control unreachable for routing: {err.code().name}"
             ) from None
-        routes, unselected = {}, set()
+        routes, unselected, shapes = {}, set(), {}
         experiments = self.experiments
         for info in resp.robots:
             exp = experiment_for(info.spec, experiments)
             if exp is not None:
                 routes[info.spec.robot_id] = (exp.name, info.spec.kind)
+                shapes[info.spec.robot_id] = {f.name: tuple(int(d) for d in f.shape) for f in info.spec.observation}
             else:
                 unselected.add(info.spec.robot_id)
         with self._lock:
             self._routes.update(routes)
+            self._shapes.update(shapes)
             self._unselected = unselected
+
+    def feature_shapes(self, robot_id: str) -> Mapping[str, tuple[int, ...]] | None:
+        """The observation shapes the robot's spec declares, when routing learned them from control (else None)."""
+        with self._lock:
+            return self._shapes.get(robot_id)
 
     def _stub(self) -> Any:
         from user.v1 import control_pb2_grpc
@@ -293,7 +388,8 @@ class _ActError(Exception):
         self.code, self.message = code, message
 
 
-_Pending = tuple[Future, Policy, str]  # a queued Act: its future, the policy it was validated against, robot kind
+# A queued Act: its future, the policy it was validated against, robot kind, its experiment's slot.
+_Pending = tuple[Future, Policy, str, "PolicySlot"]
 
 
 class InferenceServicer(inference_pb2_grpc.InferenceServicer):
@@ -312,6 +408,13 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
 
     def _queue(self, request: inference_pb2.ActRequest) -> _Pending:
         """Route, validate and queue one robot's observation on its experiment's batcher."""
+        size = len(request.robot_id.encode())
+        if size > MAX_ROBOT_ID_BYTES:  # before routing: control's lookups and every message would echo it
+            raise _ActError(
+                grpc.StatusCode.INVALID_ARGUMENT, f"robot_id too long: {size} bytes, at most {MAX_ROBOT_ID_BYTES}"
+            )
+        if len(request.instruction) > MAX_INSTRUCTION_CHARS:
+            raise _ActError(grpc.StatusCode.INVALID_ARGUMENT, f"instruction over {MAX_INSTRUCTION_CHARS} chars")
         try:
             experiment, kind = self.service.router.route(request.robot_id)
         except RoutingError as exc:
@@ -323,17 +426,18 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
         if policy is None:
             raise _ActError(grpc.StatusCode.UNAVAILABLE, "no policy yet")
         try:
-            raw = embodiment_inputs(policy, kind, wire.from_tensor_map(request.observation, strict=True))
-            obs = validate_observation(raw, policy)
-            policy.check_observation(obs)
+            obs = decode_observation(
+                request.observation, policy, kind, self.service.router.feature_shapes(request.robot_id)
+            )
+        except RequestTooLarge as exc:
+            raise _ActError(grpc.StatusCode.RESOURCE_EXHAUSTED, f"bad observation: {exc}") from None
         except ValueError as exc:  # WireError is a ValueError
             raise _ActError(grpc.StatusCode.INVALID_ARGUMENT, f"bad observation: {exc}") from None
-        for tensor in request.observation.tensors.values():
-            counter = _FRAME_LABELS.get(tensor.encoding)
+        tensors = request.observation.tensors
+        for key in obs:  # the frames decoded (keys the policy does not read are not)
+            counter = _FRAME_LABELS.get(tensors[key].encoding) if key in tensors else None
             if counter is not None:
                 counter.inc()
-        if len(request.instruction) > MAX_INSTRUCTION_CHARS:
-            raise _ActError(grpc.StatusCode.INVALID_ARGUMENT, f"instruction over {MAX_INSTRUCTION_CHARS} chars")
         try:
             future = slot.batcher.submit(
                 obs, request.deterministic, key=request.robot_id, instruction=request.instruction
@@ -342,12 +446,13 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
             raise _ActError(grpc.StatusCode.UNAVAILABLE, "no policy yet") from None
         except BatcherStopped:
             raise _ActError(grpc.StatusCode.UNAVAILABLE, f"experiment {experiment!r} is no longer served") from None
-        return future, policy, kind
+        return future, policy, kind, slot
 
     @staticmethod
     def _answer(pending: _Pending, wait_s: float) -> inference_pb2.ActResponse:
-        """Wait up to wait_s for the queued Act's row of its batch and build the response."""
-        future, policy, kind = pending
+        """Wait up to wait_s for the queued Act's row of its batch and build the response. An action with a NaN
+        or Inf is never answered: INTERNAL (the policy's fault, not the client's), counted, and the robot holds."""
+        future, policy, kind, slot = pending
         try:
             result: ActResult = future.result(timeout=wait_s)
         except FutureTimeout:
@@ -361,6 +466,11 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
             raise _ActError(grpc.StatusCode.INTERNAL, f"policy forward failed: {exc}") from None
         QUEUE_SECONDS.observe(result.queue_us / 1e6)
         action = np.asarray(result.action, dtype=np.float32)
+        if not np.isfinite(action).all():
+            slot.note_non_finite(result.version)
+            raise _ActError(
+                grpc.StatusCode.INTERNAL, f"the policy (version {result.version}) produced non-finite actions"
+            )
         return inference_pb2.ActResponse(
             action=wire.to_tensor(np.asarray(fit_action(policy, kind, result.action), dtype=np.float32)),
             policy_version=result.version,
@@ -413,14 +523,27 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
         self, request: inference_pb2.InferenceStatusRequest, context: grpc.ServicerContext
     ) -> inference_pb2.InferenceStatus:
         policy = self.service.policy
-        slots = self.service.slots.values()
+        slots = list(self.service.slots.values())
         requests = sum(s.batcher.requests for s in slots)
         batches = sum(s.batcher.batches for s in slots)
+        experiments = []
+        for slot in slots:
+            served, asked, ran = slot.policy, slot.batcher.requests, slot.batcher.batches
+            experiments.append(
+                inference_pb2.InferenceExperimentStatus(
+                    experiment=slot.experiment,
+                    policy_version=served.version if served else 0,
+                    policy_kind=served.spec.kind if served else "",
+                    requests=asked,
+                    mean_batch_size=asked / ran if ran else 0.0,
+                )
+            )
         return inference_pb2.InferenceStatus(
             policy_version=policy.version if policy else 0,
             policy_kind=policy.spec.kind if policy else "",
             requests=requests,
             mean_batch_size=requests / batches if batches else 0.0,
+            experiments=experiments,
         )
 
 
@@ -530,6 +653,8 @@ class InferenceService(rpc.GrpcService):
                 slot.subscriber.stop()
                 slot.subscriber = None
             slot.batcher.stop()
+        with contextlib.suppress(KeyError):  # its version is no longer served
+            POLICY_VERSION.remove(name)
         log.info("experiment removed by control; no longer served", extra=kv(experiment=name))
 
     def _watch_experiments(self) -> None:
