@@ -123,6 +123,7 @@ class ChunkExecutor:
             episode = self._episode
         if ask and newest is None:
             self._request(observation, tick, now, "sync", episode)  # nothing to run on meanwhile: ask and wait
+            now = self.clock()  # the action goes out after the fetch: its age (and freshness) counts from here
         elif ask:
             self.runner(lambda: self._request(observation, tick, now, "async", episode))
         return self._blend(tick, now)

@@ -131,17 +131,28 @@ SYNC_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60)
 WEIGHTS_SYNC = prometheus_client.Histogram(
     "user_weights_sync_seconds", "Publish -> applied on a subscriber (acked; learner clock)", buckets=SYNC_BUCKETS
 )
+# Per-subscriber series, labelled by (client_id, experiment); streams that share both (a client that opened two, or
+# two clients named alike) share the series, which shows the worst of them and leaves with the last of them.
+SUB_LABELS = ["client_id", "experiment"]
 SUB_STALENESS = prometheus_client.Gauge(
-    "user_weights_subscriber_staleness", "Latest published version - version the subscriber acts with", ["client_id"]
+    "user_weights_subscriber_staleness",
+    "Latest published version - version the subscriber acts with (unacked streams: - version last sent); "
+    "the worst of the streams with these labels",
+    SUB_LABELS,
 )
 SUB_SYNC = prometheus_client.Gauge(
-    "user_weights_subscriber_sync_seconds", "Publish -> applied of the subscriber's last version", ["client_id"]
+    "user_weights_subscriber_sync_seconds",
+    "Publish -> applied of the subscriber's last acked version; the worst of the streams with these labels",
+    SUB_LABELS,
 )
 SUB_GOODPUT = prometheus_client.Gauge(
     "user_weights_subscriber_goodput_bytes_per_second",
-    "Measured effective goodput of the subscriber's link",
-    ["client_id"],
+    "Measured effective goodput of the subscriber's link; the slowest measured of the streams with these labels",
+    SUB_LABELS,
 )
+# Trailing metadata of StreamWeights / SubscribeWeights ending FAILED_PRECONDITION because the subscriber holds a
+# version above anything this learner published for the experiment (its versions restarted): the learner's latest.
+VERSIONS_RESTARTED_KEY = "user-weights-restarted-at"
 
 
 # --------------------------------------------------------------------------- server side
@@ -310,15 +321,22 @@ class WeightStore:
         with self._cond:
             return sorted(self._versions)
 
-    def wait_newer(self, have_version: int, timeout: float | None, experiment: str = "") -> PackedWeights | None:
-        """The latest set if it is newer than have_version (waiting up to timeout); None on timeout/close."""
+    def wait_newer(
+        self, have_version: int, timeout: float | None, experiment: str = "", *, or_older: bool = False
+    ) -> PackedWeights | None:
+        """The latest set if it is newer than have_version (waiting up to timeout); None on timeout/close.
+
+        or_older: also the latest set if it is older than have_version, i.e. the caller holds a version this store
+        never published (the learner's versions restarted below it); only an equal one keeps it waiting."""
 
         def newer() -> PackedWeights | None:
             versions = self._versions.get(self._key(experiment))
             if self._closed or not versions:
                 return None
             latest = versions[next(reversed(versions))]
-            return latest if latest.version > have_version else None
+            if latest.version > have_version or (or_older and latest.version < have_version):
+                return latest
+            return None
 
         with self._cond:
             self._cond.wait_for(lambda: self._closed or newer() is not None, timeout)
@@ -532,7 +550,8 @@ class Link:
     base_digest: bytes = b""  # its digest, as the client reports it
     base_patched: bool = False  # that payload came from a patch: only a patch or a full set follows it
     patches_in_row: int = 0
-    applied_version: int = 0
+    applied_version: int = 0  # as acked: an unacked stream never says, it stays 0
+    sent_version: int = 0  # the last version handed whole to the transport
     goodput_bps: float = 0.0  # effective: encoded bytes / (send start -> ack, less the client's apply time)
     # the same, from versions sent whole (not streamed while encoding, which would count encode time):
     # what the link itself moves, for the choice of a streamed patch's compression
@@ -552,19 +571,72 @@ class Link:
     shm_failures: int = 0  # shared-memory versions rejected in a row
     published_version: Callable[[], int] = field(default=lambda: 0, repr=False)
 
+    @property
+    def acting_version(self) -> int:
+        """The version the subscriber acts with as far as the server knows: acked, else (unacked streams) at most
+        the last one sent. A reader that stopped reading stops the sends once flow control is full: stale."""
+        return self.applied_version if self.acked else self.sent_version
+
     def status(self) -> learner_pb2.SubscriberStatus:
         return learner_pb2.SubscriberStatus(
             client_id=self.client_id,
             experiment=self.experiment,
             applied_version=self.applied_version,
-            staleness=max(0, self.published_version() - self.applied_version),
+            staleness=max(0, self.published_version() - self.acting_version),
             sync_latency_s=self.sync_latency_s,
             goodput_mbit_s=self.goodput_bps * 8 / 1e6,
             rtt_ms=self.rtt_s * 1e3,
             encoding=self.encoding,
             bytes_sent=self.bytes_sent,
             versions_sent=self.versions_sent,
+            acked=self.acked,
+            sent_version=self.sent_version,
         )
+
+
+_SERIES_LOCK = threading.Lock()
+_SERIES: dict[tuple[str, str], list[Link]] = {}  # label values -> the open streams that share them
+
+
+def _series_links(labels: tuple[str, str]) -> list[Link]:
+    with _SERIES_LOCK:
+        return list(_SERIES.get(labels, ()))
+
+
+def _series_join(link: Link) -> None:
+    """Count the link into its metric series; the first link with these labels creates them. Read at scrape time,
+    so a stalled subscriber's staleness grows while nothing is acked."""
+    labels = (link.client_id, link.experiment)
+    with _SERIES_LOCK:
+        links = _SERIES.setdefault(labels, [])
+        links.append(link)
+        if len(links) > 1:
+            return
+        SUB_STALENESS.labels(*labels).set_function(
+            lambda: max((ln.status().staleness for ln in _series_links(labels)), default=0)
+        )
+        SUB_SYNC.labels(*labels).set_function(
+            lambda: max((ln.sync_latency_s for ln in _series_links(labels)), default=0.0)
+        )
+        SUB_GOODPUT.labels(*labels).set_function(
+            lambda: min((g for ln in _series_links(labels) if (g := ln.goodput_bps) > 0), default=0.0)
+        )
+
+
+def _series_leave(link: Link) -> None:
+    """Count the link out; its series go with the last link that has their labels."""
+    labels = (link.client_id, link.experiment)
+    with _SERIES_LOCK:
+        links = _SERIES.get(labels, [])
+        links[:] = [ln for ln in links if ln is not link]  # by identity: two links may compare equal
+        if links:
+            return
+        _SERIES.pop(labels, None)
+        for gauge in (SUB_STALENESS, SUB_SYNC, SUB_GOODPUT):
+            try:
+                gauge.remove(*labels)
+            except KeyError:
+                pass
 
 
 def choose_encoding(
@@ -733,6 +805,9 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         unknown = self.unknown_experiment(experiment)
         if unknown:
             context.abort(grpc.StatusCode.NOT_FOUND, unknown)
+        latest = self.store.latest(experiment)
+        if latest is not None:  # else checked against the first version published
+            self._check_prefixes(tuple(request.prefixes), latest, context)
         link = Link(
             client_id=request.client_id,
             experiment=experiment,
@@ -763,23 +838,28 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         with self._lock:
             self._links[id(link)] = link
         WEIGHTS_SUBSCRIBERS.inc()
-        # Read at scrape time, so a stalled subscriber's staleness grows while nothing is acked.
-        SUB_STALENESS.labels(link.client_id).set_function(lambda: link.status().staleness)
+        _series_join(link)
         left = rpc.at_stream_end(context, lambda: self._leave(link))  # even if gRPC drops this generator
         log.info("weight subscriber joined", extra=kv(client_id=link.client_id, have_version=have, acked=link.acked))
+        # What the subscriber says it holds: this learner must have published it. Versions are monotonic across
+        # learner restarts (the high-water mark); one that lost it publishes below, and the subscriber must hear it.
+        held = max(have, link.base_version)
         try:
             if acks is not None and link.shm_host and self.shm is not None and self.shm.same_host(link.shm_host):
                 yield from self._probe(link, acks, context)
             while context.is_active() and not self.store.closed:
-                full = self.store.wait_newer(have, self.poll_s, link.experiment)
+                full = self.store.wait_newer(have, self.poll_s, link.experiment, or_older=True)
                 if full is None:
                     continue
+                if full.version < held:
+                    self._versions_restarted(link, held, full.version, context)
+                self._check_prefixes(link.prefixes, full, context)
                 packed = self._encode(link, full)
                 start = time.perf_counter()
                 yield from (iter_weight_frames if self.frames else iter_weight_messages)(packed, chunk_bytes)
                 self._count_sent(link, packed)
-                if acks is None:
-                    have = link.applied_version = packed.version
+                if acks is None:  # nothing says what it applied: its status counts from what was sent
+                    have = packed.version
                     continue
                 ack = self._wait_ack(acks, packed.version, context)
                 if ack is None:
@@ -795,12 +875,38 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         with self._lock:
             self._links.pop(id(link), None)
         WEIGHTS_SUBSCRIBERS.dec()
-        for gauge in (SUB_STALENESS, SUB_SYNC, SUB_GOODPUT):
-            try:
-                gauge.remove(link.client_id)
-            except KeyError:
-                pass
-        log.info("weight subscriber left", extra=kv(client_id=link.client_id, applied=link.applied_version))
+        _series_leave(link)
+        log.info(
+            "weight subscriber left",
+            extra=kv(client_id=link.client_id, applied=link.applied_version, sent=link.sent_version),
+        )
+
+    def _versions_restarted(self, link: Link, held: int, latest: int, context: grpc.ServicerContext) -> None:
+        """End the stream FAILED_PRECONDITION: the subscriber holds `held`, above anything published here (latest
+        `latest`), so this learner restarted its numbering; a WeightSubscriber resubscribes from 0 on this."""
+        log.warning(
+            "weight subscriber holds a version this learner never published: its versions restarted below it",
+            extra=kv(client_id=link.client_id, experiment=link.experiment, held=held, latest=latest),
+        )
+        context.set_trailing_metadata(((VERSIONS_RESTARTED_KEY, str(latest)),))
+        context.abort(
+            grpc.StatusCode.FAILED_PRECONDITION,
+            f"the learner's weight versions restarted below yours: you hold v{held}, its latest for experiment "
+            f"{link.experiment!r} is v{latest}; subscribe again with have_version 0 and no base to take its weights",
+        )
+
+    @staticmethod
+    def _check_prefixes(prefixes: tuple[str, ...], full: PackedWeights, context: grpc.ServicerContext) -> None:
+        """INVALID_ARGUMENT if a requested prefix selects no tensor of the published set (it streams empty sets)."""
+        names = [info.name for info in full.header.tensors]
+        unmatched = [p for p in prefixes if p and not any(name.startswith(p) for name in names)]
+        if unmatched:
+            shown = ", ".join(names[:20]) + (f", ... ({len(names)} in all)" if len(names) > 20 else "")
+            context.abort(
+                grpc.StatusCode.INVALID_ARGUMENT,
+                f"prefixes {unmatched} match no tensor of experiment {full.header.experiment!r}'s weights "
+                f"(v{full.version}: {shown})",
+            )
 
     def _probe(
         self, link: Link, acks: queue.Queue[learner_pb2.WeightAck | None], context: grpc.ServicerContext
@@ -871,6 +977,7 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         link.encoding = packed.header.weight_encoding
         link.bytes_sent += packed.encoded_bytes
         link.versions_sent += 1
+        link.sent_version = packed.version
         WEIGHTS_SENT.inc()
         WEIGHTS_SENT_BYTES.labels(encoding_name(link.encoding)).inc(packed.encoded_bytes)
 
@@ -937,7 +1044,6 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
             rate, seen = packed.nbytes / (ack.apply_ns / 1e9), link.decode_bps.get(enc, 0.0)
             link.decode_bps[enc] = rate if seen <= 0 else 0.5 * seen + 0.5 * rate
         self._applied(link, packed, ack)
-        SUB_GOODPUT.labels(link.client_id).set(link.goodput_bps)
         return True
 
     @staticmethod
@@ -946,7 +1052,6 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
             link.applied_version = int(ack.version)
             link.sync_latency_s = max(0.0, (time.time_ns() - packed.header.created_at_ns) / 1e9)
             WEIGHTS_SYNC.observe(link.sync_latency_s)
-            SUB_SYNC.labels(link.client_id).set(link.sync_latency_s)
 
 
 class _WeightFrames(grpc.GenericRpcHandler):
@@ -1042,6 +1147,7 @@ class WeightSubscriber:
         self.connects = 0  # streams opened (first connect + reconnects)
         self.rejected = 0  # versions rejected (corrupt, unknown base) and re-fetched
         self.shm_fallbacks = 0  # shared-memory versions that could not be used (re-fetched over the stream)
+        self.restarts = 0  # learners found to have restarted their versions below ours (resubscribed from 0)
         self.last_sync_s = 0.0  # publish (learner clock) -> applied (ours) of the last version
 
     @property
@@ -1078,6 +1184,9 @@ class WeightSubscriber:
             except grpc.RpcError as err:
                 if self._stop.is_set():
                     break
+                if self._versions_restarted(err):
+                    backoff.reset()
+                    continue  # at once, from version 0
                 log.warning(
                     "weight stream failed", extra=kv(addr=self.addr, code=str(err.code()), version=self.version)
                 )
@@ -1085,6 +1194,25 @@ class WeightSubscriber:
                 log.error("bad weight stream, reconnecting", extra=kv(addr=self.addr, error=str(exc)))
             if not backoff.sleep(self._stop):
                 break
+
+    def _versions_restarted(self, err: grpc.RpcError) -> bool:
+        """The learner holds nothing as new as what we applied: its versions restarted (a redeploy that lost its
+        high-water mark). Keep acting with what we have until its weights come, and take them: forget our version
+        and base (its numbers name other weights now), so the next stream asks from 0. True if that was it."""
+        code = err.code() if hasattr(err, "code") else None
+        trailing = err.trailing_metadata() if hasattr(err, "trailing_metadata") else None
+        latest = dict(trailing or ()).get(VERSIONS_RESTARTED_KEY)
+        if code != grpc.StatusCode.FAILED_PRECONDITION or latest is None:
+            return False
+        with self._cond:
+            held, self._version = self._version, 0
+        self._assembler.forget_base()
+        self.restarts += 1
+        log.warning(
+            "the learner's weight versions restarted below ours; taking its weights from version 0",
+            extra=kv(addr=self.addr, experiment=self.experiment, held=held, learner_latest=latest),
+        )
+        return True
 
     def _request(self) -> learner_pb2.SubscribeWeightsRequest:
         return learner_pb2.SubscribeWeightsRequest(
