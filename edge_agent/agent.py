@@ -105,7 +105,6 @@ TELEOP_DETACH_S = 1.0  # hot-plug: a teleoperator whose polls fail this long is 
 TELEOP_ERRORS_REMEMBERED = 8  # distinct teleoperator errors whose traceback a loop logged (not logged again)
 START_ALIGN_S = 0.1  # realtime: the robots' common first tick, this long after the agent starts them
 REFUSED = "control refused this agent"  # the reason of the hold a refusal puts on every robot
-NO_EXPERIMENT = "no experiment selects this robot"  # the reason of the hold a free lease becomes
 
 
 class _RobotMetrics:
@@ -982,11 +981,6 @@ class EdgeAgent:
                 continue
             if not lease.hold:  # a hold names no experiment; the robot keeps its route for when it is released
                 self.policy.route(lease.robot_id, lease.experiment, loop.robot.spec.kind)
-            if not lease.hold and not lease.experiment:
-                # Free: no experiment selects it. It holds here too, not only once inference refuses it: inference
-                # learns of an experiment removed (or a selector no longer matching) a poll later, and would serve
-                # the old experiment's policy meanwhile.
-                lease = control_pb2.RobotLease(robot_id=lease.robot_id, hold=True, reason=NO_EXPERIMENT)
             if loop.lease.hold != lease.hold:
                 log.info(
                     "robot holds: no running experiment" if lease.hold else "robot leased: running",

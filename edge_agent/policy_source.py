@@ -23,7 +23,7 @@ import prometheus_client
 from edge_agent.chunks import ChunkExecutor
 from edge_agent.encoder import EncodedFrames, Plan, encode_observation, robot_plans
 from user import wire
-from user.config import AuthConfig, StackConfig
+from user.config import AuthConfig, RobotSelector, StackConfig
 from user.log import kv
 from user.rpc import CLIENT_ERRORS, make_channel
 from user.v1 import inference_pb2, inference_pb2_grpc, robot_pb2
@@ -403,9 +403,10 @@ class RoutedPolicy(PolicySource):
 
     Control's leases say which experiment that is (route(), called by the agent on every lease that is not a
     hold), so a robot leased to an experiment defined while the edge runs, or plugged in later, gets that
-    experiment's own weights, and one leased to none holds; until its first lease the edge's config decides.
-    A copy no robot routes to any more is closed. Robots without a route ask `default` (the config's only
-    experiment, if it has one)."""
+    experiment's own weights; until its first lease the edge's config decides. A copy no robot routes to any
+    more is closed. Robots without a route, or leased to none, ask `default`: the config's only experiment when
+    it takes every robot (no `experiments` section, or one without a selector), as inference serves them; else
+    they hold."""
 
     def __init__(
         self,
@@ -440,7 +441,9 @@ class RoutedPolicy(PolicySource):
             if robot_id in self.routes and self._experiment_of.get(robot_id, "") == experiment:
                 return
             previous = self._experiment_of.pop(robot_id, None)
-            source = self._source(experiment) if experiment else None  # leased to none: it holds
+            # Leased to none: the copy that serves any robot (the config's only experiment, when it selects every
+            # robot, as inference routes), else none and the robot holds.
+            source = self._source(experiment) if experiment else self._default
             if experiment:
                 self._experiment_of[robot_id] = experiment
             self.routes = {**self.routes, robot_id: source}
@@ -504,19 +507,22 @@ def make_policy_source(
         lossy, shm = cfg.edge.weights_lossy, cfg.edge.weights_shm_dir or None
         kinds = {s.robot_id: s.kind for s in specs} if specs else {r.id: r.kind for r in cfg.edge.robots}
         sole = names[0] if len(names) <= 1 else None  # "" when no robot is known yet: the learner's default
+        experiments = cfg.resolved_experiments()
+        takes_any = len(experiments) == 1 and (not cfg.experiments or experiments[0].robots == RobotSelector())
+        default = experiments[0].name if takes_any else None  # serves any robot, as inference's router does
 
         def local_copy(name: str) -> PolicySource:
             return LocalPolicy(
                 cfg.edge.learner_addr,
                 cfg.auth,
-                client_id if name == sole else f"{client_id}-{name}",
+                client_id if name in (sole, default) else f"{client_id}-{name}",
                 experiment=name,
                 kinds=kinds,
                 allow_lossy=lossy,
                 shm_dir=shm,
             )
 
-        return RoutedPolicy(local_copy, routes, kinds, default=sole)
+        return RoutedPolicy(local_copy, routes, kinds, default=default)
     return RemotePolicy(
         cfg.edge.inference_addr,
         cfg.auth,

@@ -125,17 +125,32 @@ def test_a_lease_to_another_experiment_moves_the_robot_to_that_experiments_copy(
         assert wait_for(lambda: source.act("arm-1", obs, 5.0), "late's weights")[1] == 7
         assert source.act("arm-0", obs, 5.0)[1] == 3  # the other robot stays where it was
         source.route("arm-0", "late")
-        source.route("arm-1", "")  # leased to no experiment: it holds
+        source.route("arm-1", "")  # leased to no experiment, and reach has a selector: it holds
         assert source.act("arm-0", obs, 5.0)[1] == 7 and source.act("arm-1", obs, 5.0) is None
-        assert set(source.sources) == {"reach", "late"}  # the config's experiment is the default copy: kept
+        assert set(source.sources) == {"late"}  # reach lost its last robot: closed
         source.route("plugged-later", "other", "sim_reach_arm")
         source.route("plugged-later", "late")
-        assert set(source.sources) == {"reach", "late"}  # `other` lost its only robot: closed
+        assert set(source.sources) == {"late"}  # `other` lost its only robot: closed
         assert source.kinds["plugged-later"] == "sim_reach_arm"
     finally:
         source.close()
         store.close()
         server.stop()
+
+
+def test_a_local_copy_of_an_experiment_taking_every_robot_serves_robots_leased_to_none() -> None:
+    """As inference routes: with no `experiments` section (or one experiment without a selector) every robot is
+    served by that experiment's copy, a robot control leases to none included (e.g. a Panda on the default config,
+    whose implicit selector names learner.robot_kind)."""
+    cfg = StackConfig.model_validate({"auth": AUTH.model_dump()})
+    cfg.edge.learner_addr, cfg.edge.policy_source = f"127.0.0.1:{helpers.free_port()}", "local"
+    source = make_policy_source(cfg, "edge-0", [robot_pb2.RobotSpec(robot_id="panda-0", kind="gym_hil_panda")])
+    try:
+        assert isinstance(source, RoutedPolicy) and set(source.sources) == {"default"}
+        source.route("panda-0", "")
+        assert source.routes["panda-0"] is source.sources["default"]
+    finally:
+        source.close()
 
 
 def test_inference_routes_by_robot_and_says_why_it_cannot() -> None:
@@ -204,7 +219,7 @@ def test_one_experiment_with_a_selector_serves_only_its_robots() -> None:
     actor = {"obs_keys": ["state"], "obs_dim": 15, "action_dim": 3, "hidden": [8], "action_low": [-1.0] * 3}
     actor["action_high"] = [1.0] * 3
     inference.load_weights(helpers.random_weights(actor, 4))
-    specs = [spec("arm-0"), spec("arm-1")]
+    specs = [spec("arm-0", obs_dim=15), spec("arm-1", obs_dim=15)]  # what the policy reads (inference checks it)
     status = lambda: [control_pb2.RobotStatus(robot_id=s.robot_id) for s in specs]  # noqa: E731
     edge = ControlClient(control.address, AUTH, "pc-1", specs, status, lambda cmd: (True, ""))
     stub = inference_pb2_grpc.InferenceStub(rpc.make_channel(inference.address, AUTH))
