@@ -732,7 +732,16 @@ def _spawn_learner(tmp_path: Path, control_addr: str, port: int) -> subprocess.P
     for k, v in sets.items():
         cmd += ["--set", f"{k}={v}"]
     log = open(tmp_path / "learner.log", "ab")  # noqa: SIM115 - the child owns it
-    return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=os.environ.copy(), start_new_session=True)
+    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=os.environ.copy(), start_new_session=True)
+
+    def ready_or_exited() -> bool:
+        if proc.poll() is not None:
+            tail = (tmp_path / "learner.log").read_text(errors="replace")[-3000:]
+            raise AssertionError(f"learner exited with {proc.returncode} before serving:\n{tail}")
+        return ready.exists()
+
+    helpers.wait_for(ready_or_exited, "learner serving", 120, 0.1)
+    return proc
 
 
 @pytest.mark.slow
@@ -749,6 +758,9 @@ def test_versions_stay_unique_across_a_learner_kill_9(tmp_path: Path) -> None:
     edge = Edge(control_pb2_grpc.ControlStub(rpc.make_channel(control.address, AUTH)), register_msg("a", spec()))
     port = helpers.free_port()
     learner_addr = f"127.0.0.1:{port}"
+    # Serving before anyone dials it: a client retrying a free loopback port can, rarely, take it as its own
+    # source port (TCP self-connect) and keep the learner from binding it.
+    proc = _spawn_learner(tmp_path, control.address, port)
     icfg = StackConfig(auth=AUTH)
     icfg.inference.server.port = 0
     icfg.inference.server.metrics_port = 0
@@ -757,7 +769,6 @@ def test_versions_stay_unique_across_a_learner_kill_9(tmp_path: Path) -> None:
     from edge_agent.policy_source import LocalPolicy
 
     local = LocalPolicy(learner_addr, AUTH, "edge-local")
-    proc = _spawn_learner(tmp_path, control.address, port)
     try:
         helpers.wait_for(lambda: local.version >= 1 and inference.policy is not None, "first weights", 120, 0.2)
         first = local.version
