@@ -69,6 +69,12 @@ RPC_SECONDS = prometheus_client.Histogram(
     ["method"],
     buckets=(0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 1, 5, 30, 300),
 )
+OPEN_STREAMS = prometheus_client.Gauge(
+    "user_grpc_open_streams", "Open streaming RPCs (each holds a handler thread), by method", ["method"]
+)
+# gRPC sends status details in a trailer: past the peer's metadata limit (16 KiB, 8 KiB soft) the caller gets
+# RESOURCE_EXHAUSTED "Stream removed" instead of our status. Percent-encoded, 1000 bytes stay under 3 KiB.
+MAX_DETAILS_BYTES = 1000
 CLIENT_ERRORS = prometheus_client.Counter(
     "user_grpc_client_errors_total",
     "Failed calls and broken streams seen by this client, by method and code",
@@ -190,8 +196,54 @@ class TokenAuthInterceptor(grpc.ServerInterceptor):
         return _wrap_handler(handler, guard)
 
 
+def bounded_details(details: str) -> str:
+    """Status details cut to MAX_DETAILS_BYTES of UTF-8, saying how much was left out (messages may quote
+    client input of any length)."""
+    if not isinstance(details, str) or len(details) <= MAX_DETAILS_BYTES // 4:  # 4 bytes a character at most
+        return details
+    data = details.encode(errors="replace")
+    if len(data) <= MAX_DETAILS_BYTES:
+        return details
+    kept = data[:MAX_DETAILS_BYTES].decode(errors="ignore")
+    return f"{kept}... ({len(details) - len(kept)} more characters)"
+
+
+class _BoundedContext:
+    """A handler's ServicerContext whose status details are bounded (bounded_details); all else is the context's."""
+
+    __slots__ = ("_context",)
+
+    def __init__(self, context: grpc.ServicerContext) -> None:
+        self._context = context
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._context, name)
+
+    def abort(self, code: grpc.StatusCode, details: str) -> None:
+        self._context.abort(code, bounded_details(details))
+
+    def abort_with_status(self, status: grpc.Status) -> None:
+        self._context.set_trailing_metadata(status.trailing_metadata)
+        self.abort(status.code, status.details)
+
+    def set_details(self, details: str) -> None:
+        self._context.set_details(bounded_details(details))
+
+
+def _final_code(context: grpc.ServicerContext, failed: bool) -> str:
+    """The status an RPC ended with, as its name: the one the handler set, else CANCELLED (DEADLINE_EXCEEDED)
+    when the client went away first (not a handler failure), else UNKNOWN for an exception, else OK."""
+    code = context.code()
+    if code is None:
+        if not context.is_active():
+            code = grpc.StatusCode.DEADLINE_EXCEEDED if context.time_remaining() <= 0 else grpc.StatusCode.CANCELLED
+        else:
+            code = grpc.StatusCode.UNKNOWN if failed else grpc.StatusCode.OK
+    return code.name if isinstance(code, grpc.StatusCode) else str(code)
+
+
 class MetricsInterceptor(grpc.ServerInterceptor):
-    """Counts every RPC by final status code and times it."""
+    """Counts every RPC by final status code and times it; bounds the status details our handlers set."""
 
     def intercept_service(self, continuation, handler_call_details):
         handler = continuation(handler_call_details)
@@ -199,37 +251,31 @@ class MetricsInterceptor(grpc.ServerInterceptor):
             return handler
         method = handler_call_details.method
 
-        def observe(start: float, context: grpc.ServicerContext, failed: bool, cancelled: bool = False) -> None:
-            code = context.code() if hasattr(context, "code") else None
-            if code is None:
-                if cancelled:
-                    code = grpc.StatusCode.CANCELLED
-                else:
-                    code = grpc.StatusCode.UNKNOWN if failed else grpc.StatusCode.OK
-            name = code.name if isinstance(code, grpc.StatusCode) else str(code)
-            RPC_TOTAL.labels(method, name).inc()
+        def observe(start: float, context: grpc.ServicerContext, failed: bool) -> None:
+            RPC_TOTAL.labels(method, _final_code(context, failed)).inc()
             RPC_SECONDS.labels(method).observe(time.perf_counter() - start)
 
         def timed(behavior: Callable, streaming: bool) -> Callable:
             if streaming:
 
                 def run_stream(request: Any, context: grpc.ServicerContext) -> Iterator[Any]:
-                    start, failed, cancelled = time.perf_counter(), False, False
+                    context, start, failed = _BoundedContext(context), time.perf_counter(), False
+                    # counted when the RPC ends too: gRPC drops a cancelled stream's generator at a yield
+                    counted = at_stream_end(context, lambda: observe(start, context, failed))
                     try:
                         yield from behavior(request, context)
-                    except GeneratorExit:  # the client cancelled or went away: not a handler failure
-                        cancelled = True
+                    except GeneratorExit:  # closed where gRPC dropped it: the client went away
                         raise
                     except BaseException:
                         failed = True
                         raise
                     finally:
-                        observe(start, context, failed, cancelled)
+                        counted()
 
                 return run_stream
 
             def run_unary(request: Any, context: grpc.ServicerContext) -> Any:
-                start, failed = time.perf_counter(), False
+                context, start, failed = _BoundedContext(context), time.perf_counter(), False
                 try:
                     return behavior(request, context)
                 except BaseException:
@@ -241,6 +287,112 @@ class MetricsInterceptor(grpc.ServerInterceptor):
             return run_unary
 
         return _wrap_handler(handler, timed)
+
+
+def stream_limit(max_workers: int) -> int:
+    """Streams a server holds open at once: the rest of its handler threads stay for unary calls and health."""
+    return max(1, max_workers - max(4, max_workers // 4))
+
+
+class _StreamSlot:
+    """One open stream's place under the limit, given back once: when its handler returns, or when the RPC ends
+    while the handler is suspended at a yield (gRPC then frees the thread, and may never resume or close the
+    generator). A handler still running after the RPC ended keeps its thread, so it keeps its place too."""
+
+    def __init__(self, give: Callable[[], None]) -> None:
+        self._give = give
+        self._lock = threading.Lock()
+        self._running, self._ended, self._held = True, False, True
+
+    def suspend(self) -> None:
+        with self._lock:
+            self._running = False
+            ended = self._ended
+        if ended:
+            self.give()
+
+    def resume(self) -> None:
+        with self._lock:
+            self._running = True
+
+    def rpc_ended(self) -> None:
+        with self._lock:
+            self._ended = True
+            idle = not self._running
+        if idle:
+            self.give()
+
+    def give(self) -> None:
+        with self._lock:
+            held, self._held = self._held, False
+        if held:
+            self._give()
+
+
+class StreamLimitInterceptor(grpc.ServerInterceptor):
+    """Each open stream holds a handler thread: past `stream_limit(max_workers)` open streams a new one is
+    refused with RESOURCE_EXHAUSTED, so idle or slow streams never starve unary calls and health checks."""
+
+    def __init__(self, max_workers: int, setting: str) -> None:
+        self.max_workers, self.setting = max_workers, setting
+        self.limit = stream_limit(max_workers)
+        self._open = 0
+        self._lock = threading.Lock()
+
+    def _take(self, method: str, context: grpc.ServicerContext) -> _StreamSlot:
+        with self._lock:
+            full = self._open >= self.limit
+            if not full:
+                self._open += 1
+        if full:
+            context.abort(
+                grpc.StatusCode.RESOURCE_EXHAUSTED,
+                f"{method}: {self.limit} streams are open, the most this server holds ({self.setting} is "
+                f"{self.max_workers}; {self.max_workers - self.limit} threads stay for unary calls and health "
+                f"checks); retry later, or raise {self.setting}",
+            )
+        OPEN_STREAMS.labels(method).inc()
+        slot = _StreamSlot(lambda: self._give(method))
+        if not context.add_callback(slot.rpc_ended):  # the RPC has already ended
+            slot.rpc_ended()
+        return slot
+
+    def _give(self, method: str) -> None:
+        with self._lock:
+            self._open -= 1
+        OPEN_STREAMS.labels(method).dec()
+
+    def intercept_service(self, continuation, handler_call_details):
+        handler = continuation(handler_call_details)
+        if handler is None or not (handler.request_streaming or handler.response_streaming):
+            return handler
+        method = handler_call_details.method
+
+        def limited(behavior: Callable, streaming: bool) -> Callable:
+            if streaming:
+
+                def run_stream(request: Any, context: grpc.ServicerContext) -> Iterator[Any]:
+                    slot = self._take(method, context)
+                    try:
+                        for response in behavior(request, context):
+                            slot.suspend()
+                            yield response
+                            slot.resume()
+                    finally:
+                        slot.give()
+
+                return run_stream
+
+            def run_unary(request_iterator: Any, context: grpc.ServicerContext) -> Any:
+                slot = self._take(method, context)
+                try:
+                    return behavior(request_iterator, context)
+                finally:
+                    slot.give()
+
+            return run_unary
+
+        return _wrap_handler(handler, limited)
 
 
 @dataclass
@@ -389,6 +541,8 @@ def start_server(
     token = table is not None
     if table is not None:
         interceptors.append(TokenAuthInterceptor(table))
+    # after auth: a caller without a valid token is told so, not that the server is full
+    interceptors.append(StreamLimitInterceptor(server_cfg.max_workers, f"{name}.server.max_workers"))
     server = grpc.server(
         futures.ThreadPoolExecutor(max_workers=server_cfg.max_workers, thread_name_prefix=name),
         interceptors=interceptors,

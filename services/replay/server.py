@@ -20,7 +20,7 @@ import re
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, replace
 from typing import Any
@@ -52,6 +52,7 @@ from user.auth import Identity
 from user.config import AuthConfig, ConfigError, StackConfig
 from user.log import kv
 from user.shm_files import PROBE_BYTES
+from user.spec import MAX_ROBOT_ID_BYTES
 from user.v1 import control_pb2, control_pb2_grpc, replay_pb2, replay_pb2_grpc, robot_pb2, step_pb2
 from user.v1 import tensor_pb2 as tpb
 
@@ -63,6 +64,7 @@ MAX_RELEASE = 64  # slot files released per SampleRequest
 MAX_N_STEP = 1000
 MAX_FRAME_STACK = 64
 MAX_TABLES = 64
+MAX_SAMPLE_ROBOTS = 4096  # robot_ids of one SampleRequest: a learner names its experiment's fleet
 MAX_STORE_TABLES = 256  # distinct tables one buffer holds: each costs index columns and a metric series
 PREFETCH_MAX_BYTES = 16 << 20  # larger batches are assembled per request, not kept ready in RAM
 # batches for a same-host learner: assembling one (~5 ms for 50 MB of frames) overlaps the learner's copy-out
@@ -226,6 +228,18 @@ _END = object()  # the client closed its side
 _BROKEN = object()  # the call was cancelled or broke
 
 
+class _Refused(Exception):
+    """A request message refused as a whole (not one of its steps): the stream ends with INVALID_ARGUMENT."""
+
+
+def _unbatched(batches: Iterator[replay_pb2.InsertBatchRequest]) -> Iterator[replay_pb2.InsertRequest]:
+    """InsertBatch's steps one by one; an empty message is refused (our edge never sends one)."""
+    for batch in batches:
+        if not batch.requests:
+            raise _Refused("an InsertBatchRequest with no steps (requests is empty)")
+        yield from batch.requests
+
+
 _IMAGE_ENCODINGS = (tpb.ENCODING_JPEG, tpb.ENCODING_PNG)
 _HELPER = object()  # an item's frames are checked by the stream's check helper: its verdict comes from there
 # Steps the helper may hold (checking one, one waiting) before the reader checks the next itself: with "only when
@@ -288,6 +302,8 @@ class _Inbox:
                     verdict = _frames_pass(frames)
                 if not self._offer((req, verdict)):
                     return
+        except _Refused as exc:
+            end = exc
         except Exception as exc:  # cancelled, deadline, connection lost
             log.debug("insert stream read ended", extra=kv(error=repr(exc)))
             end = _BROKEN
@@ -326,11 +342,12 @@ class _Inbox:
         return False
 
     def get(self, timeout: float) -> Any:
-        """The next (request, frames passed), _END, _BROKEN, or None after `timeout` seconds."""
+        """The next (request, frames passed), _END, a _Refused, _BROKEN (also once closed with nothing left: the
+        reader cannot queue its end then), or None after `timeout` seconds."""
         try:
             item = self._queue.get(timeout=timeout) if timeout > 0 else self._queue.get_nowait()
         except queue.Empty:
-            return None
+            return _BROKEN if self._closed.is_set() else None
         if type(item) is tuple and item[1] is _HELPER:
             return item[0], self._verdicts.get()  # the helper always answers (_frames_pass never raises)
         return item
@@ -432,7 +449,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         self, request_iterator: Iterator[replay_pb2.InsertBatchRequest], context: grpc.ServicerContext
     ) -> Iterator[replay_pb2.InsertAck]:
         """Insert, several steps a message: unpacked in the stream's reader thread, handled step by step."""
-        return self.Insert((req for batch in request_iterator for req in batch.requests), context)
+        return self.Insert(_unbatched(request_iterator), context)
 
     def _insert(
         self, inbox: _Inbox, context: grpc.ServicerContext, who: Identity | None = None
@@ -452,9 +469,14 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
                 context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down; re-send unacknowledged steps")
             wait = min(POLL_S, deadline - time.monotonic()) if pending else POLL_S
             item = inbox.get(min(wait, ACK_POLL_S) if inflight else wait)
+            if item is None and not context.is_active():  # the client went away: end now, freeing the thread
+                item = _BROKEN
             if item is _END:
                 yield from self._drain(pending, inflight, context)
                 return
+            if isinstance(item, _Refused):  # everything before the bad message is committed and acknowledged first
+                yield from self._drain(pending, inflight, context)
+                context.abort(grpc.StatusCode.INVALID_ARGUMENT, str(item))
             if item is _BROKEN:  # nobody to ack; commit anyway, a re-send is deduplicated
                 for _ in self._drain(pending, inflight, context):
                     pass
@@ -553,6 +575,8 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         rid = step.robot_id
         if not rid:
             return "robot_id", "robot_id is empty"
+        if step.held and step.intervention:  # would be indexed in "interventions" as a human's action
+            return "held", "held and intervention are both set: a held step (no action from anyone) is no intervention"
         spec = self.specs.get(rid)
         if spec is None:
             return "unknown_robot", f"unknown robot {rid} (control has no registration for it)"
@@ -731,7 +755,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             )
         if len(idx) > MAX_SAMPLE:
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"at most {MAX_SAMPLE} priorities per call")
-        if len(pri) and (not np.isfinite(pri).all() or (pri < 0).any() or (pri > 3e38).any()):
+        if len(pri) and (not np.isfinite(pri).all() or (pri < 0).any()):  # any finite float32 >= 0 is stored
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, "priorities must be finite and >= 0")
         if len(idx) and (idx < 0).any():
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, "indices must be >= 0 (from Batch.indices)")
@@ -784,6 +808,8 @@ def sample_request_problem(req: replay_pb2.SampleRequest) -> str | None:
         return f"batch_size must be in 1..{MAX_SAMPLE}, got {req.batch_size}"
     if len(req.tables) > MAX_TABLES:
         return f"at most {MAX_TABLES} tables per sample"
+    if (problem := _robot_ids_problem(req.robot_ids)) is not None:
+        return problem
     for name, ratio in req.tables.items():
         if not TABLE_NAME.match(name):
             return f"table {name[:80]!r} must be 1-64 characters of A-Z a-z 0-9 _ . -"
@@ -806,6 +832,16 @@ def sample_request_problem(req: replay_pb2.SampleRequest) -> str | None:
     for field, value in (("priority_alpha", req.priority_alpha), ("priority_beta", req.priority_beta)):
         if not (math.isfinite(value) and 0 <= value <= 10):
             return f"{field} must be in [0, 10], got {value}"
+    return None
+
+
+def _robot_ids_problem(robot_ids: Sequence[str]) -> str | None:
+    """Why SampleRequest.robot_ids is refused (never quoting an id: one may be megabytes), or None."""
+    if len(robot_ids) > MAX_SAMPLE_ROBOTS:
+        return f"robot_ids: at most {MAX_SAMPLE_ROBOTS} robots per sample, got {len(robot_ids)}"
+    for i, rid in enumerate(robot_ids):
+        if not rid or len(rid.encode()) > MAX_ROBOT_ID_BYTES:
+            return f"robot_ids[{i}]: a robot id is 1 to {MAX_ROBOT_ID_BYTES} bytes, got {len(rid.encode())}"
     return None
 
 

@@ -35,6 +35,15 @@ class EmptyBufferError(RuntimeError):
 
 
 MAX_TREES = 64  # sum trees kept (one per table, robot and alpha asked for); more are rebuilt on demand
+# priority**alpha is clipped to this in sum trees: float32's max ** 10 (the largest alpha) overflows float64, and a
+# tree's total must stay finite for any number of leaves a table can hold
+MAX_LEAF = 1e290
+
+
+def _leaves(priorities: np.ndarray | float, alpha: float) -> np.ndarray:
+    """Sum-tree leaves for priorities: priority**alpha in float64, at most MAX_LEAF."""
+    with np.errstate(over="ignore"):
+        return np.minimum(np.asarray(priorities, np.float64) ** alpha, MAX_LEAF)
 
 
 class SumTree:
@@ -388,7 +397,7 @@ class Index:
             grow.extend(ids)
             for (t_name, t_code, alpha), tree in self._trees.items():
                 if t_name == table and t_code == code:
-                    tree.extend(np.full(len(ids), float(self.max_priority) ** alpha))
+                    tree.extend(np.full(len(ids), _leaves(self.max_priority, alpha)))
 
     def add_columns(
         self,
@@ -568,7 +577,7 @@ class Index:
             if len(self._trees) >= MAX_TREES:
                 self._trees.pop(next(iter(self._trees)))
             grows = self.all if table == ALL else self.tables.get(table, {})
-            tree = self._trees[key] = SumTree(self.priority.a[grows[code].view()].astype(np.float64) ** alpha)
+            tree = self._trees[key] = SumTree(_leaves(self.priority.a[grows[code].view()], alpha))
         return tree
 
     def _draw_prioritized(
@@ -597,8 +606,10 @@ class Index:
             pos = tree.find(u[sel] - (edges[i] - totals[i]))
             tids[sel] = g.view()[pos]
             p[sel] = tree.leaves(pos)
-        w = (n * p / total) ** (-req.beta)
-        return tids, (w / w.max()).astype(np.float32)
+        # (n p / total)^-beta over its max, as (p / min p)^-beta: no underflow of p / total to 0 (an infinite weight)
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+            w = (p / p.min()) ** (-req.beta)
+        return tids, np.where(np.isfinite(w), w, 1.0).astype(np.float32)
 
     def _n_step(self, tids: np.ndarray, weights: np.ndarray, n: int, gamma: float) -> Drawn:
         if n <= 1:
@@ -651,7 +662,7 @@ class Index:
                 col = grows[code].view()
                 pos = np.minimum(np.searchsorted(col, live), len(col) - 1)  # columns hold tids in ascending order
                 mine = col[pos] == live
-                tree.set(pos[mine], values[mine] ** alpha)
+                tree.set(pos[mine], _leaves(values[mine], alpha))
         if ok.any():
             self.max_priority = max(self.max_priority, float(priorities[ok].max()))
         return int(ok.sum())
@@ -659,14 +670,21 @@ class Index:
 
 def _empty(table: str, robot_ids: list[str]) -> EmptyBufferError:
     what = f"table {table!r}" if table else "the buffer"
-    robots = f" for robots {sorted(set(robot_ids))}" if robot_ids else ""
+    robots = f" for robots {_some(sorted(set(robot_ids)))}" if robot_ids else ""
     return EmptyBufferError(f"no sampleable transitions in {what}{robots} yet")
+
+
+def _some(names: list[str], shown: int = 8) -> str:
+    """The first few names and how many more: a request may name thousands."""
+    more = f" and {len(names) - shown} more" if len(names) > shown else ""
+    return f"{names[:shown]}{more}"
 
 
 def _split(batch_size: int, ratios: dict[str, float]) -> dict[str, int]:
     """Exact shares of batch_size by ratio (largest remainder), so 50/50 of 256 is 128 + 128."""
     names = list(ratios)
     r = np.array([ratios[n] for n in names], np.float64)
+    r = r / r.max()  # finite ratios can sum past float64's range (1e308 + 1e308); scaled, the sum is <= len(r)
     exact = batch_size * r / r.sum()
     counts = np.floor(exact).astype(np.int64)
     left = batch_size - int(counts.sum())
