@@ -13,7 +13,8 @@ Roles:
   worker    Control.RegisterWorker (learner and inference hosts reporting their devices) plus reads.
 
 The tokens file (auth.tokens_file) is a YAML list, re-read when it changes, so tokens rotate without
-restarting anything: add the new token, move clients to it, remove the old one.
+restarting anything: add the new token, move clients to it, remove the old one. A token containing REPLACE-ME
+(the marker of the shipped examples) is refused, naming the setting.
 
     - {token: "s3cret-operator-alice", role: operator, name: alice}    # tokens: 16+ characters
     - {token: "s3cret-dashboard-grafana", role: reader, name: grafana}
@@ -55,6 +56,13 @@ EDGE_METHODS = frozenset(
 EDGE_WRITES = frozenset({"/user.v1.Control/Connect", "/user.v1.Replay/Insert", "/user.v1.Replay/InsertBatch"})
 WORKER_WRITES = frozenset({"/user.v1.Control/RegisterWorker"})
 RELOAD_CHECK_S = 1.0  # how often the tokens file's mtime is looked at
+# The shipped examples (deploy/k8s/components/tokens/*.example) carry this marker: such a token is public.
+PLACEHOLDER = "replace-me"
+
+
+def is_placeholder(token: str | None) -> bool:
+    """True for an example token copied as is (contains REPLACE-ME, any case): never accepted."""
+    return token is not None and PLACEHOLDER in token.lower()
 
 
 class TokenEntry(BaseModel):
@@ -146,6 +154,8 @@ def load_entries(path: Path) -> list[TokenEntry]:
             raise AuthError(f"auth.tokens_file {path}: entry {i}: needs exactly one of token or cert_cn")
         if e.role == "edge" and not e.agent_id:
             raise AuthError(f"auth.tokens_file {path}: entry {i}: an edge entry needs agent_id")
+        if is_placeholder(e.token):
+            raise AuthError(f"auth.tokens_file {path}: entry {i}: token is an example placeholder (REPLACE-ME)")
     return entries
 
 
@@ -175,6 +185,22 @@ class AuthTable:
                 stamp.append("missing")
         return tuple(stamp)
 
+    def _read_shared(self, force: bool) -> str | None:
+        """The shared (admin) token. AuthError naming the setting (never the value) for a placeholder, or for an
+        unreadable token_file at start; later a vanished file only drops the token (as before)."""
+        shared = self.shared_token
+        if self.token_file and not shared:
+            try:
+                shared = self.token_file.read_text().strip() or None
+            except OSError as exc:
+                if force:
+                    why = exc.strerror or exc
+                    raise AuthError(f"auth.token_file {self.token_file}: cannot read it ({why})") from None
+        if is_placeholder(shared):
+            setting = "auth.token_file" if self.token_file and not self.shared_token else "auth.token ($USER_TOKEN)"
+            raise AuthError(f"{setting}: the token is an example placeholder (REPLACE-ME); set a real secret")
+        return shared
+
     def _reload(self, force: bool = False) -> None:
         now = time.monotonic()
         if not force and now - self._checked < RELOAD_CHECK_S:
@@ -184,33 +210,22 @@ class AuthTable:
             stamp = self._file_stamp()
             if not force and stamp == self._stamp:
                 return
-            tokens: list[tuple[bytes, Identity]] = []
+            try:
+                shared = self._read_shared(force)
+                entries = load_entries(self.tokens_file) if self.tokens_file else []
+            except AuthError as exc:
+                if force:
+                    raise
+                log.error("tokens unusable; keeping the previous tokens", extra={"fields": {"error": str(exc)}})
+                return
+            tokens: list[tuple[bytes, Identity]] = [(shared.encode(), ADMIN)] if shared else []
             certs: dict[str, Identity] = {}
-            shared = self.shared_token
-            if self.token_file and not shared:
-                try:
-                    shared = self.token_file.read_text().strip() or None
-                except OSError as exc:
-                    if force:
-                        raise AuthError(f"auth.token_file: {exc}") from None
-            if shared:
-                tokens.append((shared.encode(), ADMIN))
-            if self.tokens_file:
-                try:
-                    entries = load_entries(self.tokens_file)
-                except AuthError as exc:
-                    if force:
-                        raise
-                    log.error(
-                        "tokens file unusable; keeping the previous tokens", extra={"fields": {"error": str(exc)}}
-                    )
-                    return
-                for e in entries:
-                    ident = Identity(e.role, e.name or e.role, e.agent_id, tuple(e.robots))
-                    if e.token:
-                        tokens.append((e.token.encode(), ident))
-                    else:
-                        certs[e.cert_cn] = ident
+            for e in entries:
+                ident = Identity(e.role, e.name or e.role, e.agent_id, tuple(e.robots))
+                if e.token:
+                    tokens.append((e.token.encode(), ident))
+                else:
+                    certs[e.cert_cn] = ident
             self._tokens, self._certs, self._stamp = tokens, certs, stamp
             if not force:
                 log.info("auth tokens reloaded", extra={"fields": {"tokens": len(tokens), "certs": len(certs)}})

@@ -14,6 +14,8 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from user.auth import is_placeholder
+
 # torch device names; whether the machine has the device is checked when the service starts.
 DEVICE = Field(default="cpu", pattern=r"^(cpu|cuda(:[0-9]+)?|mps)$", description="torch device: cpu, cuda, cuda:N")
 
@@ -43,15 +45,31 @@ class AuthConfig(Strict):
     def resolved_token(self) -> str | None:
         if not self.enabled:
             return None
-        if self.token:
-            return self.token
-        if os.environ.get("USER_TOKEN"):
-            return os.environ["USER_TOKEN"]
-        if self.token_file:
-            return self.token_file.read_text().strip()
-        raise ConfigError(
-            "auth.token: auth is enabled but no token is set (auth.token, $USER_TOKEN or auth.token_file)"
-        )
+        if self.token or os.environ.get("USER_TOKEN"):
+            setting, token = "auth.token ($USER_TOKEN)", self.token or os.environ["USER_TOKEN"]
+        elif self.token_file:
+            setting, token = "auth.token_file", read_token_file(self.token_file)
+        else:
+            raise ConfigError(
+                "auth.token: auth is enabled but no token is set (auth.token, $USER_TOKEN or auth.token_file)"
+            )
+        if is_placeholder(token):  # the shipped examples' marker: servers refuse it too (user/auth.py)
+            raise ConfigError(f"{setting}: the token is an example placeholder (REPLACE-ME); set a real secret")
+        return token
+
+
+def read_token_file(path: Path) -> str:
+    """The token in auth.token_file; a ConfigError naming the setting and why (never the content): a traceback
+    here would only say FileNotFoundError, and a service restarted on failure would loop on it."""
+    try:
+        token = path.read_text().strip()
+    except OSError as exc:
+        raise ConfigError(f"auth.token_file {path}: cannot read it ({exc.strerror or exc})") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"auth.token_file {path}: not UTF-8 text") from None
+    if not token:
+        raise ConfigError(f"auth.token_file {path}: the file is empty")
+    return token
 
 
 class ServerConfig(Strict):

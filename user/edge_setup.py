@@ -7,7 +7,8 @@ arms found are listed as commented lerobot entries with their port, so nothing i
 
 install-service writes the systemd unit (restart on failure, logs to journald) and enables it. The unit
 restarts forever, so what would only crash-loop is refused first: an edge config `userctl edge -c` would
-refuse, a missing --user or --userctl, an invalid unit name.
+refuse, a token file it names that cannot be read, a placeholder token, a missing --user or --userctl, an
+invalid unit name. The token's place is USER_TOKEN=... in /etc/user/edge.env (the unit's EnvironmentFile).
 """
 
 from __future__ import annotations
@@ -24,9 +25,12 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import yaml
+
+if TYPE_CHECKING:
+    from user.config import AuthConfig
 
 # USB bridges the lerobot arms use: Feetech boards (CH340/CH343, STM32 CDC) and Dynamixel's U2D2 (FTDI).
 ARM_BRIDGES = {
@@ -45,6 +49,9 @@ HARDWARE_EXAMPLES = {
 # the template unit this command does not write.
 UNIT_NAME = re.compile(r"[A-Za-z0-9:_.\\-]+")
 UNIT_NAME_MAX = 255  # systemd's limit, ".service" included
+# Where a robot PC keeps its token: USER_TOKEN=... here, read by systemd (EnvironmentFile=) as root.
+ENV_FILE = "/etc/user/edge.env"
+ENV_TOKEN = re.compile(r"\s*USER_TOKEN\s*=\s*['\"]?([^'\"\s]*)")
 
 
 @dataclass
@@ -151,13 +158,14 @@ def discover(
     robots = [{"id": f"{kind.replace('_', '-')}-{i}", "kind": kind} for i, kind in enumerate(sims)]
     ports, cams = serial(), cameras()
     config = {
-        "auth": {"enabled": True, "token_file": "/etc/user/edge.token"},
+        "auth": {"enabled": True},  # the token: USER_TOKEN in ENV_FILE (the comment below says so)
         "edge": {
             "agent_id": agent,
             "control_addr": control_addr,
             "replay_addr": control_addr.rsplit(":", 1)[0] + ":50052",
             "inference_addr": control_addr.rsplit(":", 1)[0] + ":50053",
             "learner_addr": control_addr.rsplit(":", 1)[0] + ":50054",
+            "metrics_host": "127.0.0.1",
             "robots": robots,
         },
     }
@@ -177,6 +185,11 @@ def discover(
         lines += [_arm_hint(p, i, cams) for i, p in enumerate(arms)]
     if not robots:
         lines.append("# No simulated robot asked for (--sim KIND); add robots before starting the agent.")
+    lines += [
+        f"# Token: USER_TOKEN=<this PC's edge token> in {ENV_FILE} (mode 0600), which the systemd unit reads.",
+        "# edge.metrics_host: 127.0.0.1 keeps /metrics (no auth) on this PC; 0.0.0.0 lets the lab's Prometheus",
+        "# scrape it (deploy/prometheus/edges.yml lists robot PCs): open it only to a trusted network.",
+    ]
     return "\n".join(lines) + "\n" + yaml.safe_dump(config, sort_keys=False)
 
 
@@ -195,7 +208,7 @@ def _exec_word(arg: str, executable: bool = False) -> str:
     return '"' + word.replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
-def render_unit(userctl: str, config: str, user: str, env_file: str = "/etc/user/edge.env") -> str:
+def render_unit(userctl: str, config: str, user: str, env_file: str = ENV_FILE) -> str:
     for value in (userctl, config, user, env_file):
         if not value.isprintable():  # a newline would end the setting and start another
             raise ValueError(f"{value!r} has a control character, which a unit file cannot hold")
@@ -275,6 +288,67 @@ def edge_config_problem(config: str) -> str:
     return ""
 
 
+def _edge_auth(config: str) -> AuthConfig | None:
+    """The auth section the service would run with; None when the config does not load (reported elsewhere)."""
+    from user.config import ConfigError, load_config
+
+    try:
+        return load_config(config, environ={}).auth
+    except ConfigError:
+        return None
+
+
+def _env_file_token(env_file: str) -> str | None:
+    """USER_TOKEN's value in the unit's EnvironmentFile ("" when absent); None when this user cannot read it
+    (systemd reads it as root, so that is no problem)."""
+    try:
+        lines = Path(env_file).read_text().splitlines()
+    except FileNotFoundError:
+        return ""
+    except (OSError, UnicodeDecodeError):
+        return None
+    values = [m.group(1) for line in lines if (m := ENV_TOKEN.match(line))]
+    return values[-1] if values else ""
+
+
+def token_problem(config: str, env_file: str) -> str:
+    """Why the service would stop at start for want of a usable token (the config's auth.token_file is missing or
+    unreadable, or a token is the example placeholder), or "". $USER_TOKEN from env_file wins over token_file."""
+    from user.auth import is_placeholder
+    from user.config import ConfigError, read_token_file
+
+    auth = _edge_auth(config)
+    if auth is None or not auth.enabled:
+        return ""
+    if auth.token:  # wins over $USER_TOKEN and auth.token_file
+        return "auth.token is an example placeholder (REPLACE-ME)" if is_placeholder(auth.token) else ""
+    env_token = _env_file_token(env_file)
+    if env_token:  # wins over auth.token_file
+        return f"{env_file}: USER_TOKEN is an example placeholder (REPLACE-ME)" if is_placeholder(env_token) else ""
+    if env_token is None or auth.token_file is None:
+        return ""  # unreadable here (systemd reads it as root), or the USER_TOKEN route not set up yet: token_note
+    if hidden := _hidden_by_private_tmp(str(auth.token_file)):
+        return f"auth.token_file: {hidden}"
+    try:
+        token = read_token_file(auth.token_file)
+    except ConfigError as exc:
+        return f"{exc}: put this PC's edge token there (readable by the service's user) or USER_TOKEN=... in {env_file}"
+    if is_placeholder(token):
+        return f"auth.token_file {auth.token_file}: the token is an example placeholder (REPLACE-ME)"
+    return ""
+
+
+def token_note(config: str, env_file: str) -> str:
+    """How to give the service its token when the config names none and env_file has no USER_TOKEN yet, or ""."""
+    auth = _edge_auth(config)
+    if auth is None or not auth.enabled or auth.token or auth.token_file or _env_file_token(env_file) != "":
+        return ""
+    return (
+        f"the config names no token: put USER_TOKEN=<this PC's edge token> in {env_file} (mode 0600, read by "
+        "systemd), or the agent stops at each start with `auth.token: ... no token is set`"
+    )
+
+
 def _unit_name_problem(name: str) -> str:
     if UNIT_NAME.fullmatch(name) and not name.startswith("-") and len(f"{name}.service") <= UNIT_NAME_MAX:
         return ""
@@ -320,25 +394,31 @@ def install_service(args: argparse.Namespace) -> int:
     # ExecStart needs an absolute path (a bare name is looked up on PATH); abspath keeps the venv's symlink.
     userctl = os.path.abspath(userctl if "/" in userctl else shutil.which(userctl) or userctl)
     config = os.path.realpath(args.config)
-    for option, value in (("--config", config), ("--userctl", userctl), ("--user", args.user)):
+    options = (("--config", config), ("--userctl", userctl), ("--user", args.user), ("--env-file", args.env_file))
+    for option, value in options:
         if not value.isprintable():
             return fail(f"{option} {value!r} has a control character, which a unit file cannot hold")
-    unit = render_unit(userctl, config, args.user)
+    unit = render_unit(userctl, config, args.user, args.env_file)
     path = Path(args.unit_dir) / f"{name}.service"
     # Each of these would leave a unit that fails at every start, restarted every 2 s for ever.
     problems = [
         _hidden_by_private_tmp(config),
         edge_config_problem(config),
+        token_problem(config, args.env_file),
         _user_problem(args.user),
         _userctl_problem(userctl),
         _unit_dir_problem(args.unit_dir),
     ]
     problems = [p for p in problems if p]
+    note = token_note(config, args.env_file)
     if args.dry_run:
-        print(f"# would write {path}\n" + "".join(f"# WARNING: {p}\n" for p in problems) + unit, end="")
+        notes = "".join(f"# WARNING: {p}\n" for p in problems) + (f"# NOTE: {note}\n" if note else "")
+        print(f"# would write {path}\n" + notes + unit, end="")
         return 0
     if problems:
         return fail(problems[0])
+    if note:  # not refused: the token may well be written after the unit; said once, not in every restart's log
+        print(f"userctl edge install-service: note: {note}", file=sys.stderr)
     try:
         path.write_text(unit)
     except PermissionError:
@@ -368,6 +448,7 @@ def main(argv: list[str]) -> int:
     i.add_argument("--name", default="user-edge", help="unit name")
     i.add_argument("--unit-dir", default="/etc/systemd/system")
     i.add_argument("--userctl", help="path of userctl (default: the one on PATH)")
+    i.add_argument("--env-file", default=ENV_FILE, help="the unit's EnvironmentFile: USER_TOKEN=... (the token)")
     i.add_argument("--dry-run", action="store_true", help="print the unit instead of installing it")
     i.add_argument("--no-start", action="store_true", help="write the unit only")
     args = parser.parse_args(argv)
