@@ -133,6 +133,43 @@ def test_each_role_calls_only_its_methods(stack) -> None:
     assert connect_code(admin, "any-agent", "other-0") == grpc.StatusCode.OK
 
 
+def test_every_role_that_reads_weights_gets_them_through_the_stream_our_subscribers_use(tmp_path: Path) -> None:
+    """WeightSubscriber (a local-policy edge, an inference host) calls StreamWeights: an edge, worker or reader
+    token must receive weights through it, as through SubscribeWeights."""
+    import numpy as np
+
+    from user import rpc
+    from user.config import ServerConfig
+    from user.v1 import learner_pb2
+    from user.weights import WeightServicer, WeightStore, WeightSubscriber, add_learner_servicer
+
+    tokens = tmp_path / "tokens.yaml"
+    write_tokens(tokens)
+    store = WeightStore()
+    servicer = WeightServicer(store, poll_s=0.1)
+    running = rpc.start_server(
+        "test-learner",
+        lambda s: add_learner_servicer(servicer, s),
+        [learner_pb2.DESCRIPTOR.services_by_name["Learner"].full_name],
+        ServerConfig(port=0, metrics_port=0, max_workers=16, grace_s=0.2),
+        AuthConfig(token=ADMIN, tokens_file=tokens),
+        start_metrics=False,
+    )
+    store.publish(1, learner_pb2.PolicySpec(kind="test", config_json="{}"), {"w": np.ones(8, np.float32)})
+    subscribers = [
+        WeightSubscriber(running.address(), AuthConfig(token=token), f"sub-{i}", lambda _w: None).start()
+        for i, token in enumerate((EDGE, WORKER, READER))
+    ]
+    try:
+        for sub in subscribers:
+            assert sub.wait_version(1, 30), sub.client_id
+    finally:
+        for sub in subscribers:
+            sub.stop()
+        store.close()
+        running.stop()
+
+
 def test_workers_report_devices_and_only_workers_do(stack) -> None:
     control, _, _ = stack
     report = control_pb2.RegisterWorkerRequest(worker=control_pb2.WorkerInfo(worker_id="learner@gpu-1", kind="learner"))

@@ -5,11 +5,11 @@ Roles:
             so a stack configured with one shared token works as before.
   operator  reads everything and calls every write method except the edge's own (Connect, Insert) and the
             workers' (RegisterWorker): commands, experiments.
-  reader    read-only methods (List*, Get*, Stats, Status, Sample with Replay.OpenSharedMemory, SubscribeWeights)
-            for dashboards and tools.
+  reader    read-only methods (List*, Get*, Stats, Status, Sample with Replay.OpenSharedMemory, SubscribeWeights
+            and StreamWeights) for dashboards and tools.
   edge      what an edge agent needs: Control.Connect (as its own agent_id, only its robots), Replay.Insert
-            and InsertBatch (steps of its robots), Inference.Act and ActBatch, Learner.SubscribeWeights. Nothing
-            else: it cannot read the fleet.
+            and InsertBatch (steps of its robots), Inference.Act and ActBatch, Learner.SubscribeWeights and
+            StreamWeights (a local policy's weights). Nothing else: it cannot read the fleet.
   worker    Control.RegisterWorker (learner and inference hosts reporting their devices) plus reads.
 
 The tokens file (auth.tokens_file) is a YAML list, re-read when it changes, so tokens rotate without
@@ -41,8 +41,9 @@ log = logging.getLogger(__name__)
 
 Role = Literal["admin", "operator", "reader", "edge", "worker"]
 READ_PREFIXES = ("List", "Get", "Stats", "Status", "Sample", "Subscribe")
-# reads by another name: a shared-memory session only changes how Sample's batches travel (bounded per replay)
-READ_METHODS = frozenset({"/user.v1.Replay/OpenSharedMemory"})
+# reads by another name: a shared-memory session only changes how Sample's batches travel (bounded per replay);
+# StreamWeights is SubscribeWeights with acks on the same stream (what user.weights.WeightSubscriber calls)
+READ_METHODS = frozenset({"/user.v1.Replay/OpenSharedMemory", "/user.v1.Learner/StreamWeights"})
 EDGE_METHODS = frozenset(
     {
         "/user.v1.Control/Connect",
@@ -51,6 +52,7 @@ EDGE_METHODS = frozenset(
         "/user.v1.Inference/Act",
         "/user.v1.Inference/ActBatch",
         "/user.v1.Learner/SubscribeWeights",
+        "/user.v1.Learner/StreamWeights",
     }
 )
 EDGE_WRITES = frozenset({"/user.v1.Control/Connect", "/user.v1.Replay/Insert", "/user.v1.Replay/InsertBatch"})
