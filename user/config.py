@@ -76,7 +76,9 @@ class ServerConfig(Strict):
     host: str = Field(default="127.0.0.1", description="bind address; 0.0.0.0 to serve other machines")
     port: int = Field(default=0, ge=0, le=65535, description="gRPC port; 0 = ephemeral")
     metrics_port: int = Field(default=0, ge=0, le=65535, description="Prometheus port; 0 = ephemeral")
-    max_workers: int = Field(default=32, ge=1, description="gRPC handler threads (each open stream holds one)")
+    max_workers: int = Field(
+        default=64, ge=1, description="gRPC handler threads; streams may hold all but a quarter (at least 4)"
+    )
     grace_s: float = Field(default=5.0, ge=0, description="on SIGTERM, seconds in-flight calls get to finish")
 
 
