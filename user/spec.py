@@ -30,6 +30,13 @@ ACTION_RTOL = 1e-6
 MAX_EPISODE_ID_BYTES = 256  # keys stay well under LMDB's 511-byte limit
 MAX_ROBOT_ID_BYTES = 128
 MAX_FEATURE_RANK = 8  # (H, W, C) images, (T, ...) stacks: far more than any sensor needs
+MAX_NAME_BYTES = 256  # kind, feature/camera/action names, label keys and values: bounded in control's memory
+MAX_TASK_BYTES = 4096  # RobotSpec.task: a sentence or a paragraph
+MAX_FEATURES = 256  # observation features (a step's tensors)
+MAX_CAMERAS = 64
+MAX_LABELS = 64
+IMAGE_CHANNELS = (1, 3, 4)  # grey, RGB, RGBA: what the learner's image encoders take
+SHOWN_CHARS = 64  # an error quotes at most this much of a client's string (status details travel in headers)
 # Indices and versions travel as uint64 but are stored and sampled as int64 (and key+1 must not wrap).
 MAX_INT64 = (1 << 63) - 1
 
@@ -49,6 +56,12 @@ class StepError(wire.WireError):
 # --------------------------------------------------------------------------- the spec itself
 
 
+def clipped(value: str, limit: int = SHOWN_CHARS) -> str:
+    """repr of a client's string cut to `limit` chars: an echoed 20 kB value would overflow gRPC's header limit and
+    turn the intended status into RESOURCE_EXHAUSTED."""
+    return repr(value[:limit]) + (f"... ({len(value)} chars)" if len(value) > limit else "")
+
+
 def enum_name(enum: Any, value: int) -> str:
     """The enum's name for value, or the number: proto3 enums are open, so any int32 can arrive."""
     return enum.Name(value) if value in enum.values() else str(value)
@@ -58,8 +71,9 @@ def validate_spec(spec: robot_pb2.RobotSpec) -> None:
     """Raise SpecError naming the robot and the offending field."""
     rid = spec.robot_id
     if not ROBOT_ID_RE.fullmatch(rid):
-        raise SpecError(f"robot_id {rid!r} must match {ROBOT_ID_RE.pattern}")
+        raise SpecError(f"robot_id {clipped(rid)} must match {ROBOT_ID_RE.pattern}")
     where = f"robot {rid}"
+    _check_texts(where, spec)
     act = spec.action
     if not act.shape or any(d <= 0 for d in act.shape):
         raise SpecError(f"{where}: action.shape must be non-empty with positive dims, got {list(act.shape)}")
@@ -77,6 +91,8 @@ def validate_spec(spec: robot_pb2.RobotSpec) -> None:
     if act.dtype not in FLOAT_DTYPES:
         raise SpecError(f"{where}: action.dtype must be a float type, got {enum_name(tpb.DType, act.dtype)}")
     validate_features(where, spec.observation)
+    if len(spec.cameras) > MAX_CAMERAS:
+        raise SpecError(f"{where}: at most {MAX_CAMERAS} cameras, got {len(spec.cameras)}")
     for cam in spec.cameras:
         if not cam.name or cam.width <= 0 or cam.height <= 0:
             raise SpecError(f"{where}: camera {cam.name!r} needs a name and positive width/height")
@@ -84,9 +100,30 @@ def validate_spec(spec: robot_pb2.RobotSpec) -> None:
         raise SpecError(f"{where}: control_rate_hz must be > 0, got {spec.control_rate_hz}")
 
 
+def _check_texts(where: str, spec: robot_pb2.RobotSpec) -> None:
+    """Names and labels are kept by control for every robot it ever saw: each one bounded."""
+    if len(spec.labels) > MAX_LABELS:
+        raise SpecError(f"{where}: at most {MAX_LABELS} labels, got {len(spec.labels)}")
+    names = [
+        ("kind", spec.kind),
+        *((f"labels key {clipped(k)}", k) for k in spec.labels),
+        *((f"labels[{clipped(k)}]", v) for k, v in spec.labels.items()),
+        *((f"action.names[{i}]", n) for i, n in enumerate(spec.action.names)),
+        *((f"observation[{i}].name", f.name) for i, f in enumerate(spec.observation)),
+        *((f"cameras[{i}].name", c.name) for i, c in enumerate(spec.cameras)),
+    ]
+    for field, value in names:
+        if len(value.encode()) > MAX_NAME_BYTES:
+            raise SpecError(f"{where}: {field} is longer than {MAX_NAME_BYTES} bytes")
+    if len(spec.task.encode()) > MAX_TASK_BYTES:
+        raise SpecError(f"{where}: task is longer than {MAX_TASK_BYTES} bytes")
+
+
 def validate_features(where: str, features: Sequence[robot_pb2.FeatureSpec]) -> None:
     if not features:
         raise SpecError(f"{where}: observation needs at least one feature")
+    if len(features) > MAX_FEATURES:
+        raise SpecError(f"{where}: at most {MAX_FEATURES} observation features, got {len(features)}")
     seen: set[str] = set()
     for feat in features:
         if not feat.name or feat.name in seen:
@@ -105,6 +142,22 @@ def validate_features(where: str, features: Sequence[robot_pb2.FeatureSpec]) -> 
                 f"{where}: observation {feat.name!r} of shape {list(feat.shape)} could never be sent "
                 f"(at most {MAX_FEATURE_RANK} dims and {wire.MAX_TENSOR_BYTES} bytes a tensor)"
             )
+        if feat.is_image:
+            _check_image_feature(where, feat)
+
+
+def _check_image_feature(where: str, feat: robot_pb2.FeatureSpec) -> None:
+    """The learner builds image encoders for is_image features: uint8 (H, W) or (H, W, C), as cameras give them."""
+    shape = list(feat.shape)
+    if (
+        feat.dtype != tpb.DTYPE_UINT8
+        or len(shape) not in (2, 3)
+        or (len(shape) == 3 and shape[2] not in IMAGE_CHANNELS)
+    ):
+        raise SpecError(
+            f"{where}: observation {feat.name!r} has is_image set, so it must be uint8 of shape (H, W) or (H, W, C) "
+            f"with C in {list(IMAGE_CHANNELS)}; got {enum_name(tpb.DType, feat.dtype)} {shape}"
+        )
 
 
 # --------------------------------------------------------------------------- layout
@@ -234,7 +287,7 @@ def _check_id(field: str, value: str, limit: int) -> None:
     if not value:
         raise StepError(field, f"{field} is empty")
     if "/" in value or "\0" in value:
-        raise StepError(field, f"{field} {value!r} must not contain '/' or NUL")
+        raise StepError(field, f"{field} {clipped(value)} must not contain '/' or NUL")
     if len(value.encode()) > limit:
         raise StepError(field, f"{field} is longer than {limit} bytes")
 
@@ -368,9 +421,9 @@ class StepCheck:
 
     def passes(self, step: step_pb2.Step, images_checked: bool) -> bool:
         rid, eid = step.robot_id, step.episode_id
-        if not self.unique or rid != self.robot_id or not _id_ok(rid, MAX_ROBOT_ID_BYTES):
+        if not self.unique or rid != self.robot_id or not id_ok(rid, MAX_ROBOT_ID_BYTES):
             return False
-        if not _id_ok(eid, MAX_EPISODE_ID_BYTES):
+        if not id_ok(eid, MAX_EPISODE_ID_BYTES):
             return False
         if step.step_index >= MAX_INT64 or step.policy_version > MAX_INT64 or not math.isfinite(step.reward):
             return False
@@ -388,7 +441,8 @@ def _batched(tensor: tpb.Tensor) -> bool:
     return bool(tensor.batch_dims or tensor.frame_bytes)
 
 
-def _id_ok(value: str, limit: int) -> bool:
+def id_ok(value: str, limit: int) -> bool:
+    """A robot or episode id as replay keys it: non-empty, no '/' or NUL, at most `limit` UTF-8 bytes."""
     return bool(value) and "/" not in value and "\0" not in value and len(value.encode()) <= limit
 
 

@@ -17,14 +17,14 @@ import torch
 from pydantic import Field
 
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout, TableShares, configured_lr
-from cloud_learner.algorithms.sac import EncoderParams, Widths, augment, make_encoder, publish, trainable
+from cloud_learner.algorithms.sac import MAX_BATCH, EncoderParams, Widths, augment, make_encoder, publish, trainable
 from user.policies.mlp import GaussianActor, log_prob_of
 from user.v1 import learner_pb2
 
 
 class BCParams(EncoderParams):
     hidden: Widths = Field(default=[256, 256], description="MLP widths of the policy head")
-    batch_size: int = Field(default=256, ge=1)
+    batch_size: int = Field(default=256, ge=1, le=MAX_BATCH)
     lr: float = Field(default=1e-3, gt=0)
     loss: Literal["mse", "nll"] = Field(default="mse", description="mse on the mean action, or Gaussian NLL")
     only_interventions: bool = Field(default=False, description="learn only from rows a human chose")

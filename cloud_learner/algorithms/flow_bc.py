@@ -23,7 +23,7 @@ import torch
 from pydantic import Field
 
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout, TableShares, configured_lr
-from cloud_learner.algorithms.sac import StateMean, StateStd
+from cloud_learner.algorithms.sac import MAX_BATCH, MAX_IMAGE_SIZE, StateMean, StateStd
 from user.policies.flow_vla import ActionScaler, FlowVla, FlowVlaConfig, Preprocessor, policy_spec
 from user.policy import module_tensors
 from user.registry import PluginParams
@@ -32,7 +32,7 @@ from user.v1 import learner_pb2
 
 
 class FlowBcParams(PluginParams):
-    batch_size: int = Field(64, ge=1, description="rows per update")
+    batch_size: int = Field(64, ge=1, le=MAX_BATCH, description="rows per update")
     lr: float = Field(3e-4, gt=0, description="Adam learning rate")
     horizon: int = Field(1, ge=1, le=256, description="actions per chunk; > 1 asks replay for action chunks")
     tables: TableShares = Field(
@@ -40,9 +40,9 @@ class FlowBcParams(PluginParams):
     )
     human_only: bool = Field(True, description="skip rows the policy chose (intervention false) from mixed tables")
     demo_tables: list[str] = Field(default_factory=lambda: ["demos"], description="tables whose rows are all human")
-    image_size: int = Field(64, ge=16)
-    hidden: int = Field(128, ge=8)
-    flow_steps: int = Field(5, ge=1)
+    image_size: int = Field(64, ge=16, le=MAX_IMAGE_SIZE)
+    hidden: int = Field(128, ge=8, le=8192, description="width of the context and expert networks (~5 hidden x hidden)")
+    flow_steps: int = Field(5, ge=1, le=1000, description="Euler steps per chunk (each a forward pass)")
     default_instruction: str = ""
     seed: int = 0
     state_mean: StateMean = Field(

@@ -29,22 +29,22 @@ import torch
 from pydantic import Field
 
 from cloud_learner.algorithm import ALGORITHMS, Batch, TableShares
-from cloud_learner.algorithms.sac import SAC, SACParams, augment, bc_mse, split
+from cloud_learner.algorithms.sac import MAX_BATCH, MAX_ENSEMBLE, MAX_UTD, SAC, SACParams, augment, bc_mse, split
 
 
 class RLPDParams(SACParams):
-    batch_size: int = Field(default=256, ge=1, description="transitions per critic step (both halves)")
+    batch_size: int = Field(default=256, ge=1, le=MAX_BATCH, description="transitions per critic step (both halves)")
     gamma: float = Field(default=0.99, gt=0, le=1, description="discount")
     actor_lr: float = Field(default=3e-4, gt=0)
     critic_lr: float = Field(default=3e-4, gt=0)
     alpha_lr: float = Field(default=3e-4, gt=0)
     init_alpha: float = Field(default=1.0, gt=0, description="initial entropy temperature (then tuned)")
     target_entropy_scale: float = Field(default=0.5, gt=0, description="target entropy = -scale * action_dim")
-    num_critics: int = Field(default=10, ge=2, description="Q heads in the critic ensemble")
+    num_critics: int = Field(default=10, ge=2, le=MAX_ENSEMBLE, description="Q heads in the critic ensemble")
     target_subset: int = Field(default=2, ge=1, description="TD target: min over this many random target heads")
     critic_layer_norm: bool = Field(default=True, description="LayerNorm after each critic hidden layer")
     actor_q: Literal["min", "mean"] = Field(default="mean", description="the actor maximizes the ensemble mean")
-    utd: int = Field(default=10, ge=1, description="critic steps per actor step (the paper uses 20)")
+    utd: int = Field(default=10, ge=1, le=MAX_UTD, description="critic steps per actor step (the paper uses 20)")
     tables: TableShares = Field(
         default={"online": 0.5, "demos": 0.5}, description="50/50 online and offline (demos or interventions)"
     )

@@ -36,12 +36,38 @@ from user.policies.cnn import KIND as CNN_KIND
 from user.policies.cnn import ConvEncoder, random_shift
 from user.policies.mlp import KIND as MLP_KIND
 from user.policies.mlp import GaussianActor, StateEncoder, policy_spec
-from user.policy import module_tensors
+from user.policy import MAX_IMAGE_SIDE, module_tensors
 from user.registry import PluginParams
 from user.v1 import learner_pb2
 
+# Size bounds: a definition is checked when control accepts it, so an absurd size (hidden: [1e12]) is refused
+# there instead of failing the learner's allocation later while the experiment's robots stay leased.
+MAX_WIDTH = 65536  # units of one MLP layer
+MAX_LAYERS = 16  # MLP layers, conv layers
+MAX_CHANNELS = 4096  # conv channels of one layer
+MAX_STRIDE = 16
+MAX_IMAGE_SIZE = MAX_IMAGE_SIDE  # square side images are resized to: the largest frame a policy takes
+MAX_BATCH = 65536  # rows per update: replay's most rows per SampleRequest
+MAX_ENSEMBLE = 64  # critic heads
+MAX_N_STEP = 1000  # replay's most steps per n-step return
+MAX_UTD = 1000  # critic steps per actor step
+MAX_MLP_WEIGHTS = 1 << 28  # between hidden layers of one network: 1 GiB in float32
+
+
+def _mlp_fits(widths: list[int]) -> list[int]:
+    """Adjacent hidden layers are a width x width matrix each: bound their total, not only each width."""
+    weights = sum(a * b for a, b in itertools.pairwise(widths))
+    if weights > MAX_MLP_WEIGHTS:
+        raise ValueError(f"{widths} holds {weights} weights between hidden layers; at most {MAX_MLP_WEIGHTS}")
+    return widths
+
+
 # Layer widths, conv channels and strides: a 0 builds no network (a division by zero deep in the init).
-Widths = list[Annotated[int, Field(ge=1)]]
+Widths = Annotated[
+    list[Annotated[int, Field(ge=1, le=MAX_WIDTH)]], Field(max_length=MAX_LAYERS), AfterValidator(_mlp_fits)
+]
+Channels = Annotated[list[Annotated[int, Field(ge=1, le=MAX_CHANNELS)]], Field(min_length=1, max_length=MAX_LAYERS)]
+Strides = Annotated[list[Annotated[int, Field(ge=1, le=MAX_STRIDE)]], Field(min_length=1, max_length=MAX_LAYERS)]
 
 
 def _positive_std(std: dict[str, list[float]]) -> dict[str, list[float]]:
@@ -79,12 +105,15 @@ class EncoderParams(PluginParams):
         default=None, description="observation keys the networks see (default all; e.g. leave out privileged state)"
     )
 
-    channels: Widths = Field(default=[16, 32, 32], min_length=1, description="conv channels per camera encoder layer")
-    strides: Widths = Field(default=[2, 2, 2], min_length=1, description="conv strides per camera encoder layer")
-    latent_dim: int = Field(default=50, ge=1, description="per-camera latent size")
-    image_pad: int = Field(default=4, ge=0, description="DrQ random shift in pixels; 0 turns augmentation off")
+    channels: Channels = Field(default=[16, 32, 32], description="conv channels per camera encoder layer")
+    strides: Strides = Field(default=[2, 2, 2], description="conv strides per camera encoder layer")
+    latent_dim: int = Field(default=50, ge=1, le=MAX_WIDTH, description="per-camera latent size")
+    image_pad: int = Field(default=4, ge=0, le=256, description="DrQ random shift in pixels; 0 turns augmentation off")
     image_size: int = Field(
-        default=0, ge=0, description="cameras are area-downsampled to this square size before the convs (0: native)"
+        default=0,
+        ge=0,
+        le=MAX_IMAGE_SIZE,
+        description="cameras are area-downsampled to this square size before the convs (0: native)",
     )
     state_mean: StateMean = Field(
         default={}, description="per state feature, values subtracted before the networks (cameras or not)"
@@ -127,7 +156,7 @@ class EncoderParams(PluginParams):
 
 class SACParams(EncoderParams):
     hidden: Widths = Field(default=[128, 128], description="MLP widths of the actor and critic heads")
-    batch_size: int = Field(default=128, ge=1, description="transitions per critic step")
+    batch_size: int = Field(default=128, ge=1, le=MAX_BATCH, description="transitions per critic step")
     gamma: float = Field(default=0.95, gt=0, le=1, description="discount (replaced by gamma**n rows when n-step)")
     tau: float = Field(default=0.005, gt=0, le=1, description="Polyak rate of the target critics (and encoder)")
     actor_lr: float = Field(default=1e-3, gt=0)
@@ -135,13 +164,13 @@ class SACParams(EncoderParams):
     alpha_lr: float = Field(default=1e-3, gt=0)
     init_alpha: float = Field(default=0.1, gt=0, description="initial entropy temperature (then tuned)")
     target_entropy_scale: float = Field(default=1.0, gt=0, description="target entropy = -scale * action_dim")
-    num_critics: int = Field(default=2, ge=1, description="Q heads in the critic ensemble")
+    num_critics: int = Field(default=2, ge=1, le=MAX_ENSEMBLE, description="Q heads in the critic ensemble")
     target_subset: int = Field(default=2, ge=1, description="TD target: min over this many random target heads")
     critic_layer_norm: bool = Field(default=False, description="LayerNorm after each critic hidden layer")
     actor_q: Literal["min", "mean"] = Field(default="min", description="how the actor aggregates the ensemble")
-    utd: int = Field(default=1, ge=1, description="critic steps per actor step (update-to-data ratio)")
+    utd: int = Field(default=1, ge=1, le=MAX_UTD, description="critic steps per actor step (update-to-data ratio)")
     tables: TableShares = Field(default={"online": 1.0}, description="replay table -> share of each batch")
-    n_step: int = Field(default=1, ge=1, description="n-step returns, summed by the replay service")
+    n_step: int = Field(default=1, ge=1, le=MAX_N_STEP, description="n-step returns, summed by the replay service")
     backup_entropy: bool = Field(
         default=True,
         description="TD targets include the entropy bonus -alpha*log pi (off: a near-deterministic policy's large "

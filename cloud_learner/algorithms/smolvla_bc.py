@@ -37,6 +37,7 @@ import torch
 from pydantic import Field, field_validator
 
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout, TableShares, configured_lr
+from cloud_learner.algorithms.sac import MAX_BATCH
 from user.policies.smolvla import KIND as SMOLVLA
 from user.policies.smolvla import SmolVlaSpec, load_checkpoint, policy_spec
 from user.policy import module_tensors
@@ -65,7 +66,7 @@ def checkpoint_type(folder: str | Path) -> str:
 
 class SmolVlaBcParams(PluginParams):
     checkpoint: str = Field(description="local lerobot SmolVLA checkpoint folder (config.json, weights, processors)")
-    batch_size: int = Field(32, ge=1, description="rows per update")
+    batch_size: int = Field(32, ge=1, le=MAX_BATCH, description="rows per update")
     lr: float | None = Field(None, gt=0, description="AdamW learning rate; unset: the checkpoint's optimizer_lr")
     tables: TableShares = Field(
         default_factory=lambda: {"demos": 0.5, "interventions": 0.5}, description="replay tables and their shares"

@@ -1,7 +1,8 @@
 """Control service: the registry of robots, their leases and heartbeats, experiments, and cloud-to-edge commands.
 
-An edge agent opens one long-lived Connect stream: `register` first (validated specs -> a lease),
-then heartbeats that renew the lease and report each robot's status and finished episodes, and a
+An edge agent opens one long-lived Connect stream: `register` first, within REGISTER_TIMEOUT_S (validated specs ->
+a lease), then heartbeats that renew the lease and report each robot's status and finished episodes (a status or
+summary that breaks the contract is dropped and counted, the stream goes on), and a
 `robots` update whenever a robot is plugged in or unplugged (hot-plug: the new set, validated like a
 registration). Commands from SendCommand travel down the same stream. A robot goes offline when its stream ends
 or when no heartbeat arrives for lease_ttl_s (a reaper thread); its spec stays queryable so replay
@@ -32,7 +33,16 @@ from user.auth import Identity
 from user.config import ExperimentConfig, ReplayShard, StackConfig
 from user.experiments import experiment_for, parse_definition, shadowed
 from user.log import kv
-from user.spec import ROBOT_ID_RE, SpecError, enum_name, validate_spec
+from user.spec import (
+    MAX_EPISODE_ID_BYTES,
+    ROBOT_ID_RE,
+    SHOWN_CHARS,
+    SpecError,
+    clipped,
+    enum_name,
+    id_ok,
+    validate_spec,
+)
 from user.v1 import control_pb2, control_pb2_grpc, robot_pb2
 
 log = logging.getLogger(__name__)
@@ -47,6 +57,9 @@ WORKER_KINDS = frozenset({"learner", "inference"})
 EXPERIMENT_NAME_RE = re.compile(r"[A-Za-z0-9_.\-]{1,64}")  # ExperimentConfig.name
 MAX_EXPERIMENTS = 256  # configured plus defined at run time (a worker reports at most 256 too)
 QUEUE_POLL_S = 0.25  # how often a Connect stream notices its client went away
+# A Connect stream must say `register` this soon: one that says nothing would hold a server thread forever.
+REGISTER_TIMEOUT_S = 30.0
+MAX_NAMES_SHOWN = 20  # experiment names listed in a NOT_FOUND (256 of them would overflow the status headers)
 
 ROBOTS_ONLINE = prometheus_client.Gauge("user_control_robots_online", "Robots with a live lease")
 REGISTRATIONS = prometheus_client.Counter("user_control_registrations_total", "Accepted edge registrations")
@@ -65,6 +78,11 @@ EXPERIMENT_RUNNING = prometheus_client.Gauge(
 EPISODES = prometheus_client.Counter(
     "user_control_episodes_total", "Finished episodes reported by edges", ["robot_id", "success"]
 )
+HEARTBEAT_REJECTED = prometheus_client.Counter(
+    "user_control_heartbeat_rejected_total",
+    "Robot statuses and episode summaries of heartbeats dropped (not stored) for breaking the contract",
+    ["reason"],
+)
 
 
 # --------------------------------------------------------------------------- validation
@@ -74,7 +92,7 @@ EPISODES = prometheus_client.Counter(
 def validate_register(req: control_pb2.RegisterRequest) -> None:
     """An agent may register with no robot attached yet: they arrive later as `robots` updates."""
     if not ROBOT_ID_RE.fullmatch(req.agent_id):
-        raise SpecError(f"agent_id {req.agent_id!r} must match {ROBOT_ID_RE.pattern}")
+        raise SpecError(f"agent_id {clipped(req.agent_id)} must match {ROBOT_ID_RE.pattern}")
     for name in ("hostname", "software_version"):
         if len(getattr(req, name).encode()) > MAX_TEXT_BYTES:
             raise SpecError(f"{name} is longer than {MAX_TEXT_BYTES} bytes")
@@ -85,11 +103,12 @@ def validate_robot_set(specs: Iterable[robot_pb2.RobotSpec]) -> None:
     specs = list(specs)
     if len(specs) > MAX_ROBOTS_PER_AGENT:
         raise SpecError(f"one agent registers at most {MAX_ROBOTS_PER_AGENT} robots, got {len(specs)}")
+    for spec in specs:  # first: the ids quoted below are then valid (bounded)
+        validate_spec(spec)
     ids = [spec.robot_id for spec in specs]
     if len(ids) != len(set(ids)):
-        raise SpecError(f"robot ids must be unique within a registration, got {ids}")
-    for spec in specs:
-        validate_spec(spec)
+        twice = sorted({rid for rid in ids if ids.count(rid) > 1})
+        raise SpecError(f"robot ids must be unique within a registration, got {twice} more than once")
 
 
 def command_problem(cmd: control_pb2.Command) -> str | None:
@@ -97,7 +116,7 @@ def command_problem(cmd: control_pb2.Command) -> str | None:
     if cmd.kind not in KNOWN_COMMANDS:
         return f"command.kind must be PAUSE, RESUME or RESET, got {enum_name(control_pb2.CommandKind, cmd.kind)}"
     if cmd.robot_id and not ROBOT_ID_RE.fullmatch(cmd.robot_id):
-        return f"command.robot_id {cmd.robot_id!r} must be empty (every robot) or match {ROBOT_ID_RE.pattern}"
+        return f"command.robot_id {clipped(cmd.robot_id)} must be empty (every robot) or match {ROBOT_ID_RE.pattern}"
     if len(cmd.command_id.encode()) > MAX_TEXT_BYTES:
         return f"command.command_id is longer than {MAX_TEXT_BYTES} bytes"
     return None
@@ -106,20 +125,50 @@ def command_problem(cmd: control_pb2.Command) -> str | None:
 def worker_problem(w: control_pb2.WorkerInfo) -> str | None:
     """Why a worker report cannot be stored, or None."""
     if not WORKER_ID_RE.fullmatch(w.worker_id):
-        return f"worker_id {w.worker_id!r} must match {WORKER_ID_RE.pattern}"
+        return f"worker_id {clipped(w.worker_id)} must match {WORKER_ID_RE.pattern}"
     if w.kind not in WORKER_KINDS:
-        return f"kind must be one of {sorted(WORKER_KINDS)}, got {w.kind!r}"
+        return f"kind must be one of {sorted(WORKER_KINDS)}, got {clipped(w.kind)}"
     texts = [w.hostname, w.address, w.software_version, w.device, *w.experiments]
     texts += [t for d in w.devices for t in (d.name, d.model)]
     if any(len(t.encode()) > MAX_TEXT_BYTES for t in texts):
         return f"a text field is longer than {MAX_TEXT_BYTES} bytes"
-    if len(w.devices) > 64 or len(w.experiments) > 256:
-        return "at most 64 devices and 256 experiments"
-    if any(name not in w.experiments for name in w.preparing):
-        return f"preparing {sorted(set(w.preparing) - set(w.experiments))} are not among its experiments"
+    if len(w.devices) > 64 or len(w.experiments) > 256 or len(w.preparing) > 256:
+        return "at most 64 devices, 256 experiments and 256 preparing"
+    stray = sorted(set(w.preparing) - set(w.experiments))
+    if stray:
+        return f"preparing {[clipped(n) for n in stray[:5]]} ({len(stray)} in all) are not among its experiments"
     # `failed` may name an experiment outside `experiments` (a defined one whose definition did not check).
     if len(w.failed) > 256 or any(not EXPERIMENT_NAME_RE.fullmatch(name) for name in w.failed):
         return "failed: at most 256 entries, keyed by experiment name"
+    return None
+
+
+def status_problem(status: control_pb2.RobotStatus) -> tuple[str, str] | None:
+    """(reason, why) a robot's status is not stored, or None."""
+    if status.state not in control_pb2.RobotState.values():  # proto3 enums are open: any int32 arrives
+        return "state", f"state {status.state} is not a RobotState"
+    for name in ("env_steps_per_s", "loop_period_p99_ms"):
+        value = getattr(status, name)
+        if not (math.isfinite(value) and value >= 0):
+            return "rate", f"{name} must be finite and >= 0, got {value}"
+    return None
+
+
+def summary_problem(ep: control_pb2.EpisodeSummary, spec: robot_pb2.RobotSpec) -> tuple[str, str] | None:
+    """(reason, why) an episode summary is not stored, or None. It belongs to the robot whose status carried it."""
+    if ep.robot_id and ep.robot_id != spec.robot_id:
+        return "robot_id", f"a summary of robot {clipped(ep.robot_id)} in the status of robot {spec.robot_id}"
+    if not id_ok(ep.episode_id, MAX_EPISODE_ID_BYTES):  # as replay keys episodes
+        return (
+            "episode_id",
+            f"episode_id {clipped(ep.episode_id)} must be 1..{MAX_EPISODE_ID_BYTES} bytes, no '/' or NUL",
+        )
+    if not math.isfinite(ep.episode_return):  # one NaN would make the experiment's mean_return NaN for good
+        return "episode_return", f"episode_return must be finite, got {ep.episode_return}"
+    if spec.max_episode_steps and ep.length > spec.max_episode_steps:
+        return "length", f"length {ep.length} exceeds the spec's max_episode_steps {spec.max_episode_steps}"
+    if ep.intervention_steps > ep.length:
+        return "intervention_steps", f"intervention_steps {ep.intervention_steps} exceed the length {ep.length}"
     return None
 
 
@@ -141,6 +190,19 @@ class AlreadyRegistered(Exception):
     """A robot_id held by a different live agent (-> ALREADY_EXISTS)."""
 
 
+class CommandIdTaken(Exception):
+    """A command_id already names a different command (-> ALREADY_EXISTS)."""
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """A part of a heartbeat dropped instead of stored; `reason` labels the metric."""
+
+    robot_id: str  # as sent (cut when logged)
+    reason: str
+    why: str
+
+
 @dataclass
 class Abort:
     """Queued on a connection to end its stream with this status."""
@@ -160,6 +222,7 @@ class Connection:
     lease_deadline: float  # monotonic
     outbox: queue.Queue = field(default_factory=queue.Queue)
     live: bool = True
+    warned: set[str] = field(default_factory=set)  # heartbeat rejection reasons already logged for this stream
 
 
 class EpisodeHistory:
@@ -457,13 +520,15 @@ class Registry:
                     out.append(_copy(rec.lease))
             return out
 
-    def heartbeat(self, conn: Connection, hb: control_pb2.Heartbeat) -> list[str]:
-        """Renew the lease and store statuses; returns robot ids in the heartbeat that this stream does not own."""
+    def heartbeat(self, conn: Connection, hb: control_pb2.Heartbeat) -> list[Rejected]:
+        """Renew the lease and store statuses; returns what was dropped (statuses of robots this stream does not
+        own, statuses and episode summaries that break the contract). A bad part never ends the stream: the edge
+        would send the same summary again after reconnecting, and lose its lease over one bad value."""
         now_ns = time.time_ns()
-        foreign: list[str] = []
+        rejected: list[Rejected] = []
         with self._lock:
             if not conn.live:
-                return foreign
+                return rejected
             conn.lease_deadline = time.monotonic() + self.lease_ttl_s
             for rid in conn.robot_ids:
                 rec = self._robots.get(rid)
@@ -473,41 +538,59 @@ class Registry:
             for status in hb.robots:
                 rec = self._robots.get(status.robot_id)
                 if rec is None or rec.conn is not conn:
-                    foreign.append(status.robot_id)
+                    rejected.append(Rejected(status.robot_id, "foreign_robot", "a robot this stream did not register"))
                     continue
-                self._store_status_locked(rec, status)
-        return foreign
+                rejected += self._store_status_locked(rec, status)
+        return rejected
 
-    def _store_status_locked(self, rec: RobotRecord, status: control_pb2.RobotStatus) -> None:
+    def _store_status_locked(self, rec: RobotRecord, status: control_pb2.RobotStatus) -> list[Rejected]:
+        """The valid episode summaries, then the status unless it is invalid (the last good one stays)."""
+        rid = rec.spec.robot_id
+        rejected = self._add_episodes_locked(rec, status.new_episodes)
+        problem = status_problem(status)
+        if problem is not None:
+            return [*rejected, Rejected(rid, *problem)]
+        kept = control_pb2.RobotStatus()
+        kept.CopyFrom(status)
+        kept.ClearField("new_episodes")  # they live in rec.episodes, bounded
+        rec.status = kept
+        return rejected
+
+    def _add_episodes_locked(self, rec: RobotRecord, episodes: Iterable[control_pb2.EpisodeSummary]) -> list[Rejected]:
         known = rec.episodes.ids()
-        fresh = []
-        for sent in status.new_episodes:
+        fresh: list[control_pb2.EpisodeSummary] = []
+        rejected: list[Rejected] = []
+        for sent in episodes:
+            if (problem := summary_problem(sent, rec.spec)) is not None:
+                rejected.append(Rejected(rec.spec.robot_id, *problem))
+                continue
             if sent.episode_id in known:  # re-sent after a broken stream: count it once
                 continue
             known.add(sent.episode_id)
             # A copy: a kept sub-message would pin its whole Heartbeat (one protobuf arena).
             ep = control_pb2.EpisodeSummary()
             ep.CopyFrom(sent)
-            ep.robot_id = rec.spec.robot_id  # an edge reports only its own robots' episodes
+            ep.robot_id = rec.spec.robot_id  # it was empty or this robot's id (summary_problem)
             rec.episodes.append(ep)
             fresh.append(ep)
             EPISODES.labels(rec.spec.robot_id, "true" if ep.success else "false").inc()
         if fresh:
-            experiment = self._episode_experiment_locked(rec)
-            totals = self._totals.setdefault((experiment, rec.spec.robot_id), EpisodeTotals())
-            for ep in fresh:
-                totals.episodes += 1
-                totals.successes += int(ep.success)
-                totals.return_sum += float(ep.episode_return)
-                if not ep.intervention_steps:
-                    totals.unhelped += 1
-                    totals.unhelped_successes += int(ep.success)
-            if self.state is not None:
-                self.state.add_episodes(fresh, experiment)
-        kept = control_pb2.RobotStatus()
-        kept.CopyFrom(status)
-        kept.ClearField("new_episodes")  # they live in rec.episodes, bounded
-        rec.status = kept
+            self._count_episodes_locked(rec, fresh)
+        return rejected
+
+    def _count_episodes_locked(self, rec: RobotRecord, fresh: list[control_pb2.EpisodeSummary]) -> None:
+        """Add new episodes to their experiment's totals and to SQLite."""
+        experiment = self._episode_experiment_locked(rec)
+        totals = self._totals.setdefault((experiment, rec.spec.robot_id), EpisodeTotals())
+        for ep in fresh:
+            totals.episodes += 1
+            totals.successes += int(ep.success)
+            totals.return_sum += float(ep.episode_return)
+            if not ep.intervention_steps:
+                totals.unhelped += 1
+                totals.unhelped_successes += int(ep.success)
+        if self.state is not None:
+            self.state.add_episodes(fresh, experiment)
 
     def disconnect(self, conn: Connection) -> bool:
         """The stream ended; True if this ended a live lease."""
@@ -771,15 +854,27 @@ class Registry:
             recent_episodes=rec.episodes.messages() if episodes else (),
         )
 
-    def route(self, command: control_pb2.Command) -> tuple[bool, list[str]]:
-        """Queue a command on the owning stream(s): (robot known, agents it was queued for)."""
+    def route(self, command: control_pb2.Command) -> tuple[bool, list[str], bool]:
+        """Queue a command on the owning stream(s): (robot known, agents it was queued for, new). The same
+        command sent again under its command_id is not queued twice (new False: a client's retry);
+        CommandIdTaken when the id names another command (its record and results must not be replaced)."""
         with self._lock:
+            old = self._commands.get(command.command_id)
+            if old is not None and old.command == command:
+                return True, list(old.agents), False
+            if old is not None:
+                kind = enum_name(control_pb2.CommandKind, old.command.kind)
+                raise CommandIdTaken(
+                    f"command_id {clipped(command.command_id)} already names a {kind} command for robot "
+                    f"{old.command.robot_id or '(every robot)'}; use a new id (sending the same command again is "
+                    "idempotent)"
+                )
             if not command.robot_id:  # every robot of every live agent
                 conns = list(self._conns.values())
             else:
                 rec = self._robots.get(command.robot_id)
                 if rec is None:
-                    return False, []
+                    return False, [], True
                 conns = [rec.conn] if rec.online and rec.conn is not None else []
             for conn in conns:
                 conn.outbox.put(control_pb2.ControlMessage(command=command))
@@ -791,7 +886,7 @@ class Registry:
                 self._commands.popitem(last=False)
             if self.state is not None:
                 self.state.save_command(rec.status(), self.commands_kept)
-            return True, agents
+            return True, agents, True
 
     def command_result(self, conn: Connection, result: control_pb2.CommandResult) -> bool:
         """Attach an edge's result to its command; False for a command this control did not send to it."""
@@ -888,10 +983,12 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
         registry: Registry,
         heartbeat_interval_s: float,
         replay_shards: list[ReplayShard] | None = None,
+        register_timeout_s: float | None = None,
     ) -> None:
         self.registry = registry
         self.heartbeat_interval_s = heartbeat_interval_s
         self.replay_shards = replay_shards or []
+        self.register_timeout_s = REGISTER_TIMEOUT_S if register_timeout_s is None else register_timeout_s
 
     def _tag(self, info: control_pb2.RobotInfo) -> control_pb2.RobotInfo:
         exp = experiment_for(info.spec, self.registry.experiment_configs())
@@ -901,7 +998,7 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
     def Connect(
         self, request_iterator: Iterator[control_pb2.EdgeMessage], context: grpc.ServicerContext
     ) -> Iterator[control_pb2.ControlMessage]:
-        first = next(request_iterator, None)
+        first = self._first_message(request_iterator, context)
         if first is None:
             return
         if first.WhichOneof("msg") != "register":
@@ -913,7 +1010,7 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
         ):
             context.abort(
                 grpc.StatusCode.PERMISSION_DENIED,
-                f"{who.role} token of {who.name!r} may not register agent {req.agent_id!r} with these robots",
+                f"{who.role} token of {who.name!r} may not register agent {clipped(req.agent_id)} with these robots",
             )
         try:
             validate_register(req)
@@ -964,6 +1061,29 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
         finally:
             hung_up()
 
+    def _first_message(
+        self, requests: Iterator[control_pb2.EdgeMessage], context: grpc.ServicerContext
+    ) -> control_pb2.EdgeMessage | None:
+        """The stream's first message; None when the edge hung up before sending one. Read in a helper thread so
+        that a silent stream ends after register_timeout_s instead of holding this server thread forever."""
+        box: queue.Queue[control_pb2.EdgeMessage | None] = queue.Queue(maxsize=1)
+
+        def read() -> None:
+            try:
+                box.put(next(requests, None))
+            except Exception:  # cancelled or broken: as if it hung up (the RPC's end wakes this read)
+                box.put(None)
+
+        threading.Thread(target=read, name="control-first-message", daemon=True).start()
+        try:
+            return box.get(timeout=self.register_timeout_s)
+        except queue.Empty:
+            context.abort(
+                grpc.StatusCode.DEADLINE_EXCEEDED,
+                f"no register within {self.register_timeout_s:g} s: the first message on Connect must be `register`",
+            )
+            return None  # not reached: abort raises
+
     def _hung_up(self, conn: Connection) -> None:
         if self.registry.disconnect(conn):
             log.info("agent disconnected", extra=kv(agent_id=conn.agent_id, robots=conn.robot_ids))
@@ -1000,12 +1120,7 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
                         return
                 elif kind == "heartbeat":
                     HEARTBEATS.inc()
-                    foreign = self.registry.heartbeat(conn, msg.heartbeat)
-                    if foreign:
-                        log.warning(
-                            "heartbeat for robots this stream does not own",
-                            extra=kv(agent_id=conn.agent_id, robots=foreign),
-                        )
+                    self._rejected(conn, self.registry.heartbeat(conn, msg.heartbeat))
                 elif kind == "command_result":
                     res = msg.command_result
                     known = self.registry.command_result(conn, res)
@@ -1031,6 +1146,18 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
             log.debug("edge stream read ended", extra=kv(agent_id=conn.agent_id, error=repr(exc)))
         finally:
             done.set()
+
+    @staticmethod
+    def _rejected(conn: Connection, rejected: list[Rejected]) -> None:
+        """Count dropped heartbeat parts; warn once per stream and reason (an edge repeats a bad value each beat)."""
+        for r in rejected:
+            HEARTBEAT_REJECTED.labels(r.reason).inc()
+            if r.reason not in conn.warned:
+                conn.warned.add(r.reason)
+                log.warning(
+                    "heartbeat part dropped",
+                    extra=kv(agent_id=conn.agent_id, robot_id=r.robot_id[:SHOWN_CHARS], reason=r.reason, why=r.why),
+                )
 
     def _update_robots(self, conn: Connection, update: control_pb2.RobotsUpdate, who: Identity | None) -> Abort | None:
         """A hot-plug update: the agent's new robot set, checked as a registration would be."""
@@ -1060,7 +1187,7 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
     def GetRobot(self, request: control_pb2.GetRobotRequest, context: grpc.ServicerContext) -> control_pb2.RobotInfo:
         info = self.registry.info(request.robot_id)
         if info is None:
-            context.abort(grpc.StatusCode.NOT_FOUND, f"unknown robot {request.robot_id!r}")
+            context.abort(grpc.StatusCode.NOT_FOUND, f"unknown robot {clipped(request.robot_id)}")
         return self._tag(info)
 
     def SendCommand(
@@ -1076,12 +1203,19 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
         wait_s = request.wait_result_s
         if not (math.isfinite(wait_s) and 0 <= wait_s <= MAX_COMMAND_WAIT_S):
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"wait_result_s must be in 0..{MAX_COMMAND_WAIT_S}")
-        known, agents = self.registry.route(cmd)
+        try:
+            known, agents, new = self.registry.route(cmd)
+        except CommandIdTaken as exc:
+            context.abort(grpc.StatusCode.ALREADY_EXISTS, str(exc))
         if not known:
             context.abort(grpc.StatusCode.NOT_FOUND, f"unknown robot {cmd.robot_id!r}")
         kind = control_pb2.CommandKind.Name(cmd.kind).removeprefix("COMMAND_KIND_").lower()
-        COMMANDS.labels(kind).inc()
-        log.info("command", extra=kv(command_id=cmd.command_id, kind=kind, robot_id=cmd.robot_id, agents=agents))
+        if new:
+            COMMANDS.labels(kind).inc()
+        log.info(
+            "command" if new else "command sent again: not queued twice",
+            extra=kv(command_id=cmd.command_id, kind=kind, robot_id=cmd.robot_id, agents=agents),
+        )
         resp = control_pb2.SendCommandResponse(command_id=cmd.command_id, delivered=bool(agents), agents=agents)
         if wait_s > 0 and agents:
             remaining = context.time_remaining()
@@ -1196,7 +1330,9 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
             )
 
     def _not_found(self, name: str, context: grpc.ServicerContext) -> None:
-        known = ", ".join(self.registry.experiment_names()) or "none"
+        names = self.registry.experiment_names()
+        more = f" and {len(names) - MAX_NAMES_SHOWN} more" if len(names) > MAX_NAMES_SHOWN else ""
+        known = ", ".join(names[:MAX_NAMES_SHOWN]) + more or "none"
         context.abort(
             grpc.StatusCode.NOT_FOUND,
             f"unknown experiment {name!r} (known: {known}); experiments come from the stack config or DefineExperiment",

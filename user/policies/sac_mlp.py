@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
+from typing import Annotated
 
 import numpy as np
 import torch
+from pydantic import Field
 
 from user.policy import POLICIES, SAC_MLP, Policy, actor_from_config, check_device, check_sac_mlp_config, load_tensors
 from user.registry import PluginParams
@@ -18,7 +20,8 @@ class SacMlpPolicy(Policy):
     """MLP squashed-Gaussian actor over concatenated state features (SAC's acting policy)."""
 
     class Params(PluginParams):
-        hidden: list[int] = [128, 128]
+        # the same bounds as the algorithms' `hidden` (cloud_learner.algorithms.sac.Widths)
+        hidden: list[Annotated[int, Field(ge=1, le=65536)]] = Field(default=[128, 128], max_length=16)
 
     def __init__(
         self, spec: learner_pb2.PolicySpec, tensors: Mapping[str, np.ndarray], version: int, device: str = "cpu"
