@@ -16,6 +16,10 @@ opened) so the other steps go on. The robot's new steps are set aside unsent for
 doubling per refusal up to DENIED_RETRY_MAX_S), then one goes out again: tokens files are re-read, and
 control and replay may each see a change at another moment. Once replay takes such a step, what was set
 aside is sent again at once.
+
+RESOURCE_EXHAUSTED (replay's disk or map is full) ends a stream after replay acked what did commit: the rest
+stays kept, and the next stream waits longer each time (FULL_RETRY_S doubling up to FULL_RETRY_MAX_S) instead
+of re-sending the whole backlog every second; the wait starts short again once replay acks the backlog.
 """
 
 from __future__ import annotations
@@ -68,6 +72,8 @@ _BATCH_BYTES = 4 << 20  # an InsertBatch message stays far below gRPC's message 
 _ACK_TIMES_KEPT = 200_000  # put times remembered for the ack-latency histogram (dropped steps never ack)
 DENIED_RETRY_S = 1.0  # a refused robot's new steps are set aside unsent this long before one is sent again
 DENIED_RETRY_MAX_S = 60.0  # that wait doubles per refusal up to this
+FULL_RETRY_S = 1.0  # after replay answers RESOURCE_EXHAUSTED (full), wait about this before the next stream
+FULL_RETRY_MAX_S = 30.0  # that wait doubles per full answer up to this
 
 
 @dataclass
@@ -88,14 +94,20 @@ class ReplaySender:
         backoff: Backoff | None = None,
         start: bool = True,
         outbox: Outbox | None = None,
+        full_backoff: Backoff | None = None,
     ) -> None:
-        """`outbox` (owned, closed with the sender) defaults to RAM bounded by max_unacked steps."""
+        """`outbox` (owned, closed with the sender) defaults to RAM bounded by max_unacked steps.
+        `full_backoff`: the wait before a new stream after replay answered RESOURCE_EXHAUSTED."""
         self.addr = addr
         self.outbox = outbox if outbox is not None else MemoryOutbox(max_unacked)
         self._auth = auth
         self._channel = make_channel(addr, auth)
         self._stub = replay_pb2_grpc.ReplayStub(self._channel)
         self._backoff = backoff or Backoff(initial_s=0.1, max_s=2.0)
+        self._full_backoff = full_backoff or Backoff(initial_s=FULL_RETRY_S, max_s=FULL_RETRY_MAX_S)
+        # while replay is full: the newest seq kept when the stream began (an ack reaching it: room again); else 0
+        self._full_until = 0
+        self.full_answers = 0  # streams replay ended with RESOURCE_EXHAUSTED
         self._cond = threading.Condition()
         self._stream_gen = 0  # bumped on every (re)connect; stale request iterators exit
         self._next_addr: str | None = None  # set by retarget(), taken between streams
@@ -217,6 +229,9 @@ class ReplaySender:
                 continue  # a new shard, the bad or refused step is gone, or one step a message: resume at once
             if code == grpc.StatusCode.UNAUTHENTICATED:
                 log.error("replay rejects our token; retrying", extra=kv(addr=self.addr))
+            if code == grpc.StatusCode.RESOURCE_EXHAUSTED:  # re-sending at once would only fill its disk again
+                self._full_backoff.sleep(self._stopping)
+                continue
             self._backoff.sleep(self._stopping)
 
     def _stream_once(self) -> grpc.StatusCode | None:
@@ -224,6 +239,8 @@ class ReplaySender:
         with self._cond:
             self._stream_gen += 1
             gen = self._stream_gen
+        if self._full_until:  # (this thread alone reads and writes it)
+            self._full_until = max(1, self.outbox.last_seq)
         # InsertBatch: several steps a message, one message's overhead per batch on both ends
         call = self._stub.InsertBatch(self._batches(gen)) if self._batched else self._stub.Insert(self._requests(gen))
         with self._cond:
@@ -243,6 +260,8 @@ class ReplaySender:
                 self._drop_rejected(err.details() or "")
             elif code == grpc.StatusCode.PERMISSION_DENIED and not self._stopping.is_set():
                 self._resume_now = self._quarantine_denied(err.details() or "")
+            elif code == grpc.StatusCode.RESOURCE_EXHAUSTED and not self._stopping.is_set():
+                self._on_full(err.details() or "")
             elif not self._stopping.is_set():
                 log.warning(
                     "replay stream broken; will re-send unacked steps",
@@ -254,6 +273,23 @@ class ReplaySender:
                 self._call = None
                 self._stream_gen += 1  # ends this stream's request iterator
                 self._cond.notify_all()
+
+    def _on_full(self, details: str) -> None:
+        """Replay is full: warn once per run of full answers (each stream ends alike until it has space)."""
+        self.full_answers += 1
+        if not self._full_until:
+            log.warning(
+                "replay is full; keeping unacked steps and re-sending them with a growing wait",
+                extra=kv(addr=self.addr, details=details, unacked=self.unacked, max_wait_s=self._full_backoff.max_s),
+            )
+        self._full_until = max(1, self.outbox.last_seq)
+
+    def _not_full(self, top: int) -> None:
+        """An ack reached the steps kept when the first stream after a full answer began: replay has room again."""
+        if self._full_until and (top >= self._full_until or not self.outbox.count):
+            self._full_until = 0
+            self._full_backoff.reset()
+            log.info("replay takes steps again", extra=kv(addr=self.addr, unacked=self.unacked))
 
     def _unsent(self, gen: int) -> Iterator[list[replay_pb2.InsertRequest]]:
         """Kept steps in seq order, as many as are waiting (up to _READ_CHUNK) at a time, until the stream changes."""
@@ -310,6 +346,8 @@ class ReplaySender:
         if self._denied and ack.seqs:
             self._check_probes(max(ack.seqs))
         n = self.outbox.ack(ack.seqs)
+        if self._full_until and ack.seqs:
+            self._not_full(max(ack.seqs))
         now = time.monotonic()
         with self._put_lock:
             put_times = [self._put_at.pop(seq, None) for seq in ack.seqs]

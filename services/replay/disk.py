@@ -17,11 +17,15 @@ default) the commit is fsync'd, so an acknowledged step survives a power cut; wi
 the page cache (survives kill -9 of replay, not a power cut) and is fsync'd every sync_interval_s.
 Either way many steps share one transaction (group commit), so fsync is paid per batch, not per step.
 The map grows by itself (doubling) up to max_map_mb instead of failing when full.
+A transaction that fails to commit (a full disk, an I/O error) stores nothing of itself: LMDB aborts it
+and the environment stays usable, so the next commit, once there is space, succeeds.
 """
 
 from __future__ import annotations
 
+import errno
 import logging
+import os
 import struct
 import threading
 import time
@@ -44,6 +48,8 @@ SCALARS = struct.Struct("<fBQQI")  # reward, flags, policy_version, arrival, val
 TERMINATED, TRUNCATED, INTERVENTION, SUCCESS, ENDS = 1, 2, 4, 8, 16
 ONLINE = "online"
 DURABILITY = ("fsync", "os")
+_FULL_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
+FULL_MARGIN = 4 << 20  # a failed commit with less free than twice its bytes plus this is taken for a full disk
 
 
 class ReplayError(RuntimeError):
@@ -56,6 +62,14 @@ class ReplayFullError(ReplayError):
 
 class StoreClosedError(ReplayError):
     """The store was closed (the service is shutting down)."""
+
+
+class DiskFullError(ReplayError):
+    """A write transaction did not commit because the filesystem under the store is full; nothing of it is stored."""
+
+
+class DiskWriteError(ReplayError):
+    """A write transaction did not commit for another reason (an I/O error); nothing of it is stored."""
 
 
 def episode_prefix(robot_id: str, episode_id: str) -> bytes:
@@ -197,11 +211,18 @@ class StepDB:
             self.duplicates = _U64.unpack(dups)[0] if dups else 0
 
     def _sync_loop(self) -> None:
+        failing = False  # warn once per run of failures: a full disk fails every sync until space returns
         while not self._stop.wait(self._sync_interval_s):
             try:
                 self.env.sync(True)
-            except lmdb.Error:
-                return
+            except lmdb.Error as exc:
+                if self._stop.is_set():  # closed under us
+                    return
+                if not failing:
+                    log.warning("replay's periodic fsync failed", extra=kv(path=str(self.path), error=str(exc)))
+                failing = True
+                continue
+            failing = False
 
     # ------------------------------------------------------------------ scans (open)
 
@@ -257,10 +278,13 @@ class StepDB:
         specs = list(specs)
         tables = [table] * len(steps) if isinstance(table, str) else table
         raws = raws if raws is not None else [s.SerializeToString() for s in steps]
-        return self._growing(lambda: self._put_txn(steps, tables, specs, raws, known_waiting))
+        nbytes = sum(map(len, raws))
+        return self._growing(lambda: self._put_txn(steps, tables, specs, raws, known_waiting), nbytes)
 
-    def _growing(self, write: Callable[[], T]) -> T:
-        """Run a write transaction, growing the map and retrying while LMDB says it is full (up to max_map_mb)."""
+    def _growing(self, write: Callable[[], T], nbytes: int = 0) -> T:
+        """Run a write transaction, growing the map and retrying while LMDB says it is full (up to max_map_mb).
+
+        A transaction that fails otherwise (LMDB has aborted it) raises DiskFullError or DiskWriteError."""
         while True:
             try:
                 return write()
@@ -270,6 +294,29 @@ class StepDB:
                         f"replay store {self.path} is full (map {self.map_bytes >> 20} MiB = max_map_mb); "
                         "raise replay.max_map_mb or lower replay.capacity_mb"
                     ) from None
+            except (lmdb.Error, OSError) as exc:
+                raise self._write_failed(exc, nbytes) from exc
+
+    def _write_failed(self, exc: Exception, nbytes: int) -> ReplayError:
+        """Why a write transaction of about `nbytes` failed: DiskFullError when the filesystem is (nearly) full.
+
+        LMDB reports a short write, what a full disk gives, as EIO ("Input/output error"), not ENOSPC: an error
+        with less free space left than the transaction needs counts as a full disk."""
+        free = self.free_bytes()
+        if isinstance(exc, lmdb.PanicError):  # a failed meta page write: LMDB refuses every transaction until reopened
+            return DiskWriteError(f"replay's LMDB at {self.path} failed a write and must be reopened; restart replay")
+        full = isinstance(exc, lmdb.DiskError) or getattr(exc, "errno", None) in _FULL_ERRNOS
+        if full or 0 <= free < 2 * nbytes + FULL_MARGIN:
+            return DiskFullError(f"replay's disk is full (path {self.path}, {free >> 10} KiB free: {exc})")
+        return DiskWriteError(f"replay could not write {self.path} ({free >> 20} MiB free): {exc}")
+
+    def free_bytes(self) -> int:
+        """Bytes free for us on the filesystem under the store; -1 when it cannot be asked."""
+        try:
+            st = os.statvfs(self.path)
+        except OSError:
+            return -1
+        return st.f_bavail * st.f_frsize
 
     def put_in_order(
         self,
@@ -285,7 +332,8 @@ class StepDB:
         scalars: (reward, flags incl. ENDS, policy_version, value bytes) per step. Raises NotInOrder (and
         writes nothing) if a key was stored after all.
         """
-        return self._growing(lambda: self._put_in_order_txn(keys, raws, scalars, episode_tables, specs))
+        nbytes = sum(map(len, raws))
+        return self._growing(lambda: self._put_in_order_txn(keys, raws, scalars, episode_tables, specs), nbytes)
 
     def _put_in_order_txn(
         self,
@@ -382,6 +430,9 @@ class StepDB:
 
     def delete_episodes(self, prefixes: list[bytes]) -> int:
         """Delete whole episodes now, in one transaction; returns the steps deleted."""
+        return self._growing(lambda: self._delete_txn(prefixes))
+
+    def _delete_txn(self, prefixes: list[bytes]) -> int:
         with self.env.begin(write=True) as txn:
             return self._delete(txn, prefixes)
 
@@ -409,8 +460,12 @@ class StepDB:
         return deleted
 
     def put_spec(self, spec: robot_pb2.RobotSpec) -> None:
+        raw = spec.SerializeToString()
+        self._growing(lambda: self._put_spec_txn(spec.robot_id.encode(), raw), len(raw))
+
+    def _put_spec_txn(self, key: bytes, raw: bytes) -> None:
         with self.env.begin(write=True, db=self.specs) as txn:
-            txn.put(spec.robot_id.encode(), spec.SerializeToString())
+            txn.put(key, raw)
 
     # ------------------------------------------------------------------ reads
 
@@ -431,9 +486,17 @@ class StepDB:
 
     def close(self) -> None:
         self._stop.set()
-        if self._doomed and not self.readonly:
-            self.delete_episodes(self._doomed)
-            self._doomed.clear()
         if not self.readonly:
-            self.env.sync(True)
+            self._finish_writes()
         self.env.close()
+
+    def _finish_writes(self) -> None:
+        """Delete what eviction left and fsync; on a full disk log it and close anyway (what committed is safe,
+        and a reopened store evicts those episodes again)."""
+        try:
+            if self._doomed:
+                self.delete_episodes(self._doomed)
+                self._doomed.clear()
+            self.env.sync(True)
+        except (ReplayError, lmdb.Error) as exc:
+            log.warning("replay closed without finishing its writes", extra=kv(path=str(self.path), error=str(exc)))

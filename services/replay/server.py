@@ -37,6 +37,8 @@ from services.replay.shared import NAME as SHARED_NAME
 from services.replay.shared import SHARED_FALLBACK, SharedBatches
 from services.replay.store import (
     BufferHeld,
+    DiskFullError,
+    DiskWriteError,
     EmptyBufferError,
     LayoutError,
     ReplayFullError,
@@ -83,6 +85,7 @@ POLL_S = 0.1  # how often an idle Insert stream notices shutdown
 ACK_POLL_S = 0.002  # how often a stream with batches in flight looks for their commits
 MAX_IN_FLIGHT = 4  # batches of one stream waiting for the writer at once
 SPEC_REFRESH_S = 2.0  # a step failing a cached spec re-asks control at most this often per robot
+RESEND = "steps not acknowledged are kept by the edge and re-sent"
 
 _SECONDS = (0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 1.0)
 RECEIVED = prometheus_client.Counter("user_replay_steps_received_total", "Steps read from Insert streams")
@@ -440,8 +443,13 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             self._stream_delta(-1)
 
         ended = rpc.at_stream_end(context, close)  # shutdown waits for this count: it must come down once
+        inflight: deque[_InFlight] = deque()
         try:
-            yield from self._insert(inbox, context, rpc.caller(context))
+            yield from self._insert(inbox, context, rpc.caller(context), inflight)
+        except Exception:  # an abort: left in flight only after a failed commit, withdraw what the writer has not
+            for job in inflight:  # taken (the edge re-sends it; on a full disk it would fail too)
+                job.future.cancel()
+            raise
         finally:
             ended()
 
@@ -452,14 +460,19 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         return self.Insert(_unbatched(request_iterator), context)
 
     def _insert(
-        self, inbox: _Inbox, context: grpc.ServicerContext, who: Identity | None = None
+        self,
+        inbox: _Inbox,
+        context: grpc.ServicerContext,
+        who: Identity | None = None,
+        inflight: deque[_InFlight] | None = None,
     ) -> Iterator[replay_pb2.InsertAck]:
         """Validate while earlier batches commit: up to MAX_IN_FLIGHT batches wait for the writer at once.
 
-        Acks still go out in order and only after the commit that holds their steps.
+        Acks still go out in order and only after the commit that holds their steps. `inflight`: the caller's,
+        to withdraw what is left in it when the stream ends early.
         """
         pending: list[replay_pb2.InsertRequest] = []
-        inflight: deque[_InFlight] = deque()
+        inflight = deque() if inflight is None else inflight
         deadline = 0.0
         while True:
             while inflight and (inflight[0].future.done() or len(inflight) >= MAX_IN_FLIGHT):
@@ -521,18 +534,30 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         """Wait for one submitted batch to commit; its ack, or the status that ends the stream."""
         try:
             stored, dups = job.future.result()
-        except ReplayFullError as exc:
-            self.specs.restore_dirty(job.specs)
-            log.error("replay full", extra=kv(error=str(exc)))
-            context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, str(exc))
         except StoreClosedError:
             context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down; re-send unacknowledged steps")
+        except Exception as exc:  # nothing of the batch committed: its specs wait for the next commit
+            self.specs.restore_dirty(job.specs)
+            context.abort(*self._commit_failure(exc))
         COMMIT_SECONDS.observe(time.perf_counter() - job.started)
         COMMIT_STEPS.observe(len(job.seqs))
         STORED.inc(stored)
         DUPLICATES.inc(dups)
         self._update_gauges()
         return replay_pb2.InsertAck(seqs=job.seqs, stored=stored, duplicates=dups)
+
+    @staticmethod
+    def _commit_failure(exc: Exception) -> tuple[grpc.StatusCode, str]:
+        """The status ending a stream whose batch did not commit (the store logged the disk's state once)."""
+        if isinstance(exc, DiskFullError):
+            return grpc.StatusCode.RESOURCE_EXHAUSTED, f"{exc}; {RESEND}"
+        if isinstance(exc, ReplayFullError):
+            log.error("replay full", extra=kv(error=str(exc)))
+            return grpc.StatusCode.RESOURCE_EXHAUSTED, str(exc)
+        if isinstance(exc, DiskWriteError):
+            return grpc.StatusCode.UNAVAILABLE, f"{exc}; {RESEND}"
+        log.error("insert commit failed", exc_info=exc)
+        return grpc.StatusCode.INTERNAL, f"replay could not commit steps ({exc!r}); {RESEND}"
 
     def _admit(self, req: replay_pb2.InsertRequest, images_checked: bool = False) -> tuple[grpc.StatusCode, str] | None:
         """None for a valid step; otherwise the status that ends the stream (after the steps before it)."""

@@ -33,6 +33,8 @@ from services.replay.disk import (
     SUCCESS,
     TERMINATED,
     TRUNCATED,
+    DiskFullError,
+    DiskWriteError,
     NotInOrder,
     ReplayError,
     ReplayFullError,
@@ -56,6 +58,8 @@ from user.wire import EncodedFrames, stack_frames
 
 __all__ = [
     "BufferHeld",
+    "DiskFullError",
+    "DiskWriteError",
     "EmptyBufferError",
     "LayoutError",
     "ReplayError",
@@ -80,6 +84,15 @@ COMMITS = prometheus_client.Histogram(
 )
 COMPACTIONS = prometheus_client.Counter(
     "user_replay_index_compactions_total", "Index compactions (evicted rows dropped, live rows renumbered)"
+)
+DISK_FULL = prometheus_client.Gauge(
+    "user_replay_disk_full",
+    "1 while commits fail because replay's disk is full (Insert ends RESOURCE_EXHAUSTED, Sample still works), else 0",
+)
+FAILED_COMMITS = prometheus_client.Counter(
+    "user_replay_failed_commits_total",
+    "Write transactions that did not commit (nothing of them stored or acknowledged), by reason",
+    ["reason"],
 )
 
 
@@ -360,6 +373,8 @@ class ReplayStore:
         self._queue_cond = threading.Condition()
         self._writer: threading.Thread | None = None
         self._closing = False
+        self.disk_full = False  # the last commit failed for want of space (the writer thread sets it)
+        self._failing: type[Exception] | None = None  # the kind of error failing commits now: logged once per run
         self._lock = threading.RLock()  # index, hot tier, LMDB read transactions vs map growth
         self.db = StepDB(
             path,
@@ -391,6 +406,7 @@ class ReplayStore:
             self._rebuild()
             if not readonly:
                 self._warm()
+                DISK_FULL.set(0)
         except BaseException:
             self.db.close()
             raise
@@ -588,7 +604,8 @@ class ReplayStore:
         specs: Iterable[robot_pb2.RobotSpec] = (),
         table: str | list[str] = ONLINE,
     ) -> Future[tuple[int, int]]:
-        """Queue steps for the writer; the future resolves once they are committed and indexed.
+        """Queue steps for the writer; the future resolves once they are committed and indexed. Cancelling
+        the future before the writer takes it withdraws the steps (nothing of them is written).
 
         Group commit: the writer merges everything queued (from every stream) into one transaction,
         so one fsync covers many requests, and callers serialize the next steps while it syncs.
@@ -650,21 +667,64 @@ class ReplayStore:
                     )
                 ):
                     item = self._queue.popleft()
+                    if not item.future.set_running_or_notify_cancel():  # its stream ended on a failed commit
+                        continue
                     group.append(item)
                     n += len(item.steps)
                     size += item.nbytes
-            try:
-                self._commit_group(group)
-            except ReplayError:  # attribute the failure: commit each request alone
-                for item in group:
-                    try:
-                        self._commit_group([item])
-                    except Exception as exc:
-                        item.future.set_exception(exc)
-            except Exception as exc:
-                for item in group:
-                    if not item.future.done():
-                        item.future.set_exception(exc)
+            if group:
+                self._write(group)
+
+    def _write(self, group: list[_Pending]) -> None:
+        """Commit a group; a failure fails its requests (nothing of them stored) and the writer goes on."""
+        try:
+            self._commit_group(group)
+        except (DiskFullError, DiskWriteError) as exc:  # the disk, not a request: each alone would fail alike
+            self._failed(group, exc)
+        except ReplayError as exc:  # e.g. the map is full: attribute the failure, commit each request alone
+            self._count_failure(exc)
+            for item in group:
+                try:
+                    self._commit_group([item])
+                except Exception as exc:
+                    self._failed([item], exc)
+        except Exception as exc:
+            self._failed(group, exc)
+
+    def _failed(self, group: list[_Pending], exc: Exception) -> None:
+        self._count_failure(exc)
+        for item in group:
+            if not item.future.done():
+                item.future.set_exception(exc)
+
+    def _count_failure(self, exc: Exception) -> None:
+        """Count a transaction that did not commit; warn once per run of failures of one kind (every retry
+        of every edge fails alike until space returns)."""
+        reasons = {DiskFullError: "disk_full", DiskWriteError: "io_error", ReplayFullError: "map_full"}
+        FAILED_COMMITS.labels(reasons.get(type(exc), "error")).inc()
+        if type(exc) is not self._failing:
+            self._failing = type(exc)
+            if isinstance(exc, DiskFullError):
+                log.warning(
+                    "replay's disk is full: commits fail and Insert streams end RESOURCE_EXHAUSTED until space "
+                    "returns (edges keep unacknowledged steps and re-send them); health stays SERVING, Sample works",
+                    extra=kv(path=str(self.path), error=str(exc)),
+                )
+            else:
+                log.warning("replay commits fail", extra=kv(path=str(self.path), error=repr(exc)))
+        if isinstance(exc, DiskFullError) and not self.disk_full:
+            self.disk_full = True
+            DISK_FULL.set(1)
+
+    def _committed(self) -> None:
+        """A commit succeeded: a run of failures (a full disk) is over."""
+        if self._failing is None:
+            return
+        log.info("replay commits succeed again", extra=kv(path=str(self.path), was=self._failing.__name__))
+        self._failing = None
+        if self.disk_full:
+            self.disk_full = False
+            DISK_FULL.set(0)
 
     def _in_order(self, keys: list[bytes], scalars: list[tuple[float, int, int, int]]) -> bool:
         """Every step is its episode's next index after what is stored (so new, its predecessor waiting,
@@ -705,6 +765,7 @@ class ReplayStore:
             self.db.put_in_order(keys, raws, scalars, episode_tables, [spec for item in group for spec in item.specs])
         except NotInOrder:
             return False
+        self._committed()
         with self._lock:  # committed: only now may samples see these steps
             self._index_in_order(steps, keys, scalars, tables)
             self.inserted += len(keys)
@@ -727,6 +788,7 @@ class ReplayStore:
                 [r for item in group for r in item.raws],
                 self._tails,  # stored steps still waiting for their successor (this thread alone changes it)
             )
+            self._committed()
             # Committed: only now may samples see these steps.
             with self._lock:
                 self._index_committed(done.stored, done.sampleable)
