@@ -5,7 +5,8 @@ knows robots the experiment's selector picks, derives the `Layout` from their sp
 algorithm (`ALGORITHMS.build`, params checked against its typed model), resumes it from the
 experiment's checkpoint directory and publishes version 1 at once (actors get a policy before any
 training). An experiment that cannot start (robots of different layouts, params that do not fit them, a
-checkpoint this config cannot resume) is reported failed and writes no checkpoint; the others train. Then:
+checkpoint this config cannot resume, a published policy that does not fit its robots: checked before the
+first publish) is reported failed and writes no checkpoint; the others train. Then:
 
 - async (default): a sampler thread keeps `prefetch_batches` decoded batches ready while the training
   thread updates as fast as it can, bounded by the update-to-data cap (max_updates_per_transition x
@@ -69,10 +70,10 @@ from user.experiments import (
     takes_policy,
 )
 from user.log import kv
-from user.policy import POLICIES, PolicyChoice
+from user.policy import POLICIES, PolicyChoice, build_policy, check_fit, placeholders
 from user.registry import PluginError
 from user.spec import action_dim
-from user.v1 import control_pb2, control_pb2_grpc, replay_pb2, replay_pb2_grpc, robot_pb2
+from user.v1 import control_pb2, control_pb2_grpc, learner_pb2, replay_pb2, replay_pb2_grpc, robot_pb2
 from user.weights import WeightStore
 from user.wire import WireError, from_tensor
 
@@ -86,6 +87,12 @@ WEIGHT_VERSION = prometheus_client.Gauge(
     "user_learner_weight_version", "Latest published weight version", ["experiment"]
 )
 SCALARS = prometheus_client.Gauge("user_learner_scalar", "Last update's scalars (losses, ...)", ["experiment", "name"])
+# A failed experiment trains no more while the others go on: an alert needs a series, not a log line.
+EXPERIMENT_FAILED = prometheus_client.Gauge(
+    "user_learner_experiment_failed",
+    "1 when the learner marked the experiment failed (GetStatus says why), 0 while it runs",
+    ["experiment"],
+)
 BATCH_WAIT = prometheus_client.Histogram(
     "user_learner_batch_wait_seconds",
     "Time the training loop waited for a prefetched batch",
@@ -468,6 +475,7 @@ class ExperimentRun:
         self.learner, self.index, self.exp = learner, index, exp
         self.lc = learner.lc
         self.state = learner.experiment_states[exp.name]
+        EXPERIMENT_FAILED.labels(exp.name).set(0)
         self.layout = layout_for(exp, specs)
         self.specs = {s.robot_id: s for s in specs}
         self.state.robot_ids = sorted(self.specs)
@@ -488,6 +496,7 @@ class ExperimentRun:
         self.stopped = threading.Event()  # control stopped the experiment: no sampling, no updates
         self.pretrain_updates = 0  # updates done on experiments[].pretrain.table (checkpointed)
         self.normalization: dict[str, Any] | None = None  # state_mean/state_std the algorithm was built with
+        self._fit_checked = False  # the published policy was checked against the layout (before the first publish)
 
     def set_stopped(self, stopped: bool) -> None:
         if stopped == self.stopped.is_set():
@@ -759,6 +768,7 @@ class ExperimentRun:
         cannot start (`stop_learner` False: its checkpoint does not fit the config) fails alone, as at start."""
         self.state.state = "failed"
         self.state.error = str(exc) if isinstance(exc, LearnerError) else f"{type(exc).__name__}: {exc}"
+        EXPERIMENT_FAILED.labels(self.exp.name).set(1)
         self._stop.set()
         if not stop_learner:
             log.error("experiment cannot start", extra=kv(experiment=self.exp.name, error=self.state.error))
@@ -1044,12 +1054,29 @@ class ExperimentRun:
             with self._lock:
                 dims = {s.kind: action_dim(s) for s in self.specs.values()}
             spec = padded_spec(spec, widths, {kind: dims[kind] for kind in self.layout.embodiments})
+        if not self._fit_checked:  # a policy that cannot drive these robots fails the experiment, never published
+            self._check_fit(spec, tensors, version)
+            self._fit_checked = True
         write_version_mark(self.ckpt_dir, version)  # before anyone can see it
         self.learner.store.publish(version, spec, tensors, int(self.algo.updates), experiment=self.exp.name)
         st = self.state
         st.weight_version, st.policy_kind, st.last_publish_ns = version, spec.kind, time.time_ns()
         WEIGHT_VERSION.labels(self.exp.name).set(version)
         log.info("weights published", extra=kv(experiment=self.exp.name, version=version, updates=self.algo.updates))
+
+    def _check_fit(self, spec: learner_pb2.PolicySpec, tensors: dict[str, np.ndarray], version: int) -> None:
+        """LearnerError naming the experiment and the mismatch unless the policy the algorithm returns reads only
+        features of this experiment's layout and acts with its action size (built once, on the CPU)."""
+        features = {k: (f.shape, f.dtype) for k, f in self.layout.observation.items()}
+        try:
+            policy = build_policy(spec, tensors, version, "cpu")
+            check_fit(policy, placeholders(features), self.layout.action_dim)
+        except Exception as exc:  # a plug-in policy that cannot even be built from its spec fits nothing either
+            why = str(exc) if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}"
+            raise LearnerError(
+                f"experiment {self.exp.name}: the {spec.kind!r} policy that algorithm {self.exp.algorithm.kind!r} "
+                f"publishes does not fit its robots: {why}"
+            ) from None
 
     def checkpoint(self) -> None:
         updates = int(self.algo.updates)
@@ -1213,6 +1240,7 @@ class Learner:
             except ValueError as exc:
                 log.error("a defined experiment cannot train", extra=kv(experiment=info.name, error=str(exc)))
                 failed = ExperimentState(info.name, "", state="failed", error=str(exc))
+                EXPERIMENT_FAILED.labels(info.name).set(1)
                 self.experiment_states = {**self.experiment_states, info.name: failed}
                 self.defined.add(info.name)
                 continue
@@ -1238,6 +1266,7 @@ class Learner:
             self.runs = {n: r for n, r in self.runs.items() if n != name}
             self.experiments = [e for e in self.experiments if e.name != name]
             self.experiment_states = {n: st for n, st in self.experiment_states.items() if n != name}
+            EXPERIMENT_FAILED.remove(name)  # gone, not failed: a stale 1 would alert for ever
             log.info("experiment removed by control; training ends", extra=kv(experiment=name))
 
     def _on_robots(self, specs: list[robot_pb2.RobotSpec]) -> None:
@@ -1271,6 +1300,7 @@ class Learner:
         ours = isinstance(exc, LearnerError | LayoutError | PluginError)  # their messages name the field or robots
         state = self.experiment_states[exp.name]
         state.state, state.error = "failed", str(exc)
+        EXPERIMENT_FAILED.labels(exp.name).set(1)
         log.error(
             "experiment cannot start", exc_info=None if ours else exc, extra=kv(experiment=exp.name, error=str(exc))
         )

@@ -395,7 +395,8 @@ def test_policy_version_and_status_are_per_experiment() -> None:
 
 def test_a_state_of_the_wrong_shape_is_refused_when_the_robots_spec_is_known() -> None:
     """Routing learns each robot's spec from control: a (3, 5) or (1, 15) state for its (15,) feature is refused
-    naming the key (only the total count of 15 was checked), the declared shape is served."""
+    naming the key (only the total count of 15 was checked), so is a state of another dtype or a key the spec does
+    not declare; the declared shape is served."""
     from edge_agent.control_client import ControlClient
     from services.control.server import ControlService
     from tests.test_replay_store import spec
@@ -418,6 +419,16 @@ def test_a_state_of_the_wrong_shape_is_refused_when_the_robots_spec_is_known() -
         for shape in ((3, 5), (1, 15)):
             err = _refused(stub, _request(state=np.zeros(shape, np.float32)))
             assert err.code() == grpc.StatusCode.INVALID_ARGUMENT and "'state'" in err.details(), err.details()
+        # The dtype too, as replay checks a step's (the same check): a float32 state sent as another dtype.
+        for dtype in (np.float64, np.int64, np.bool_, np.uint8):
+            err = _refused(stub, _request(state=np.zeros(15, dtype)))
+            want = f"observation['state']: dtype {np.dtype(dtype).name}, spec says float32"
+            assert err.code() == grpc.StatusCode.INVALID_ARGUMENT and want in err.details(), err.details()
+        # Keys the spec does not declare, small or large, are refused before anything is decoded.
+        for extra in (np.zeros(3, np.float32), np.zeros(8 << 20, np.uint8)):
+            err = _refused(stub, _request(state=np.zeros(15, np.float32), extra=extra))
+            assert err.code() == grpc.StatusCode.INVALID_ARGUMENT and "extra ['extra']" in err.details(), err.details()
+        assert stub.Act(_request(), timeout=30).policy_version == 4
     finally:
         edge.close()
         inference.stop()

@@ -3,7 +3,7 @@
 userctl control|replay|inference|learner|edge --config configs/demo.yaml [--set a.b=c] [--ready-file F]
 userctl up --config configs/demo.yaml      # the whole stack locally, with a live console
 userctl health HOST:PORT [HOST:PORT ...]   # a status line each; exit 0 when all are SERVING (docker health checks)
-userctl plugins                            # every registered kind: `interface kind description` per line
+userctl plugins                            # each kind: `interface kind description`; exit 1 if a plug-in did not load
 userctl plugins INTERFACE KIND             # the params that kind takes: name, type, default, description
 userctl replay ls|export|import ...        # a replay buffer's tables; LeRobotDataset out and in
 userctl reward train --frames DIR --out DIR  # success classifier for the `classifier` task
@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import sys
 from typing import Any
 
@@ -84,7 +85,7 @@ def _service_help(name: str) -> dict[str, Any]:
 
 
 def _plugins(interface: str | None = None, kind: str | None = None) -> int:
-    from user.registry import PluginError, Registry, params_lines, plugin_lines
+    from user.registry import PluginError, import_errors, params_lines, plugin_lines
 
     if interface is not None:
         if kind is None:
@@ -96,11 +97,17 @@ def _plugins(interface: str | None = None, kind: str | None = None) -> int:
             print(f"userctl plugins: {exc}", file=sys.stderr)
             return 2
         return 0
-    print("\n".join(sorted(plugin_lines())))
-    for reg in Registry._all.values():
-        for module, error in sorted(reg.import_errors.items()):
-            print(f"userctl plugins: {reg.interface} module {module} not loaded: {error}", file=sys.stderr)
-    return 0
+    registry_log = logging.getLogger("user.registry")
+    level = registry_log.level
+    registry_log.setLevel(logging.ERROR)  # its warnings are the lines printed below, once each
+    try:
+        print("\n".join(sorted(plugin_lines())))
+        errors = import_errors()
+    finally:
+        registry_log.setLevel(level)
+    for module, error in sorted(errors.items()):
+        print(f"userctl plugins: module {module} not loaded: {error}", file=sys.stderr)
+    return 1 if errors else 0  # an installed plug-in that did not load is a failure (CI, install checks)
 
 
 def _health(targets: list[str], auth: AuthConfig, timeout_s: float) -> int:

@@ -8,6 +8,7 @@ process can rebuild it without unpickling anything. New kinds are one class in a
 from __future__ import annotations
 
 import json
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -220,6 +221,46 @@ def build_policy(
     except PluginError as exc:
         raise ValueError(str(exc)) from None
     return entry.cls.from_wire(spec, tensors, version, device)
+
+
+def check_sizes(observation: Mapping[str, np.ndarray], policy: Policy) -> None:
+    """ValueError unless the keys the policy reads fit its forward: their total feature count where the policy
+    declares one (obs_dim), then the policy's own per-key checks (state sizes, image shapes and dtype)."""
+    obs_dim = getattr(policy, "obs_dim", None)
+    if obs_dim is not None:
+        got = sum(int(a.size) for a in observation.values())
+        if got != int(obs_dim):
+            shapes = {k: list(a.shape) for k, a in observation.items()}
+            raise ValueError(f"observation has {got} features {shapes}, the policy expects {obs_dim}")
+    policy.check_observation(observation)
+
+
+def check_fit(policy: Policy, observation: Mapping[str, np.ndarray], action_dim: int, kind: str = "") -> None:
+    """ValueError naming the mismatch unless `policy` can act for robots whose observations look like `observation`
+    (placeholders in the robots' shapes and dtypes) and whose actions have `action_dim` values. `kind`: the robot
+    kind, for a policy across embodiments (its `action_dims` cut the action per kind, as fit_action does).
+    Checked before a policy is published or served, so a misfit fails loudly once instead of robots holding."""
+    optional = set(getattr(policy, "optional_obs_keys", ()))
+    keys = tuple(policy.observation_keys) or tuple(observation)
+    missing = [k for k in keys if k not in observation and k not in optional]
+    if missing:
+        raise ValueError(f"the policy reads observation keys {missing}; the robots have {sorted(observation)}")
+    shape = tuple(policy.action_shape)
+    dims = getattr(policy, "action_dims", None) or {}
+    served = min(math.prod(shape), int(dims[kind])) if kind in dims else math.prod(shape)
+    if served != action_dim:
+        raise ValueError(
+            f"the policy's action has {served} values (action_shape {list(shape)}); the robots' has {action_dim}"
+        )
+    horizon = policy.chunk_horizon
+    if not isinstance(horizon, int) or horizon < 1:
+        raise ValueError(f"the policy's chunk_horizon is {horizon!r}; it must be a whole number >= 1")
+    check_sizes({k: observation[k] for k in keys if k in observation}, policy)
+
+
+def placeholders(features: Mapping[str, tuple[Sequence[int], str]]) -> dict[str, np.ndarray]:
+    """name -> (shape, numpy dtype name) as zero-cost zero arrays, for check_fit (nothing is allocated)."""
+    return {k: np.broadcast_to(np.zeros((), np.dtype(dtype)), tuple(shape)) for k, (shape, dtype) in features.items()}
 
 
 def check_device(device: str) -> torch.device:

@@ -11,8 +11,10 @@ A config entry names the kind and gives its params; `build` validates them again
 `Params` model (pydantic, extra fields forbidden) and fails with the dotted field at start. Plug-ins
 are found without an import list: every module of the interface's package is imported on first use,
 and installed packages may add more through the `user.plugins` entry-point group (each entry point
-names a module to import). A module that fails to import (an optional dependency is missing) is
-remembered and reported, not fatal for the others.
+names a module to import). The built-in packages of every interface load before any entry point, so a
+plug-in that registers a kind a built-in has is the one refused, the same way in every process. A module
+that fails to import (an optional dependency is missing) is remembered and reported once, not fatal for
+the others.
 """
 
 from __future__ import annotations
@@ -35,6 +37,12 @@ log = logging.getLogger(__name__)
 
 ENTRY_POINT_GROUP = "user.plugins"
 _DISCOVERY_LOCK = threading.RLock()  # one lock for all registries: plug-in imports may touch several
+# Entry-point and interface modules that failed to import -> why. Global, not per interface: one entry point may
+# register in several interfaces, and is reported once.
+_OTHER_ERRORS: dict[str, str] = {}
+_entry_points_loaded = False
+_entry_points_done = False  # every entry point imported: lookups may skip the lock
+_builtins_loading = False
 
 
 class PluginParams(BaseModel):
@@ -69,16 +77,29 @@ class Registry[T]:
         Registry._all[interface] = self
 
     def register(self, kind: str, description: str | None = None) -> Callable[[type[T]], type[T]]:
+        """Class decorator. ValueError when the kind has no description (neither given nor a docstring) or another
+        class has it: built-ins load before any outside plug-in registers, so that is the one refused."""
+
         def deco(cls: type[T]) -> type[T]:
             if not (isinstance(cls, type) and issubclass(cls, self.base)):
                 raise TypeError(f"{cls!r} registered as a {self.interface} does not subclass {self.base.__name__}")
             params = getattr(cls, "Params", PluginParams)
             if not (isinstance(params, type) and issubclass(params, PluginParams)):
                 raise TypeError(f"{cls.__name__}.Params must subclass user.registry.PluginParams")
-            text = description or next(iter((cls.__doc__ or "").strip().splitlines()), "")
+            text = (description or next(iter((cls.__doc__ or "").strip().splitlines()), "")).strip()
+            if not text:  # `userctl plugins` lists one described line per kind
+                raise ValueError(
+                    f"{self.interface} kind {kind!r} ({_qualname(cls)}) has no description: "
+                    "pass register(kind, description=...) or give the class a docstring"
+                )
+            if not _is_builtin(cls):
+                _load_builtins()  # a plug-in imported before discovery must not take a built-in's kind
             existing = self._entries.get(kind)
             if existing is not None and existing.cls is not cls:
-                raise ValueError(f"{self.interface} kind {kind!r} is already registered by {existing.cls.__name__}")
+                raise ValueError(
+                    f"{self.interface} kind {kind!r} is already registered by {_qualname(existing.cls)}; "
+                    f"{_qualname(cls)} is refused"
+                )
             self._entries[kind] = Entry(self.interface, kind, cls, params, text)
             return cls
 
@@ -90,26 +111,27 @@ class Registry[T]:
         # Threads (weight subscribers building policies) may look up kinds at once: the first discovers
         # while the others wait, so no one sees a half-imported registry. Re-entrant: a plug-in module
         # that looks up kinds while being imported does not deadlock.
-        with _DISCOVERY_LOCK:
-            if self._discovered:
-                return
-            self._discovered = True
-            try:
-                pkg = importlib.import_module(self.package)
-            except ImportError as exc:
-                self.import_errors[self.package] = str(exc)
-                return
-            for info in pkgutil.iter_modules(getattr(pkg, "__path__", []), prefix=f"{self.package}."):
-                self._import(info.name)
-            for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
-                self._import(ep.value.split(":")[0])
+        if self._discovered and _entry_points_done:  # set only once every import finished
+            return
+        discover_all()
 
-    def _import(self, module: str) -> None:
+    def _load_package(self) -> None:
+        """Import every module of this interface's package (its built-in plug-ins)."""
         try:
-            importlib.import_module(module)
-        except Exception as exc:  # an optional dependency missing must not hide the other plug-ins
-            self.import_errors[module] = f"{type(exc).__name__}: {exc}"
-            log.debug("plug-in module not loaded", extra={"module": module, "error": str(exc)})
+            pkg = importlib.import_module(self.package)
+            for info in pkgutil.iter_modules(getattr(pkg, "__path__", []), prefix=f"{self.package}."):
+                if error := _import(info.name):
+                    self.import_errors[info.name] = error
+                    log.debug("plug-in module not loaded", extra={"plugin_module": info.name, "error": error})
+        except ImportError as exc:
+            self.import_errors[self.package] = f"{type(exc).__name__}: {exc}"
+        finally:
+            self._discovered = True
+
+    @property
+    def all_import_errors(self) -> dict[str, str]:
+        """This interface's package modules and the entry points that failed to import (a kind may be in either)."""
+        return {**self.import_errors, **_OTHER_ERRORS}
 
     # ------------------------------------------------------------------ lookup and build
 
@@ -125,7 +147,8 @@ class Registry[T]:
         try:
             return self._entries[kind]
         except KeyError:
-            hint = f"; not loaded: {self.import_errors}" if self.import_errors else ""
+            errors = self.all_import_errors
+            hint = f"; not loaded: {errors}" if errors else ""
             raise PluginError(
                 f"{where}: unknown {self.interface} kind {kind!r}; known: {sorted(self._entries)}{hint}"
             ) from None
@@ -148,13 +171,81 @@ class Registry[T]:
         return self.get(kind).cls(params, **context)  # type: ignore[call-arg]
 
 
-def registries() -> Iterator[Registry[Any]]:
-    """Every interface's registry, for `userctl plugins`. Importing the interface modules creates them."""
-    for module in INTERFACE_MODULES:
+def _qualname(cls: type) -> str:
+    return f"{cls.__module__}.{cls.__qualname__}"
+
+
+def _import(module: str) -> str | None:
+    """None, or why `module` could not be imported (an optional dependency missing must not hide the others)."""
+    try:
+        importlib.import_module(module)
+    except Exception as exc:
+        return f"{type(exc).__name__}: {exc}"
+    return None
+
+
+def _is_builtin(cls: type) -> bool:
+    return any(cls.__module__.startswith(f"{reg.package}.") for reg in list(Registry._all.values()))
+
+
+def _load_builtins() -> None:
+    """Every interface's built-in package, before any plug-in from outside registers (re-entrant: a no-op while
+    loading, so built-in modules importing each other do not recurse)."""
+    global _builtins_loading
+    with _DISCOVERY_LOCK:
+        if _builtins_loading:
+            return
+        _builtins_loading = True
         try:
-            importlib.import_module(module)
-        except ImportError as exc:
-            log.warning("interface module not importable", extra={"module": module, "error": str(exc)})
+            _import_interfaces()
+            while pending := [reg for reg in list(Registry._all.values()) if not reg._discovered]:
+                for reg in pending:
+                    reg._load_package()
+        finally:
+            _builtins_loading = False
+
+
+def _import_interfaces() -> None:
+    """Importing an interface module creates its registry."""
+    for module in INTERFACE_MODULES:
+        if module not in _OTHER_ERRORS and (error := _import(module)):
+            _OTHER_ERRORS[module] = error
+            log.warning("interface module not importable", extra={"plugin_module": module, "error": error})
+
+
+def _load_entry_points() -> None:
+    """The `user.plugins` entry points, once per process, after the built-ins."""
+    global _entry_points_loaded, _entry_points_done
+    if _entry_points_loaded or _builtins_loading:  # a lookup while built-ins import: entry points wait for them
+        return
+    _entry_points_loaded = True
+    for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
+        module = ep.value.split(":")[0]
+        if error := _import(module):
+            _OTHER_ERRORS[module] = error
+            log.warning("plug-in entry point not loaded", extra={"plugin_module": module, "error": error})
+    _entry_points_done = True
+
+
+def discover_all() -> None:
+    """Built-ins of every interface, then the entry points (what any registry's first lookup does)."""
+    with _DISCOVERY_LOCK:
+        _load_builtins()
+        _load_entry_points()
+
+
+def import_errors() -> dict[str, str]:
+    """Every plug-in module that failed to import -> why, each module once (for `userctl plugins`)."""
+    discover_all()
+    errors: dict[str, str] = {}
+    for reg in registries():
+        errors.update(reg.import_errors)
+    return {**errors, **_OTHER_ERRORS}
+
+
+def registries() -> Iterator[Registry[Any]]:
+    """Every interface's registry, for `userctl plugins`."""
+    _import_interfaces()
     yield from (Registry._all[name] for name in sorted(Registry._all))
 
 

@@ -29,6 +29,11 @@ Heavy preprocessing stays off the gRPC threads: a policy that defines
 instructions, copy to the device in one go) has it run here, once per group, and its `act` then
 receives what preprocess returned. Every answer carries its stage times: queue (submit -> its
 group starts), preprocess, forward and postprocess (un-batching).
+
+A policy that raises, or returns a batch or row of the wrong shape, fails only the requests it was
+serving (their callers get the exception); it is logged with its traceback once per policy version
+and stage (a broken policy fails every request: one traceback each would flood the log) and every
+failed request is reported to `on_failure` (the service counts them).
 """
 
 from __future__ import annotations
@@ -37,7 +42,7 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -58,6 +63,8 @@ ActFn = Callable[[Any, bool], np.ndarray]
 PreprocessFn = Callable[[Mapping[str, np.ndarray], Sequence[str]], Any]
 # Called once per policy forward: (batch size, compute seconds).
 BatchObserver = Callable[[int, float], None]
+# Called whenever requests fail in the policy: (stage "forward" | "begin" | "step", requests failed).
+FailureObserver = Callable[[str, int], None]
 ACTIVE_WINDOW_S = 1.0  # a robot counts as active this long after its last request or answer
 RETURN_WAIT_FRACTION = 0.25  # longest wait for returning robots, as a share of a recent forward
 FORWARD_EWMA = 0.3  # weight of the newest batch in the recent-forward estimate
@@ -102,6 +109,15 @@ class _Served:
     version: int
     preprocess: PreprocessFn | None = None
     stepped: SteppedSampler | None = None  # batch continuously: the policy's forward in steps
+    row_shapes: frozenset[tuple[int, ...]] = frozenset()  # what one row of its result may be (empty: unchecked)
+
+    def check_rows(self, actions: np.ndarray, rows: int, what: str) -> None:
+        """ValueError unless `actions` has one row per request, each of a shape the policy declares."""
+        if actions.shape[:1] != (rows,):
+            raise ValueError(f"policy {what} shape {actions.shape} for a batch of {rows}")
+        if self.row_shapes and tuple(actions.shape[1:]) not in self.row_shapes:
+            declared = sorted(list(shape) for shape in self.row_shapes)
+            raise ValueError(f"policy {what} rows of shape {list(actions.shape[1:])}; it declares {declared}")
 
 
 @dataclass
@@ -158,6 +174,7 @@ class MicroBatcher:
         name: str = "batcher",
         workers: int = 1,
         on_join: Callable[[int], None] | None = None,
+        on_failure: FailureObserver | None = None,
     ) -> None:
         if max_batch < 1:
             raise ValueError("max_batch must be >= 1")
@@ -168,6 +185,8 @@ class MicroBatcher:
         self.max_wait_s = max(0.0, max_wait_ms) / 1000.0
         self.on_batch = on_batch
         self.on_join = on_join  # called with the size of each group that joins a running continuous batch
+        self.on_failure = on_failure
+        self._failure_logged: dict[str, int] = {}  # stage -> the policy version whose failure was logged
         self.name = name
         self._queue: queue.Queue[_Request] = queue.Queue()
         self._policy: _Served | None = None
@@ -213,13 +232,16 @@ class MicroBatcher:
         version: int,
         preprocess: PreprocessFn | None = None,
         stepped: SteppedSampler | None = None,
+        row_shapes: Collection[tuple[int, ...]] = (),
     ) -> None:
         """Swap the policy; a batch in progress finishes with the one it started with (no request fails).
 
         With `stepped` (the policy's forward in parts) the batch is continuous: requests that arrive
-        while it runs join it at its next step, and each leaves when its own steps are done."""
+        while it runs join it at its next step, and each leaves when its own steps are done. `row_shapes`:
+        the shapes one row of its result may have (an action, or a chunk); a result row of another fails."""
+        shapes = frozenset(tuple(int(d) for d in shape) for shape in row_shapes)
         with self._lock:
-            self._policy = _Served(act, int(version), preprocess, stepped)
+            self._policy = _Served(act, int(version), preprocess, stepped, shapes)
 
     @property
     def version(self) -> int | None:
@@ -408,12 +430,12 @@ class MicroBatcher:
             members = [_Member(r, start, encode_start, preprocess_us) for r in reqs]
             self._ready.put(_Rolling(policy, rows, members))
         except Exception as exc:
-            log.exception("policy begin failed", extra=kv(size=len(reqs), version=policy.version))
+            self._log_failure("begin", policy.version, len(reqs))
             if len(reqs) > 1:  # as in _forward: each row alone, so one robot's input fails only that robot
                 for req in reqs:
                     self._begin(policy, [req])
                 return
-            self._fail(reqs, exc)
+            self._policy_failed("begin", reqs, exc)
 
     def _step(self, rolling: list[_Rolling]) -> None:
         """One step for each rolling batch; rows whose steps are done are answered and leave."""
@@ -435,11 +457,10 @@ class MicroBatcher:
                 shared = [batch.shared(m) for m, d in zip(batch.members, done, strict=True) if d]
                 finished_rows, finished = batch.leave(done)
                 actions = np.asarray(stepped.finish(finished_rows))
-                if actions.shape[:1] != (len(finished),):
-                    raise ValueError(f"policy finished shape {actions.shape} for {len(finished)} rows")
+                batch.served.check_rows(actions, len(finished), "finished")
             except Exception as exc:
-                log.exception("policy step failed", extra=kv(size=len(batch.members), version=batch.served.version))
-                self._fail(batch.requests() + [m.req for m in finished], exc)
+                self._log_failure("step", batch.served.version, len(batch.members) + len(finished))
+                self._policy_failed("step", batch.requests() + [m.req for m in finished], exc)
                 rolling.remove(batch)
                 continue
             if not batch.members:
@@ -479,16 +500,15 @@ class MicroBatcher:
             forward_start = time.perf_counter()
             actions = np.asarray(policy.act(stacked, reqs[0].deterministic))
             forward_end = time.perf_counter()
-            if actions.shape[:1] != (len(reqs),):
-                raise ValueError(f"policy returned shape {actions.shape} for a batch of {len(reqs)}")
+            policy.check_rows(actions, len(reqs), "returned")
             rows = [np.array(actions[i], dtype=np.float32) for i in range(len(reqs))]
         except Exception as exc:
-            log.exception("policy forward failed", extra=kv(size=len(reqs), version=policy.version))
+            self._log_failure("forward", policy.version, len(reqs))
             if len(reqs) > 1:  # one robot's input may be what failed: each alone, so the others still get answers
                 for req in reqs:
                     self._forward(policy, [req])
                 return
-            reqs[0].future.set_exception(exc)
+            self._policy_failed("forward", reqs, exc)
             return
         end = time.perf_counter()
         compute_s = forward_end - forward_start
@@ -509,6 +529,25 @@ class MicroBatcher:
             req.future.set_result(
                 ActResult(row, policy.version, queue_us, compute_us, len(reqs), preprocess_us, postprocess_us)
             )
+
+    def _log_failure(self, stage: str, version: int, size: int) -> None:
+        """The policy failed at `stage`: its traceback once per version (call it inside the except block)."""
+        with self._lock:
+            first = self._failure_logged.get(stage) != version
+            self._failure_logged[stage] = version
+        if first:
+            log.exception(
+                f"policy {stage} failed; its requests get the error and their robots hold (logged once a version)",
+                extra=kv(size=size, version=version),
+            )
+        else:
+            log.debug(f"policy {stage} failed again", extra=kv(size=size, version=version))
+
+    def _policy_failed(self, stage: str, reqs: list[_Request], exc: BaseException) -> None:
+        """Answer `reqs` with the policy's error and count them."""
+        self._fail(reqs, exc)
+        if self.on_failure is not None and reqs:
+            self.on_failure(stage, len(reqs))
 
     def _fail_pending(self, exc: Exception) -> None:
         while True:

@@ -26,12 +26,21 @@ import torch
 
 from services.inference.batcher import ActResult, BatcherStopped, MicroBatcher, NoPolicyError
 from user import rpc, wire
+from user import spec as contract
 from user.config import ConfigError, ExperimentConfig, RobotSelector, StackConfig
 from user.experiments import EMBODIMENT_KEY, embodiment_inputs, fit_action
 from user.log import kv
-from user.policy import Policy, SteppedSampler, build_policy, check_device
+from user.policy import (
+    Policy,
+    SteppedSampler,
+    build_policy,
+    check_device,
+    check_fit,
+    check_sizes,
+    placeholders,
+)
 from user.spec import MAX_ROBOT_ID_BYTES
-from user.v1 import inference_pb2, inference_pb2_grpc
+from user.v1 import inference_pb2, inference_pb2_grpc, robot_pb2
 from user.v1 import tensor_pb2 as tpb
 from user.weights import WeightSet, WeightSubscriber
 from user.worker import WorkerReporter, report_worker
@@ -56,7 +65,7 @@ BATCH_SIZE = prometheus_client.Histogram(
 QUEUE_SECONDS = prometheus_client.Histogram(
     "user_inference_queue_seconds",
     "Time an Act request waited to be batched",
-    buckets=(0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.025, 0.05, 0.1, 0.5),
+    buckets=(0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10),
 )
 JOINED = prometheus_client.Counter(
     "user_inference_joined_total",
@@ -65,7 +74,7 @@ JOINED = prometheus_client.Counter(
 COMPUTE_SECONDS = prometheus_client.Histogram(
     "user_inference_compute_seconds",
     "Policy forward time per batch",
-    buckets=(0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.025, 0.05, 0.1, 0.5),
+    buckets=(0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10),
 )
 ENCODED_FRAMES = prometheus_client.Counter(
     "user_inference_encoded_frames_total",
@@ -77,6 +86,16 @@ POLICY_VERSION = prometheus_client.Gauge(
     "user_inference_policy_version", "Version of the policy being served, per experiment", ["experiment"]
 )
 WEIGHT_UPDATES = prometheus_client.Counter("user_inference_weight_updates_total", "Weight sets loaded")
+FORWARD_FAILURES = prometheus_client.Counter(
+    "user_inference_forward_failures_total",
+    "Acts answered INTERNAL because the policy raised or returned a batch or action of the wrong shape",
+    ["experiment", "stage"],
+)
+POLICY_MISFITS = prometheus_client.Counter(
+    "user_inference_policy_misfits_total",
+    "Policies that do not fit the robots they would serve: versions refused at load, Acts refused (never acted on)",
+    ["experiment", "at"],
+)
 NON_FINITE_ACTIONS = prometheus_client.Counter(
     "user_inference_non_finite_actions_total",
     "Acts answered INTERNAL because the policy produced NaN/Inf actions (never sent to a robot)",
@@ -106,17 +125,6 @@ def _read_keys(policy: Policy, observation: Collection[str]) -> list[str]:
     return keys
 
 
-def _check_sizes(observation: Mapping[str, np.ndarray], policy: Policy) -> None:
-    """The total feature count of a policy that declares one (obs_dim), then the policy's own per-key checks."""
-    obs_dim = getattr(policy, "obs_dim", None)
-    if obs_dim is not None:
-        got = sum(int(a.size) for a in observation.values())
-        if got != int(obs_dim):
-            shapes = {k: list(a.shape) for k, a in observation.items()}
-            raise ValueError(f"observation has {got} features {shapes}, the policy expects {obs_dim}")
-    policy.check_observation(observation)
-
-
 def validate_observation(observation: Mapping[str, np.ndarray], policy: Policy) -> dict[str, np.ndarray]:
     """Keep the keys the policy reads, as float32 (uint8 stays uint8; an image keeps the dtype it came in, for the
     policy's check to name); ValueError on a mismatch."""
@@ -129,44 +137,52 @@ def validate_observation(observation: Mapping[str, np.ndarray], policy: Policy) 
             if not np.isfinite(arr).all():
                 raise ValueError(f"observation {k!r} has NaN or Inf")
         out[k] = arr
-    _check_sizes(out, policy)
+    check_sizes(out, policy)
     return out
 
 
 def decode_observation(
-    tmap: tpb.TensorMap, policy: Policy, kind: str = "", spec_shapes: Mapping[str, tuple[int, ...]] | None = None
+    tmap: tpb.TensorMap, policy: Policy, kind: str = "", spec: robot_pb2.RobotSpec | None = None
 ) -> dict[str, np.ndarray]:
-    """An Act's observation, checked against the policy before anything is decoded: the keys it reads are checked
-    from their declared dtype and shape (as zero-cost placeholders: keys, feature counts, image sizes; and each
-    key's shape against the robot's spec when `spec_shapes` has it), their declared bytes are capped
-    (RequestTooLarge), and only then are those keys decoded; keys the policy does not read are never decoded.
-    ValueError (WireError) on a mismatch."""
+    """An Act's observation, checked before anything is decoded. Where the robot's spec is known, first against it
+    as replay checks a step's (its keys and no others, each of its dtype and shape, finite). Then the keys the policy
+    reads are checked from their declared dtype and shape (as zero-cost placeholders: keys, feature counts, image
+    sizes), their declared bytes are capped (RequestTooLarge), and only then are those keys decoded; keys the policy
+    does not read are never decoded. ValueError (WireError) on a mismatch."""
     tensors = tmap.tensors
+    if spec is not None:  # the edge checks its observations against this spec: it sends no others
+        _cap_bytes(tensors, list(tensors))  # before the check decodes them
+        contract.check_tensor_map("observation", tmap, spec.observation)
     # A policy across embodiments gets EMBODIMENT_KEY from the robot's kind (embodiment_inputs), never from the wire.
     added = [EMBODIMENT_KEY] if getattr(policy, "embodiments", None) else []
     keys = [k for k in _read_keys(policy, [*tensors, *added]) if k not in added]
     images = policy.image_shapes
-    placeholders: dict[str, np.ndarray] = {}
-    total = 0
+    shaped: dict[str, np.ndarray] = {}
     for key in keys:
         tensor = tensors[key]
         try:
-            total += wire.declared_nbytes(tensor)
             dtype = wire.decoded_dtype(tensor.dtype)
         except wire.WireError as exc:
             raise wire.WireError(f"observation {key!r}: {exc}") from None
         if dtype != np.uint8 and key not in images:
             dtype = np.dtype(np.float32)  # as validate_observation casts it
-        shape = tuple(int(d) for d in tensor.shape)
-        declared = spec_shapes.get(key) if spec_shapes is not None else None
-        if declared is not None and shape != declared:
-            raise ValueError(f"observation {key!r} has shape {list(shape)}, the robot's spec declares {list(declared)}")
-        placeholders[key] = np.broadcast_to(np.zeros((), dtype), shape)
-    _check_sizes(embodiment_inputs(policy, kind, placeholders), policy)
-    if total > MAX_ACT_DECODED_BYTES:
-        raise RequestTooLarge(f"observation would decode to {total} bytes, over the {MAX_ACT_DECODED_BYTES} of an Act")
+        shaped[key] = np.broadcast_to(np.zeros((), dtype), tuple(int(d) for d in tensor.shape))
+    check_sizes(embodiment_inputs(policy, kind, shaped), policy)
+    _cap_bytes(tensors, keys)
     raw = wire.from_tensor_map(tmap, strict=True, keys=keys)
     return validate_observation(embodiment_inputs(policy, kind, raw), policy)
+
+
+def _cap_bytes(tensors: Mapping[str, tpb.Tensor], keys: Collection[str]) -> None:
+    """RequestTooLarge when `keys` would decode to more than MAX_ACT_DECODED_BYTES (from their declared shapes)."""
+    total = 0
+    for key in keys:
+        try:
+            total += wire.declared_nbytes(tensors[key])
+        except wire.WireError as exc:
+            raise wire.WireError(f"observation {key!r}: {exc}") from None
+    if total > MAX_ACT_DECODED_BYTES:
+        raise RequestTooLarge(f"observation would decode to {total} bytes, over the {MAX_ACT_DECODED_BYTES} of an Act")
 
 
 class RoutingError(LookupError):
@@ -190,12 +206,16 @@ class PolicySlot:
             name=f"inference-batch-{experiment}",
             workers=icfg.batch_workers,
             on_join=JOINED.inc,
+            on_failure=lambda stage, n: FORWARD_FAILURES.labels(experiment, stage).inc(n),
         )
         self.policy: Policy | None = None
         self.subscriber: WeightSubscriber | None = None
         self._load_lock = threading.Lock()
         self._non_finite_logged = -1  # the policy version whose non-finite actions were logged (once a version)
         self.non_finite = NON_FINITE_ACTIONS.labels(experiment)
+        # robot_id -> (policy, spec, why the policy cannot drive it or ""): checked once per policy and spec
+        self._fits: dict[str, tuple[Policy, robot_pb2.RobotSpec, str]] = {}
+        self._misfit_logged: dict[str, int] = {}  # robot kind -> the policy version whose misfit was logged
 
     def load_weights(self, weights: WeightSet) -> Policy:
         """Rebuild the policy from a weight set and serve it; raises ValueError (keeping the old one) if bad,
@@ -204,13 +224,16 @@ class PolicySlot:
         tensors = weights.policy_tensors()
         check_finite_weights(tensors, weights.version)
         policy = build_policy(weights.policy, tensors, weights.version, self.service.cfg.inference.device)
+        self._check_fits_some(policy)
+        shape = tuple(policy.action_shape)
         with self._load_lock:
             self.policy = policy
             # A policy with its own batched preprocess gets it run in the batcher thread, not per request.
             preprocess = getattr(policy, "preprocess", None)
             act = policy.forward if preprocess is not None else policy.act  # type: ignore[attr-defined]
             continuous = self.service.cfg.inference.continuous_batching and isinstance(policy, SteppedSampler)
-            self.batcher.set_policy(act, policy.version, preprocess, policy if continuous else None)
+            rows = [shape, (policy.chunk_horizon, *shape)]  # an action, or a chunk of them
+            self.batcher.set_policy(act, policy.version, preprocess, policy if continuous else None, rows)
         WEIGHT_UPDATES.inc()
         POLICY_VERSION.labels(self.experiment).set(policy.version)
         log.info(
@@ -224,6 +247,39 @@ class PolicySlot:
         )
         return policy
 
+    def _check_fits_some(self, policy: Policy) -> None:
+        """PolicyMisfit (counted; the caller keeps the previous policy) when robots are routed here and the policy
+        fits none of them. One that fits some is served: the others are refused per Act (misfit)."""
+        specs = self.service.router.specs_in(self.experiment)
+        reasons = [f"{s.robot_id} ({s.kind}): {why}" for s in specs if (why := policy_misfit(policy, s))]
+        if specs and len(reasons) == len(specs):
+            POLICY_MISFITS.labels(self.experiment, "load").inc()
+            served = self.policy.version if self.policy is not None else None
+            raise PolicyMisfit(
+                f"experiment {self.experiment}: policy version {policy.version} ({policy.spec.kind}) fits none of its "
+                f"robots, refused (still serving version {served}): {reasons[0]}"
+            )
+
+    def misfit(self, policy: Policy, spec: robot_pb2.RobotSpec) -> str:
+        """Why `policy` cannot drive this robot ("" when it can): checked once per policy and robot spec, counted
+        per Act refused, logged once per policy version and robot kind."""
+        cached = self._fits.get(spec.robot_id)
+        if cached is not None and cached[0] is policy and cached[1] is spec:
+            why = cached[2]
+        else:
+            why = policy_misfit(policy, spec)
+            self._fits[spec.robot_id] = (policy, spec, why)  # a race between RPC threads stores the same answer
+        if why:
+            POLICY_MISFITS.labels(self.experiment, "act").inc()
+            if self._misfit_logged.get(spec.kind) != policy.version:
+                self._misfit_logged[spec.kind] = policy.version
+                log.error(
+                    "the policy does not fit a robot it serves; that robot gets FAILED_PRECONDITION and holds "
+                    "(logged once a version and robot kind)",
+                    extra=kv(experiment=self.experiment, version=policy.version, robot_id=spec.robot_id, error=why),
+                )
+        return why
+
     def note_non_finite(self, version: int) -> None:
         """The policy of `version` produced a NaN/Inf action: counted always, logged once per version."""
         self.non_finite.inc()
@@ -233,6 +289,21 @@ class PolicySlot:
                 "the policy produced non-finite actions; those robots get INTERNAL and hold (logged once a version)",
                 extra=kv(experiment=self.experiment, version=version),
             )
+
+
+class PolicyMisfit(ValueError):
+    """A policy that does not fit the robots it would serve (its observation keys, feature sizes or action size)."""
+
+
+def policy_misfit(policy: Policy, spec: robot_pb2.RobotSpec) -> str:
+    """Why `policy` cannot act for a robot of `spec` ("" when it can), from the spec's declared features."""
+    features = contract.features(spec)
+    observation = placeholders({k: (f.shape, f.dtype) for k, f in features.items()})
+    try:
+        check_fit(policy, embodiment_inputs(policy, spec.kind, observation), contract.action_dim(spec), spec.kind)
+    except Exception as exc:  # a plug-in's declarations may raise anything: a clear status, never UNKNOWN
+        return str(exc) if isinstance(exc, ValueError) else f"{type(exc).__name__}: {exc}"
+    return ""
 
 
 def check_finite_weights(tensors: Mapping[str, np.ndarray], version: int) -> None:
@@ -256,7 +327,7 @@ class Router:
         self.cfg = cfg
         self.experiments = cfg.resolved_experiments()
         self._routes: dict[str, tuple[str, str]] = {}  # robot_id -> (experiment, robot kind)
-        self._shapes: dict[str, dict[str, tuple[int, ...]]] = {}  # robot_id -> its spec's feature shapes
+        self._specs: dict[str, robot_pb2.RobotSpec] = {}  # robot_id -> its spec, as control lists it
         self._lock = threading.Lock()
         self._refreshed = 0.0
         self._channel: grpc.Channel | None = None
@@ -310,24 +381,29 @@ class Router:
             raise RoutingError(
                 grpc.StatusCode.UNAVAILABLE, f"control unreachable for routing: {err.code().name}"
             ) from None
-        routes, unselected, shapes = {}, set(), {}
+        routes, unselected, specs = {}, set(), {}
         experiments = self.experiments
         for info in resp.robots:
             exp = experiment_for(info.spec, experiments)
             if exp is not None:
                 routes[info.spec.robot_id] = (exp.name, info.spec.kind)
-                shapes[info.spec.robot_id] = {f.name: tuple(int(d) for d in f.shape) for f in info.spec.observation}
+                specs[info.spec.robot_id] = info.spec
             else:
                 unselected.add(info.spec.robot_id)
         with self._lock:
             self._routes.update(routes)
-            self._shapes.update(shapes)
+            self._specs.update(specs)
             self._unselected = unselected
 
-    def feature_shapes(self, robot_id: str) -> Mapping[str, tuple[int, ...]] | None:
-        """The observation shapes the robot's spec declares, when routing learned them from control (else None)."""
+    def spec(self, robot_id: str) -> robot_pb2.RobotSpec | None:
+        """The robot's spec, when routing learned it from control (else None)."""
         with self._lock:
-            return self._shapes.get(robot_id)
+            return self._specs.get(robot_id)
+
+    def specs_in(self, experiment: str) -> list[robot_pb2.RobotSpec]:
+        """The specs of the robots routed to `experiment` so far."""
+        with self._lock:
+            return [self._specs[r] for r, route in self._routes.items() if route[0] == experiment and r in self._specs]
 
     def _stub(self) -> Any:
         from user.v1 import control_pb2_grpc
@@ -425,10 +501,15 @@ class InferenceServicer(inference_pb2_grpc.InferenceServicer):
         policy = slot.policy
         if policy is None:
             raise _ActError(grpc.StatusCode.UNAVAILABLE, "no policy yet")
-        try:
-            obs = decode_observation(
-                request.observation, policy, kind, self.service.router.feature_shapes(request.robot_id)
+        spec = self.service.router.spec(request.robot_id)
+        why = slot.misfit(policy, spec) if spec is not None else ""
+        if why:
+            raise _ActError(
+                grpc.StatusCode.FAILED_PRECONDITION,
+                f"the policy (version {policy.version}) does not fit robot {request.robot_id!r}: {why}",
             )
+        try:
+            obs = decode_observation(request.observation, policy, kind, spec)
         except RequestTooLarge as exc:
             raise _ActError(grpc.StatusCode.RESOURCE_EXHAUSTED, f"bad observation: {exc}") from None
         except ValueError as exc:  # WireError is a ValueError
