@@ -7,19 +7,26 @@ are never read. Loading uses torch.load(weights_only=True): these files are ours
 A checkpoint that does not load (a torn disk write, `truncate`) is skipped with a warning for the next
 older one, never deleted; pruning keeps the newest files at or below the one just written, so files of a
 higher count (such a skipped one) neither push this run's own checkpoints out nor get deleted.
+
+One learner per checkpoint directory (`lock_checkpoint_dir`): two would publish one weight version number
+with different weights. A write the disk refuses (ENOSPC) raises CheckpointWriteError with no temp file left
+and the previous checkpoint still named by `latest`; temp files a killed writer left are removed at start
+(`sweep_temp_files`, under the lock, so no live writer owns them).
 """
 
 from __future__ import annotations
 
+import fcntl
 import logging
 import os
 import re
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import torch
 
+from user.config import ConfigError
 from user.log import kv
 
 log = logging.getLogger(__name__)
@@ -28,10 +35,80 @@ LATEST = "latest"
 VERSION_MARK = "weight_version"  # the highest weight version ever published from this directory
 KEEP = 3
 _NAME = re.compile(r"^ckpt-(\d{9,})\.pt$")
+OWNER_LOCK = "owner.lock"  # flocked by the learner using the directory; holds its pid for the refusal message
+# Our temp files: mkstemp's (".<final name>.<8 of [a-z0-9_]>.tmp") and the per-pid version mark older builds wrote.
+_TEMP = re.compile(r"^\.(?:(?:ckpt-\d{9,}\.pt|latest|weight_version)\.[a-z0-9_]{8}|weight_version\.\d+)\.tmp$")
 
 
 class CheckpointError(RuntimeError):
     """Checkpoints exist but none of them can be read: training must not silently start over."""
+
+
+class CheckpointDirInUse(ConfigError):
+    """Another live process holds the checkpoint directory (a second learner on one learner.checkpoint_dir)."""
+
+
+class CheckpointWriteError(OSError):
+    """A checkpoint file could not be written (ENOSPC, EIO, ...): nothing partial is left and the previous
+    checkpoint is still the one `latest` names. errno is the cause's; `path` the file that was not written."""
+
+    def __init__(self, path: Path, cause: OSError) -> None:
+        super().__init__(cause.errno, f"checkpoint not written: {cause.strerror or cause}", str(path))
+        self.path = path
+
+
+class CheckpointDirLock:
+    """The exclusive flock on a checkpoint directory's owner.lock; release() (or leaving the `with`) drops it.
+    The kernel drops it too when the process dies, kill -9 included, so a restarted learner takes it at once."""
+
+    def __init__(self, path: Path, fd: int) -> None:
+        self.path, self._fd = path, fd
+
+    def release(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)  # closing the fd drops its flock
+            self._fd = -1
+
+    def __enter__(self) -> CheckpointDirLock:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+def lock_checkpoint_dir(path: str | Path) -> CheckpointDirLock:
+    """Take `path` (learner.checkpoint_dir) for this process, before any checkpoint is read or written.
+    Raises CheckpointDirInUse naming the holder's pid when another process, or another lock of this one, has it."""
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path / OWNER_LOCK, os.O_RDWR | os.O_CREAT, 0o644)  # O_CLOEXEC by default: children never hold it
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        pid = os.read(fd, 32).decode(errors="replace").strip() or "unknown"
+        os.close(fd)
+        raise CheckpointDirInUse(f"learner.checkpoint_dir {path} is in use by pid {pid}") from None
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    return CheckpointDirLock(path, fd)
+
+
+def sweep_temp_files(path: str | Path) -> list[Path]:
+    """Remove the temp files killed writers left in `path` (learner.checkpoint_dir) and its experiment
+    directories: only regular files named exactly as this module names its temp files. Call it holding the
+    directory's lock (lock_checkpoint_dir), so none of them belongs to a live writer. Returns what was removed."""
+    path = Path(path)
+    if not path.is_dir():
+        return []
+    dirs = [path, *(d for d in path.iterdir() if d.is_dir() and not d.is_symlink())]
+    removed = []
+    for entry in (e for d in dirs for e in os.scandir(d)):
+        if _TEMP.match(entry.name) and entry.is_file(follow_symlinks=False):
+            Path(entry.path).unlink(missing_ok=True)
+            removed.append(Path(entry.path))
+    if removed:
+        log.info("stale checkpoint temp files removed", extra=kv(path=str(path), files=[p.name for p in removed]))
+    return removed
 
 
 def _fsync_dir(path: Path) -> None:
@@ -46,17 +123,48 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
-def _write_atomic(path: Path, write: Any) -> None:
-    """write(file) into a temp file beside `path`, fsync, rename over `path`."""
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+class _Recorded:
+    """The temp file as torch.save sees it: torch reports a failed write (ENOSPC) only as a RuntimeError
+    ("unexpected pos"), so the OSError is kept here to say what happened."""
+
+    def __init__(self, f: BinaryIO) -> None:
+        self.f = f
+        self.error: OSError | None = None
+
+    def write(self, data: Any) -> int:
+        try:
+            return self.f.write(data)
+        except OSError as exc:
+            self.error = self.error or exc
+            raise
+
+    def flush(self) -> None:
+        self.f.flush()
+
+
+def _write_atomic(path: Path, write: Any, durable: bool = True) -> None:
+    """write(file) into a temp file beside `path`, fsync (if durable), rename over `path`. An OSError on the way
+    (the temp file's own, or under torch.save's RuntimeError) raises CheckpointWriteError with the temp removed."""
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise CheckpointWriteError(path, exc) from exc
+    out: _Recorded | None = None
     try:
         with os.fdopen(fd, "wb") as f:
-            write(f)
+            out = _Recorded(f)
+            write(out)
             f.flush()
-            os.fsync(f.fileno())
+            if durable:
+                os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         Path(tmp).unlink(missing_ok=True)
+        cause = exc if isinstance(exc, OSError) else None
+        if cause is None and out is not None:
+            cause = out.error  # torch.save's RuntimeError over a failed write
+        if cause is not None:
+            raise CheckpointWriteError(path, cause) from exc
         raise
 
 
@@ -79,13 +187,25 @@ def list_checkpoints(ckpt_dir: str | Path) -> list[Path]:
 
 
 def save_checkpoint(ckpt_dir: str | Path, state: dict[str, Any], keep: int = KEEP) -> Path:
-    """Write `state` (must hold "updates") atomically, point `latest` at it, keep the newest `keep`."""
+    """Write `state` (must hold "updates") atomically, point `latest` at it, keep the newest `keep`.
+    CheckpointWriteError when the disk refuses (ENOSPC): nothing of this save is left, `latest` and the
+    previous checkpoint are as they were, so the caller may log it and try again later."""
     ckpt_dir = Path(ckpt_dir)
-    ckpt_dir.mkdir(parents=True, exist_ok=True)
     path = ckpt_dir / checkpoint_name(int(state["updates"]))
+    try:
+        ckpt_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CheckpointWriteError(ckpt_dir, exc) from exc
     _write_atomic(path, lambda f: torch.save(state, f))
-    _write_atomic(ckpt_dir / LATEST, lambda f: f.write(path.name.encode() + b"\n"))
-    _fsync_dir(ckpt_dir)
+    try:
+        _write_atomic(ckpt_dir / LATEST, lambda f: f.write(path.name.encode() + b"\n"))
+        _fsync_dir(ckpt_dir)
+    except OSError as exc:
+        if latest_path(ckpt_dir) != path:  # never named: a file nobody loads, taking the room the disk lacks
+            path.unlink(missing_ok=True)
+        if isinstance(exc, CheckpointWriteError):
+            raise
+        raise CheckpointWriteError(ckpt_dir / LATEST, exc) from exc
     # Only files below this one are pruned: a higher count is not this run's (e.g. an unreadable newest one it
     # fell back from) and must not push this run's own recent checkpoints out.
     below = [p for p in list_checkpoints(ckpt_dir) if _updates_of(p) < _updates_of(path)]
@@ -154,13 +274,11 @@ def read_version_mark(ckpt_dir: str | Path) -> int:
 def write_version_mark(ckpt_dir: str | Path, version: int, durable: bool = False) -> None:
     """Record `version` before it is published, so a restarted learner (even after kill -9) never
     reuses a number: a version names one weight set forever. Atomic (rename); fsync only if durable,
-    since a process crash keeps the page cache and a power loss also loses the subscribers' state."""
+    since a process crash keeps the page cache and a power loss also loses the subscribers' state.
+    CheckpointWriteError (no temp file left) when the disk refuses: that version must not be published."""
     ckpt_dir = Path(ckpt_dir)
-    ckpt_dir.mkdir(parents=True, exist_ok=True)
-    path = ckpt_dir / VERSION_MARK
-    if durable:
-        _write_atomic(path, lambda f: f.write(f"{version}\n".encode()))
-        return
-    tmp = ckpt_dir / f".{VERSION_MARK}.{os.getpid()}.tmp"
-    tmp.write_text(f"{version}\n")
-    os.replace(tmp, path)
+    try:
+        ckpt_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise CheckpointWriteError(ckpt_dir, exc) from exc
+    _write_atomic(ckpt_dir / VERSION_MARK, lambda f: f.write(f"{version}\n".encode()), durable=durable)

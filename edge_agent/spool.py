@@ -16,14 +16,19 @@ Two kinds behind one small interface:
   every second; with it, every commit is flushed (power loss too, ~2 ms a step on these disks).
 - `MemoryOutbox`: the same in RAM, bounded by a step count (today's behaviour; lost on a crash).
 
-A full spool (the next step would pass `max_bytes`, itself at most what half the free disk holds)
-follows its policy: `drop_oldest` deletes the oldest steps
-to make room (counted); `pause` keeps every step and reports `accepting = False`, which the robot
-loop obeys by holding still until acks free space. Steps set aside (`quarantine`) are not awaiting an
-ack: they leave `count`, are moved back and tried again when the spool is next opened or when the sender
-sees replay take their robot's steps again (`release_quarantined`: an operator may have let the token
-write it meanwhile), and are the first to go when room is needed under either policy, so refused steps
-never make the robots hold.
+A full spool (the next step would pass `max_bytes`) follows its policy: `drop_oldest` deletes the oldest
+steps to make room (counted); `pause` keeps every step and reports `accepting = False`, which the robot
+loop obeys by holding still until acks free space. `max_bytes` is the configured cap lowered to what the
+disk allows now: the spool's pages may fill half of its file plus the free disk (LMDB deletes copy pages
+too, so acks still work on a full spool). It is re-read from the disk every second, on acks and as the
+spool grows, so a disk another process fills or frees moves it both ways. A write the disk refuses anyway
+(ENOSPC) lowers it to what the spool holds until the free disk grows or acks free pages; under `pause` that
+step, and any that come while the disk has no room, wait in RAM (sent from there, counted, written to disk
+once it has room; lost only if the edge stops first) so nothing collected is dropped. Steps set aside
+(`quarantine`) are not awaiting an ack: they leave `count`, are moved back and tried again when the spool
+is next opened or when the sender sees replay take their robot's steps again (`release_quarantined`: an
+operator may have let the token write it meanwhile), and are the first to go when room is needed under
+either policy, so refused steps never make the robots hold.
 """
 
 from __future__ import annotations
@@ -65,8 +70,10 @@ SPOOL_FULL = prometheus_client.Gauge(
     "user_edge_spool_full", "1 while the outbox is at its cap (pause: robots hold; drop_oldest: dropping)"
 )
 
-_SYNC_EVERY_S = 1.0
+_SYNC_EVERY_S = 1.0  # also how often the free disk is re-read
 _DROP_LOG_EVERY_S = 10.0
+_META_PAGES = 2  # LMDB's two meta pages: in the file, in no database's stat
+_RECHECK_MIN_BYTES = 64 << 10  # a put re-reads the free disk after the spool grew by this or a quarter of its room
 _MAP_HEADROOM = 64 << 20  # LMDB pages cost more than the step bytes they hold; the map grows past this too
 
 
@@ -215,6 +222,22 @@ class SpoolInUse(RuntimeError):
     """Another live process owns this spool (two agents with one agent_id on one machine)."""
 
 
+def _pages(stat: dict[str, int]) -> int:
+    return stat["branch_pages"] + stat["leaf_pages"] + stat["overflow_pages"]
+
+
+def _take_owner(path: Path) -> int:
+    """One owner at a time: two writers would hand out the same seqs. The kernel drops the lock when its
+    process dies, kill -9 included, so a restarted edge takes it over at once. Returns the locked fd."""
+    fd = os.open(path / "owner.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise SpoolInUse(f"spool {path} is used by another live process (same edge.agent_id?)") from None
+    return fd
+
+
 class LmdbSpool(Outbox):
     """Steps in a local LMDB environment at `path` until acked; see the module docstring."""
 
@@ -223,19 +246,18 @@ class LmdbSpool(Outbox):
             raise ValueError(f"spool full policy must be pause or drop_oldest, got {policy!r}")
         self.path = Path(path)
         self.path.mkdir(parents=True, exist_ok=True)
-        # One owner at a time: two writers would hand out the same seqs. The kernel drops the lock when
-        # its process dies, kill -9 included, so a restarted edge takes it over at once.
-        self._owner = os.open(self.path / "owner.lock", os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(self._owner, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(self._owner)
-            raise SpoolInUse(f"spool {self.path} is used by another live process (same edge.agent_id?)") from None
+        self._owner = _take_owner(self.path)
+        self.asked_bytes = max_bytes  # the configured cap: max_bytes never goes above it
         self.max_bytes = max_bytes
         self.policy = policy
+        self._fsync = fsync
         self._lock = threading.Lock()
         self._last_size = 0  # bytes of the newest step: "full" means the next one like it would not fit
-        self._disk_error = False
+        self._disk_error = False  # a write failed: the cap stays at what the spool held until the disk changes
+        self._free_at_error = 0
+        self._recheck_at = 0  # spool + held bytes past which a put re-reads the free disk
+        self._pending: dict[int, tuple[bytes, str]] = {}  # pause, disk full: seq -> (step, table), in seq order
+        self._pending_bytes = 0
         self._last_drop_log = -float("inf")
         self._env = lmdb.open(
             str(self.path), map_size=2 * max_bytes + _MAP_HEADROOM, max_dbs=4, sync=fsync, metasync=fsync
@@ -246,28 +268,17 @@ class LmdbSpool(Outbox):
         self._held = self._env.open_db(b"held")  # seq -> step replay refused for this identity (quarantine)
         self._held_count = self._held_bytes = 0
         restored, _ = self._restore_held()
-        with self._env.begin() as txn:
-            self._next_seq = self._meta_int(txn, b"next_seq", 1)
-            self._bytes = self._meta_int(txn, b"bytes", 0)
-            self.dropped = self._meta_int(txn, b"dropped", 0)
-            self._count = txn.stat(self._steps)["entries"]
-            last = txn.cursor(self._steps)
-            if last.last():  # next_seq is committed with each put; this only guards a hand-edited file
-                self._next_seq = max(self._next_seq, int.from_bytes(last.key(), "big") + 1)
-        self._closed = threading.Event()
-        self._syncer: threading.Thread | None = None
-        if not fsync:
-            self._syncer = threading.Thread(target=self._sync_loop, name="spool-sync", daemon=True)
-            self._syncer.start()
-        # LMDB needs free pages even to delete (copy-on-write): the cap leaves half the free disk spare,
-        # so a full spool is reached, and drained by acks, before the disk is.
-        room = self._bytes + shutil.disk_usage(self.path).free // 2
-        if room < max_bytes:
-            self.max_bytes = room
+        self._load_meta()
+        with self._lock:
+            self._refresh_cap()
+        if self.max_bytes < max_bytes:
             log.warning(
                 "spool cap lowered to half the free disk",
-                extra=kv(path=str(self.path), asked_bytes=max_bytes, max_bytes=room),
+                extra=kv(path=str(self.path), asked_bytes=max_bytes, max_bytes=self.max_bytes),
             )
+        self._closed = threading.Event()
+        self._keeper = threading.Thread(target=self._keep_loop, name="spool-sync", daemon=True)
+        self._keeper.start()
         self._publish_metrics()
         log.info(
             "spool opened",
@@ -278,6 +289,16 @@ class LmdbSpool(Outbox):
                 "steps replay refused earlier for this agent's token are tried again",
                 extra=kv(path=str(self.path), steps=restored),
             )
+
+    def _load_meta(self) -> None:
+        with self._env.begin() as txn:
+            self._next_seq = self._meta_int(txn, b"next_seq", 1)
+            self._bytes = self._meta_int(txn, b"bytes", 0)
+            self.dropped = self._meta_int(txn, b"dropped", 0)
+            self._count = txn.stat(self._steps)["entries"]
+            last = txn.cursor(self._steps)
+            if last.last():  # next_seq is committed with each put; this only guards a hand-edited file
+                self._next_seq = max(self._next_seq, int.from_bytes(last.key(), "big") + 1)
 
     def _restore_held(self) -> tuple[int, int]:
         """Move steps set aside back among the kept ones (same seqs, so send order holds), at open (the token
@@ -312,60 +333,161 @@ class LmdbSpool(Outbox):
         raw = txn.get(name, db=self._meta)
         return int.from_bytes(raw, "big") if raw is not None else default
 
+    # ------------------------------------------------------------------ the cap and the disk
+
+    def _disk_room(self, free: int) -> int:
+        """Bytes the spool may still fill (negative: it holds more than its share): its file's free pages plus
+        half of the free disk beyond its file, i.e. its pages stay within half of (its file + the free disk).
+        Stable as the spool grows (file and free disk change together), so re-reading it never creeps up."""
+        psize = self._env.stat()["psize"]
+        file_pages = self._env.info()["last_pgno"] + 1
+        with self._env.begin() as txn:
+            dbs = (self._steps, self._meta, self._tables, self._held)
+            used = _META_PAGES + _pages(self._env.stat()) + sum(_pages(txn.stat(db)) for db in dbs)
+        return (file_pages - used) * psize + (free - file_pages * psize) // 2
+
+    def _free_disk(self) -> int | None:
+        try:
+            return shutil.disk_usage(self.path).free  # statvfs
+        except OSError as exc:  # never fails a put: the cap stays as it was
+            log.warning("spool cannot read the free disk", extra=kv(path=str(self.path), error=str(exc)))
+            return None
+
+    def _refresh_cap(self, freed: bool = False) -> None:
+        """Caller holds the lock. The cap from the disk as it is now: at most the configured one, and otherwise
+        never below what the spool holds (a tighter disk never drops kept steps by itself). After a write failed
+        it stays lowered until the free disk grew or acks freed pages (`freed`): a retry needs a change."""
+        free = self._free_disk()
+        if free is None or (self._disk_error and free <= self._free_at_error and not freed):
+            return
+        if self._disk_error:
+            log.info("spool disk has room again; cap recomputed", extra=kv(path=str(self.path), free_bytes=free))
+        self._disk_error = False
+        held = self._bytes + self._held_bytes
+        room = self._disk_room(free)
+        self.max_bytes = min(self.asked_bytes, held + max(0, room))
+        self._recheck_at = held + max(room // 4, _RECHECK_MIN_BYTES)
+
+    def _note_disk_full(self, exc: lmdb.Error) -> None:
+        """Caller holds the lock. The disk refused a write before the cap: the cap drops to what the spool holds
+        until the disk changes (see _refresh_cap), so pause holds the robots and drop_oldest recycles pages."""
+        if not self._disk_error:
+            log.error("spool disk full; cap lowered until space returns", extra=kv(path=str(self.path), error=str(exc)))
+        self._disk_error = True
+        self._free_at_error = self._free_disk() or 0
+        self.max_bytes = min(self.max_bytes, self._bytes + self._held_bytes)
+
+    def _keep_loop(self) -> None:
+        """Flush commits to the device every second (unless each commit is fsynced) and re-read the free disk:
+        one another process filled lowers the cap before the spool hits it, one it freed lifts a lowered cap
+        even when no put or ack comes (a paused robot, an empty spool)."""
+        while not self._closed.wait(_SYNC_EVERY_S):
+            try:
+                if not self._fsync:
+                    self._env.sync(True)
+                with self._lock:
+                    self._refresh_cap()
+                    self._flush_pending()
+            except (lmdb.Error, OSError) as exc:  # a full or failing disk: the next round tries again
+                log.warning("spool upkeep failed", extra=kv(path=str(self.path), error=str(exc)))
+            self._publish_metrics()
+
+    # ------------------------------------------------------------------ put
+
     def put(self, step: step_pb2.Step, table: str = "") -> int:
         data = step.SerializeToString()
         with self._lock:
             was_full = self.full
             seq = self._next_seq
-            try:
-                dropped = self._write(seq, data, table)
-                self._disk_error = False
-            except lmdb.Error as exc:  # the disk filled before the cap
-                dropped = self._disk_full(seq, data, table, exc)
-            self._next_seq += 1
-            self._last_size = len(data)
+            if self._bytes + self._held_bytes > self._recheck_at:  # grown a good part of its room: is it still there?
+                self._refresh_cap()
+            dropped = self._store(seq, data, table)
+            # Only now: the sender takes every seq up to last_seq as readable (or acked or dropped).
+            self._next_seq, self._last_size = seq + 1, len(data)
         if self.policy == "pause" and self.full and not was_full:
             log.warning(
                 "spool full; robots hold until replay acknowledges steps",
-                extra=kv(path=str(self.path), steps=self._count, bytes=self._bytes),
+                extra=kv(path=str(self.path), steps=self.count, bytes=self.nbytes),
             )
         if dropped:
-            SPOOL_DROPPED.inc(dropped)
-            now = time.monotonic()
-            if now - self._last_drop_log >= _DROP_LOG_EVERY_S:  # at the cap every step drops one: log rarely
-                self._last_drop_log = now
-                log.warning("spool full; dropping the oldest steps", extra=kv(path=str(self.path), total=self.dropped))
+            self._log_dropped()
         self._publish_metrics()
         return seq
 
+    def _log_dropped(self) -> None:
+        now = time.monotonic()
+        if now - self._last_drop_log < _DROP_LOG_EVERY_S:  # at the cap every step drops one: log rarely
+            return
+        self._last_drop_log = now
+        what = "the oldest steps" if self.policy == "drop_oldest" else "steps replay refused (set aside)"
+        log.warning(f"spool full; dropping {what}", extra=kv(path=str(self.path), total=self.dropped))
+
+    def _count_dropped(self, n: int) -> int:
+        self.dropped += n
+        SPOOL_DROPPED.inc(n)
+        return n
+
+    def _store(self, seq: int, data: bytes, table: str) -> int:
+        """Caller holds the lock. Steps waiting in RAM go to disk first, so seq order holds; this one after
+        them (in RAM too while the disk has no room). Returns the steps dropped making room."""
+        dropped = self._flush_pending()
+        if self._pending:
+            self._keep_in_ram(seq, data, table)
+            return dropped
+        try:
+            return dropped + self._write(seq, data, table)
+        except lmdb.Error as exc:  # the disk filled before the cap
+            return dropped + self._disk_full(seq, data, table, exc)
+
     def _disk_full(self, seq: int, data: bytes, table: str, exc: lmdb.Error) -> int:
-        """Caller holds the lock. The disk filled before the cap: the cap drops to the bytes held now.
-        drop_oldest frees the oldest 1 % in a transaction of its own and retries; pause loses this one
-        step (counted) and reports full, so the robots hold until acks free space."""
-        if not self._disk_error:
-            log.error("spool disk full; cap lowered to what it holds", extra=kv(path=str(self.path), error=str(exc)))
-        self._disk_error = True
-        self.max_bytes = max(1, self._bytes + self._held_bytes)
-        freed = 0
-        if self._held_count:  # refused steps go first, whatever the policy
+        """Caller holds the lock. Steps set aside go first, whatever the policy; then drop_oldest frees the
+        oldest 1 % in a transaction of its own, and drops this step if even that fails. pause drops nothing
+        collected: the step waits in RAM, the spool reports full and the robots hold."""
+        self._note_disk_full(exc)
+        dropped = 0
+        if self._held_count:
             try:
                 with self._env.begin(write=True) as txn:
                     held, _ = self._drop_held(txn, self._held_bytes)
                     txn.put(b"dropped", _key(self.dropped + held), db=self._meta)
                 self._held_count = self._held_bytes = 0
-                self.dropped += held
-                freed += held
-                return freed + self._write(seq, data, table)
+                dropped += self._count_dropped(held)
+                return dropped + self._write(seq, data, table)
             except lmdb.Error:
                 pass
         if self.policy == "drop_oldest":
             try:
-                freed += self._drop_oldest(max(1, self._count // 100))
-                return freed + self._write(seq, data, table)
+                dropped += self._drop_oldest(max(1, self._count // 100))
+                return dropped + self._write(seq, data, table)
             except lmdb.Error:
-                pass
-        self.dropped += 1
-        return freed + 1
+                return dropped + self._count_dropped(1)
+        self._keep_in_ram(seq, data, table)
+        return dropped
+
+    def _keep_in_ram(self, seq: int, data: bytes, table: str) -> None:
+        """Caller holds the lock (pause, the disk has no room): the step waits in RAM, sent from there."""
+        if not self._pending:
+            log.warning(
+                "spool disk full; new steps wait in RAM until it has room (robots hold)",
+                extra=kv(path=str(self.path), seq=seq),
+            )
+        self._pending[seq] = (data, table)
+        self._pending_bytes += len(data)
+
+    def _flush_pending(self) -> int:
+        """Caller holds the lock. Write the steps waiting in RAM to disk, oldest first, unless the disk is known
+        to have no room; stops at the first it refuses. Returns the steps dropped making room."""
+        dropped = 0
+        while self._pending and not self._disk_error:
+            seq, (data, table) = next(iter(self._pending.items()))
+            try:
+                dropped += self._write(seq, data, table)
+            except lmdb.Error as exc:
+                self._note_disk_full(exc)
+                break
+            del self._pending[seq]
+            self._pending_bytes -= len(data)
+        return dropped
 
     def _drop_held(self, txn: lmdb.Transaction, need: int) -> tuple[int, int]:
         """Caller holds the lock, in `txn`. Drop the oldest steps set aside until `need` bytes are free or none
@@ -389,8 +511,7 @@ class LmdbSpool(Outbox):
             txn.put(b"bytes", _key(nbytes), db=self._meta)
             txn.put(b"dropped", _key(self.dropped + dropped), db=self._meta)
         self._bytes, self._count = nbytes, self._count - dropped
-        self.dropped += dropped
-        return dropped
+        return self._count_dropped(dropped)
 
     def _write(self, seq: int, data: bytes, table: str = "") -> int:
         """Caller holds the lock. One transaction: make room (drop_oldest), put, update meta."""
@@ -414,13 +535,12 @@ class LmdbSpool(Outbox):
                     if table:  # most steps go to the default table: nothing kept for them
                         txn.put(_key(seq), table.encode(), db=self._tables)
                     nbytes, count = nbytes + len(data), count + 1
-                    txn.put(b"next_seq", _key(seq + 1), db=self._meta)
+                    txn.put(b"next_seq", _key(max(seq + 1, self._next_seq)), db=self._meta)  # older ones from RAM too
                     txn.put(b"bytes", _key(nbytes), db=self._meta)
                     txn.put(b"dropped", _key(self.dropped + dropped), db=self._meta)
                 self._bytes, self._count = nbytes, count
                 self._held_count, self._held_bytes = held, held_bytes
-                self.dropped += dropped
-                return dropped
+                return self._count_dropped(dropped)
             except lmdb.MapFullError:
                 if attempt == 3:
                     raise
@@ -430,7 +550,21 @@ class LmdbSpool(Outbox):
                 self._env.set_mapsize(size)
         raise AssertionError("unreachable")
 
+    # ------------------------------------------------------------------ read, ack, set aside
+
     def read(self, after_seq: int, limit: int) -> list[replay_pb2.InsertRequest]:
+        if not self._pending:  # racy but safe: a step waiting in RAM later has a seq above all read here
+            return self._read_disk(after_seq, limit)
+        with self._lock:  # one view of RAM and disk: a step moving between them is seen exactly once
+            out = self._read_disk(after_seq, limit)
+            for seq, (data, table) in self._pending.items():
+                if seq > after_seq:
+                    req = replay_pb2.InsertRequest(seq=seq, table=table)
+                    req.step.ParseFromString(data)
+                    out.append(req)
+        return sorted(out, key=lambda r: r.seq)[:limit]
+
+    def _read_disk(self, after_seq: int, limit: int) -> list[replay_pb2.InsertRequest]:
         out: list[replay_pb2.InsertRequest] = []
         with self._env.begin(db=self._steps) as txn:
             cursor = txn.cursor()
@@ -446,46 +580,85 @@ class LmdbSpool(Outbox):
         return out
 
     def ack(self, seqs: Iterable[int]) -> int:
-        n = 0
+        seqs = list(seqs)
         with self._lock:
+            n = self._forget_pending(seqs)
             try:
-                with self._env.begin(write=True) as txn:
-                    nbytes = self._bytes
-                    for seq in seqs:
-                        value = txn.pop(_key(seq), db=self._steps)
-                        if value is not None:  # a step set aside keeps its table for when it is tried again
-                            txn.delete(_key(seq), db=self._tables)
-                            nbytes -= len(value)
-                            n += 1
-                    if n:
-                        txn.put(b"bytes", _key(nbytes), db=self._meta)
+                deleted = self._delete(seqs)
             except lmdb.Error as exc:  # a full disk: the steps stay and go again later (replay dedupes)
                 log.warning("spool could not forget acked steps", extra=kv(path=str(self.path), error=str(exc)))
-                return 0
-            self._bytes, self._count = nbytes, self._count - n
+                deleted = 0
+            if deleted:  # pages freed: room again, maybe
+                self._refresh_cap(freed=True)
+                self._flush_pending()
         self._publish_metrics()
+        return n + deleted
+
+    def _forget_pending(self, seqs: list[int]) -> int:
+        """Caller holds the lock. Drop acked steps still waiting in RAM; returns how many."""
+        n = 0
+        for seq in seqs:
+            kept = self._pending.pop(seq, None)
+            if kept is not None:
+                self._pending_bytes -= len(kept[0])
+                n += 1
+        return n
+
+    def _delete(self, seqs: list[int]) -> int:
+        """Caller holds the lock. Delete these seqs from disk in one transaction; returns how many were there."""
+        n = 0
+        with self._env.begin(write=True) as txn:
+            nbytes = self._bytes
+            for seq in seqs:
+                value = txn.pop(_key(seq), db=self._steps)
+                if value is not None:  # a step set aside keeps its table for when it is tried again
+                    txn.delete(_key(seq), db=self._tables)
+                    nbytes -= len(value)
+                    n += 1
+            if n:
+                txn.put(b"bytes", _key(nbytes), db=self._meta)
+        self._bytes, self._count = nbytes, self._count - n
         return n
 
     def quarantine(self, seqs: Iterable[int]) -> int:
-        n = 0
+        seqs = list(seqs)
         with self._lock:
+            in_ram = {seq: self._pending[seq] for seq in seqs if seq in self._pending}
             try:
-                with self._env.begin(write=True) as txn:
-                    nbytes, moved = self._bytes, 0
-                    for seq in seqs:
-                        value = txn.pop(_key(seq), db=self._steps)
-                        if value is not None:  # its `tables` entry stays: it goes to that table when retried
-                            txn.put(_key(seq), value, db=self._held)
-                            nbytes, moved, n = nbytes - len(value), moved + len(value), n + 1
-                    if n:
-                        txn.put(b"bytes", _key(nbytes), db=self._meta)
+                n, moved = self._set_aside(seqs, in_ram)
             except lmdb.Error as exc:  # a full disk: the steps stay and are refused again later
                 log.warning("spool could not set steps aside", extra=kv(path=str(self.path), error=str(exc)))
-                return 0
-            self._bytes, self._count = nbytes, self._count - n
-            self._held_count, self._held_bytes = self._held_count + n, self._held_bytes + moved
+                # Refused steps waiting in RAM would hold the robots (pause): they are the first to go anyway.
+                n, moved = self._count_dropped(self._forget_pending(list(in_ram))), 0
+            else:
+                self._forget_pending(list(in_ram))
+                self._held_count, self._held_bytes = self._held_count + n, self._held_bytes + moved
         self._publish_metrics()
         return n
+
+    def _set_aside(self, seqs: list[int], in_ram: dict[int, tuple[bytes, str]]) -> tuple[int, int]:
+        """Caller holds the lock. Move these seqs (from disk or RAM) to `held` in one transaction; returns
+        (steps, bytes) moved."""
+        n = moved = 0
+        with self._env.begin(write=True) as txn:
+            nbytes = self._bytes
+            for seq in seqs:
+                value = txn.pop(_key(seq), db=self._steps)
+                if value is not None:  # its `tables` entry stays: it goes to that table when retried
+                    txn.put(_key(seq), value, db=self._held)
+                    nbytes, moved, n = nbytes - len(value), moved + len(value), n + 1
+            for seq, (data, table) in in_ram.items():
+                txn.put(_key(seq), data, db=self._held)
+                if table:
+                    txn.put(_key(seq), table.encode(), db=self._tables)
+                moved, n = moved + len(data), n + 1
+            if n:
+                txn.put(b"bytes", _key(nbytes), db=self._meta)
+                txn.put(b"next_seq", _key(self._next_seq), db=self._meta)
+        self._bytes, self._count = nbytes, self._count - (n - len(in_ram))
+        return n, moved
+
+    # ------------------------------------------------------------------ state
 
     @property
     def quarantined(self) -> int:
@@ -493,11 +666,11 @@ class LmdbSpool(Outbox):
 
     @property
     def count(self) -> int:
-        return self._count
+        return self._count + len(self._pending)
 
     @property
     def nbytes(self) -> int:
-        return self._bytes
+        return self._bytes + self._pending_bytes
 
     @property
     def last_seq(self) -> int:
@@ -505,25 +678,26 @@ class LmdbSpool(Outbox):
 
     @property
     def full(self) -> bool:  # steps set aside are not counted: they make room when needed (see _write)
-        return self._bytes + self._last_size > self.max_bytes
-
-    def _sync_loop(self) -> None:
-        while not self._closed.wait(_SYNC_EVERY_S):
-            try:
-                self._env.sync(True)
-            except lmdb.Error:
-                return  # closed meanwhile
+        return bool(self._pending) or self._bytes + self._last_size > self.max_bytes
 
     def close(self) -> None:
         if self._closed.is_set():
             return
         self._closed.set()
-        if self._syncer is not None:
-            self._syncer.join()
+        self._keeper.join()
         with self._lock:
-            self._env.sync(True)
-            self._env.close()
-        os.close(self._owner)  # releases the owner lock
+            self._disk_error = False  # a last try for the steps waiting in RAM
+            self._flush_pending()
+            if self._pending:
+                log.error(
+                    "spool disk full at close; steps waiting in RAM are lost",
+                    extra=kv(path=str(self.path), steps=len(self._pending)),
+                )
+            try:
+                self._env.sync(True)
+            finally:
+                self._env.close()
+                os.close(self._owner)  # releases the owner lock
 
 
 def open_outbox(edge: EdgeConfig) -> Outbox:
