@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import logging
 import math
+import numbers
 import secrets
 import threading
 import time
@@ -31,7 +32,7 @@ from edge_agent.control_client import ControlClient
 from edge_agent.encoder import EncodedFrames, FrameEncoder, Plan, robot_plans
 from edge_agent.policy_source import PolicySource, make_policy_source
 from edge_agent.replay_client import ReplaySender
-from edge_agent.robot import Observation, Robot, action_bounds, clip_action, make_robot
+from edge_agent.robot import ROBOTS, Observation, Robot, action_bounds, clip_action, make_robot
 from edge_agent.spool import open_outbox
 from edge_agent.task import TASKS, Outcome, ParamError, Task
 from edge_agent.teleop import TELEOPERATORS, Teleoperator
@@ -39,6 +40,7 @@ from user import rpc, wire
 from user.config import ConfigError, RobotConfig, StackConfig
 from user.log import kv
 from user.registry import PluginError, Registry
+from user.spec import SpecError, StepError, action_check, check_observation, validate_spec
 from user.v1 import control_pb2, robot_pb2, step_pb2
 
 log = logging.getLogger(__name__)
@@ -47,13 +49,13 @@ LOOP_PERIOD = prometheus_client.Histogram(
     "user_edge_loop_period_seconds",
     "Time between consecutive control ticks",
     ["robot_id"],
-    buckets=(0.001, 0.002, 0.005, 0.01, 0.02, 0.03, 0.04, 0.05, 0.06, 0.08, 0.1, 0.15, 0.2, 0.5, 1.0),
+    buckets=(0.001, 0.002, 0.005, 0.01, 0.02, 0.03, 0.04, 0.05, 0.06, 0.08, 0.1, 0.15, 0.2, 0.5, 1.0, 2.5, 5.0),
 )
 LOOP_JITTER = prometheus_client.Histogram(
     "user_edge_loop_jitter_seconds",
     "|actual tick period - target period| in realtime mode",
     ["robot_id"],
-    buckets=(0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1),
+    buckets=(0.0001, 0.00025, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1.0),
 )
 LOOP_OVERRUNS = prometheus_client.Counter(
     "user_edge_loop_overruns_total", "Control ticks skipped because a step took longer than the period", ["robot_id"]
@@ -95,6 +97,20 @@ TELEOP_DETACHES = prometheus_client.Counter(
     "Teleoperators released and reconnected because their polls kept failing (unplugged)",
     ["robot_id"],
 )
+ROBOT_FAILED = prometheus_client.Gauge(
+    "user_edge_robot_failed",
+    "1 once a plug-in error (a bad observation, action, outcome or spec; a task that raised) stopped the robot's "
+    "loop for good: it holds and is not retried",
+    ["robot_id"],
+)
+ROBOT_FAILING = prometheus_client.Gauge(
+    "user_edge_robot_failing",
+    "1 while the robot's loop failed soon after each of its last attaches (hot-plug keeps retrying it)",
+    ["robot_id"],
+)
+ROBOT_FAULT = prometheus_client.Info(
+    "user_edge_robot_fault", "Why the robot failed or keeps failing: state (failed, failing) and error", ["robot_id"]
+)
 
 RATE_WINDOW_S = 5.0
 PERIOD_WINDOW = 1000  # recent tick periods kept for percentiles
@@ -105,6 +121,24 @@ TELEOP_DETACH_S = 1.0  # hot-plug: a teleoperator whose polls fail this long is 
 TELEOP_ERRORS_REMEMBERED = 8  # distinct teleoperator errors whose traceback a loop logged (not logged again)
 START_ALIGN_S = 0.1  # realtime: the robots' common first tick, this long after the agent starts them
 REFUSED = "control refused this agent"  # the reason of the hold a refusal puts on every robot
+FAILING_AFTER = 3  # hot-plug: loops in a row failing soon after attaching mark a robot failing (still retried)
+
+
+class PluginFault(Exception):
+    """A robot or task plug-in broke its contract (a bad observation, action or outcome; a task that raised).
+    Retrying cannot fix code, so unlike a hardware fault (hot-plug's detach and reconnect) the robot holds and
+    its loop stops for good."""
+
+
+def _kind_of(registry: Registry[Any], plugin: object) -> str:
+    """The registered kind of a plug-in instance (its class name when it was not built from the registry)."""
+    return next((e.kind for e in registry.entries() if e.cls is type(plugin)), type(plugin).__name__)
+
+
+def _report_fault(robot_id: str, state: str, error: str) -> None:
+    """The edge's metrics say which robots failed and why (`userctl up` reads them for its console and summary)."""
+    (ROBOT_FAILED if state == "failed" else ROBOT_FAILING).labels(robot_id).set(1)
+    ROBOT_FAULT.labels(robot_id).info({"state": state, "error": error})
 
 
 class _RobotMetrics:
@@ -182,7 +216,9 @@ class RobotLoop:
         action_deadline_s: float = 0.04,
         task: Task | None = None,
         teleop: Teleoperator | None = None,
+        where: str = "",
     ) -> None:
+        """`where`: the robot's config entry (edge.robots[2]), named by the error of a plug-in breaking its contract."""
         if mode not in ("realtime", "fast"):
             raise ValueError(f"mode must be realtime or fast, got {mode!r}")
         self.robot, self.policy, self.sink = robot, policy, sink
@@ -195,6 +231,7 @@ class RobotLoop:
         # fails alike) is one debug line, so a teleoperator that always fails does not repeat its traceback.
         self._teleop_errors_logged: deque[str] = deque(maxlen=TELEOP_ERRORS_REMEMBERED)
         self.robot_id = self.spec.robot_id
+        self.where = where or f"robot {self.robot_id}"
         self.mode = mode
         self.deadline_s = action_deadline_s
         rate = self.spec.control_rate_hz or 20.0
@@ -202,6 +239,8 @@ class RobotLoop:
         self.max_episode_steps = int(self.spec.max_episode_steps) or 0
         self._low, self._high = action_bounds(self.spec)
         self._hold_action = clip_action(self.spec, np.zeros(self._low.shape, np.float32))
+        self._action_check = action_check(self.spec)  # replay's check of a step's action, run here first
+        self._action_dtype = wire.dtype_from_proto(self._action_check.dtype)
         self._non_finite = {src: NON_FINITE_ACTIONS.labels(self.robot_id, src) for src in ("policy", "teleop")}
         self._non_finite_run = 0  # non-finite actions since the last applied one (logged once a run)
         self._stop = threading.Event()
@@ -218,6 +257,8 @@ class RobotLoop:
         self.policy_version = 0
         self.last_held = False
         self.error: str | None = None
+        self.failed: str | None = None  # the plug-in error that stopped the loop for good (not retried)
+        ROBOT_FAILED.labels(self.robot_id).set(0)
         self._overruns_seen = 0
         self._periods: deque[float] = deque(maxlen=PERIOD_WINDOW)
         self._jitters: deque[float] = deque(maxlen=PERIOD_WINDOW)
@@ -284,26 +325,10 @@ class RobotLoop:
 
     def _run(self) -> None:
         try:
-            obs, self._obs_ns = self.robot.reset(), time.time_ns()
-            self._begin_episode(obs)
-            stale = False  # the world moved on while paused: observe afresh before acting
-            last_tick: float | None = None
-            while not self._stop.is_set():
-                tick_start = self._wait_tick()
-                if self._stop.is_set():
-                    break
-                last_tick = self._record_period(last_tick, tick_start)
-                if self._paused.is_set() or self._lease_hold.is_set() or not self._sink_accepting():
-                    self.robot.hold()
-                    stale = True
-                    if self.mode == "fast":
-                        self._stop.wait(PAUSED_POLL_S)
-                        last_tick = None  # a paused gap is not a loop period
-                    continue
-                if stale:
-                    obs, self._obs_ns, stale = self.robot.observe(), time.time_ns(), False
-                obs = self._step(obs)
-        except Exception as exc:
+            self._loop()
+        except PluginFault as fault:
+            self._fail(fault)
+        except Exception as exc:  # the robot's hardware (unplugged, bus error): hot-plug reconnects it
             self.error = repr(exc)
             log.exception("robot loop failed; holding", extra=kv(robot_id=self.robot_id))
         finally:
@@ -311,6 +336,93 @@ class RobotLoop:
                 self.robot.hold()
             except Exception:
                 log.exception("robot hold failed", extra=kv(robot_id=self.robot_id))
+
+    def _loop(self) -> None:
+        obs, self._obs_ns = self._checked(self.robot.reset(), "reset()"), time.time_ns()
+        self._begin_episode(obs)
+        stale = False  # the world moved on while paused: observe afresh before acting
+        last_tick: float | None = None
+        while not self._stop.is_set():
+            tick_start = self._wait_tick()
+            if self._stop.is_set():
+                break
+            last_tick = self._record_period(last_tick, tick_start)
+            if self._paused.is_set() or self._lease_hold.is_set() or not self._sink_accepting():
+                self.robot.hold()
+                stale = True
+                if self.mode == "fast":
+                    self._stop.wait(PAUSED_POLL_S)
+                    last_tick = None  # a paused gap is not a loop period
+                continue
+            if stale:
+                obs, self._obs_ns, stale = self._checked(self.robot.observe(), "observe()"), time.time_ns(), False
+            obs = self._step(obs)
+
+    def _fail(self, fault: PluginFault) -> None:
+        """One error line naming the plug-in, its config entry and the field; the traceback only when it raised."""
+        self.error = self.failed = str(fault)
+        _report_fault(self.robot_id, "failed", self.failed)
+        cause = fault.__cause__
+        log.error(
+            "robot failed: a plug-in broke its contract; the robot holds and its loop stops (not retried)",
+            exc_info=(type(cause), cause, cause.__traceback__) if cause is not None else None,
+            extra=kv(robot_id=self.robot_id, error=self.failed),
+        )
+
+    # ------------------------------------------------------------------ plug-in contract checks
+
+    def robot_named(self) -> str:
+        """The robot as errors name it: its config entry, kind and id."""
+        return f"{self.where} (robot {_kind_of(ROBOTS, self.robot)}, id {self.robot_id})"
+
+    def _robot_fault(self, what: str) -> PluginFault:
+        return PluginFault(f"{self.robot_named()}: {what}")
+
+    def _task_fault(self, what: str) -> PluginFault:
+        where = f"{self.where}.task" if self.where.startswith("edge.") else f"the task of {self.where}"
+        return PluginFault(f"{where} (task {_kind_of(TASKS, self.task)}, robot {self.robot_id}): {what}")
+
+    def _checked(self, obs: object, call: str) -> Observation:
+        """The robot's observation if it is what the spec declares (replay's check: keys, dtype, shape, finite), else
+        a PluginFault. Nothing is converted (a list, float64 for float32): the plug-in's author must hear of it."""
+        if not isinstance(obs, Observation) or not isinstance(obs.features, Mapping):
+            raise self._robot_fault(f"{call} returned {type(obs).__name__}, not an Observation with a features dict")
+        for name, value in obs.features.items():
+            if not isinstance(value, np.ndarray | np.generic):
+                raise self._robot_fault(
+                    f"{call} returned observation[{name!r}] as a {type(value).__name__}, not a numpy array"
+                )
+        try:
+            check_observation("observation", obs.features, self.spec.observation)
+        except StepError as exc:
+            raise self._robot_fault(f"{call} returned {exc}") from None
+        return obs
+
+    def _checked_action(self, applied: object) -> np.ndarray:
+        """What act() reports it applied, if it is of the spec's shape and within its limits (replay's check), else a
+        PluginFault: steps of actions the robot did not take, or out of its declared range, would teach nothing."""
+        if applied is None:
+            raise self._robot_fault("act() returned None; it must return the action it applied")
+        try:
+            action = np.asarray(applied, self._action_dtype)
+            self._action_check(wire.to_tensor(action))
+        except (TypeError, ValueError) as exc:  # StepError and WireError are ValueErrors
+            why = str(exc).removesuffix(" (the edge must clip)")  # the edge did: the robot reports another action
+            raise self._robot_fault(f"act() returned a bad action: {why}") from None
+        return action
+
+    def _judge(self, obs: Observation, applied: np.ndarray, nxt: Observation) -> Outcome:
+        """The task's outcome, if it is an Outcome with a finite reward; a task that raises is a PluginFault too."""
+        try:
+            outcome = self.task.evaluate(obs, applied, nxt)
+        except Exception as exc:
+            raise self._task_fault(f"evaluate() raised {type(exc).__name__}: {_one_line(exc)}") from exc
+        if not isinstance(outcome, Outcome):
+            raise self._task_fault(f"evaluate() returned {type(outcome).__name__}, not an Outcome")
+        reward = outcome.reward
+        if not isinstance(reward, numbers.Real) or not math.isfinite(reward):
+            raise self._task_fault(f"evaluate() returned reward {reward!r}; it must be a finite number")
+        return outcome
 
     def _sink_accepting(self) -> bool:
         """A full spool under the pause policy: hold still, collect nothing, until acks free space."""
@@ -346,7 +458,10 @@ class RobotLoop:
         self._episode_version = 0
         self._episode_interventions = 0
         self.policy.reset(self.robot_id)  # a chunk left from the last episode must not act in this one
-        self.task.reset(obs)
+        try:
+            self.task.reset(obs)
+        except Exception as exc:
+            raise self._task_fault(f"reset() raised {type(exc).__name__}: {_one_line(exc)}") from exc
         if (teleop := self.teleop) is not None:
             teleop.reset(obs)
 
@@ -393,7 +508,7 @@ class RobotLoop:
             if not self._finite(human, "teleop"):
                 self.robot.hold()
                 return self._hold_action, 0, True, False
-            return self.robot.act(self._clip(human)), 0, False, True
+            return self._checked_action(self.robot.act(self._clip(human))), 0, False, True
         answer = self.policy.act(self.robot_id, obs.features, self.deadline_s)
         if answer is not None and np.asarray(answer[0]).size != self._hold_action.size:
             log.warning(
@@ -409,7 +524,7 @@ class RobotLoop:
         if not self._finite(action, "policy", int(version)):
             self.robot.hold()
             return self._hold_action, 0, True, False
-        applied = self.robot.act(self._clip(action))
+        applied = self._checked_action(self.robot.act(self._clip(action)))
         return applied, int(version), False, False
 
     def _clip(self, action: np.ndarray) -> np.ndarray:
@@ -441,9 +556,9 @@ class RobotLoop:
         started = time.monotonic()
         applied, version, held, human = self._decide(obs)
         acted_ns = time.time_ns()
-        nxt = self.robot.observe()
+        nxt = self._checked(self.robot.observe(), "observe()")
         next_ns = time.time_ns()
-        outcome = self.task.evaluate(obs, applied, nxt)
+        outcome = self._judge(obs, applied, nxt)
         last_index = self.max_episode_steps > 0 and self.step_index + 1 >= self.max_episode_steps
         reset = self._reset_requested.is_set()
         truncated = not outcome.terminated and (last_index or reset)
@@ -453,7 +568,7 @@ class RobotLoop:
             episode_id=self.episode_id,
             step_index=self.step_index,
             observation=wire.to_tensor_map(obs.features),
-            action=wire.to_tensor(np.asarray(applied, np.float32)),
+            action=wire.to_tensor(np.asarray(applied, self._action_dtype)),
             reward=float(outcome.reward),
             terminated=bool(outcome.terminated),
             truncated=bool(truncated),
@@ -480,7 +595,7 @@ class RobotLoop:
         self._end_episode(step)
         if reset:
             self._reset_requested.clear()
-        obs, self._obs_ns = self.robot.reset(), time.time_ns()
+        obs, self._obs_ns = self._checked(self.robot.reset(), "reset()"), time.time_ns()
         self._begin_episode(obs)
         return obs
 
@@ -620,6 +735,9 @@ class EdgeAgent:
         self.cfg = cfg
         edge = cfg.edge
         self.robots = robots if robots is not None else self._build_robots(cfg)
+        if robots is not None:  # handed in, not built from their entries: their specs are checked here
+            for robot in robots:
+                check_robot_spec(robot, _entry_where(self._entry_index(robot.spec.robot_id), robot.spec.robot_id))
         self.tasks, self.teleops = build_judges_and_teleops(cfg, self.robots)
         self.sender = sender or ReplaySender(edge.replay_addr, cfg.auth, start=False, outbox=open_outbox(edge))
         # robots with image_encoding: frames encoded off their loops, before the spool (edge_agent/encoder.py)
@@ -639,6 +757,8 @@ class EdgeAgent:
         self._flaps: dict[str, int] = {}  # robot_id -> loops in a row that failed within REPLUG_MAX_S
         self._teleop_attached_at: dict[str, float] = {}  # robot_id -> when its teleoperator connected (monotonic)
         self._teleop_flaps: dict[str, int] = {}  # robot_id -> teleoperators in a row that failed within REPLUG_MAX_S
+        self.failed: dict[str, str] = {}  # robot_id -> the plug-in error that stopped it for good (never retried)
+        self._failing: set[str] = set()  # robots whose last FAILING_AFTER loops failed soon after attaching
         self._watch_stop = threading.Event()
         self._watcher: threading.Thread | None = None
         self.control = ControlClient(
@@ -677,6 +797,7 @@ class EdgeAgent:
             edge.action_deadline_ms / 1000.0,
             task=self.tasks[rid],
             teleop=None if rid in self._absent_teleops else self.teleops.get(rid),
+            where=_entry_where(self._entry_index(rid), rid),
         )
 
     def start(self) -> None:
@@ -812,8 +933,12 @@ class EdgeAgent:
             try:
                 now = time.monotonic()
                 for rid, loop in list(self.loops.items()):
-                    if not loop.alive and loop.error is not None:
+                    if not loop.alive and loop.failed is not None:
+                        self._retire(rid, loop, loop.failed)
+                    elif not loop.alive and loop.error is not None:
                         self._detach(rid, loop)
+                    elif rid in self._flaps and now - self._attached_at.get(rid, now) >= REPLUG_MAX_S:
+                        self._steady(rid)
                     elif (since := loop.teleop_failing_since) is not None and now - since >= TELEOP_DETACH_S:
                         self._detach_teleop(rid, loop)
                 for rid, absent in list(self._absent.items()):
@@ -824,6 +949,40 @@ class EdgeAgent:
                         self._try_attach_teleop(rid, absent)
             except Exception:  # the watcher must outlive any one robot's trouble
                 log.exception("hot-plug watcher step failed")
+
+    def _retire(self, rid: str, loop: RobotLoop | None, error: str) -> None:
+        """A plug-in error stopped the robot (it holds): control hears it left, freeing its place; never retried."""
+        self.failed[rid] = error
+        ATTACHED.labels(rid).set(0)
+        self._attached_at.pop(rid, None)
+        if loop is not None:  # its last status (episodes it finished) goes out with the next heartbeat
+            with self._leaving_lock:
+                self._leaving.append(loop)
+            self.loops = {k: v for k, v in self.loops.items() if k != rid}
+            self.control.set_robots(self._attached_specs())
+        self.policy.reset(rid)
+
+    def _mark_failing(self, rid: str, loop: RobotLoop) -> None:
+        """Its loop failed soon after each of its last FAILING_AFTER attaches (a reset that always raises, a broken
+        arm): still retried, since hardware may come back, but shown as failing, not as a robot that comes and goes."""
+        self._failing.add(rid)
+        error = (
+            f"{loop.robot_named()}: its loop failed {FAILING_AFTER} times in a row soon after attaching: {loop.error}"
+        )
+        _report_fault(rid, "failing", error)
+        log.error(
+            "robot keeps failing: its loop failed soon after each of its last attaches; hot-plug keeps retrying",
+            extra=kv(robot_id=rid, failures=FAILING_AFTER, error=error),
+        )
+
+    def _steady(self, rid: str) -> None:
+        """A loop ran REPLUG_MAX_S since it attached: the failures in a row are over."""
+        del self._flaps[rid]
+        if rid in self._failing:
+            self._failing.discard(rid)
+            ROBOT_FAILING.labels(rid).set(0)
+            ROBOT_FAULT.remove(rid)
+            log.info("robot runs steadily again after failing", extra=kv(robot_id=rid))
 
     def _detach(self, rid: str, loop: RobotLoop) -> None:
         """The loop failed (unplugged, bus error): release the robot, tell control, retry it later."""
@@ -840,6 +999,8 @@ class EdgeAgent:
         self.policy.reset(rid)  # chunks planned for the lost episode must not run after it comes back
         # A loop that fails soon after every attach (a bug, a broken arm) backs off like a failed connect.
         wait = self._backoff_after_detach(rid, self._attached_at, self._flaps)
+        if self._flaps[rid] == FAILING_AFTER:
+            self._mark_failing(rid, loop)
         self._absent[rid] = _Absent(self._fresh_instance(loop.robot), next_try=time.monotonic() + wait)
 
     def _backoff_after_detach(self, rid: str, attached_at: dict[str, float], flaps: dict[str, int]) -> float:
@@ -888,6 +1049,12 @@ class EdgeAgent:
             absent.next_try = time.monotonic() + wait
             log.info("robot still absent", extra=kv(robot_id=rid, error=repr(exc), retry_s=round(wait, 2)))
             return
+        where = _entry_where(self._entry_index(rid), rid)
+        try:
+            check_robot_spec(absent.device, where)
+        except PluginError as exc:  # a spec read from the device it connected to: no retry can fix it
+            self._fail_at_attach(rid, absent.device, str(exc))
+            return
         loop = self._make_loop(absent.device)
         if self.control.registered is not None:  # act only once control has leased it (its experiment may be stopped)
             loop.set_lease(control_pb2.RobotLease(robot_id=rid, hold=True, reason="attached; waiting for a lease"))
@@ -900,6 +1067,17 @@ class EdgeAgent:
         self._attached_at[rid] = time.monotonic()
         ATTACHED.labels(rid).set(1)
         log.info("robot attached", extra=kv(robot_id=rid, tries=absent.failures + 1))
+
+    def _fail_at_attach(self, rid: str, robot: Robot, error: str) -> None:
+        """A robot plugged in with a spec that can never be valid: it holds and is marked failed, not retried."""
+        del self._absent[rid]
+        try:
+            robot.hold()
+        except Exception:
+            log.exception("robot hold failed", extra=kv(robot_id=rid))
+        _report_fault(rid, "failed", error)
+        log.error("robot failed: its spec is invalid; it holds and is not retried", extra=kv(robot_id=rid, error=error))
+        self._retire(rid, None, error)
 
     def _next_tick(self, period_s: float) -> float:
         """The next tick of the agent's grid a little ahead: a late robot ticks with the others."""
@@ -993,6 +1171,20 @@ def _refused_lease(robot_id: str, code: grpc.StatusCode, details: str) -> contro
     return control_pb2.RobotLease(robot_id=robot_id, hold=True, reason=f"{REFUSED} ({code.name}): {details}")
 
 
+def _entry_where(index: int | None, robot_id: str) -> str:
+    """A robot's config entry, as errors name it (edge.robots[2]), or its id when it was handed in without one."""
+    return f"edge.robots[{index}]" if index is not None else f"robot {robot_id}"
+
+
+def check_robot_spec(robot: Robot, where: str) -> None:
+    """Control's registration check (validate_spec), run on the edge: a spec that can never be valid (low > high)
+    is a PluginError naming the entry, at start, not a registration control refuses for the whole run."""
+    try:
+        validate_spec(robot.spec)
+    except SpecError as exc:
+        raise PluginError(f"{where} (robot {_kind_of(ROBOTS, robot)}): its spec is invalid: {exc}") from None
+
+
 def _build_robot(cfg: StackConfig, index: int, rc: RobotConfig) -> Robot:
     """One edge.robots entry's robot. One that cannot be built is a config error naming the entry (one line, exit
     2), not an absent robot: hot-plug retries connecting an instance, whose spec (features, cameras) the tasks,
@@ -1001,7 +1193,7 @@ def _build_robot(cfg: StackConfig, index: int, rc: RobotConfig) -> Robot:
     connect(), which hot-plug retries while the other robots run."""
     where = f"edge.robots[{index}]"
     try:
-        return make_robot(rc.kind, rc.id, rc.params, seed=cfg.edge.seed + index, where=f"{where}.params")
+        robot = make_robot(rc.kind, rc.id, rc.params, seed=cfg.edge.seed + index, where=f"{where}.params")
     except PluginError:
         raise
     except ImportError as exc:
@@ -1013,6 +1205,16 @@ def _build_robot(cfg: StackConfig, index: int, rc: RobotConfig) -> Robot:
     except OSError as exc:
         log.debug("robot build failed", exc_info=True, extra=kv(robot_id=rc.id))
         raise PluginError(f"{where} (robot {rc.id!r}, kind {rc.kind}): cannot build the robot: {exc}") from None
+    try:
+        if robot.spec.robot_id != rc.id:  # the agent finds entries, leases and steps by this id
+            raise PluginError(
+                f"{where} (robot {rc.kind}): its spec says robot_id {robot.spec.robot_id!r}, not {rc.id!r}"
+            )
+        check_robot_spec(robot, where)
+    except PluginError:
+        robot.close()
+        raise
+    return robot
 
 
 def build_judges_and_teleops(cfg: StackConfig, robots: list[Robot]) -> tuple[dict[str, Task], dict[str, Teleoperator]]:

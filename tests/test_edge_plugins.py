@@ -159,6 +159,7 @@ def stack_cfg(tmp_path: Path) -> StackConfig:
     cfg.replay.commit_max_delay_ms = 5.0
     cfg.edge.mode = "fast"
     cfg.edge.metrics_port = 0
+    cfg.edge.spool_dir = tmp_path / "spool"  # not the default runs/default/spool: one test's unacked steps are its own
     return cfg
 
 

@@ -13,6 +13,7 @@ import ctypes
 import fcntl
 import json
 import logging
+import math
 import os
 import re
 import secrets
@@ -22,12 +23,14 @@ import subprocess
 import sys
 import threading
 import time
+import urllib.request
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import grpc
+import yaml
 
 from user.config import AuthConfig, StackConfig
 from user.log import kv
@@ -168,6 +171,12 @@ def _live_control_addr(run_dir: Path) -> str | None:
     return f"127.0.0.1:{port}"
 
 
+def robots_value(robots: list[dict[str, Any]]) -> str:
+    """edge.robots as a --set value: YAML flow style, which the child's --set parser (yaml.safe_load) reads back
+    exactly, NaN and Inf params included (.nan, .inf); JSON has no NaN."""
+    return yaml.safe_dump(robots, default_flow_style=True, width=math.inf, sort_keys=False).strip()
+
+
 @dataclass
 class Child:
     name: str
@@ -225,6 +234,8 @@ class Stack:
         self.overrides = list(overrides)
         self.run_dir = run_dir
         self.children: list[Child] = []
+        # edge -> the edge.robots entry (of this config) its one robot comes from: an edge's errors say edge.robots[0]
+        self.edge_entries: dict[str, int] = {}
         self.env = dict(os.environ)
         self.token_path: Path | None = None  # where the generated token is, for operators
         if cfg.auth.enabled and not _token_configured(cfg.auth):
@@ -291,6 +302,7 @@ class Stack:
         edges = []
         for i, robot in enumerate(self._edge_robots()):
             on_progress(f"edge-{i}")
+            self.edge_entries[f"edge-{i}"] = max(0, i - self.cfg.up.edge_agents + 1)
             edges.append(
                 self.spawn_edge(f"edge-{i}", [robot], self.cfg.edge.seed + 1000 * i, self.per_edge_overrides.get(i, []))
             )
@@ -300,24 +312,26 @@ class Stack:
     def spawn_edge(self, name: str, robots: list[dict[str, Any]], seed: int, extra: Sequence[str] = ()) -> Child:
         """An edge agent process `name` driving `robots` (RobotConfig dicts), wired to the running services.
         Not waited for: wait_ready() it (several edges start faster side by side)."""
+        return self._spawn(name, "edge", self.edge_overrides(name, robots, seed, extra))
+
+    def edge_overrides(
+        self, name: str, robots: list[dict[str, Any]], seed: int, extra: Sequence[str] = ()
+    ) -> list[str]:
+        """The --set items of edge `name`'s command line."""
         control, replay = self.child("control"), self.child("replay")
         inference, learner = self.child("inference"), self.child("learner")
-        return self._spawn(
-            name,
-            "edge",
-            [
-                f"edge.agent_id={name}",
-                f"edge.robots={json.dumps(robots)}",
-                f"edge.seed={seed}",
-                "edge.metrics_port=0",
-                f"edge.control_addr={control.grpc_addr}",
-                f"edge.replay_addr={replay.grpc_addr}",
-                f"edge.inference_addr={inference.grpc_addr}",
-                f"edge.learner_addr={learner.grpc_addr}",
-                f"edge.spool_dir={self.run_dir / 'spool'}",
-                *extra,
-            ],
-        )
+        return [
+            f"edge.agent_id={name}",
+            f"edge.robots={robots_value(robots)}",
+            f"edge.seed={seed}",
+            "edge.metrics_port=0",
+            f"edge.control_addr={control.grpc_addr}",
+            f"edge.replay_addr={replay.grpc_addr}",
+            f"edge.inference_addr={inference.grpc_addr}",
+            f"edge.learner_addr={learner.grpc_addr}",
+            f"edge.spool_dir={self.run_dir / 'spool'}",
+            *extra,
+        ]
 
     def wait_ready(self, child: Child) -> None:
         self._wait_ready(child)
@@ -371,9 +385,10 @@ class Stack:
         panda -> panda-0, ...), then each further entry once (another embodiment beside them)."""
         first, *others = self.cfg.edge.robots
         base_id = re.sub(r"-\d+$", "", first.id)
-        dump = {**first.model_dump(mode="json", exclude_none=True)}
+        # Python mode: JSON mode would turn a NaN or Inf param into null (robots_value keeps them)
+        dump = {**first.model_dump(exclude_none=True)}
         robots = [{**dump, "id": f"{base_id}-{i}"} for i in range(self.cfg.up.edge_agents)]
-        return robots + [r.model_dump(mode="json", exclude_none=True) for r in others]
+        return robots + [r.model_dump(exclude_none=True) for r in others]
 
     def dead_children(self) -> list[Child]:
         return [c for c in self.children if c.proc.poll() is not None]
@@ -446,6 +461,37 @@ class Snapshot:
     robots: list[control_pb2.RobotInfo]
     learner: learner_pb2.LearnerStatus | None
     replay: replay_pb2.StatsResponse | None
+    faults: dict[str, RobotFault] = field(default_factory=dict)  # robot_id -> why it failed (the edges' metrics)
+
+
+@dataclass(frozen=True)
+class RobotFault:
+    """A robot its edge reports as failed (a plug-in error stopped it for good) or failing (its loop keeps failing
+    soon after each reconnect): control only sees such a robot go offline."""
+
+    state: str  # "failed" or "failing"
+    error: str
+
+
+FAULT_SAMPLE = "user_edge_robot_fault_info"  # edge_agent.agent's ROBOT_FAULT, as Prometheus exposes an Info
+
+
+def edge_faults(metrics_text: str) -> dict[str, RobotFault]:
+    """The robots an edge's /metrics page reports as failed or failing."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    lines = "\n".join(line for line in metrics_text.splitlines() if line.startswith(FAULT_SAMPLE + "{"))
+    return {
+        sample.labels["robot_id"]: RobotFault(sample.labels.get("state", ""), sample.labels.get("error", ""))
+        for family in text_string_to_metric_families(lines + "\n")
+        for sample in family.samples
+        if sample.name == FAULT_SAMPLE and "robot_id" in sample.labels
+    }
+
+
+def _in_entry(fault: RobotFault, entry: int) -> RobotFault:
+    """A fault of an edge started with one robot (edge.robots[0] there) naming that robot's entry in up's config."""
+    return RobotFault(fault.state, fault.error.replace("edge.robots[0]", f"edge.robots[{entry}]"))
 
 
 class Monitor:
@@ -463,6 +509,30 @@ class Monitor:
         self.learner = learner_pb2_grpc.LearnerStub(make_channel(stack.child("learner").grpc_addr, auth))
         self.replay = replay_pb2_grpc.ReplayStub(make_channel(stack.child("replay").grpc_addr, auth))
         self.episodes: dict[tuple[str, str], Episode] = {}
+        self.stack = stack
+        self._edge_faults: dict[str, dict[str, RobotFault]] = {}  # edge -> its last report
+        self._announced: set[tuple[str, RobotFault]] = set()
+
+    def poll_faults(self) -> dict[str, RobotFault]:
+        """Failed and failing robots, from each edge's metrics (an edge that does not answer keeps its last report)."""
+        for child in self.stack.children:
+            if not child.name.startswith("edge-") or not child.info.get("metrics_port"):
+                continue
+            try:
+                with urllib.request.urlopen(child.metrics_url, timeout=1) as answer:
+                    faults = edge_faults(answer.read().decode(errors="replace"))
+            except OSError:
+                continue
+            if (entry := self.stack.edge_entries.get(child.name)) is not None:
+                faults = {rid: _in_entry(fault, entry) for rid, fault in faults.items()}
+            self._edge_faults[child.name] = faults
+        return {rid: fault for faults in self._edge_faults.values() for rid, fault in faults.items()}
+
+    def new_faults(self, faults: dict[str, RobotFault]) -> list[tuple[str, RobotFault]]:
+        """Faults not shown yet (each is printed once)."""
+        fresh = [(rid, fault) for rid, fault in sorted(faults.items()) if (rid, fault) not in self._announced]
+        self._announced.update(fresh)
+        return fresh
 
     def poll(self) -> Snapshot:
         now = time.monotonic() - self.t0
@@ -482,7 +552,7 @@ class Monitor:
         except grpc.RpcError:
             pass
         self.record_episodes(robots, now)
-        return Snapshot(now, robots, learner, replay)
+        return Snapshot(now, robots, learner, replay, self.poll_faults())
 
     def record_episodes(self, robots: list[control_pb2.RobotInfo], now: float) -> None:
         """Take the episodes not seen yet, stamped `now` (seconds into the session); earlier runs' only counted."""
@@ -558,7 +628,7 @@ def _render(snap: Snapshot, mon: Monitor, cfg: StackConfig, budget_s: float, wid
         expand=True,
         **style,
     )
-    rows = [_robot_cells(info, mon, versions, window) for info in sorted(snap.robots, key=_by_experiment)]
+    rows = [_robot_cells(info, mon, versions, window, snap.faults) for info in sorted(snap.robots, key=_by_experiment)]
     _fill(robots, rows, ROBOT_COLUMNS, ROBOT_WIDE if narrow else ())
     experiments = list(snap.learner.experiments) if snap.learner else []
     rows = [_experiment_cells(exp, snap.learner, mon, window) for exp in experiments]
@@ -612,10 +682,18 @@ def _by_experiment(info: control_pb2.RobotInfo) -> tuple[str, str]:
     return info.experiment, info.spec.robot_id
 
 
-def _robot_cells(info: control_pb2.RobotInfo, mon: Monitor, versions: dict[str, int], window: int) -> dict[str, str]:
-    st, rid = info.status, info.spec.robot_id
+def _robot_cells(
+    info: control_pb2.RobotInfo,
+    mon: Monitor,
+    versions: dict[str, int],
+    window: int,
+    faults: dict[str, RobotFault] | None = None,
+) -> dict[str, str]:
+    st, rid, faults = info.status, info.spec.robot_id, faults or {}
     mine = [e for e in mon.ordered() if e.robot_id == rid]
     state = control_pb2.RobotState.Name(st.state).removeprefix("ROBOT_STATE_").lower() if info.online else "offline"
+    if (fault := faults.get(rid)) is not None:  # control sees only "offline": the edge knows it failed
+        state = fault.state.upper() if fault.state == "failed" else fault.state
     return {
         "robot": rid,
         "exp": info.experiment or "-",
@@ -790,6 +868,7 @@ def run_up(cfg: StackConfig, config_path: str | None, overrides: list[str], fres
 
 def _run_stack(console: Console, cfg: StackConfig, config_path: str | None, overrides: list[str], run_dir: Path) -> int:
     from rich.live import Live
+    from rich.markup import escape
 
     stack = Stack(cfg, config_path, overrides, run_dir)
     if stack.token_path is not None:
@@ -824,6 +903,8 @@ def _run_stack(console: Console, cfg: StackConfig, config_path: str | None, over
         with live_view as live:
             while not stop.wait(0.5):
                 snap = mon.poll()
+                for rid, fault in mon.new_faults(snap.faults):
+                    console.print(f"[red]robot {escape(rid)} {fault.state}: {escape(fault.error)}", soft_wrap=True)
                 if live is not None:
                     live.update(_render(snap, mon, cfg, budget_s, console.width))
                 rate = mon.success_rate(cfg.up.window_episodes, target_experiment(cfg))
@@ -883,20 +964,7 @@ def _summary(
     target = [e for e in episodes if e.experiment == target_experiment(cfg)]
     window = target[-cfg.up.window_episodes :]
     unhelped = [e for e in target if not e.intervention_steps][-cfg.up.window_episodes :]
-    robots = {}
-    if final:
-        for info in final.robots:
-            st = info.status
-            robots[info.spec.robot_id] = {
-                "env_steps": st.env_steps,
-                "episodes": st.episodes,
-                "successes": st.successes,
-                "env_steps_per_s": round(st.env_steps_per_s, 2),
-                "policy_version": st.policy_version,
-                "loop_period_p99_ms": round(st.loop_period_p99_ms, 2),
-                "held_steps": st.held_steps,
-                "intervention_steps": st.intervention_steps,
-            }
+    robots = _summary_robots(final)
     learner = final.learner if final else None
     return {
         "name": cfg.up.name,
@@ -948,12 +1016,40 @@ def _summary(
     }
 
 
+def _summary_robots(final: Snapshot | None) -> dict[str, dict[str, Any]]:
+    """Per robot: its last status at control, and its fault when its edge reports one (a robot that failed before
+    control heard of it has only the fault)."""
+    if final is None:
+        return {}
+    robots = {info.spec.robot_id: _robot_entry(info.status) for info in final.robots}
+    for rid, fault in sorted(final.faults.items()):
+        robots.setdefault(rid, _robot_entry(control_pb2.RobotStatus()))["fault"] = {
+            "state": fault.state,
+            "error": fault.error,
+        }
+    return robots
+
+
+def _robot_entry(st: control_pb2.RobotStatus) -> dict[str, Any]:
+    return {
+        "env_steps": st.env_steps,
+        "episodes": st.episodes,
+        "successes": st.successes,
+        "env_steps_per_s": round(st.env_steps_per_s, 2),
+        "policy_version": st.policy_version,
+        "loop_period_p99_ms": round(st.loop_period_p99_ms, 2),
+        "held_steps": st.held_steps,
+        "intervention_steps": st.intervention_steps,
+    }
+
+
 def _rate(episodes: list[Episode], window: int) -> float | None:
     recent = episodes[-window:]
     return round(sum(e.success for e in recent) / len(recent), 3) if recent else None
 
 
 def _print_summary(console: Console, summary: dict[str, Any], run_dir: Path) -> None:
+    from rich.markup import escape
     from rich.table import Table
 
     console.print()  # Live leaves the cursor after its last line when stdout is not a terminal
@@ -985,8 +1081,11 @@ def _print_summary(console: Console, summary: dict[str, Any], run_dir: Path) -> 
                 f"success {rate}",
             )
     for rid, st in summary["robots"].items():
-        table.add_row(rid, f"{st['env_steps']} steps, {st['episodes']} episodes, policy v{st['policy_version']}")
-    table.add_row("process exits", exits_text(summary["exit_codes"], summary.get("restarts", {})))
+        counts = f"{st['env_steps']} steps, {st['episodes']} episodes, policy v{st['policy_version']}"
+        fault = st.get("fault")
+        table.add_row(escape(rid), escape(f"{fault['state'].upper()}: {fault['error']}; {counts}" if fault else counts))
+    robot_faults = {rid: st["fault"]["state"] for rid, st in summary["robots"].items() if st.get("fault")}
+    table.add_row("process exits", escape(exits_text(summary["exit_codes"], summary.get("restarts", {}), robot_faults)))
     table.add_row("report", f"{run_dir / 'report.png'}, {run_dir / 'metrics.json'}")
     console.print(table)
 
@@ -1000,12 +1099,16 @@ def _summary_rate(unhelped: float | None, every: float | None) -> str:
     return cell if unhelped == every else f"{cell} [{100 * every:.0f} % all]"
 
 
-def exits_text(codes: dict[str, int | None], restarts: dict[str, list[int]]) -> str:
+def exits_text(
+    codes: dict[str, int | None], restarts: dict[str, list[int]], robot_faults: dict[str, str] | None = None
+) -> str:
     """The summary's "process exits": restarts during the run (a kill -9 the supervisor recovered from is not
-    clean), then final exits other than 0, else "all clean"."""
+    clean), final exits other than 0, and robots an edge reports failed or failing (`robot_faults`: robot_id ->
+    state; its process exits cleanly, its robot did not run), else "all clean"."""
     parts = [
         f"{name} restarted {len(deaths)}x (exit {', '.join(str(code) for code in deaths)})"
         for name, deaths in restarts.items()
     ]
     parts += [f"{name} exited with {code}" for name, code in codes.items() if code not in (0, None)]
+    parts += [f"robot {rid} {state}" for rid, state in sorted((robot_faults or {}).items())]
     return "; ".join(parts) or "all clean"
