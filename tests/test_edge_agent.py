@@ -85,6 +85,7 @@ def stack_cfg(tmp_path: Path) -> StackConfig:
     cfg.replay.path = tmp_path / "replay"
     cfg.replay.map_size_mb = 64
     cfg.replay.commit_max_delay_ms = 5.0
+    cfg.edge.spool_dir = tmp_path / "spool"  # not the repo's runs/default/spool: tests share no outbox
     return cfg
 
 

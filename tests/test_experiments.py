@@ -116,6 +116,7 @@ def stack_cfg(tmp_path: Path, experiments: list[dict]) -> StackConfig:
     cfg.replay.path = tmp_path / "replay"
     cfg.replay.map_size_mb = 64
     cfg.replay.commit_max_delay_ms = 5.0
+    cfg.edge.spool_dir = tmp_path / "spool"  # not the repo's runs/default/spool: tests share no outbox
     lc = cfg.learner
     lc.checkpoint_dir = tmp_path / "ckpt"
     lc.min_transitions, lc.publish_every, lc.checkpoint_every, lc.prefetch_batches = 20, 5, 50, 2

@@ -110,6 +110,7 @@ def stack_cfg(tmp_path: Path, experiment: dict[str, Any]) -> StackConfig:
         section.server.grace_s = 0.5
     cfg.control.heartbeat_interval_s = 0.2
     cfg.replay.path, cfg.replay.map_size_mb, cfg.replay.commit_max_delay_ms = tmp_path / "replay", 64, 5.0
+    cfg.edge.spool_dir = tmp_path / "spool"  # not the repo's runs/default/spool: tests share no outbox
     lc = cfg.learner
     lc.checkpoint_dir, lc.rpc_timeout_s = tmp_path / "ckpt", 5.0
     # No online training here: the only version is the pretrained one, so it can be inspected.

@@ -232,6 +232,7 @@ def stack_cfg(tmp_path: Path, experiments: list[dict[str, Any]]) -> StackConfig:
     cfg.control.heartbeat_interval_s = 0.2
     cfg.control.state_path = tmp_path / "control.sqlite"
     cfg.replay.path, cfg.replay.map_size_mb, cfg.replay.commit_max_delay_ms = tmp_path / "replay", 64, 5.0
+    cfg.edge.spool_dir = tmp_path / "spool"  # not the repo's runs/default/spool: tests share no outbox
     lc = cfg.learner
     lc.checkpoint_dir, lc.rpc_timeout_s, lc.min_transitions = tmp_path / "ckpt", 5.0, 10**9
     return cfg
