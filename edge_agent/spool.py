@@ -48,7 +48,7 @@ from typing import Literal
 import lmdb
 import prometheus_client
 
-from user.config import EdgeConfig
+from user.config import ConfigError, EdgeConfig
 from user.log import kv
 from user.v1 import replay_pb2, step_pb2
 
@@ -218,8 +218,9 @@ def _key(seq: int) -> bytes:
     return seq.to_bytes(8, "big")
 
 
-class SpoolInUse(RuntimeError):
-    """Another live process owns this spool (two agents with one agent_id on one machine)."""
+class SpoolInUse(ConfigError):
+    """Another live process owns this spool (two agents with one agent_id on one machine): a start-up error,
+    one line through the CLI (exit 2), not a traceback that a service manager restarts forever."""
 
 
 def _pages(stat: dict[str, int]) -> int:
@@ -233,8 +234,13 @@ def _take_owner(path: Path) -> int:
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
+        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
         os.close(fd)
-        raise SpoolInUse(f"spool {path} is used by another live process (same edge.agent_id?)") from None
+        raise SpoolInUse(
+            f"edge.spool_dir: spool {path} is in use by pid {holder} (another edge with this edge.agent_id?)"
+        ) from None
+    os.ftruncate(fd, 0)
+    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)  # named by the next process refused
     return fd
 
 

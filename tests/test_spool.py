@@ -97,7 +97,7 @@ def test_each_steps_replay_table_is_kept_across_reopen_ack_and_drop(tmp_path: Pa
 
 def test_a_spool_has_one_owner_at_a_time(tmp_path: Path) -> None:
     spool = LmdbSpool(tmp_path / "spool", max_bytes=1 << 20)
-    with pytest.raises(SpoolInUse):
+    with pytest.raises(SpoolInUse, match=f"edge.spool_dir: spool .* is in use by pid {os.getpid()} "):
         LmdbSpool(tmp_path / "spool", max_bytes=1 << 20)
     spool.close()
     LmdbSpool(tmp_path / "spool", max_bytes=1 << 20).close()  # free again once closed

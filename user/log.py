@@ -54,6 +54,9 @@ def setup_logging(service: str, level: str = "INFO", json_lines: bool = True) ->
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(level)
+    # PyOpenGL (imported with MuJoCo's renderer) says at INFO that an optional speed-up is missing: noise that
+    # would come before a start-up error's one line
+    logging.getLogger("OpenGL").setLevel(logging.WARNING)
 
 
 def kv(**fields: Any) -> dict[str, Any]:
