@@ -80,7 +80,8 @@ def _gib(n: int) -> str:
 
 
 def robots_table(robots: list[control_pb2.RobotInfo]) -> Table:
-    # The edge's own counters: every episode, helped or not (`exp status` counts success without human help).
+    # Episodes and successes are control's stored totals for the robot (all experiments, across restarts), helped
+    # or not (`exp status` counts success without human help); steps and rates are the edge's own counters.
     table = Table(
         "robot",
         "kind",

@@ -698,7 +698,7 @@ def _robot_cells(
         "robot": rid,
         "exp": info.experiment or "-",
         "state": state,
-        "eps": str(st.episodes),
+        "eps": str(len(mine)),  # this session's, as the success column (control's count is all-time)
         "success": _rate_cell([e for e in mine if not e.intervention_steps][-window:], mine[-window:]),
         "steps": str(st.env_steps),
         "steps/s": f"{st.env_steps_per_s:.1f}",
@@ -1072,7 +1072,7 @@ def _print_summary(console: Console, summary: dict[str, Any], run_dir: Path) -> 
     if summary["learner"]:
         table.add_row("learner updates", str(summary["learner"]["updates"]))
         for name, exp in summary["learner"]["experiments"].items():
-            # A learner that cannot train the experiment says so first: its robots were leased all the same.
+            # A learner that cannot train the experiment says so first (control held its robots meanwhile).
             failed = f"FAILED: {exp.get('error') or 'no reason given'}; " if exp.get("state") == "failed" else ""
             rate = _summary_rate(exp["final_success_rate_autonomous"], exp["final_success_rate"])
             table.add_row(

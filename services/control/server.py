@@ -50,6 +50,7 @@ log = logging.getLogger(__name__)
 SERVICE_NAME = control_pb2.DESCRIPTOR.services_by_name["Control"].full_name
 MAX_TEXT_BYTES = 256  # hostname, software_version, command ids: enough for any real value, bounded in memory
 MAX_ERROR_BYTES = 1024  # a learner's reason an experiment failed (WorkerInfo.failed), cut beyond this
+MAX_REASON_CHARS = 200  # of that reason, in the hold lease sent down to every robot of the experiment
 MAX_ROBOTS_PER_AGENT = 256
 MAX_COMMAND_WAIT_S = 60.0
 WORKER_ID_RE = re.compile(r"[A-Za-z0-9_.@:\-]{1,128}")
@@ -314,8 +315,10 @@ class Registry:
     Leases: every online robot that a running experiment's selector picks (the first experiment whose
     selector holds, as the learner and inference route) is leased to it, up to its max_robots (a robot
     holding a place keeps it, then the one that held it last, then by id). A robot whose experiment is
-    stopped or full is told to hold; one no experiment selects is free. Leases are recomputed whenever a robot comes or
-    goes and when an experiment starts or stops; edges hear only the robots whose lease changed."""
+    stopped or full, or whose online learner prepares its first policy or reports the experiment failed
+    (WorkerInfo.failed), is told to hold; one no experiment selects is free. Leases are recomputed whenever a
+    robot comes or goes, when an experiment starts or stops and when what learners report changes; edges hear
+    only the robots whose lease changed."""
 
     def __init__(
         self,
@@ -337,17 +340,21 @@ class Registry:
         self._conns: dict[str, Connection] = {}  # lease_id -> live connection
         self._workers: dict[str, control_pb2.WorkerInfo] = {}
         self._preparing: set[str] = set()  # experiments an online learner is still preparing: robots hold
+        self._failed: dict[str, str] = {}  # experiment -> why an online learner cannot train it: robots hold
         self._commands: OrderedDict[str, CommandRecord] = OrderedDict()
         self._experiments: dict[str, ExperimentRecord] = {}  # config order: the first matching selector wins
         self._removed: set[str] = state.load_removed() if state is not None else set()  # names never reused
         self._last_lease: dict[str, str] = state.load_leases() if state is not None else {}
         self._totals: dict[tuple[str, str], EpisodeTotals] = {}  # (experiment, robot_id) -> whole history
+        self._robot_totals: dict[str, EpisodeTotals] = {}  # robot_id -> whole history, every experiment
         self._load_experiments(experiments or [])
         if state is not None:
             for exp, rid, n, succ, ret, alone, alone_succ in state.episode_totals():
                 self._totals[(exp, rid)] = EpisodeTotals(
                     int(n), int(succ or 0), float(ret or 0.0), int(alone or 0), int(alone_succ or 0)
                 )
+                robot = self._robot_totals.setdefault(rid, EpisodeTotals())
+                robot.episodes, robot.successes = robot.episodes + int(n), robot.successes + int(succ or 0)
             for st in state.load_commands(commands_kept):
                 rec = CommandRecord(st.command, st.sent_at_ns, list(st.agents), list(st.results))
                 self._commands[st.command.command_id] = rec
@@ -582,7 +589,10 @@ class Registry:
         """Add new episodes to their experiment's totals and to SQLite."""
         experiment = self._episode_experiment_locked(rec)
         totals = self._totals.setdefault((experiment, rec.spec.robot_id), EpisodeTotals())
+        robot = self._robot_totals.setdefault(rec.spec.robot_id, EpisodeTotals())
         for ep in fresh:
+            robot.episodes += 1
+            robot.successes += int(ep.success)
             totals.episodes += 1
             totals.successes += int(ep.success)
             totals.return_sum += float(ep.episode_return)
@@ -648,19 +658,10 @@ class Registry:
                 wanted.setdefault(exp.name, []).append(rec)
         for name, recs in wanted.items():
             exp = self._experiments[name]
-            if not exp.running:
+            hold = self._hold_reason_locked(exp)
+            if hold:
                 for rec in recs:
-                    out[rec.spec.robot_id] = control_pb2.RobotLease(
-                        robot_id=rec.spec.robot_id, hold=True, reason=f"experiment {name} stopped"
-                    )
-                continue
-            if name in self._preparing:  # no policy yet: acting would only record still frames
-                for rec in recs:
-                    out[rec.spec.robot_id] = control_pb2.RobotLease(
-                        robot_id=rec.spec.robot_id,
-                        hold=True,
-                        reason=f"experiment {name}: the learner prepares its first policy (normalize/pretrain)",
-                    )
+                    out[rec.spec.robot_id] = control_pb2.RobotLease(robot_id=rec.spec.robot_id, hold=True, reason=hold)
                 continue
             # Robots holding a place keep it; then those it had last (across reconnects and restarts); then by id.
             recs.sort(
@@ -681,6 +682,19 @@ class Registry:
                         robot_id=rid, hold=True, reason=f"experiment {name} at max_robots={cap}"
                     )
         return out
+
+    def _hold_reason_locked(self, exp: ExperimentRecord) -> str:
+        """Why every robot of `exp` holds (records nothing), or "" when they act."""
+        name = exp.config.name
+        if not exp.running:
+            return f"experiment {name} stopped"
+        if name in self._failed:  # nothing learns from its steps: acting would fill replay with the v0 policy's
+            why = self._failed[name]
+            why = why if len(why) <= MAX_REASON_CHARS else why[:MAX_REASON_CHARS] + "..."
+            return f"experiment {name}: its learner failed it ({why}); robots hold until a learner trains it"
+        if name in self._preparing:  # no policy yet: acting would only record still frames
+            return f"experiment {name}: the learner prepares its first policy (normalize/pretrain)"
+        return ""
 
     def _relay_leases_locked(self, skip: Connection | None = None) -> None:
         """Recompute every lease; queue a LeaseUpdate on each stream whose robots' leases changed.
@@ -837,10 +851,11 @@ class Registry:
             recs = [self._robots[k] for k in sorted(self._robots)]
             return [self._info_locked(r, episodes) for r in recs if include_offline or r.online]
 
-    @staticmethod
-    def _info_locked(rec: RobotRecord, episodes: bool = True) -> control_pb2.RobotInfo:
+    def _info_locked(self, rec: RobotRecord, episodes: bool = True) -> control_pb2.RobotInfo:
+        """status.episodes and status.successes are control's stored totals for the robot (every experiment, across
+        edge and control restarts: what `exp status` sums), not the edge's counters, which restart with the edge."""
         lease = rec.lease if rec.online and rec.lease is not None else control_pb2.RobotLease()
-        return control_pb2.RobotInfo(
+        info = control_pb2.RobotInfo(
             lease=lease.experiment,
             lease_reason=lease.reason,
             spec=rec.spec,
@@ -853,6 +868,9 @@ class Registry:
             status=rec.status,
             recent_episodes=rec.episodes.messages() if episodes else (),
         )
+        totals = self._robot_totals.get(rec.spec.robot_id, EpisodeTotals())
+        info.status.episodes, info.status.successes = totals.episodes, totals.successes
+        return info
 
     def route(self, command: control_pb2.Command) -> tuple[bool, list[str], bool]:
         """Queue a command on the owning stream(s): (robot known, agents it was queued for, new). The same
@@ -933,25 +951,27 @@ class Registry:
             self._workers[info.worker_id] = kept
             if self.state is not None:
                 self.state.save_worker(kept)
-            self._refresh_preparing_locked()
+            self._refresh_learners_locked()
 
-    def refresh_preparing(self) -> None:
+    def refresh_learners(self) -> None:
         """A learner that stopped reporting no longer holds its experiments' robots (called by the reaper)."""
         with self._lock:
-            self._refresh_preparing_locked()
+            self._refresh_learners_locked()
 
-    def _refresh_preparing_locked(self) -> None:
+    def _refresh_learners_locked(self) -> None:
+        """What online learners prepare or failed: their robots hold (relayed when it changes)."""
         cutoff = time.time_ns() - int(self.worker_ttl_s * 1e9)
-        now = {
-            name
-            for w in self._workers.values()
-            if w.kind == "learner" and w.last_seen_ns >= cutoff
-            for name in w.preparing
-        }
-        if now != self._preparing:
-            self._preparing = now
-            log.info("learners preparing", extra=kv(experiments=sorted(now)))
-            self._relay_leases_locked()
+        online = [w for w in self._workers.values() if w.kind == "learner" and w.last_seen_ns >= cutoff]
+        preparing = {name for w in online for name in w.preparing}
+        failed = {name: why for w in online for name, why in sorted(w.failed.items())}
+        if preparing == self._preparing and failed == self._failed:
+            return
+        if preparing != self._preparing:
+            log.info("learners preparing", extra=kv(experiments=sorted(preparing)))
+        if failed.keys() != self._failed.keys():
+            log.warning("learners failed experiments: their robots hold", extra=kv(experiments=sorted(failed)))
+        self._preparing, self._failed = preparing, failed
+        self._relay_leases_locked()
 
     def workers(self, include_offline: bool) -> list[control_pb2.WorkerInfo]:
         cutoff = time.time_ns() - int(self.worker_ttl_s * 1e9)
@@ -1359,14 +1379,20 @@ class ControlService(rpc.GrpcService):
         self._reaper: threading.Thread | None = None
 
     def start(self) -> ControlService:
-        self.running = rpc.start_server(
-            "control",
-            lambda server: control_pb2_grpc.add_ControlServicer_to_server(self.servicer, server),
-            [SERVICE_NAME],
-            self.cfg.control.server,
-            self.cfg.auth,
-            start_metrics=self.start_metrics,
-        )
+        try:
+            self.running = rpc.start_server(
+                "control",
+                lambda server: control_pb2_grpc.add_ControlServicer_to_server(self.servicer, server),
+                [SERVICE_NAME],
+                self.cfg.control.server,
+                self.cfg.auth,
+                start_metrics=self.start_metrics,
+            )
+        except BaseException:  # a busy port: the state file's lock goes too, so a retry can take it
+            if self.state is not None:
+                self.state.close()
+                self.state = None
+            raise
         self._reaper = threading.Thread(target=self._reap, name="control-reaper", daemon=True)
         self._reaper.start()
         return self
@@ -1374,7 +1400,9 @@ class ControlService(rpc.GrpcService):
     def _reap(self) -> None:
         period = min(0.5, self.registry.lease_ttl_s / 4)
         while not self._stop.wait(period):
-            self.registry.refresh_preparing()
+            self.registry.refresh_learners()
+            if self.state is not None:  # the disk may take what waits again although nothing new is written
+                self.state.retry()
             for conn in self.registry.expire():
                 LEASE_EXPIRATIONS.inc()
                 conn.outbox.put(
