@@ -22,7 +22,10 @@ and with none every configured experiment trains.
 
 Every `publish_every` updates a weight version goes to the WeightStore under the experiment's name;
 every `checkpoint_every` updates, and on shutdown, an atomic checkpoint is written to
-`checkpoint_dir/<experiment>/`. A sample replay refuses (e.g. robots of different shapes) is an
+`checkpoint_dir/<experiment>/`. A write the disk refuses (ENOSPC) does not stop training: a checkpoint is tried
+again at the next interval, a publish whose version mark is refused is skipped (an unmarked number could be reused
+after a crash) and tried again at the next one, or while training waits; both are logged once per run of failures
+and counted. A sample replay refuses (e.g. robots of different shapes) is an
 error: logged, counted and reported in the experiment's status, never read as an empty buffer.
 """
 
@@ -30,6 +33,7 @@ from __future__ import annotations
 
 import ctypes
 import dataclasses
+import errno
 import json
 import logging
 import queue
@@ -48,6 +52,7 @@ import torch
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout
 from cloud_learner.checkpoint import (
     CheckpointError,
+    CheckpointWriteError,
     load_latest,
     read_version_mark,
     save_checkpoint,
@@ -106,6 +111,16 @@ SAMPLE_ERRORS = prometheus_client.Counter(
 )
 CHECKPOINT_SECONDS = prometheus_client.Histogram(
     "user_learner_checkpoint_seconds", "Time to write a checkpoint", buckets=(0.01, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 10)
+)
+CHECKPOINT_FAILURES = prometheus_client.Counter(
+    "user_learner_checkpoint_failures_total",
+    "Checkpoints the disk refused (ENOSPC, ...): training goes on, the next interval tries again",
+    ["experiment"],
+)
+VERSION_MARK_FAILURES = prometheus_client.Counter(
+    "user_learner_version_mark_failures_total",
+    "Publishes skipped because the weight-version mark could not be written (tried again at the next publish)",
+    ["experiment"],
 )
 PRETRAIN_UPDATES = prometheus_client.Gauge(
     "user_learner_pretrain_updates", "Pretraining updates done (experiments[].pretrain)", ["experiment"]
@@ -468,6 +483,29 @@ def build_algorithm(
         ) from exc
 
 
+class _WriteFaults:
+    """Writes of one kind (checkpoints, version marks) the disk refused: each counted, a run of them logged once
+    (a full disk refuses every interval; one line says so, another when a write succeeds again)."""
+
+    def __init__(self, experiment: str, what: str, counter: prometheus_client.Counter) -> None:
+        self.experiment, self.what, self.counter = experiment, what, counter
+        self.failing = 0  # failures since the last write that succeeded
+
+    def failed(self, exc: CheckpointWriteError, message: str, level: int = logging.WARNING) -> None:
+        """Count it; log `message` for the first of a run (and for every error: nothing retries those)."""
+        self.counter.labels(self.experiment).inc()
+        self.failing += 1
+        if self.failing == 1 or level >= logging.ERROR:
+            code = errno.errorcode.get(exc.errno, str(exc.errno)) if exc.errno is not None else ""
+            fields = kv(experiment=self.experiment, path=str(exc.path), errno=code, error=exc.strerror)
+            log.log(level, message, extra=fields)
+
+    def succeeded(self) -> None:
+        if self.failing:
+            log.info(f"{self.what} written again", extra=kv(experiment=self.experiment, failures=self.failing))
+            self.failing = 0
+
+
 class ExperimentRun:
     """One experiment's algorithm, sampler and training thread."""
 
@@ -497,6 +535,10 @@ class ExperimentRun:
         self.pretrain_updates = 0  # updates done on experiments[].pretrain.table (checkpointed)
         self.normalization: dict[str, Any] | None = None  # state_mean/state_std the algorithm was built with
         self._fit_checked = False  # the published policy was checked against the layout (before the first publish)
+        self._ckpt_faults = _WriteFaults(exp.name, "checkpoint", CHECKPOINT_FAILURES)
+        self._mark_faults = _WriteFaults(exp.name, "weight version mark", VERSION_MARK_FAILURES)
+        self._owed_version = 0  # a version whose mark the disk refused: published under this number once it can be
+        self._retry_at = 0.0  # monotonic time of the next retry of the owed version while training waits
 
     def set_stopped(self, stopped: bool) -> None:
         if stopped == self.stopped.is_set():
@@ -699,6 +741,7 @@ class ExperimentRun:
             arrays, size = self._sample_table(replay, norm.from_table, req, keys)
             self.state.scalars = {"normalize_samples": float(got), "normalize_table_transitions": float(size)}
             if arrays is None or size < norm.min_steps:
+                self._retry_owed()  # the robots' own steps need the initial policy
                 backoff.sleep(self._stop)
                 continue
             backoff.reset()
@@ -784,6 +827,10 @@ class ExperimentRun:
     def join(self, timeout: float) -> None:
         for thread in self._threads:
             thread.join(timeout)
+
+    def alive(self) -> bool:
+        """Whether a thread of this run still runs (and may still write a checkpoint or version mark)."""
+        return any(thread.is_alive() for thread in self._threads)
 
     def add_robot(self, spec: robot_pb2.RobotSpec) -> None:
         """A robot joined after the layout was fixed: it trains here only if it fits the layout."""
@@ -924,6 +971,7 @@ class ExperimentRun:
                 item = self._queue.get(timeout=0.5)
             except queue.Empty:
                 self._phase("wait_batch", start)
+                self._retry_owed()
                 continue
             BATCH_WAIT.observe(self._phase("wait_batch", start))
             if self.algo.updates - self.pretrain_updates >= self.lc.max_updates_per_transition * item.transitions:
@@ -968,6 +1016,7 @@ class ExperimentRun:
             target = max(seen + self.lc.sync_env_steps, self.lc.min_transitions)
             start = time.perf_counter()
             while not self._stop.is_set() and not self.stopped.is_set() and self._env_steps(replay) < target:
+                self._retry_owed()
                 self._stop.wait(0.05)
             self._command(control, control_pb2.COMMAND_KIND_PAUSE)
             seen = self._env_steps(replay)
@@ -985,7 +1034,7 @@ class ExperimentRun:
                 done += 1
                 self._rate(rate)
             if not self._stop.is_set():
-                self.publish(self.state.weight_version + 1)
+                self.publish(self._next_version())
         self._command(control, control_pb2.COMMAND_KIND_RESUME)
 
     def _env_steps(self, replay: replay_pb2_grpc.ReplayStub | ShardedSampler) -> int:
@@ -1032,7 +1081,7 @@ class ExperimentRun:
         for name, value in st.scalars.items():
             SCALARS.labels(self.exp.name, name).set(value)
         if publish and st.updates % self.lc.publish_every == 0:
-            self.publish(st.weight_version + 1)
+            self.publish(self._next_version())
         if st.updates % self.lc.checkpoint_every == 0:
             self.checkpoint()
 
@@ -1057,7 +1106,15 @@ class ExperimentRun:
         if not self._fit_checked:  # a policy that cannot drive these robots fails the experiment, never published
             self._check_fit(spec, tensors, version)
             self._fit_checked = True
-        write_version_mark(self.ckpt_dir, version)  # before anyone can see it
+        try:
+            write_version_mark(self.ckpt_dir, version)  # before anyone can see it
+        except CheckpointWriteError as exc:
+            # Unmarked, a restart could give this number to other weights: not published, tried again later.
+            self._owed_version = version
+            self._mark_faults.failed(exc, "weight version mark not written; version not published, tried again later")
+            return
+        self._mark_faults.succeeded()
+        self._owed_version = 0
         self.learner.store.publish(version, spec, tensors, int(self.algo.updates), experiment=self.exp.name)
         st = self.state
         st.weight_version, st.policy_kind, st.last_publish_ns = version, spec.kind, time.time_ns()
@@ -1078,7 +1135,21 @@ class ExperimentRun:
                 f"publishes does not fit its robots: {why}"
             ) from None
 
-    def checkpoint(self) -> None:
+    def _next_version(self) -> int:
+        """The number the next publish takes: one the mark refused (never seen by anyone), else the next one."""
+        return self._owed_version or self.state.weight_version + 1
+
+    def _retry_owed(self) -> None:
+        """While training waits (e.g. for robots that have no policy because the first publish was refused), try
+        the owed version again about once a second: without it no update may ever come to publish it."""
+        now = time.monotonic()
+        if self._owed_version and now >= self._retry_at:
+            self._retry_at = now + 1.0
+            self.publish(self._next_version())
+
+    def checkpoint(self, final: bool = False) -> None:
+        """Write a checkpoint unless nothing changed. One the disk refuses is logged (an error if `final`: the run
+        ends on the previous one, which stays loadable) and counted; training goes on."""
         updates = int(self.algo.updates)
         if not self._resumed or updates == self._last_ckpt_updates:
             return
@@ -1088,7 +1159,16 @@ class ExperimentRun:
             extra["normalization"] = self.normalization
         kind, version = self.exp.algorithm.kind, self.state.weight_version
         state = checkpoint_state(self.algo, kind, version, self.layout, extra, self.config)
-        save_checkpoint(self.ckpt_dir, state)
+        try:
+            save_checkpoint(self.ckpt_dir, state)
+        except CheckpointWriteError as exc:
+            # _last_ckpt_updates stays: the next interval (or stop) tries again.
+            if final:
+                self._ckpt_faults.failed(exc, "final checkpoint not written; the previous one stays", logging.ERROR)
+            else:
+                self._ckpt_faults.failed(exc, "checkpoint not written; training goes on, retried at the next interval")
+            return
+        self._ckpt_faults.succeeded()
         self._last_ckpt_updates = updates
         CHECKPOINT_SECONDS.observe(time.perf_counter() - start)
 
@@ -1150,10 +1230,18 @@ class Learner:
         self._thread.start()
         return self
 
-    def stop(self, timeout: float = 60.0) -> None:
+    def stop(self, timeout: float = 60.0) -> bool:
+        """End training and write the final checkpoints. True once no thread of this learner runs any more, so
+        none can write to checkpoint_dir (False: one is still stuck after `timeout`)."""
         self._stop.set()
+        deadline = time.monotonic() + timeout
         if self._thread is not None:
             self._thread.join(timeout)
+            if self._thread.is_alive():
+                return False
+        for run in self.runs.values():  # the main thread gave each rpc_timeout_s + 1; a slow update may take longer
+            run.join(max(0.0, deadline - time.monotonic()))
+        return not any(run.alive() for run in self.runs.values())
 
     def preparing(self) -> list[str]:
         """Experiments whose robots should hold (WorkerInfo.preparing): no version published yet while
@@ -1191,7 +1279,7 @@ class Learner:
                 run.join(self.lc.rpc_timeout_s + 1)
             for run in self.runs.values():
                 if run.state.state != "failed":
-                    run.checkpoint()
+                    run.checkpoint(final=True)
 
     def _discover_loop(self) -> None:
         """Poll Control: start each experiment once its robots are known; add robots that join later."""
@@ -1261,7 +1349,7 @@ class Learner:
                 run.halt()
                 run.join(self.lc.rpc_timeout_s + 1)
                 if run.state.state != "failed":
-                    run.checkpoint()
+                    run.checkpoint(final=True)
             # Replaced, not mutated: RPC and report threads iterate them.
             self.runs = {n: r for n, r in self.runs.items() if n != name}
             self.experiments = [e for e in self.experiments if e.name != name]
@@ -1321,8 +1409,11 @@ class _FailedRun:
     def join(self, timeout: float) -> None:
         pass
 
+    def alive(self) -> bool:
+        return False
+
     def halt(self) -> None:
         pass
 
-    def checkpoint(self) -> None:
+    def checkpoint(self, final: bool = False) -> None:
         pass

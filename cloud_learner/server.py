@@ -3,15 +3,21 @@
     userctl learner --config configs/demo.yaml
 
 On SIGTERM: stop training, write a final checkpoint, end the weight streams, stop the server.
+
+The learner holds learner.checkpoint_dir (an flock on its owner.lock) from before it reads a checkpoint until its
+final checkpoints are written: a second learner on the same directory would publish the same version numbers with
+other weights, so it is refused at start (`userctl learner` exits 2 naming the holder's pid).
 """
 
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import grpc
 import torch
 
+from cloud_learner.checkpoint import CheckpointDirLock, lock_checkpoint_dir, sweep_temp_files
 from cloud_learner.learner import ExperimentState, Learner
 from user import rpc
 from user.config import ConfigError, StackConfig
@@ -105,6 +111,15 @@ class LearnerService(rpc.GrpcService):
             check_device(cfg.learner.device)
         except ValueError as exc:
             raise ConfigError(f"learner.device: {exc}") from None
+        self.ckpt_lock = _lock(cfg.learner.checkpoint_dir)  # before any checkpoint is read
+        try:
+            self._build(cfg, start_metrics)
+        except BaseException:
+            self.ckpt_lock.release()  # a learner that never started must not keep the directory
+            raise
+
+    def _build(self, cfg: StackConfig, start_metrics: bool) -> None:
+        sweep_temp_files(cfg.learner.checkpoint_dir)  # under the lock, so no live writer owns them; logs each
         self.cfg = cfg
         self.start_metrics = start_metrics
         self.store = WeightStore(history=cfg.learner.weights_history)
@@ -120,25 +135,43 @@ class LearnerService(rpc.GrpcService):
 
     def start(self) -> LearnerService:
         torch.set_num_threads(self.cfg.learner.torch_threads)
-        self.running = rpc.start_server(
-            "learner",
-            lambda server: add_learner_servicer(self.servicer, server),
-            [SERVICE_NAME],
-            self.cfg.learner.server,
-            self.cfg.auth,
-            start_metrics=self.start_metrics,
-        )
-        self.learner.start()
+        try:
+            self.running = rpc.start_server(
+                "learner",
+                lambda server: add_learner_servicer(self.servicer, server),
+                [SERVICE_NAME],
+                self.cfg.learner.server,
+                self.cfg.auth,
+                start_metrics=self.start_metrics,
+            )
+            self.learner.start()
+        except BaseException:
+            self.stop()  # e.g. the port is taken: nothing trained, the directory is free for the next try
+            raise
         return self
 
     def stop(self) -> None:
-        self.learner.stop()  # training ends, final checkpoint written
-        self.store.close()  # weight streams end cleanly; clients reconnect to the next learner
-        if self.shm is not None:
-            self.shm.close()  # its version files go with it
-        if self.running is not None:
-            self.running.stop()
-            self.running = None
+        ended = self.learner.stop()  # training ends, final checkpoints written
+        try:
+            self.store.close()  # weight streams end cleanly; clients reconnect to the next learner
+            if self.shm is not None:
+                self.shm.close()  # its version files go with it
+            if self.running is not None:
+                self.running.stop()
+                self.running = None
+        finally:
+            if ended:
+                self.ckpt_lock.release()
+            else:  # a thread that may still write keeps it; the kernel drops it when this process exits
+                log.error("learner threads still running; learner.checkpoint_dir stays locked until this process exits")
+
+
+def _lock(checkpoint_dir: Path) -> CheckpointDirLock:
+    """The checkpoint directory for this learner alone; one line (ConfigError) when it is in use or cannot be made."""
+    try:
+        return lock_checkpoint_dir(checkpoint_dir)  # CheckpointDirInUse (a ConfigError) when another learner has it
+    except OSError as exc:  # e.g. a read-only or full volume: the service cannot run, say where
+        raise ConfigError(f"learner.checkpoint_dir {checkpoint_dir}: {exc.strerror or exc}") from None
 
 
 def run(cfg: StackConfig, ready_file: str | None) -> int:

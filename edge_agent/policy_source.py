@@ -40,7 +40,7 @@ ACTION_LATENCY = prometheus_client.Histogram(
     "user_edge_action_latency_seconds",
     "Time from asking the policy source for an action to having it (answered requests)",
     ["source"],
-    buckets=(*_LATENCY_BUCKETS, 0.04, 0.05, 0.06, 0.08, 0.1, 0.16, 0.5, 1.0),
+    buckets=(*_LATENCY_BUCKETS, 0.04, 0.05, 0.06, 0.08, 0.1, 0.16, 0.5, 1.0, 2.5, 5.0),
 )
 _REMOTE_LATENCY = ACTION_LATENCY.labels("remote")
 ACT_METHOD = "/user.v1.Inference/Act"  # errors of ActBatch calls count here too, per robot: one request each
