@@ -386,3 +386,16 @@ def test_up_hands_nan_and_inf_params_to_the_edge_exactly(tmp_path: Path) -> None
     first = load_config(overrides=stack.edge_overrides("edge-1", [robots[1]], seed=2)).edge.robots[0]
     assert first.id == "arm-1" and math.isnan(first.params["gain"]) and first.params["limit"] == math.inf
     assert first.params["note"] == "a: b, [c]"
+
+
+def test_up_numbers_robot_copies_on_from_the_configured_id(tmp_path: Path) -> None:
+    ids = {}
+    for first, agents in (("arm-9", 1), ("arm-9", 3), ("arm-0", 2), ("panda", 2)):
+        cfg = StackConfig()
+        cfg.up.edge_agents = agents
+        cfg.edge.robots = [RobotConfig(id=first, kind="k")]
+        ids[first, agents] = [r["id"] for r in Stack(cfg, None, [], tmp_path)._edge_robots()]
+    assert ids["arm-9", 1] == ["arm-9"]  # a single robot keeps the id it was configured with
+    assert ids["arm-9", 3] == ["arm-9", "arm-10", "arm-11"]
+    assert ids["arm-0", 2] == ["arm-0", "arm-1"]
+    assert ids["panda", 2] == ["panda-0", "panda-1"]

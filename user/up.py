@@ -381,13 +381,15 @@ class Stack:
         self._wait_ready(inference)
 
     def _edge_robots(self) -> list[dict[str, Any]]:
-        """One edge agent per robot: up.edge_agents copies of the first robot entry (arm-0, arm-1, ...;
-        panda -> panda-0, ...), then each further entry once (another embodiment beside them)."""
+        """One edge agent per robot: up.edge_agents copies of the first robot entry, numbered on from its id
+        (arm-0 -> arm-0, arm-1, ...; arm-9 -> arm-9, arm-10, ...; panda -> panda-0, ...), then each further entry
+        once (another embodiment beside them)."""
         first, *others = self.cfg.edge.robots
-        base_id = re.sub(r"-\d+$", "", first.id)
+        numbered = re.fullmatch(r"(.*)-(\d+)", first.id)
+        base_id, start = (numbered.group(1), int(numbered.group(2))) if numbered else (first.id, 0)
         # Python mode: JSON mode would turn a NaN or Inf param into null (robots_value keeps them)
         dump = {**first.model_dump(exclude_none=True)}
-        robots = [{**dump, "id": f"{base_id}-{i}"} for i in range(self.cfg.up.edge_agents)]
+        robots = [{**dump, "id": f"{base_id}-{start + i}"} for i in range(self.cfg.up.edge_agents)]
         return robots + [r.model_dump(exclude_none=True) for r in others]
 
     def dead_children(self) -> list[Child]:
