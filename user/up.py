@@ -48,6 +48,8 @@ READY_TIMEOUT_S = 120.0
 START_RESTARTS = 2  # a child killed by a signal while starting is started again this many times
 SERVICES = ("control", "replay", "learner", "inference")  # servers: restarted on their previous ports
 STOP_TIMEOUT_S = 20.0
+# stop order (edges are tier 0): edges flush their spools to replay, so replay and control stop last
+_STOP_TIER = {"inference": 1, "learner": 1, "replay": 2, "control": 3}
 PR_SET_PDEATHSIG = 1
 LOCK_FILE = "up.lock"  # held (flock) by the supervisor running the run dir; holds its pid
 TOKEN_FILE = "token"  # the generated per-run auth token, mode 0600, for operators' commands
@@ -429,12 +431,20 @@ class Stack:
         return {c.name: list(c.restart_codes) for c in self.children if c.restart_codes}
 
     def stop(self) -> dict[str, int | None]:
-        """SIGTERM in reverse start order (edges flush first), SIGKILL stragglers; returns exit codes."""
-        for child in reversed(self.children):
-            if child.proc.poll() is None:
+        """SIGTERM tier by tier, the edges first (they flush to replay), then inference and the learner together,
+        then replay, then control; each tier's processes stop side by side, stragglers get SIGKILL. Returns exit
+        codes."""
+        tiers: dict[int, list[Child]] = {}
+        for child in self.children:
+            tiers.setdefault(_STOP_TIER.get(child.name, 0), []).append(child)
+        for tier in sorted(tiers):
+            live = [c for c in tiers[tier] if c.proc.poll() is None]
+            for child in live:
                 child.proc.send_signal(signal.SIGTERM)
+            deadline = time.monotonic() + STOP_TIMEOUT_S
+            for child in live:
                 try:
-                    child.proc.wait(STOP_TIMEOUT_S)
+                    child.proc.wait(max(0.0, deadline - time.monotonic()))
                 except subprocess.TimeoutExpired:
                     child.proc.kill()
                     child.proc.wait()
