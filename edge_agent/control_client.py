@@ -289,6 +289,7 @@ class ControlClient:
             self._robots_changed.clear()
             register = control_pb2.RegisterRequest()
             register.CopyFrom(self._register)
+        announced = {r.robot_id for r in register.robots}  # what control has been told this stream owns
         yield control_pb2.EdgeMessage(register=register)
         seq = 0
         next_beat = 0.0
@@ -302,7 +303,7 @@ class ControlClient:
                 interval = reg.heartbeat_interval_s if reg.heartbeat_interval_s > 0 else 1.0
                 next_beat = time.monotonic() + interval
                 seq += 1
-                beat = self._heartbeat(seq)
+                beat = self._heartbeat(seq, announced)
                 if gen != self._stream_gen:  # stream ended while building it: keep the episodes
                     with self._lock:
                         self._requeue_in_flight()
@@ -313,7 +314,9 @@ class ControlClient:
                 if final:
                     return  # half-close: control sees the end of our stream and closes its side
                 if changed:  # after that heartbeat: the last episodes of a robot leaving the set still count
-                    yield control_pb2.EdgeMessage(robots=control_pb2.RobotsUpdate(robots=self._robot_set()))
+                    robots = self._robot_set()
+                    announced = {r.robot_id for r in robots}
+                    yield control_pb2.EdgeMessage(robots=control_pb2.RobotsUpdate(robots=robots))
                 continue
             wait = _POLL_S if reg is None else max(0.0, min(_POLL_S, next_beat - time.monotonic()))
             try:
@@ -322,18 +325,27 @@ class ControlClient:
                 continue
             yield control_pb2.EdgeMessage(command_result=result)
 
-    def _heartbeat(self, seq: int) -> control_pb2.Heartbeat:
-        """Statuses with fresh episodes plus any carried over from a broken stream."""
+    def _heartbeat(self, seq: int, announced: set[str]) -> control_pb2.Heartbeat:
+        """Statuses with fresh episodes plus any carried over from a broken stream. A robot plugged in since
+        control was last told the robot set waits for the next heartbeat (its episodes carried): control drops
+        the status of a robot the stream has not registered."""
         statuses = self._status_fn()
+        sent: list[control_pb2.RobotStatus] = []
         with self._lock:
             self._in_flight = {}
+            coming = {r.robot_id for r in self._register.robots}  # the set the next update announces
             for status in statuses:
                 carried = self._carry.pop(status.robot_id, [])
                 fresh = list(status.new_episodes)
+                if status.robot_id not in announced:
+                    if status.robot_id in coming:
+                        self._carry[status.robot_id] = [*carried, *fresh]
+                    continue
                 del status.new_episodes[:]
                 status.new_episodes.extend([*carried, *fresh])
                 self._in_flight[status.robot_id] = list(status.new_episodes)
-        return control_pb2.Heartbeat(seq=seq, sent_at_ns=time.time_ns(), robots=statuses)
+                sent.append(status)
+        return control_pb2.Heartbeat(seq=seq, sent_at_ns=time.time_ns(), robots=sent)
 
     def _requeue_in_flight(self) -> None:
         """Caller holds the lock. The last heartbeat may not have arrived: send its episodes again."""

@@ -169,3 +169,32 @@ def test_a_bad_worker_report_is_invalid_argument(make_control) -> None:
             control_pb2.RegisterWorkerRequest(worker=control_pb2.WorkerInfo(worker_id="w", kind="trainer")), timeout=5
         )
     assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT
+
+
+def test_a_robot_plugged_in_is_announced_before_its_status_and_its_first_episode_arrives(make_control) -> None:
+    """Hot-plug: the heartbeat that goes with a robot-set change carries only robots control already knows; a
+    new robot's status (and an episode it finished meanwhile) follows the set update, never refused as foreign."""
+    from services.control.server import HEARTBEAT_REJECTED
+
+    def foreign() -> float:
+        return HEARTBEAT_REJECTED.labels("foreign_robot")._value.get()
+
+    control = make_control()
+    statuses = [control_pb2.RobotStatus(robot_id="arm-0")]
+    client = ControlClient(control.address, AUTH, "lab-pc-1", [spec("arm-0")], lambda: list(statuses), lambda c: None)
+    try:
+        assert client.wait_registered(10)
+        before = foreign()
+        statuses.append(control_pb2.RobotStatus(robot_id="arm-2", episodes=1, new_episodes=[episode("arm-2", 1)]))
+        client.set_robots([spec("arm-0"), spec("arm-2")])
+        s = stub(control)
+
+        def arm_2() -> control_pb2.RobotInfo | None:
+            robots = s.ListRobots(control_pb2.ListRobotsRequest(), timeout=5).robots
+            return next((r for r in robots if r.spec.robot_id == "arm-2" and r.recent_episodes), None)
+
+        got = wait_for(arm_2, "arm-2's episode at control")
+        assert [e.episode_id for e in got.recent_episodes] == ["ep-1"]
+        assert foreign() == before
+    finally:
+        client.close()
