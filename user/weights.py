@@ -1314,6 +1314,11 @@ class WeightSubscriber:
         start = time.perf_counter()
         try:
             self.on_weights(weights)
+        except ValueError as exc:  # a refusal that says why (a misfit policy, non-finite tensors): no traceback
+            log.warning(
+                "weights refused; keeping the previous version", extra=kv(version=weights.version, error=str(exc))
+            )
+            return False
         except Exception:
             log.exception("on_weights failed; keeping the previous version", extra=kv(version=weights.version))
             return False
