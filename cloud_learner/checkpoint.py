@@ -16,7 +16,6 @@ and the previous checkpoint still named by `latest`; temp files a killed writer 
 
 from __future__ import annotations
 
-import fcntl
 import logging
 import os
 import re
@@ -26,6 +25,7 @@ from typing import Any, BinaryIO
 
 import torch
 
+from user import owner_lock
 from user.config import ConfigError
 from user.log import kv
 
@@ -81,15 +81,10 @@ def lock_checkpoint_dir(path: str | Path) -> CheckpointDirLock:
     Raises CheckpointDirInUse naming the holder's pid when another process, or another lock of this one, has it."""
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
-    fd = os.open(path / OWNER_LOCK, os.O_RDWR | os.O_CREAT, 0o644)  # O_CLOEXEC by default: children never hold it
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        pid = os.read(fd, 32).decode(errors="replace").strip() or "unknown"
-        os.close(fd)
-        raise CheckpointDirInUse(f"learner.checkpoint_dir {path} is in use by pid {pid}") from None
-    os.ftruncate(fd, 0)
-    os.write(fd, f"{os.getpid()}\n".encode())
+        fd = owner_lock.take(path / OWNER_LOCK)
+    except owner_lock.Held as held:
+        raise CheckpointDirInUse(f"learner.checkpoint_dir {path} is in use by pid {held.holder}") from None
     return CheckpointDirLock(path, fd)
 
 

@@ -33,7 +33,6 @@ either policy, so refused steps never make the robots hold.
 
 from __future__ import annotations
 
-import fcntl
 import logging
 import os
 import shutil
@@ -48,6 +47,7 @@ from typing import Literal
 import lmdb
 import prometheus_client
 
+from user import owner_lock
 from user.config import ConfigError, EdgeConfig
 from user.log import kv
 from user.v1 import replay_pb2, step_pb2
@@ -230,18 +230,12 @@ def _pages(stat: dict[str, int]) -> int:
 def _take_owner(path: Path) -> int:
     """One owner at a time: two writers would hand out the same seqs. The kernel drops the lock when its
     process dies, kill -9 included, so a restarted edge takes it over at once. Returns the locked fd."""
-    fd = os.open(path / "owner.lock", os.O_RDWR | os.O_CREAT, 0o644)
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
-        os.close(fd)
+        return owner_lock.take(path / "owner.lock")
+    except owner_lock.Held as held:
         raise SpoolInUse(
-            f"edge.spool_dir: spool {path} is in use by pid {holder} (another edge with this edge.agent_id?)"
+            f"edge.spool_dir: spool {path} is in use by pid {held.holder} (another edge with this edge.agent_id?)"
         ) from None
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)  # named by the next process refused
-    return fd
 
 
 class LmdbSpool(Outbox):

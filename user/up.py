@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
-import fcntl
 import json
 import logging
 import math
@@ -32,6 +31,7 @@ from typing import TYPE_CHECKING, Any
 import grpc
 import yaml
 
+from user import owner_lock
 from user.config import AuthConfig, StackConfig
 from user.log import kv
 from user.rpc import make_channel
@@ -80,31 +80,15 @@ def lock_run_dir(run_dir: Path) -> int:
     open while the stack runs). The kernel drops the lock when the process dies, however it dies, so a
     `kill -9` leaves no stale lock. Raises RunDirBusy, writing nothing, when another process holds it."""
     run_dir.mkdir(parents=True, exist_ok=True)
-    fd = os.open(run_dir / LOCK_FILE, os.O_RDWR | os.O_CREAT, 0o644)  # not inherited: children never hold it
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        holder = os.read(fd, 32).decode(errors="replace").strip() or "unknown"
-        os.close(fd)
-        raise RunDirBusy(f"{run_dir} is in use by another `userctl up` (pid {holder})") from None
-    os.ftruncate(fd, 0)
-    os.write(fd, f"{os.getpid()}\n".encode())
-    return fd
+        return owner_lock.take(run_dir / LOCK_FILE)
+    except owner_lock.Held as held:
+        raise RunDirBusy(f"{run_dir} is in use by another `userctl up` (pid {held.holder})") from None
 
 
 def run_dir_live(run_dir: Path) -> bool:
     """True while a `userctl up` holds run_dir (probed with a shared lock taken and dropped at once)."""
-    try:
-        fd = os.open(run_dir / LOCK_FILE, os.O_RDONLY)
-    except OSError:
-        return False
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-    except BlockingIOError:
-        return True
-    finally:
-        os.close(fd)  # closing drops the probe's lock too
-    return False
+    return owner_lock.holder(run_dir / LOCK_FILE) is not None
 
 
 def clear_run_dir(run_dir: Path) -> None:

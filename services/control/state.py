@@ -18,7 +18,6 @@ is lost only if control stops before the disk takes it.
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import itertools
 import logging
 import os
@@ -31,6 +30,7 @@ from pathlib import Path
 
 import prometheus_client
 
+from user import owner_lock
 from user.config import ConfigError
 from user.log import kv
 from user.v1 import control_pb2, robot_pb2
@@ -128,19 +128,11 @@ def lock_state(path: Path) -> int:
     lock_path = Path(f"{path}{LOCK_SUFFIX}")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)  # O_CLOEXEC by default: children never hold it
+        return owner_lock.take(lock_path)
+    except owner_lock.Held as held:
+        raise StateInUse(f"control.state_path {path} is in use by pid {held.holder}") from None
     except OSError as exc:
         raise ConfigError(f"control.state_path {path}: cannot create {lock_path} ({_why(exc)})") from None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        pid = os.read(fd, 32).decode(errors="replace").strip() or "unknown"
-        os.close(fd)
-        raise StateInUse(f"control.state_path {path} is in use by pid {pid}") from None
-    with contextlib.suppress(OSError):  # on a full disk the pid goes unnamed; the lock holds all the same
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()}\n".encode())
-    return fd
 
 
 def _open_db(path: Path) -> sqlite3.Connection:

@@ -12,7 +12,6 @@ stored steps exceed capacity_mb, whole episodes leave, oldest first (FIFO), from
 
 from __future__ import annotations
 
-import fcntl
 import logging
 import os
 import threading
@@ -50,7 +49,7 @@ from services.replay.disk import (
 from services.replay.hot import HotGroup, Layout, decode_blobs, decode_image, frame_nbytes
 from services.replay.rawstep import Span, StepSpans, Unexpected, step_spans
 from services.replay.tables import INTERVENTIONS, Draw, EmptyBufferError, Index, Record
-from user import wire
+from user import owner_lock, wire
 from user.log import kv
 from user.v1 import robot_pb2, step_pb2
 from user.v1 import tensor_pb2 as tpb
@@ -117,31 +116,15 @@ def hold_buffer(path: str | Path, holder: str) -> int:
     lock when the process dies, however it dies, so a kill -9 leaves no stale holder. Raises BufferHeld,
     writing nothing, when another process (or another fd of this one) holds it."""
     Path(path).mkdir(parents=True, exist_ok=True)
-    fd = os.open(Path(path) / HOLDER_FILE, os.O_RDWR | os.O_CREAT, 0o644)  # not inherited by exec'd children
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        who = os.read(fd, 256).decode(errors="replace").strip() or "another process"
-        os.close(fd)
-        raise BufferHeld(f"{path} is held by {who}", who) from None
-    os.ftruncate(fd, 0)
-    os.write(fd, f"{holder} (pid {os.getpid()})\n".encode())
-    return fd
+        return owner_lock.take(Path(path) / HOLDER_FILE, f"{holder} (pid {os.getpid()})")
+    except owner_lock.Held as held:
+        raise BufferHeld(f"{path} is held by {held.holder}", held.holder) from None
 
 
 def buffer_holder(path: str | Path) -> str | None:
     """Who holds the buffer at path now ("the replay service (pid N)"), or None; a probe that creates nothing."""
-    try:
-        fd = os.open(Path(path) / HOLDER_FILE, os.O_RDONLY)
-    except OSError:
-        return None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-    except BlockingIOError:
-        return os.read(fd, 256).decode(errors="replace").strip() or "another process"
-    finally:
-        os.close(fd)  # closing drops the probe's own lock too
-    return None
+    return owner_lock.holder(Path(path) / HOLDER_FILE)
 
 
 def release_buffer(fd: int) -> None:
