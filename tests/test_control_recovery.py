@@ -191,29 +191,6 @@ def test_a_second_control_on_the_same_state_file_is_refused_until_the_first_dies
 # --------------------------------------------------------------------------- 3: a disk that fills under the state
 
 
-@pytest.fixture
-def tiny_disk(tmp_path: Path) -> Iterator[Callable[[str], Path]]:
-    """mount(size) -> a fresh real tmpfs of that size; all unmounted at the end."""
-    mounted: list[Path] = []
-
-    def mount(size: str) -> Path:
-        if os.geteuid() != 0:
-            pytest.skip("mounting a small tmpfs (a real disk that fills) needs root")
-        mnt = tmp_path / f"disk{len(mounted)}"
-        mnt.mkdir()
-        done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(mnt)], capture_output=True)
-        if done.returncode != 0:
-            pytest.skip(f"mounting a tmpfs is not permitted here: {done.stderr.decode().strip()}")
-        mounted.append(mnt)
-        return mnt
-
-    yield mount
-    for mnt in mounted:
-        if subprocess.run(["umount", str(mnt)], capture_output=True).returncode != 0:
-            subprocess.run(["umount", "-l", str(mnt)], check=False)
-            pytest.fail(f"{mnt} was still in use after the test: a file on it was left open")
-
-
 def fill(mnt: Path) -> Path:
     """Another process's file takes every free byte of the disk."""
     filler = mnt / "filler"

@@ -10,7 +10,7 @@ import signal
 import subprocess
 import sys
 import textwrap
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -39,27 +39,6 @@ from user.config import ConfigError
 from user.v1 import step_pb2
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture
-def tiny_disk(tmp_path: Path) -> Iterator[Callable[[str], Path]]:
-    """mount(size) -> a fresh real tmpfs of that size (e.g. "512k"); all unmounted at the end."""
-    mounted: list[Path] = []
-
-    def mount(size: str) -> Path:
-        if os.geteuid() != 0:
-            pytest.skip("mounting a small tmpfs (a real disk that fills) needs root")
-        mnt = tmp_path / f"disk{len(mounted)}"
-        mnt.mkdir()
-        done = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(mnt)], capture_output=True)
-        if done.returncode != 0:
-            pytest.skip(f"mounting a tmpfs is not permitted here: {done.stderr.decode().strip()}")
-        mounted.append(mnt)
-        return mnt
-
-    yield mount
-    for mnt in mounted:
-        subprocess.run(["umount", str(mnt)], check=False)
 
 
 def fill(mnt: Path) -> Path:
