@@ -141,6 +141,8 @@ CAPPED = prometheus_client.Counter(
 # Replay's FAILED_PRECONDITION details that mean "not enough data yet" (waiting, not an error); any other
 # FAILED_PRECONDITION (e.g. transitions of different layouts) is an error.
 EMPTY_DETAILS = ("no sampleable transitions", "min_size_to_sample")
+MAX_MISFIT_ROBOTS = 1024  # WorkerInfo.misfit_robots entries control accepts from one learner
+MAX_MISFIT_REASON_CHARS = 200  # of each reason: control sends it down in the robot's hold lease
 
 
 class LearnerError(RuntimeError):
@@ -531,6 +533,7 @@ class ExperimentRun:
         self._lock = threading.Lock()  # robot set changes vs. sampling
         self._tables_warned = False
         self._misfits: dict[str, bytes] = {}  # robot_id -> the spec that did not fit (logged once)
+        self._misfit_reasons: dict[str, str] = {}  # robot_id -> why (WorkerInfo.misfit_robots; under _lock)
         self.stopped = threading.Event()  # control stopped the experiment: no sampling, no updates
         self.pretrain_updates = 0  # updates done on experiments[].pretrain.table (checkpointed)
         self.normalization: dict[str, Any] | None = None  # state_mean/state_std the algorithm was built with
@@ -834,13 +837,19 @@ class ExperimentRun:
 
     def add_robot(self, spec: robot_pb2.RobotSpec) -> None:
         """A robot joined after the layout was fixed: it trains here only if it fits the layout."""
+        why = (
+            f"robot {spec.robot_id} ({spec.kind}) does not fit the layout the learner fixed for it (other "
+            "observations, actions or embodiments); nothing trains on its steps"
+        )
         try:
             fits = layout_fingerprint(layout_for(self.exp, [*self.specs.values(), spec])) == layout_fingerprint(
                 self.layout
             )
-        except LayoutError:
-            fits = False
+        except LayoutError as exc:
+            fits, why = False, str(exc).removeprefix(f"experiment {self.exp.name}: ")
         if not fits:
+            with self._lock:  # control holds the robot while the report names it (its steps would be wasted)
+                self._misfit_reasons[spec.robot_id] = why[:MAX_MISFIT_REASON_CHARS]
             seen = spec.SerializeToString(deterministic=True)
             if self._misfits.get(spec.robot_id) != seen:  # once per robot and spec, not at every poll
                 self._misfits[spec.robot_id] = seen
@@ -852,7 +861,18 @@ class ExperimentRun:
         with self._lock:
             self.specs[spec.robot_id] = spec
             self.state.robot_ids = sorted(self.specs)
+            self._misfit_reasons.pop(spec.robot_id, None)  # its spec changed to one that fits
         log.info("robot joined", extra=kv(experiment=self.exp.name, robot_id=spec.robot_id))
+
+    def keep_misfits(self, selected: set[str]) -> None:
+        """Forget misfits this experiment's selector no longer takes (removed, or now another experiment's)."""
+        with self._lock:
+            self._misfit_reasons = {rid: why for rid, why in self._misfit_reasons.items() if rid in selected}
+
+    def misfit_robots(self) -> dict[str, str]:
+        """robot_id -> why it does not fit this experiment's layout (WorkerInfo.misfit_robots)."""
+        with self._lock:
+            return dict(self._misfit_reasons)
 
     # ------------------------------------------------------------------ sampling
 
@@ -1255,6 +1275,15 @@ class Learner:
             and not self._stop.is_set()
         )
 
+    def misfit_robots(self) -> dict[str, str]:
+        """Robots an experiment's selector takes that do not fit the layout fixed for it, with why
+        (WorkerInfo.misfit_robots): control holds them, as nothing trains on their steps. Bounded, by id."""
+        out: dict[str, str] = {}
+        for run in list(self.runs.values()):  # replaced, not mutated, by the discover thread
+            if isinstance(run, ExperimentRun):
+                out.update(run.misfit_robots())
+        return dict(sorted(out.items())[:MAX_MISFIT_ROBOTS])
+
     @property
     def failed(self) -> bool:
         return self.error is not None
@@ -1366,6 +1395,8 @@ class Learner:
                 for spec in mine:
                     if spec.robot_id not in run.specs:
                         run.add_robot(spec)
+                if isinstance(run, ExperimentRun):
+                    run.keep_misfits({s.robot_id for s in mine})
                 continue
             if not ready(exp, mine):
                 continue

@@ -190,6 +190,7 @@ def run(cfg: StackConfig, ready_file: str | None) -> int:
         experiments,
         service.learner.preparing,
         lambda: failed_experiments(service.learner),
+        service.learner.misfit_robots,
     ):
         rpc.serve_until_signal(service, "learner", ready_file, healthy=lambda: not service.learner.failed)
     if service.learner.failed:

@@ -117,16 +117,18 @@ class WorkerReporter:
                 self._wait_or_change(info)
 
     def _wait_or_change(self, sent: control_pb2.WorkerInfo) -> None:
-        """Until the next report is due, or earlier when the learner's `preparing` changed (robots wait on it)."""
+        """Until the next report is due, or earlier when what the learner reports of its robots' experiments
+        changed (`preparing`, `failed`, `misfit_robots`: robots hold on them)."""
         due = time.monotonic() + self.interval_s
         while not self._stop.wait(min(CHANGE_POLL_S, max(0.0, due - time.monotonic()))):
             if time.monotonic() >= due:
                 return
             now = self.info()
-            if now is not None and (now.preparing, now.experiments, now.failed) != (
+            if now is not None and (now.preparing, now.experiments, now.failed, now.misfit_robots) != (
                 sent.preparing,
                 sent.experiments,
                 sent.failed,
+                sent.misfit_robots,
             ):
                 return
 
@@ -141,11 +143,13 @@ def report_worker(
     experiments: Callable[[], list[str]],
     preparing: Callable[[], list[str]] | None = None,
     failed: Callable[[], dict[str, str]] | None = None,
+    misfit_robots: Callable[[], dict[str, str]] | None = None,
 ) -> Iterator[WorkerReporter]:
     """Around `serve_until_signal(service, ...)`: report once the service is bound, until it stops.
     `experiments()`: those it serves (experiments defined at run time join); `preparing()`: the learner's
     experiments without a policy yet (WorkerInfo.preparing); `failed()`: those it cannot train, with why
-    (WorkerInfo.failed). All re-read for each report."""
+    (WorkerInfo.failed); `misfit_robots()`: robots that do not fit their experiment's layout, with why
+    (WorkerInfo.misfit_robots). All re-read for each report."""
 
     def info() -> control_pb2.WorkerInfo | None:
         running = getattr(service, "running", None)
@@ -155,7 +159,7 @@ def report_worker(
         if getattr(info, "names", None) != names:
             info.cached = worker_info(kind, f"{socket.gethostname()}:{running.port}", device, names)
             info.names = names
-        if preparing is None and failed is None:
+        if preparing is None and failed is None and misfit_robots is None:
             return info.cached
         out = control_pb2.WorkerInfo()
         out.CopyFrom(info.cached)
@@ -163,6 +167,8 @@ def report_worker(
             out.preparing.extend(preparing())
         if failed is not None:
             out.failed.update(failed())
+        if misfit_robots is not None:
+            out.misfit_robots.update(misfit_robots())
         return out
 
     reporter = WorkerReporter(control_addr, auth, info).start()

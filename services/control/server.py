@@ -51,6 +51,7 @@ SERVICE_NAME = control_pb2.DESCRIPTOR.services_by_name["Control"].full_name
 MAX_TEXT_BYTES = 256  # hostname, software_version, command ids: enough for any real value, bounded in memory
 MAX_ERROR_BYTES = 1024  # a learner's reason an experiment failed (WorkerInfo.failed), cut beyond this
 MAX_REASON_CHARS = 200  # of that reason, in the hold lease sent down to every robot of the experiment
+MAX_MISFIT_ROBOTS = 1024  # WorkerInfo.misfit_robots entries one learner may report
 MAX_ROBOTS_PER_AGENT = 256
 MAX_COMMAND_WAIT_S = 60.0
 WORKER_ID_RE = re.compile(r"[A-Za-z0-9_.@:\-]{1,128}")
@@ -141,6 +142,11 @@ def worker_problem(w: control_pb2.WorkerInfo) -> str | None:
     # `failed` may name an experiment outside `experiments` (a defined one whose definition did not check).
     if len(w.failed) > 256 or any(not EXPERIMENT_NAME_RE.fullmatch(name) for name in w.failed):
         return "failed: at most 256 entries, keyed by experiment name"
+    if len(w.misfit_robots) > MAX_MISFIT_ROBOTS:
+        return f"misfit_robots: at most {MAX_MISFIT_ROBOTS} entries, got {len(w.misfit_robots)}"
+    bad = sorted(rid for rid in w.misfit_robots if not ROBOT_ID_RE.fullmatch(rid))
+    if bad:
+        return f"misfit_robots {[clipped(r) for r in bad[:5]]} ({len(bad)} in all) must match {ROBOT_ID_RE.pattern}"
     return None
 
 
@@ -316,7 +322,8 @@ class Registry:
     selector holds, as the learner and inference route) is leased to it, up to its max_robots (a robot
     holding a place keeps it, then the one that held it last, then by id). A robot whose experiment is
     stopped or full, or whose online learner prepares its first policy or reports the experiment failed
-    (WorkerInfo.failed), is told to hold; one no experiment selects is free. Leases are recomputed whenever a
+    (WorkerInfo.failed), is told to hold, as is a robot that learner reports does not fit the experiment's layout
+    (WorkerInfo.misfit_robots; it takes no place); one no experiment selects is free. Leases are recomputed whenever a
     robot comes or goes, when an experiment starts or stops and when what learners report changes; edges hear
     only the robots whose lease changed."""
 
@@ -341,6 +348,9 @@ class Registry:
         self._workers: dict[str, control_pb2.WorkerInfo] = {}
         self._preparing: set[str] = set()  # experiments an online learner is still preparing: robots hold
         self._failed: dict[str, str] = {}  # experiment -> why an online learner cannot train it: robots hold
+        # robot_id -> (why it does not fit its experiment's layout, the experiments its reporting learners serve):
+        # it holds while one of those experiments selects it
+        self._misfits: dict[str, tuple[str, frozenset[str]]] = {}
         self._commands: OrderedDict[str, CommandRecord] = OrderedDict()
         self._experiments: dict[str, ExperimentRecord] = {}  # config order: the first matching selector wins
         self._removed: set[str] = state.load_removed() if state is not None else set()  # names never reused
@@ -671,6 +681,17 @@ class Registry:
                     r.spec.robot_id,
                 )
             )
+            # A robot its learner cannot train holds (its steps would fill replay for nothing) and takes no place.
+            fit = []
+            for rec in recs:
+                why, served = self._misfits.get(rec.spec.robot_id, ("", frozenset()))
+                if name not in served:
+                    fit.append(rec)
+                else:
+                    out[rec.spec.robot_id] = control_pb2.RobotLease(
+                        robot_id=rec.spec.robot_id, hold=True, reason=f"experiment {name}: {why}"
+                    )
+            recs = fit
             cap = exp.config.max_robots or len(recs)
             for i, rec in enumerate(recs):
                 rid = rec.spec.robot_id
@@ -945,6 +966,8 @@ class Registry:
             kept.CopyFrom(info)
             for name, error in info.failed.items():  # an exception's text can be long: bounded in memory and SQLite
                 kept.failed[name] = error.encode()[:MAX_ERROR_BYTES].decode(errors="ignore")
+            for rid, why in info.misfit_robots.items():  # sent down in a lease: bounded like other hold reasons
+                kept.misfit_robots[rid] = why if len(why) <= MAX_REASON_CHARS else why[:MAX_REASON_CHARS] + "..."
             kept.registered_at_ns = old.registered_at_ns if old and old.online else now_ns
             kept.last_seen_ns = now_ns
             kept.online = True
@@ -964,13 +987,21 @@ class Registry:
         online = [w for w in self._workers.values() if w.kind == "learner" and w.last_seen_ns >= cutoff]
         preparing = {name for w in online for name in w.preparing}
         failed = {name: why for w in online for name, why in sorted(w.failed.items())}
-        if preparing == self._preparing and failed == self._failed:
+        # With the experiments that learner serves: a robot holds only in an experiment its reporter trains.
+        misfits: dict[str, tuple[str, frozenset[str]]] = {}
+        for w in online:
+            for rid, why in sorted(w.misfit_robots.items()):
+                first, served = misfits.get(rid, (why or "does not fit the experiment's layout", frozenset()))
+                misfits[rid] = (first, served | frozenset(w.experiments))
+        if preparing == self._preparing and failed == self._failed and misfits == self._misfits:
             return
         if preparing != self._preparing:
             log.info("learners preparing", extra=kv(experiments=sorted(preparing)))
         if failed.keys() != self._failed.keys():
             log.warning("learners failed experiments: their robots hold", extra=kv(experiments=sorted(failed)))
-        self._preparing, self._failed = preparing, failed
+        if misfits.keys() != self._misfits.keys():
+            log.warning("learners report misfit robots: they hold", extra=kv(robots=sorted(misfits)))
+        self._preparing, self._failed, self._misfits = preparing, failed, misfits
         self._relay_leases_locked()
 
     def workers(self, include_offline: bool) -> list[control_pb2.WorkerInfo]:
