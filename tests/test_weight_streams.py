@@ -782,8 +782,12 @@ def test_versions_stay_unique_across_a_learner_kill_9(tmp_path: Path) -> None:
         )
         assert (tmp_path / "ckpt" / "default" / "weight_version").read_text().strip() == str(local.version)
     finally:
-        proc.kill()
-        proc.wait(30)
+        proc.terminate()  # a graceful stop removes its shared-memory weight files (a kill -9 leaves them to a sweeper)
+        try:
+            proc.wait(60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(30)
         local.close()
         inference.stop()
         edge.close()
