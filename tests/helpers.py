@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import errno
 import socket
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 
@@ -76,3 +78,15 @@ class EndingContext:
         self.active = False
         for callback in self.callbacks:
             callback()
+
+
+def fill(mnt: Path) -> Path:
+    """(For tiny_disk mounts.) Another process's file takes every free byte of the disk."""
+    filler = mnt / "filler"
+    with open(filler, "wb", buffering=0) as f:
+        try:
+            while True:
+                f.write(b"\0" * 4096)
+        except OSError as exc:
+            assert exc.errno == errno.ENOSPC
+    return filler

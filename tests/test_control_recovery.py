@@ -4,7 +4,6 @@ the real edge ControlClient and learner WorkerReporter, real SQLite; the full di
 
 from __future__ import annotations
 
-import errno
 import json
 import logging
 import os
@@ -20,7 +19,7 @@ import yaml
 
 from edge_agent.control_client import ControlClient
 from services.control.server import ControlService
-from tests.helpers import wait_for
+from tests.helpers import fill, wait_for
 from tests.test_replay_store import spec
 from user.config import AuthConfig, ConfigError, ExperimentConfig, RobotSelector, StackConfig
 from user.rpc import Backoff, make_channel
@@ -189,18 +188,6 @@ def test_a_second_control_on_the_same_state_file_is_refused_until_the_first_dies
 
 
 # --------------------------------------------------------------------------- 3: a disk that fills under the state
-
-
-def fill(mnt: Path) -> Path:
-    """Another process's file takes every free byte of the disk."""
-    filler = mnt / "filler"
-    with open(filler, "wb", buffering=0) as f:
-        try:
-            while True:
-                f.write(b"\0" * 4096)
-        except OSError as exc:
-            assert exc.errno == errno.ENOSPC
-    return filler
 
 
 def test_a_full_disk_under_the_state_file_ends_no_stream_and_is_written_once_space_returns(

@@ -32,25 +32,13 @@ from cloud_learner.checkpoint import (
     write_version_mark,
 )
 from edge_agent.spool import LmdbSpool
-from tests.helpers import wait_for
+from tests.helpers import fill, wait_for
 from tests.test_edge_agent import sim_steps
 from user import wire
 from user.config import ConfigError
 from user.v1 import step_pb2
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def fill(mnt: Path) -> Path:
-    """Another process's file takes every free byte of the disk."""
-    filler = mnt / "filler"
-    with open(filler, "wb", buffering=0) as f:
-        try:
-            while True:
-                f.write(b"\0" * 4096)
-        except OSError as exc:
-            assert exc.errno == errno.ENOSPC
-    return filler
 
 
 def put_until_paused(spool: LmdbSpool, steps: list, limit: int = 2000) -> list[int]:
