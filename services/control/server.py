@@ -1126,14 +1126,19 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
                 box.put(None)
 
         threading.Thread(target=read, name="control-first-message", daemon=True).start()
-        try:
-            return box.get(timeout=self.register_timeout_s)
-        except queue.Empty:
-            context.abort(
-                grpc.StatusCode.DEADLINE_EXCEEDED,
-                f"no register within {self.register_timeout_s:g} s: the first message on Connect must be `register`",
-            )
-            return None  # not reached: abort raises
+        deadline = time.monotonic() + self.register_timeout_s
+        while True:
+            try:
+                return box.get(timeout=min(0.5, max(0.0, deadline - time.monotonic())))
+            except queue.Empty:
+                if not context.is_active():  # the edge went away: free this thread now, not at the deadline
+                    return None
+                if time.monotonic() >= deadline:
+                    context.abort(
+                        grpc.StatusCode.DEADLINE_EXCEEDED,
+                        f"no register within {self.register_timeout_s:g} s: the first message on Connect must be "
+                        "`register`",
+                    )
 
     def _hung_up(self, conn: Connection) -> None:
         if self.registry.disconnect(conn):
