@@ -83,6 +83,10 @@ def test_a_misfit_robot_holds_with_the_reason_while_its_learner_reports_it(
         assert held == {"arm-0": ("both", ""), "arm-1": ("", f"experiment both: {WHY}")}
         assert cli.main(["robots", "ls", "--control", control.address, "--set", f"auth.token={AUTH.token}"]) == 0
         assert "held (experiment both: robot arm-1 (test) does not fit" in capsys.readouterr().out.replace("\n", "")
+        token = f"auth.token={AUTH.token}"
+        assert cli.main(["exp", "status", "both", "--control", control.address, "--set", token]) == 0
+        status = capsys.readouterr().out
+        assert f"held 1 (online, selected, not acting):\n    arm-1: experiment both: {WHY}" in status, status
 
         with lock:
             misfits.clear()  # the report no longer names it: its normal lease comes back

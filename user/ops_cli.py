@@ -195,6 +195,9 @@ def experiment_text(e: control_pb2.ExperimentInfo) -> str:
             f"{r.episodes:>8} {_rate(r.unhelped_successes, r.unhelped_episodes):>8} {r.mean_return:>8.2f} "
             f"{r.policy_version:>7} {r.episodes - r.unhelped_episodes:>7}"
         )
+    held = [f"    {r.robot_id}: {r.hold_reason}" for r in e.robots if r.hold_reason]
+    if held:
+        lines += [f"  held {len(held)} (online, selected, not acting):", *held]
     lines.append(
         "  success: episodes no teleoperator helped in (every episode's rate in brackets; helped = the others)"
     )

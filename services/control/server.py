@@ -810,10 +810,12 @@ class Registry:
         name = exp.config.name
         configs = [e.config for e in self._experiments.values()]
         rids = {rid for (e, rid) in self._totals if e == name}
+        selected = set()
         for rid, rec in self._robots.items():
             match = experiment_for(rec.spec, configs)
             if match is not None and match.name == name:
-                rids.add(rid)
+                selected.add(rid)
+        rids |= selected
         info = control_pb2.ExperimentInfo(
             name=name,
             state=control_pb2.EXPERIMENT_STATE_RUNNING if exp.running else control_pb2.EXPERIMENT_STATE_STOPPED,
@@ -829,6 +831,7 @@ class Registry:
             totals = self._totals.get((name, rid), EpisodeTotals())
             leased = rec is not None and rec.lease is not None and rec.lease.experiment == name
             version = rec.status.policy_version if rec is not None else 0
+            lease = rec.lease if rec is not None and rec.online and rid in selected else None
             info.robots.append(
                 control_pb2.ExperimentRobot(
                     robot_id=rid,
@@ -840,6 +843,7 @@ class Registry:
                     policy_version=version,
                     unhelped_episodes=totals.unhelped,
                     unhelped_successes=totals.unhelped_successes,
+                    hold_reason=lease.reason if lease is not None and lease.hold else "",
                 )
             )
             if leased:
