@@ -452,6 +452,12 @@ class UpConfig(Strict):
         description="a child that dies mid-run starts again on its ports (learner and replay resume from their "
         "checkpoint and LMDB) up to this many times each; 0 = the run stops",
     )
+    log_max_mb: float = Field(
+        default=64.0,
+        ge=0,
+        description="a child's log in runs_dir/name/logs past this size is copied to <log>.1 (replacing it) and "
+        "emptied, so a run of days keeps at most twice this per child; 0 = never",
+    )
 
 
 class StackConfig(Strict):

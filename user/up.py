@@ -175,6 +175,7 @@ class Child:
     restarts: int = 0  # while starting
     crashes: int = 0  # mid-run deaths the supervisor started it again after
     restart_codes: list[int] = field(default_factory=list)  # exit code of each death it was started again after
+    log_cap_failed: bool = False  # capping its log failed once (said once, not every pass)
 
     def launch(self) -> None:
         with open(self.log_path, "ab") as log_file:
@@ -377,6 +378,21 @@ class Stack:
         dump = {**first.model_dump(exclude_none=True)}
         robots = [{**dump, "id": f"{base_id}-{start + i}"} for i in range(self.cfg.up.edge_agents)]
         return robots + [r.model_dump(exclude_none=True) for r in others]
+
+    def cap_logs(self, max_bytes: int) -> None:
+        """Copy-and-truncate each child's log past `max_bytes` (as logrotate's copytruncate): children keep
+        writing to their open O_APPEND file, which continues from 0; lines written between copy and truncate
+        are lost, a few at most."""
+        for child in self.children:
+            try:
+                if max_bytes <= 0 or child.log_path.stat().st_size <= max_bytes:
+                    continue
+                shutil.copyfile(child.log_path, child.log_path.with_name(child.log_path.name + ".1"))
+                os.truncate(child.log_path, 0)
+            except OSError as exc:  # a full disk must not stop the run: the log keeps growing, said once
+                if not child.log_cap_failed:
+                    log.warning("log not capped", extra=kv(child=child.name, error=str(exc)))
+                child.log_cap_failed = True
 
     def dead_children(self) -> list[Child]:
         return [c for c in self.children if c.proc.poll() is not None]
@@ -899,6 +915,7 @@ def _run_stack(console: Console, cfg: StackConfig, config_path: str | None, over
         with live_view as live:
             while not stop.wait(0.5):
                 snap = mon.poll()
+                stack.cap_logs(int(cfg.up.log_max_mb * 2**20))
                 for rid, fault in mon.new_faults(snap.faults):
                     console.print(f"[red]robot {escape(rid)} {fault.state}: {escape(fault.error)}", soft_wrap=True)
                 if live is not None:
