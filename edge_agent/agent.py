@@ -4,7 +4,11 @@ One RobotLoop thread per robot runs observe -> act -> observe at the robot's con
 ships every step to replay; the policy source answers within a deadline or the robot holds still,
 so nothing here ever waits on the learner. Each robot's task judges every step (reward, termination,
 success); its teleoperator, if any, is polled every tick and, when it answers, drives instead of the
-policy: the step goes to replay with `intervention = true` and the human action as the action.
+policy: the step goes to replay with `intervention = true` and the human action as the action. A
+teleoperator that fails while its human drives leaves the robot holding, not to the policy the human
+was overriding, until a teleoperator answers again or an operator RESUMEs it. Whenever the policy did
+not drive a tick (a human did, or the robot held or was paused) its planned chunks are dropped: it
+plans afresh from the robot's current observation before it acts again.
 A ControlClient registers the robots, heartbeats their status and delivers PAUSE / RESUME / RESET
 commands.
 
@@ -92,6 +96,11 @@ DETACHES = prometheus_client.Counter(
 TELEOP_ATTACHED = prometheus_client.Gauge(
     "user_edge_teleop_attached", "1 while the robot's teleoperator is connected; 0 while absent", ["robot_id"]
 )
+TELEOP_LOST_HOLDS = prometheus_client.Counter(
+    "user_edge_teleop_lost_holds_total",
+    "Steps held because the teleoperator failed while its human drove (until it answers again or a RESUME)",
+    ["robot_id"],
+)
 TELEOP_DETACHES = prometheus_client.Counter(
     "user_edge_teleop_detaches_total",
     "Teleoperators released and reconnected because their polls kept failing (unplugged)",
@@ -152,6 +161,7 @@ class _RobotMetrics:
         self.held = HELD_STEPS.labels(robot_id)
         self.interventions = INTERVENTION_STEPS.labels(robot_id)
         self.version = POLICY_VERSION.labels(robot_id)
+        self.teleop_lost = TELEOP_LOST_HOLDS.labels(robot_id)
 
 
 class StepSink(Protocol):
@@ -165,7 +175,12 @@ class StepSink(Protocol):
 
 class TickScheduler:
     """Fixed-rate ticks on a grid t0 + k*period: sleeping to an absolute time never drifts, and a
-    step that overruns skips the ticks it missed instead of bursting to catch up."""
+    step that overruns skips the ticks it missed instead of bursting to catch up.
+
+    A late tick runs at once, standing for the grid tick nearest to it; the tick after it is the first grid tick
+    at least half a period later, so two ticks are never closer than half a period (a late step is not followed
+    by a doubled one), the grid keeps its phase (loops started together keep ticking together), and every grid
+    tick passed over counts as an overrun."""
 
     def __init__(
         self,
@@ -179,7 +194,7 @@ class TickScheduler:
         self._clock, self._sleep = clock, sleep
         self._next: float | None = None
         self.ticks = 0
-        self.overruns = 0  # ticks skipped
+        self.overruns = 0  # grid ticks skipped
 
     def start_at(self, first: float) -> None:
         """Put the grid's first tick at `first` (clock time) instead of the first wait(): loops started
@@ -191,13 +206,13 @@ class TickScheduler:
         now = self._clock()
         if self._next is None:
             self._next = now
-        elif now >= self._next + self.period:  # whole ticks missed: skip them
-            missed = int((now - self._next) // self.period)
-            self._next += missed * self.period
-            self.overruns += missed
-        delay = self._next - now
-        if delay > 0:
-            self._sleep(delay)
+        late = now - self._next
+        if late > 0:  # runs now; the grid ticks it passed over (those nearer to now than the next) are skipped
+            skipped = max(0, math.ceil(late / self.period + 0.5) - 1)
+            self._next += skipped * self.period
+            self.overruns += skipped
+        elif late < 0:
+            self._sleep(-late)
         tick = self._next
         self._next += self.period
         self.ticks += 1
@@ -227,6 +242,9 @@ class RobotLoop:
         self.teleop = teleop  # replaced whole by the agent's hot-plug watcher; read once per use
         self.teleop_failing_since: float | None = None  # monotonic start of the current streak of failed polls
         self.teleop_error: str | None = None  # the latest failed poll's error, for the detach line
+        self._human_at: float | None = None  # monotonic time of the teleoperator's latest action
+        self.teleop_lost = False  # it failed while its human drove: hold until a teleoperator answers or a RESUME
+        self._plan_stale = True  # the policy did not drive the last tick: its chunks must not run on
         # Errors whose traceback was logged: the same error again (the next streak, a re-attached instance that
         # fails alike) is one debug line, so a teleoperator that always fails does not repeat its traceback.
         self._teleop_errors_logged: deque[str] = deque(maxlen=TELEOP_ERRORS_REMEMBERED)
@@ -293,10 +311,17 @@ class RobotLoop:
         self._paused.set()
 
     def resume(self) -> None:
+        """An operator's RESUME: a pause ends, and so does the hold of a robot whose teleoperator failed while its
+        human drove (the operator hands it to the policy)."""
+        if self.teleop_lost:
+            self._human_at = None  # first: a poll failing meanwhile must not take the robot back
+            self.teleop_lost = False
+            log.info("operator resumed: the policy drives again", extra=kv(robot_id=self.robot_id))
         self._paused.clear()
 
     def set_teleop(self, teleop: Teleoperator | None) -> None:
-        """Swap the teleoperator (hot-plug); None lets the policy drive from the next tick."""
+        """Swap the teleoperator (hot-plug); None lets the policy drive from the next tick, unless the old one
+        failed while its human drove (teleop_lost): then the robot holds until a new one answers or a RESUME."""
         self.teleop_failing_since = None
         self.teleop = teleop
 
@@ -340,23 +365,25 @@ class RobotLoop:
     def _loop(self) -> None:
         obs, self._obs_ns = self._checked(self.robot.reset(), "reset()"), time.time_ns()
         self._begin_episode(obs)
-        stale = False  # the world moved on while paused: observe afresh before acting
+        # After a pause or hold the first step holds: its observation is the one the last step was judged on (replay
+        # pairs that step with it), its next is taken after the pause, and only the step after that acts on it.
+        was_held = False
         last_tick: float | None = None
         while not self._stop.is_set():
             tick_start = self._wait_tick()
             if self._stop.is_set():
                 break
             last_tick = self._record_period(last_tick, tick_start)
+            if skipped := self._new_overruns():
+                self.policy.skip(self.robot_id, skipped)  # chunk rows are per tick: the skipped ticks' are past
             if self._paused.is_set() or self._lease_hold.is_set() or not self._sink_accepting():
                 self.robot.hold()
-                stale = True
+                was_held = self._plan_stale = True
                 if self.mode == "fast":
                     self._stop.wait(PAUSED_POLL_S)
                     last_tick = None  # a paused gap is not a loop period
                 continue
-            if stale:
-                obs, self._obs_ns, stale = self._checked(self.robot.observe(), "observe()"), time.time_ns(), False
-            obs = self._step(obs)
+            obs, was_held = self._step(obs, hold=was_held), False
 
     def _fail(self, fault: PluginFault) -> None:
         """One error line naming the plug-in, its config entry and the field; the traceback only when it raised."""
@@ -398,18 +425,27 @@ class RobotLoop:
             raise self._robot_fault(f"{call} returned {exc}") from None
         return obs
 
-    def _checked_action(self, applied: object) -> np.ndarray:
-        """What act() reports it applied, if it is of the spec's shape and within its limits (replay's check), else a
-        PluginFault: steps of actions the robot did not take, or out of its declared range, would teach nothing."""
+    def _checked_action(self, applied: object, call: str = "act()") -> np.ndarray:
+        """What act() (or hold()) reports it applied, if it is of the spec's shape and within its limits (replay's
+        check), else a PluginFault: steps of actions the robot did not take, or out of its declared range, would
+        teach nothing."""
         if applied is None:
-            raise self._robot_fault("act() returned None; it must return the action it applied")
+            raise self._robot_fault(f"{call} returned None; it must return the action it applied")
         try:
             action = np.asarray(applied, self._action_dtype)
             self._action_check(wire.to_tensor(action))
         except (TypeError, ValueError) as exc:  # StepError and WireError are ValueErrors
             why = str(exc).removesuffix(" (the edge must clip)")  # the edge did: the robot reports another action
-            raise self._robot_fault(f"act() returned a bad action: {why}") from None
+            raise self._robot_fault(f"{call} returned a bad action: {why}") from None
         return action
+
+    def _held(self) -> np.ndarray:
+        """Hold the robot; a held step records what hold() says it commanded (checked like act()'s answer), or,
+        from a robot whose hold() returns None (it does not say), the spec's clipped zeros."""
+        applied = self.robot.hold()
+        if applied is None:
+            return self._hold_action
+        return self._checked_action(applied, "hold()")
 
     def _judge(self, obs: Observation, applied: np.ndarray, nxt: Observation) -> Outcome:
         """The task's outcome, if it is an Outcome with a finite reward; a task that raises is a PluginFault too."""
@@ -443,11 +479,15 @@ class RobotLoop:
                     jitter = abs(period - self.period_s)
                     self._jitters.append(jitter)
                     self._metrics.jitter.observe(jitter)
+        return now
+
+    def _new_overruns(self) -> int:
+        """Ticks the scheduler skipped since the last call (counted in the metric)."""
         overruns = self.scheduler.overruns - self._overruns_seen
         if overruns:
             self._metrics.overruns.inc(overruns)
             self._overruns_seen = self.scheduler.overruns
-        return now
+        return overruns
 
     def _begin_episode(self, obs: Observation) -> None:
         start_ns = time.time_ns()
@@ -458,6 +498,7 @@ class RobotLoop:
         self._episode_version = 0
         self._episode_interventions = 0
         self.policy.reset(self.robot_id)  # a chunk left from the last episode must not act in this one
+        self._plan_stale = False
         try:
             self.task.reset(obs)
         except Exception as exc:
@@ -466,18 +507,33 @@ class RobotLoop:
             teleop.reset(obs)
 
     def _poll_teleop(self, obs: Observation) -> np.ndarray | None:
-        """The teleoperator's action this tick, or None. A failing device lets the policy drive, loudly."""
+        """The teleoperator's action this tick, or None. A device failing while nobody drives lets the policy drive,
+        loudly. One failing while its human drives (an action within TELEOP_DETACH_S, the detach window) sets
+        teleop_lost: the robot holds instead of going back to the policy the human was overriding, through the
+        detach and after it, until a teleoperator answers a poll (this one, or a fresh one hot-plug attaches) or an
+        operator RESUMEs it."""
         if (teleop := self.teleop) is None:
             return None
         try:
             human = teleop.poll(obs)
         except Exception as exc:
             TELEOP_ERRORS.labels(**self._labels).inc()
+            now = time.monotonic()
+            if not self.teleop_lost and self._human_at is not None and now - self._human_at <= TELEOP_DETACH_S:
+                self.teleop_lost = True
+                log.warning(
+                    "teleoperator failed while its human drove: the robot holds until it answers again or an "
+                    "operator resumes",
+                    extra=kv(robot_id=self.robot_id, error=f"{type(exc).__name__}: {exc}"),
+                )
             if self.teleop_failing_since is None:  # once per failure streak, not at the control rate
-                self.teleop_failing_since = time.monotonic()
+                self.teleop_failing_since = now
                 self._log_teleop_error(exc)
             return None
         self.teleop_failing_since = None
+        if self.teleop_lost:
+            self.teleop_lost = False
+            log.info("teleoperator answers again: the robot is released", extra=kv(robot_id=self.robot_id))
         if human is None:
             return None
         human = np.asarray(human, np.float32)
@@ -488,6 +544,7 @@ class RobotLoop:
                 extra=kv(robot_id=self.robot_id, got=int(human.size), want=self._hold_action.size),
             )
             return None
+        self._human_at = time.monotonic()
         return human.reshape(self._hold_action.shape)
 
     def _log_teleop_error(self, exc: Exception) -> None:
@@ -497,35 +554,54 @@ class RobotLoop:
             log.debug("teleoperator poll failed again", extra=kv(robot_id=self.robot_id, error=error))
             return
         self._teleop_errors_logged.append(error)
-        log.exception("teleoperator poll failed; the policy drives", extra=kv(robot_id=self.robot_id))
+        if self.teleop_lost:
+            log.exception("teleoperator poll failed; the robot holds", extra=kv(robot_id=self.robot_id))
+        else:
+            log.exception("teleoperator poll failed; the policy drives", extra=kv(robot_id=self.robot_id))
 
-    def _decide(self, obs: Observation) -> tuple[np.ndarray, int, bool, bool]:
+    def _decide(self, obs: Observation, hold: bool = False) -> tuple[np.ndarray, int, bool, bool]:
         """(applied action, policy version, held, intervention). A human action wins; no answer in time -> hold.
         An action with a NaN or Inf is never sent to the robot (it holds); every other is clipped to the spec's
-        limits here, whatever the robot plug-in does."""
+        limits here, whatever the robot plug-in does. `hold`: hold whatever (the first step after a pause).
+
+        A tick the policy does not drive marks its plan stale: the next tick it drives starts from a chunk planned
+        on that tick's observation, never from rows planned before the human, the hold or the pause. A tick it
+        drove but had no answer for keeps its chunks: their rows follow the ticks, and the one in flight ends
+        the hold."""
+        if hold:
+            return self._hold_step()
         human = self._poll_teleop(obs)
         if human is not None:
+            self._plan_stale = True
             if not self._finite(human, "teleop"):
-                self.robot.hold()
-                return self._hold_action, 0, True, False
+                return self._held(), 0, True, False
             return self._checked_action(self.robot.act(self._clip(human))), 0, False, True
+        if self.teleop_lost:  # its human drove when it failed: not handed back to the policy they overrode
+            self._metrics.teleop_lost.inc()
+            return self._hold_step()
+        if self._plan_stale:
+            self.policy.reset(self.robot_id)
+            self._plan_stale = False
         answer = self.policy.act(self.robot_id, obs.features, self.deadline_s)
         if answer is not None and np.asarray(answer[0]).size != self._hold_action.size:
             log.warning(
                 "policy action has the wrong size; holding",
                 extra=kv(robot_id=self.robot_id, got=int(np.asarray(answer[0]).size), want=self._hold_action.size),
             )
-            answer = None
+            return self._hold_step()
         if answer is None:
-            self.robot.hold()
-            return self._hold_action, 0, True, False
+            return self._held(), 0, True, False
         action, version = answer
         action = np.asarray(action, np.float32).reshape(self._hold_action.shape)
         if not self._finite(action, "policy", int(version)):
-            self.robot.hold()
-            return self._hold_action, 0, True, False
+            return self._hold_step()  # the rest of a chunk with a NaN is not run either
         applied = self._checked_action(self.robot.act(self._clip(action)))
         return applied, int(version), False, False
+
+    def _hold_step(self) -> tuple[np.ndarray, int, bool, bool]:
+        """A held step the policy did not drive: its plan is stale."""
+        self._plan_stale = True
+        return self._held(), 0, True, False
 
     def _clip(self, action: np.ndarray) -> np.ndarray:
         """A finite action clipped to the spec's limits (as clip_action, bounds computed once): the README's
@@ -552,9 +628,9 @@ class RobotLoop:
         self._non_finite_run += 1
         return False
 
-    def _step(self, obs: Observation) -> Observation:
+    def _step(self, obs: Observation, hold: bool = False) -> Observation:
         started = time.monotonic()
-        applied, version, held, human = self._decide(obs)
+        applied, version, held, human = self._decide(obs, hold)
         acted_ns = time.time_ns()
         nxt = self._checked(self.robot.observe(), "observe()")
         next_ns = time.time_ns()
@@ -885,7 +961,8 @@ class EdgeAgent:
         log.info("teleoperator attached", extra=kv(robot_id=rid, tries=absent.failures + 1))
 
     def _detach_teleop(self, rid: str, loop: RobotLoop) -> None:
-        """Its polls kept failing (unplugged): the policy drives, and a fresh instance is connected when it can be."""
+        """Its polls kept failing (unplugged): the policy drives (or, when it failed while its human drove, the robot
+        holds), and a fresh instance is connected when it can be."""
         old, error = loop.teleop, loop.teleop_error
         if old is None:
             return
@@ -893,7 +970,12 @@ class EdgeAgent:
         TELEOP_DETACHES.labels(rid).inc()
         TELEOP_ATTACHED.labels(rid).set(0)
         log.warning(
-            "teleoperator detached: its polls kept failing; the policy drives until it connects again",
+            "teleoperator detached: its polls kept failing; "
+            + (
+                "the robot holds (it failed while its human drove) until one connects again or an operator resumes"
+                if loop.teleop_lost
+                else "the policy drives until it connects again"
+            ),
             extra=kv(robot_id=rid, error=error, retry_s=self.cfg.edge.replug_s),
         )
         wait = self._backoff_after_detach(rid, self._teleop_attached_at, self._teleop_flaps)

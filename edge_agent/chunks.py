@@ -16,6 +16,10 @@ that observation was taken. The ChunkExecutor serves one action per `tick()`:
   fresh row left, tick() returns None and the robot holds.
 - With no chunk at all (start, or a one-action policy whose "chunk" is used up every tick) the
   request is made synchronously, exactly like a plain per-tick policy.
+- Rows follow the control loop's ticks, not the calls of tick(): skip(n) tells of n ticks the loop
+  skipped (a step overran), so the next row served is the one meant for the tick that runs. The loop
+  calls reset() whenever the policy did not drive its previous tick (a human, a pause, a hold): a chunk
+  planned before that must never resume afterwards.
 
 Metrics: request latency, chunk age at use, ticks held, chunks received.
 """
@@ -96,6 +100,7 @@ class ChunkExecutor:
         self._latencies: deque[float] = deque(maxlen=LATENCY_WINDOW)  # seconds, newest last
         self._period_s = 0.0  # control period, estimated from tick() times; 0 = not known yet
         self._last_tick_at: float | None = None
+        self._skipped = 0  # ticks skipped since the last tick(): the interval to it spans this many more periods
         self._lock = threading.Lock()
         self._chunks: list[_Chunk] = []  # oldest first
         self._in_flight = False
@@ -128,9 +133,16 @@ class ChunkExecutor:
             self.runner(lambda: self._request(observation, tick, now, "async", episode))
         return self._blend(tick, now)
 
+    def skip(self, ticks: int) -> None:
+        """The control loop skipped `ticks` ticks (a step overran): the rows meant for them are past."""
+        if ticks < 0:
+            raise ValueError(f"ticks must be >= 0, got {ticks}")
+        self.ticks += ticks
+        self._skipped += ticks
+
     def reset(self) -> None:
-        """New episode: forget the old chunks, and a fetch in flight (planned from the old episode's
-        observation, it is dropped when it lands); the new episode's first tick asks afresh."""
+        """A new episode, or the policy did not drive the last tick: forget the old chunks, and a fetch in
+        flight (planned from an observation before that, it is dropped when it lands); the next tick asks afresh."""
         with self._lock:
             self._chunks.clear()
             self._episode += 1
@@ -149,9 +161,10 @@ class ChunkExecutor:
 
     def _note_period(self, now: float) -> None:
         last, self._last_tick_at = self._last_tick_at, now
+        periods, self._skipped = 1 + self._skipped, 0
         if last is None or not 0 < now - last <= 1.0:  # the first tick, or a pause (reset, a held loop)
             return
-        interval = now - last
+        interval = (now - last) / periods
         self._period_s = interval if not self._period_s else self._period_s + PERIOD_EWMA * (interval - self._period_s)
 
     def _request(

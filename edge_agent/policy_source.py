@@ -66,7 +66,11 @@ class PolicySource(ABC):
         """Latest policy version seen (0 = none yet)."""
 
     def reset(self, robot_id: str) -> None:  # noqa: B027 - optional hook
-        """A new episode starts for robot_id: chunks planned for the old one must not run on."""
+        """Chunks planned for robot_id so far must not run on: a new episode starts, or the policy did not drive
+        its last tick (a human did, or it held or was paused) and the world moved on without it."""
+
+    def skip(self, robot_id: str, ticks: int) -> None:  # noqa: B027 - optional hook
+        """The control loop of robot_id skipped `ticks` ticks (a step overran): chunk rows meant for them are past."""
 
     def close(self) -> None:  # noqa: B027 - optional hook
         """Release channels and threads."""
@@ -113,6 +117,11 @@ class _Chunked:
         executor = self.executors.get(robot_id)
         if executor is not None:
             executor.reset()
+
+    def skip(self, robot_id: str, ticks: int) -> None:
+        executor = self.executors.get(robot_id)
+        if executor is not None:
+            executor.skip(ticks)
 
 
 ACT_BATCH_WINDOW_S = 0.005  # longest a robot waits for the others of its agent before its batch goes out
@@ -298,6 +307,9 @@ class RemotePolicy(PolicySource):
     def reset(self, robot_id: str) -> None:
         self._chunks.reset(robot_id)
 
+    def skip(self, robot_id: str, ticks: int) -> None:
+        self._chunks.skip(robot_id, ticks)
+
     def _note_error(self, code: grpc.StatusCode, details: str) -> None:
         ACTION_TIMEOUTS.labels("remote", code.name.lower()).inc()
         CLIENT_ERRORS.labels(ACT_METHOD, code.name).inc()
@@ -310,8 +322,71 @@ class RemotePolicy(PolicySource):
         self._channel.close()
 
 
+class _Worker:
+    """One robot's forward passes on a thread of their own (reused), so its control loop waits at most a deadline.
+
+    One job at a time: while a late job still runs, a call gets no answer at once (the robot holds) instead of
+    queueing behind it, and the late job's result is dropped when it lands."""
+
+    def __init__(self, name: str) -> None:
+        self._cond = threading.Condition()
+        self._job: Callable[[], object] | None = None
+        self._busy = self._closed = False
+        self._finished = 0  # jobs run so far; a caller waits for its own number
+        self._given_up = 0  # the last job whose caller stopped waiting
+        self._result: object = None
+        self._error: Exception | None = None
+        threading.Thread(target=self._run, name=name, daemon=True).start()
+
+    def call(self, job: Callable[[], object], timeout_s: float) -> tuple[bool, object]:
+        """(True, job()) when it finished within timeout_s, else (False, None); what job() raised in time is
+        raised here."""
+        with self._cond:
+            if self._busy or self._closed:
+                return False, None
+            self._busy, self._job = True, job
+            ticket = self._finished + 1
+            self._cond.notify_all()
+            if not self._cond.wait_for(lambda: self._finished >= ticket, max(0.0, timeout_s)):
+                self._given_up = ticket
+                return False, None
+            result, error, self._result, self._error = self._result, self._error, None, None
+        if error is not None:
+            raise error
+        return True, result
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._job is not None or self._closed)
+                if self._job is None:
+                    return
+                job, self._job = self._job, None
+            result: object = None
+            error: Exception | None = None
+            try:
+                result = job()
+            except Exception as exc:  # the caller's to raise, or ours to log once it stopped waiting
+                error = exc
+            with self._cond:
+                self._finished += 1
+                late = self._given_up == self._finished
+                self._result, self._error, self._busy = (None, None, False) if late else (result, error, False)
+                self._cond.notify_all()
+            if late and error is not None:
+                log.warning("a late local forward failed", extra=kv(error=repr(error)))
+
+
 class LocalPolicy(PolicySource):
-    """A local policy copy kept fresh by a WeightSubscriber; new weights swap in atomically."""
+    """A local policy copy kept fresh by a WeightSubscriber; new weights swap in atomically.
+
+    Each robot's forward runs on a worker thread of its own and act() waits at most its deadline: a forward that
+    misses it (a GC pause, a first CUDA call, a starved CPU) leaves the robot holding, not waiting on it."""
 
     def __init__(
         self,
@@ -334,6 +409,8 @@ class LocalPolicy(PolicySource):
         self._deterministic = deterministic
         self._lock = threading.Lock()  # serialises forward passes of robots sharing this copy
         self._chunks = _Chunked(self._fetch)
+        self._workers: dict[str, _Worker] = {}  # robot id -> its forward thread
+        self._workers_lock = threading.Lock()
         self._subscriber = WeightSubscriber(
             learner_addr,
             auth,
@@ -372,9 +449,30 @@ class LocalPolicy(PolicySource):
         if policy is None:
             ACTION_TIMEOUTS.labels("local", "no_policy").inc()
             return None
+        start = time.perf_counter()
+        done, answer = self._worker(robot_id).call(lambda: self._forward(policy, robot_id, observation), deadline_s)
+        if not done:  # a stale action is worse than holding still: the late one is dropped when it lands
+            ACTION_TIMEOUTS.labels("local", "late").inc()
+            return None
+        if answer is not None:
+            ACTION_LATENCY.labels("local").observe(time.perf_counter() - start)
+        return answer  # type: ignore[return-value] - _forward's
+
+    def _worker(self, robot_id: str) -> _Worker:
+        worker = self._workers.get(robot_id)
+        if worker is None:
+            with self._workers_lock:
+                worker = self._workers.get(robot_id)
+                if worker is None:
+                    worker = self._workers[robot_id] = _Worker(f"local-policy-{robot_id}")
+        return worker
+
+    def _forward(
+        self, policy: Policy, robot_id: str, observation: dict[str, np.ndarray]
+    ) -> tuple[np.ndarray, int] | None:
+        """One forward pass on the robot's worker thread."""
         from user.experiments import embodiment_inputs, fit_action
 
-        start = time.perf_counter()
         kind = self._kinds.get(robot_id, "")
         try:
             batched = {name: np.asarray(v)[None] for name, v in embodiment_inputs(policy, kind, observation).items()}
@@ -384,18 +482,20 @@ class LocalPolicy(PolicySource):
             ACTION_TIMEOUTS.labels("local", "bad_observation").inc()
             log.warning("local policy refused the observation", extra=kv(robot_id=robot_id, error=str(err)))
             return None
-        elapsed = time.perf_counter() - start
-        if elapsed > deadline_s:  # a stale action is worse than holding still
-            ACTION_TIMEOUTS.labels("local", "late").inc()
-            return None
-        ACTION_LATENCY.labels("local").observe(elapsed)
         return _as_chunk(np.asarray(action)[0]), int(policy.version)
 
     def reset(self, robot_id: str) -> None:
         self._chunks.reset(robot_id)
 
+    def skip(self, robot_id: str, ticks: int) -> None:
+        self._chunks.skip(robot_id, ticks)
+
     def close(self) -> None:
         self._subscriber.stop()
+        with self._workers_lock:
+            workers, self._workers = list(self._workers.values()), {}
+        for worker in workers:
+            worker.close()
 
 
 class RoutedPolicy(PolicySource):
@@ -472,6 +572,11 @@ class RoutedPolicy(PolicySource):
         source = self._for(robot_id)
         if source is not None:
             source.reset(robot_id)
+
+    def skip(self, robot_id: str, ticks: int) -> None:
+        source = self._for(robot_id)
+        if source is not None:
+            source.skip(robot_id, ticks)
 
     def close(self) -> None:
         with self._lock:

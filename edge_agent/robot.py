@@ -55,8 +55,11 @@ class Robot(ABC):
         """Clip `action` to the spec's limits, apply it, return what was applied."""
 
     @abstractmethod
-    def hold(self) -> None:
-        """Keep still (no policy answer, link lost, paused)."""
+    def hold(self) -> np.ndarray | None:
+        """Keep still (no policy answer, link lost, paused). Return the action this amounts to, as `act` would
+        return it (the spec's action layout and dtype, within its limits: what a policy would send for the same
+        effect, e.g. a zero delta, or the position that was commanded), so a held step records what the robot
+        did; None when nothing was sent or it cannot say."""
 
     def connect(self) -> None:  # noqa: B027 - optional hook
         """Open the hardware (serial bus, cameras). Sims are ready when built."""

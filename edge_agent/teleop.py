@@ -10,7 +10,8 @@ New teleoperators are one class plus `@TELEOPERATORS.register("kind")` in a modu
 `edge_agent.teleoperators`. One that can drive only some robots (a scripted expert reads one
 simulator's privileged `info`) says so in `robot_kinds` / `observation_keys` (and `info_keys`, for
 the refusal's text): the edge agent refuses the pairing at start, naming `edge.robots[i].teleop.kind`,
-instead of failing every poll.
+instead of failing every poll. One that learns what it drives only from its device (lerobot's, by action
+name) refuses in its constructor, also at start, with a ParamError naming the param to fix.
 """
 
 from __future__ import annotations

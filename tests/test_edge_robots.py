@@ -397,6 +397,7 @@ def test_lerobot_teleop_adapter_maps_the_pad_and_intervenes_on_its_event(tmp_pat
         action=robot_pb2.ActionSpace(shape=[7], names=["dx", "dy", "dz", "rx", "ry", "rz", "grip"]),
     )
     params = {"type": "user_test_scripted_pad", "config": {"calibration_dir": str(tmp_path)}, "scale": 0.5}
+    params["defaults"] = {"rx": 0.0, "ry": 0.0, "rz": 0.0}  # the pad drives no rotation: said, never guessed
     teleop = TELEOPERATORS.build("lerobot", params, spec=panda)
     pad = teleop.device  # type: ignore[attr-defined]
     assert isinstance(pad, ScriptedPad)

@@ -166,10 +166,12 @@ class GymHilPanda(Robot):
         self._success = bool(info.get("succeed", False))
         return applied
 
-    def hold(self) -> None:
-        """Keep the mocap target and gripper where they are; the controller keeps servoing to them."""
+    def hold(self) -> np.ndarray:
+        """Keep the mocap target and gripper where they are; the controller keeps servoing to them. The action
+        is all deltas (position and gripper), so this is the zero action."""
         self._base.apply_action(np.zeros(7))
         self._reward = 0.0
+        return clip_action(self._spec, np.zeros(7, np.float32))
 
     def close(self) -> None:
         if self._cameras is not None:

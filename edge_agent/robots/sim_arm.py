@@ -239,14 +239,16 @@ class SimReachArm(Robot):
         self._reward, self._terminated, self._success = outcome.reward, outcome.terminated, outcome.success
         return applied
 
-    def hold(self) -> None:
-        """Stop and stay: the first hold pins the joint targets to where the arm is now, later ones keep them."""
+    def hold(self) -> np.ndarray:
+        """Stop and stay: the first hold pins the joint targets to where the arm is now, later ones keep them.
+        As an action that is zero end-effector velocity."""
         if not self._holding:
             # Targets run slightly ahead of a moving arm; pinning them stops it within a few millimetres.
             self.data.ctrl[:] = self.data.qpos
             self._holding = True
         self._advance()
         self._reward = 0.0
+        return clip_action(self._spec, np.zeros(tuple(self._spec.action.shape), np.float32))
 
     def close(self) -> None:
         if self._renderer is not None:

@@ -168,10 +168,13 @@ class SO101(Robot):
         self._success = bool(info.get("succeed", False))
         return applied
 
-    def hold(self) -> None:
-        """A zero position delta locks the IK target to where the grasp point is; the gripper keeps its command."""
-        self._base.apply_action(np.array([0.0, 0.0, 0.0, self._grasp]))
+    def hold(self) -> np.ndarray:
+        """A zero position delta locks the IK target to where the grasp point is; the gripper keeps its command
+        (the action (0, 0, 0, grasp))."""
+        held = clip_action(self._spec, np.array([0.0, 0.0, 0.0, self._grasp], np.float32))
+        self._base.apply_action(held.astype(np.float64))
         self._reward = 0.0
+        return held
 
     def close(self) -> None:
         if self._cameras is not None:

@@ -3,8 +3,11 @@
     teleop: {kind: lerobot, params: {type: gamepad, config: {use_gripper: true}}}
 
 Every tick the device's action dict is read and mapped onto the robot's action vector by name: a
-robot action takes the device key of the same name, else its entry in `action_map`, else a common
-alias (dx/vx -> delta_x, ..., grip/grasp -> gripper). Deltas are multiplied by `scale`. lerobot's
+robot action takes its entry in `action_map`, else the device key of the same name, else a common
+alias (dx/vx -> delta_x, ..., grip/grasp -> gripper), else its value in `defaults`. A pairing that
+leaves a robot action with none of these is refused when the teleoperator is built (naming
+`params.action_map`): 0 is no safe stand-in (for a position joint it is a jump to mid-range).
+Deltas are multiplied by `scale`. lerobot's
 end-effector teleoperators send the gripper as 0 close / 1 stay / 2 open: `gripper: delta` turns
 that into -1..1 with +1 closing (gym-hil's Panda), `absolute` into a 0 closed / 1 open target that
 keeps its value on "stay" (SO-101). The human takes over while the device says so: lerobot's
@@ -24,6 +27,7 @@ import numpy as np
 from pydantic import Field
 
 from edge_agent.robot import Observation
+from edge_agent.task import ParamError
 from edge_agent.teleop import TELEOPERATORS, Teleoperator
 from user.registry import PluginParams
 from user.v1 import robot_pb2
@@ -55,6 +59,11 @@ class LerobotTeleop(Teleoperator):
         type: str = Field(min_length=1, description="lerobot teleoperator type: keyboard_ee, gamepad, so101_leader")
         config: dict[str, Any] = Field(default={}, description="the lerobot teleoperator config")
         action_map: dict[str, str] = Field(default={}, description="robot action name -> device action key")
+        defaults: dict[str, float] = Field(
+            default={},
+            description="robot action name -> the value sent for it while the device has no key for it "
+            "(e.g. {rx: 0, ry: 0, rz: 0}: a pad does not turn a Panda's unused rotation)",
+        )
         scale: float = Field(default=1.0, description="multiplies the device's non-gripper values")
         gripper: Literal["delta", "absolute", "raw"] = "delta"
         intervention: Literal["events", "always"] = Field(
@@ -71,6 +80,7 @@ class LerobotTeleop(Teleoperator):
         self.names = list(spec.action.names)
         if len(self.names) != int(np.prod(spec.action.shape)):
             raise ValueError("lerobot teleop: the robot's action space must name every action")
+        self.keys = self._map(_device_keys(self.device))
         self._grasp = 1.0  # absolute gripper target until the human moves it: open
         self._labels: list[str] = []
         self._lock = threading.Lock()  # events() may be read from another thread than poll()
@@ -83,11 +93,31 @@ class LerobotTeleop(Teleoperator):
         if self.device.is_connected:
             self.device.disconnect()
 
-    def _key(self, name: str, action: dict[str, Any]) -> str | None:
-        for key in (self.params.action_map.get(name), name, ALIASES.get(name)):
-            if key is not None and key in action:
-                return key
-        return None
+    def _map(self, device_keys: list[str]) -> dict[str, str]:
+        """Robot action name -> device key, for every action the device drives; refuses a pairing that leaves an
+        action with neither a device key nor a default."""
+        p = self.params
+        for field_name, names in (("action_map", p.action_map), ("defaults", p.defaults)):
+            if unknown := sorted(set(names) - set(self.names)):
+                raise ParamError(
+                    field_name, f"{unknown} are not actions of robot {self.spec.robot_id!r} ({self.names})"
+                )
+        if missing := sorted(set(p.action_map.values()) - set(device_keys)):
+            raise ParamError("action_map", f"the {p.type} device has no keys {missing} (it has {device_keys})")
+        if not all(np.isfinite(v) for v in p.defaults.values()):
+            raise ParamError("defaults", f"must be finite, got {p.defaults}")
+        keys: dict[str, str] = {}
+        for name in self.names:
+            key = next((k for k in (p.action_map.get(name), name, ALIASES.get(name)) if k in device_keys), None)
+            if key is not None:
+                keys[name] = key
+        if unmapped := [n for n in self.names if n not in keys and n not in p.defaults]:
+            raise ParamError(
+                "action_map",
+                f"the {p.type} device (keys {device_keys}) drives none of the robot's actions {unmapped}: map each "
+                "to a device key in action_map, or give it a value in defaults",
+            )
+        return keys
 
     def _gripper(self, value: float) -> float:
         if self.params.gripper == "raw":
@@ -129,9 +159,22 @@ class LerobotTeleop(Teleoperator):
             return None
         vec = np.zeros(len(self.names), np.float32)
         for i, name in enumerate(self.names):
-            key = self._key(name, action)
+            key = self.keys.get(name)
             if key is None:
+                vec[i] = self.params.defaults[name]
                 continue
+            if key not in action:  # a device that stops sending a key it declared: never guess a value
+                raise ValueError(f"the {self.params.type} teleoperator sent no {key!r} (robot action {name!r})")
             value = float(action[key])
             vec[i] = self._gripper(value) if key == "gripper" else self.params.scale * value
         return vec.reshape(tuple(self.spec.action.shape))
+
+
+def _device_keys(device: Any) -> list[str]:
+    """The action keys a lerobot teleoperator declares: end-effector pads name them in `names` (key -> index),
+    leader arms map each to `float`."""
+    features = dict(device.action_features or {})
+    names = features.get("names")
+    if isinstance(names, dict) and all(isinstance(v, int) for v in names.values()):
+        return [str(k) for k in names]
+    return [str(k) for k, v in features.items() if v is float]
