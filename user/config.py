@@ -115,6 +115,12 @@ class ControlConfig(_ServerSection):
         default=None, description="SQLite file for robots, episode history and workers; none = memory only"
     )
     worker_ttl_s: float = Field(default=30.0, gt=0, description="a worker not re-registering this long is offline")
+    forget_offline_after_days: float = Field(
+        default=0.0,
+        ge=0,
+        allow_inf_nan=False,
+        description="a robot offline this long is forgotten (as userctl robots forget); 0 = never",
+    )
 
 
 class ReplayConfig(_ServerSection):
@@ -347,6 +353,9 @@ class PluginConfig(Strict):
     params: dict[str, Any] = Field(default={}, description="the kind's typed params")
 
 
+HARDWARE_ROBOT_KINDS = ("lerobot",)  # robot kinds that drive physical devices (no simulator to step faster)
+
+
 class RobotConfig(Strict):
     id: str = Field(pattern=r"^[A-Za-z0-9_.\-]{1,64}$")
     kind: str = Field(default="sim_reach_arm", description="registered robot kind")
@@ -428,6 +437,16 @@ class EdgeConfig(Strict):
         ids = [r.id for r in self.robots]
         if len(ids) != len(set(ids)):
             raise ValueError(f"robot ids must be unique, got {ids}")
+        return self
+
+    @model_validator(mode="after")
+    def _fast_only_for_sims(self) -> EdgeConfig:
+        # fast steps as quickly as the loop turns: a physical robot would be commanded far above its control rate
+        if self.mode == "fast" and (real := [r.id for r in self.robots if r.kind in HARDWARE_ROBOT_KINDS]):
+            raise ValueError(
+                f"edge.mode: fast (unthrottled) is for simulated robots; {real} drive hardware "
+                f"(kind {'/'.join(HARDWARE_ROBOT_KINDS)}): use realtime"
+            )
         return self
 
 

@@ -1,6 +1,8 @@
 """Operator commands of userctl: what the fleet looks like and telling it what to do.
 
 userctl robots ls [--all] [--json]            robots, their agent, state, episodes (Control.ListRobots)
+userctl robots forget ROBOT                   drop an offline robot for good: record, episode history, totals
+                                              (its experiments keep its episodes in their totals)
 userctl workers ls [--all] [--json]           learner/inference hosts with CPUs and GPUs (Control.ListWorkers)
 userctl command pause|resume|reset [ROBOT]    send a command and print each edge's result
 userctl exp ls [--json]                       experiments: state (failed when the learner cannot train it), leased
@@ -41,9 +43,11 @@ COMMANDS = ("robots", "workers", "command", "exp")
 
 
 def add_parsers(sub: Any) -> None:
-    for name, help_ in [("robots", "list robots"), ("workers", "list learner and inference workers")]:
+    for name, help_ in [("robots", "list robots, forget one"), ("workers", "list learner and inference workers")]:
         p = sub.add_parser(name, help=help_)
-        p.add_argument("action", choices=["ls"])
+        p.add_argument("action", choices=["ls", "forget"] if name == "robots" else ["ls"])
+        if name == "robots":
+            p.add_argument("robot", nargs="?", default="", help="forget: the robot id (offline)")
         p.add_argument("--all", action="store_true", help="include offline ones")
         p.add_argument("--json", action="store_true", help="one JSON document instead of a table")
         _common(p)
@@ -248,6 +252,15 @@ def _exp(args: argparse.Namespace, stub: control_pb2_grpc.ControlStub, out: Cons
     return 0
 
 
+def _forget(args: argparse.Namespace, stub: control_pb2_grpc.ControlStub) -> int:
+    if not args.robot:
+        print("userctl robots forget: name the robot (userctl robots ls --all lists them)", file=sys.stderr)
+        return 2
+    resp = stub.ForgetRobot(control_pb2.ForgetRobotRequest(robot_id=args.robot), timeout=args.timeout)
+    print(f"robot {resp.robot_id} forgotten ({resp.episodes} episodes stay counted in their experiments' totals)")
+    return 0
+
+
 def _warn_if_shadowed(stub: control_pb2_grpc.ControlStub, name: str, timeout: float) -> None:
     """Say so when an earlier experiment selects every robot the new one selects (first match wins)."""
     from user.config import ExperimentConfig
@@ -295,6 +308,11 @@ def main(args: argparse.Namespace, cfg: StackConfig) -> int:
     with channel:
         stub = control_pb2_grpc.ControlStub(channel)
         try:
+            if args.command == "robots" and args.action == "forget":
+                return _forget(args, stub)
+            if args.command == "robots" and args.robot:
+                print(f"userctl robots ls: takes no robot id, got {args.robot!r} (forget takes one)", file=sys.stderr)
+                return 2
             if args.command == "robots":
                 robots = stub.ListRobots(control_pb2.ListRobotsRequest(include_offline=args.all), timeout=args.timeout)
                 if args.json:

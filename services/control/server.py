@@ -6,7 +6,8 @@ summary that breaks the contract is dropped and counted, the stream goes on), an
 `robots` update whenever a robot is plugged in or unplugged (hot-plug: the new set, validated like a
 registration). Commands from SendCommand travel down the same stream. A robot goes offline when its stream ends
 or when no heartbeat arrives for lease_ttl_s (a reaper thread); its spec stays queryable so replay
-can keep validating steps that arrive late.
+can keep validating steps that arrive late, until an operator forgets it (ForgetRobot) or it has been offline
+for control.forget_offline_after_days. The reaper also deletes workers offline for WORKER_FORGET_TTLS x worker_ttl_s.
 """
 
 from __future__ import annotations
@@ -62,6 +63,9 @@ QUEUE_POLL_S = 0.25  # how often a Connect stream notices its client went away
 # A Connect stream must say `register` this soon: one that says nothing would hold a server thread forever.
 REGISTER_TIMEOUT_S = 30.0
 MAX_NAMES_SHOWN = 20  # experiment names listed in a NOT_FOUND (256 of them would overflow the status headers)
+# A worker offline this many worker_ttl_s is deleted: its id names a host:port, so every learner or inference
+# restart on a new port would otherwise add a record for good (kept in SQLite, scanned on every report).
+WORKER_FORGET_TTLS = 10
 
 ROBOTS_ONLINE = prometheus_client.Gauge("user_control_robots_online", "Robots with a live lease")
 REGISTRATIONS = prometheus_client.Counter("user_control_registrations_total", "Accepted edge registrations")
@@ -77,8 +81,12 @@ LEASED = prometheus_client.Gauge("user_control_robots_leased", "Robots leased to
 EXPERIMENT_RUNNING = prometheus_client.Gauge(
     "user_control_experiment_running", "1 while an experiment runs, 0 while stopped", ["experiment"]
 )
+# Not per robot: each edge exports user_edge_episodes_total{robot_id, success} (what the dashboards plot), and a
+# robot_id label here would keep a series for every robot control ever saw.
 EPISODES = prometheus_client.Counter(
-    "user_control_episodes_total", "Finished episodes reported by edges", ["robot_id", "success"]
+    "user_control_episodes_total",
+    "Finished episodes reported by edges (per robot: user_edge_episodes_total)",
+    ["success"],
 )
 HEARTBEAT_REJECTED = prometheus_client.Counter(
     "user_control_heartbeat_rejected_total",
@@ -197,6 +205,10 @@ class AlreadyRegistered(Exception):
     """A robot_id held by a different live agent (-> ALREADY_EXISTS)."""
 
 
+class RobotOnline(Exception):
+    """ForgetRobot of a robot with a live lease (-> FAILED_PRECONDITION)."""
+
+
 class CommandIdTaken(Exception):
     """A command_id already names a different command (-> ALREADY_EXISTS)."""
 
@@ -311,6 +323,13 @@ class EpisodeTotals:
     unhelped: int = 0  # episodes no teleoperator drove a step of: the policy's own record
     unhelped_successes: int = 0
 
+    def add(self, other: EpisodeTotals) -> None:
+        self.episodes += other.episodes
+        self.successes += other.successes
+        self.return_sum += other.return_sum
+        self.unhelped += other.unhelped
+        self.unhelped_successes += other.unhelped_successes
+
 
 class Registry:
     """Thread-safe state shared by the Connect streams, the unary RPCs and the reaper.
@@ -357,6 +376,11 @@ class Registry:
         self._last_lease: dict[str, str] = state.load_leases() if state is not None else {}
         self._totals: dict[tuple[str, str], EpisodeTotals] = {}  # (experiment, robot_id) -> whole history
         self._robot_totals: dict[str, EpisodeTotals] = {}  # robot_id -> whole history, every experiment
+        # experiment -> episodes of robots forgotten since (ForgetRobot): still counted in the experiment's totals
+        self._forgotten: dict[str, EpisodeTotals] = {}
+        # Offline clocks start no earlier than this: a robot saved online before a kill -9 has only its registration
+        # time on disk, and must not be forgotten before its edge had a chance to reconnect.
+        self._started_ns = time.time_ns()
         self._load_experiments(experiments or [])
         if state is not None:
             for exp, rid, n, succ, ret, alone, alone_succ in state.episode_totals():
@@ -365,6 +389,8 @@ class Registry:
                 )
                 robot = self._robot_totals.setdefault(rid, EpisodeTotals())
                 robot.episodes, robot.successes = robot.episodes + int(n), robot.successes + int(succ or 0)
+            for exp, n, succ, ret, alone, alone_succ in state.forgotten_totals():
+                self._forgotten[exp] = EpisodeTotals(int(n), int(succ), float(ret), int(alone), int(alone_succ))
             for st in state.load_commands(commands_kept):
                 rec = CommandRecord(st.command, st.sent_at_ns, list(st.agents), list(st.results))
                 self._commands[st.command.command_id] = rec
@@ -590,7 +616,7 @@ class Registry:
             ep.robot_id = rec.spec.robot_id  # it was empty or this robot's id (summary_problem)
             rec.episodes.append(ep)
             fresh.append(ep)
-            EPISODES.labels(rec.spec.robot_id, "true" if ep.success else "false").inc()
+            EPISODES.labels("true" if ep.success else "false").inc()
         if fresh:
             self._count_episodes_locked(rec, fresh)
         return rejected
@@ -789,6 +815,8 @@ class Registry:
                 self.state.remove_definition(name, time.time_ns())
             del self._experiments[name]
             self._removed.add(name)
+            LEASED.remove(name)  # _relay_leases_locked sets the series of listed experiments only
+            EXPERIMENT_RUNNING.remove(name)
             log.info("experiment removed", extra=kv(experiment=name))
             self._relay_leases_locked()
             return info, ""
@@ -854,6 +882,13 @@ class Registry:
             info.unhelped_successes += totals.unhelped_successes
             return_sum += totals.return_sum
             info.policy_version = max(info.policy_version, version)
+        gone = self._forgotten.get(name)
+        if gone is not None:  # robots forgotten since: no longer listed, their episodes still count
+            info.episodes += gone.episodes
+            info.successes += gone.successes
+            info.unhelped_episodes += gone.unhelped
+            info.unhelped_successes += gone.unhelped_successes
+            return_sum += gone.return_sum
         info.mean_return = return_sum / info.episodes if info.episodes else 0.0
         cutoff = time.time_ns() - int(self.worker_ttl_s * 1e9)
         online = [w for w in self._workers.values() if w.kind == "learner" and w.last_seen_ns >= cutoff]
@@ -896,6 +931,44 @@ class Registry:
         totals = self._robot_totals.get(rec.spec.robot_id, EpisodeTotals())
         info.status.episodes, info.status.successes = totals.episodes, totals.successes
         return info
+
+    def forget(self, robot_id: str) -> int | None:
+        """ForgetRobot: drop an offline robot; its episode count, or None for an unknown id. RobotOnline if online."""
+        with self._lock:
+            rec = self._robots.get(robot_id)
+            if rec is None:
+                return None
+            if rec.online:
+                raise RobotOnline(
+                    f"robot {robot_id} is online (agent {rec.agent_id!r} on {rec.hostname}): unplug it or stop its"
+                    " edge first"
+                )
+            return self._forget_locked(robot_id, "requested")
+
+    def forget_offline(self, max_age_s: float) -> list[str]:
+        """Forget every robot offline for longer than max_age_s (the reaper: control.forget_offline_after_days)."""
+        cutoff = time.time_ns() - int(max_age_s * 1e9)
+        with self._lock:
+            old = [
+                rid
+                for rid, rec in self._robots.items()
+                if not rec.online and max(rec.last_heartbeat_ns, rec.registered_at_ns, self._started_ns) < cutoff
+            ]
+            for rid in old:
+                self._forget_locked(rid, f"offline for more than {max_age_s / 86400:g} days")
+        return old
+
+    def _forget_locked(self, robot_id: str, why: str) -> int:
+        """Its record, history and totals go; its experiments keep its episodes in their totals."""
+        del self._robots[robot_id]
+        self._last_lease.pop(robot_id, None)
+        episodes = self._robot_totals.pop(robot_id, EpisodeTotals()).episodes
+        for key in [k for k in self._totals if k[1] == robot_id]:
+            self._forgotten.setdefault(key[0], EpisodeTotals()).add(self._totals.pop(key))
+        if self.state is not None:
+            self.state.forget_robot(robot_id)
+        log.info("robot forgotten", extra=kv(robot_id=robot_id, episodes=episodes, why=why))
+        return episodes
 
     def route(self, command: control_pb2.Command) -> tuple[bool, list[str], bool]:
         """Queue a command on the owning stream(s): (robot known, agents it was queued for, new). The same
@@ -1007,6 +1080,20 @@ class Registry:
             log.warning("learners report misfit robots: they hold", extra=kv(robots=sorted(misfits)))
         self._preparing, self._failed, self._misfits = preparing, failed, misfits
         self._relay_leases_locked()
+
+    def prune_workers(self) -> list[str]:
+        """Delete workers offline for WORKER_FORGET_TTLS x worker_ttl_s (the reaper); their ids."""
+        cutoff = time.time_ns() - int(WORKER_FORGET_TTLS * self.worker_ttl_s * 1e9)
+        with self._lock:
+            old = [wid for wid, w in self._workers.items() if w.last_seen_ns < cutoff]
+            for wid in old:
+                del self._workers[wid]
+                if self.state is not None:
+                    self.state.forget_worker(wid)
+        if old:
+            offline_s = WORKER_FORGET_TTLS * self.worker_ttl_s
+            log.info("offline workers forgotten", extra=kv(workers=old, offline_s=offline_s))
+        return old
 
     def workers(self, include_offline: bool) -> list[control_pb2.WorkerInfo]:
         cutoff = time.time_ns() - int(self.worker_ttl_s * 1e9)
@@ -1250,6 +1337,22 @@ class ControlServicer(control_pb2_grpc.ControlServicer):
             context.abort(grpc.StatusCode.NOT_FOUND, f"unknown robot {clipped(request.robot_id)}")
         return self._tag(info)
 
+    def ForgetRobot(
+        self, request: control_pb2.ForgetRobotRequest, context: grpc.ServicerContext
+    ) -> control_pb2.ForgetRobotResponse:
+        rid = request.robot_id
+        if not ROBOT_ID_RE.fullmatch(rid):
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, f"robot_id {clipped(rid)} must match {ROBOT_ID_RE.pattern}")
+        try:
+            episodes = self.registry.forget(rid)
+        except RobotOnline as exc:
+            context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(exc))
+        if episodes is None:
+            context.abort(grpc.StatusCode.NOT_FOUND, f"unknown robot {rid!r} (userctl robots ls --all lists them)")
+        who = rpc.caller(context)
+        log.info("robot forgotten by request", extra=kv(robot_id=rid, by=who.name if who is not None else ""))
+        return control_pb2.ForgetRobotResponse(robot_id=rid, episodes=episodes)
+
     def SendCommand(
         self, request: control_pb2.SendCommandRequest, context: grpc.ServicerContext
     ) -> control_pb2.SendCommandResponse:
@@ -1441,6 +1544,10 @@ class ControlService(rpc.GrpcService):
         period = min(0.5, self.registry.lease_ttl_s / 4)
         while not self._stop.wait(period):
             self.registry.refresh_learners()
+            self.registry.prune_workers()
+            days = self.cfg.control.forget_offline_after_days
+            if days > 0:
+                self.registry.forget_offline(days * 86400)
             if self.state is not None:  # the disk may take what waits again although nothing new is written
                 self.state.retry()
             for conn in self.registry.expire():

@@ -4,6 +4,9 @@ defined at run time), each robot's last lease and
 the command history. A restarted control knows every robot (offline until its edge reconnects), its
 episode history, the GPU pool, which experiments run and every command it sent with the results edges
 reported; a live edge registers again and gets its lease back (the last holder is preferred at max_robots).
+A forgotten robot (Control.ForgetRobot, control.forget_offline_after_days) leaves every table; its episodes stay
+counted in `forgotten_totals`, per experiment, so an experiment's totals never drop. Workers offline for long are
+deleted.
 
 Rows hold serialized protos (the wire types are the schema); writes happen at registration, at the end of
 a lease, when episodes arrive and when a worker reports, never per heartbeat, so the file stays quiet.
@@ -79,6 +82,10 @@ CREATE TABLE IF NOT EXISTS defined_experiments (
 );
 CREATE TABLE IF NOT EXISTS removed_experiments (name TEXT PRIMARY KEY, removed_at_ns INTEGER NOT NULL);
 CREATE TABLE IF NOT EXISTS commands (command_id TEXT PRIMARY KEY, seq INTEGER NOT NULL, status BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS forgotten_totals (
+  experiment TEXT PRIMARY KEY, episodes INTEGER NOT NULL, successes INTEGER NOT NULL, return_sum REAL NOT NULL,
+  unhelped INTEGER NOT NULL, unhelped_successes INTEGER NOT NULL
+);
 """
 # Columns added to `episodes` after the first release (older files get them with these defaults).
 EPISODE_COLUMNS = {
@@ -355,6 +362,36 @@ class ControlState:
         )
         self._write(None, lambda db: db.executemany(sql, rows), episodes=len(rows))
 
+    def forget_robot(self, robot_id: str) -> None:
+        """The robot's row, lease and episodes go in one transaction; its episodes' sums move to forgotten_totals.
+        Its waiting robot and lease rows are dropped (deleted anyway), so that a robot registering again with
+        this id is written after this delete, not before it."""
+        fold = (
+            "INSERT INTO forgotten_totals"
+            " SELECT experiment, COUNT(*), SUM(success), SUM(episode_return), SUM(intervention_steps = 0),"
+            " SUM(success AND intervention_steps = 0) FROM episodes WHERE robot_id = ? GROUP BY experiment"
+            " ON CONFLICT (experiment) DO UPDATE SET episodes = episodes + excluded.episodes,"
+            " successes = successes + excluded.successes, return_sum = return_sum + excluded.return_sum,"
+            " unhelped = unhelped + excluded.unhelped,"
+            " unhelped_successes = unhelped_successes + excluded.unhelped_successes"
+        )
+
+        def op(db: sqlite3.Connection) -> None:
+            db.execute(fold, (robot_id,))
+            for table in ("episodes", "robots", "leases"):
+                db.execute(f"DELETE FROM {table} WHERE robot_id = ?", (robot_id,))
+
+        with self._lock:
+            for kind in ("robot", "lease"):
+                self._pending.pop((kind, robot_id), None)
+        self._write(None, op)
+
+    def forgotten_totals(self) -> list[tuple[str, int, int, float, int, int]]:
+        """(experiment, episodes, successes, sum of returns, episodes without interventions, successes among
+        those) of every robot forgotten."""
+        with self._lock:
+            return self._db.execute("SELECT * FROM forgotten_totals").fetchall()
+
     def episode_totals(self) -> list[tuple[str, str, int, int, float, int, int]]:
         """(experiment, robot_id, episodes, successes, sum of returns, episodes without interventions,
         successes among those) over the whole history."""
@@ -448,6 +485,11 @@ class ControlState:
         self._write(
             ("worker", info.worker_id), lambda db: db.execute("INSERT OR REPLACE INTO workers VALUES (?, ?)", row)
         )
+
+    def forget_worker(self, worker_id: str) -> None:
+        """Same key as save_worker: a report arriving later replaces this delete (the row's newest value wins)."""
+        sql = "DELETE FROM workers WHERE worker_id = ?"
+        self._write(("worker", worker_id), lambda db: db.execute(sql, (worker_id,)))
 
     def close(self) -> None:
         """A last try at what waits (logged when lost), then the file and its lock go."""
