@@ -178,12 +178,14 @@ def test_inference_routes_by_robot_and_says_why_it_cannot() -> None:
     )
     control = None
     try:
+        inference.router.refresh()  # routes are refreshed in the background: this one now, for a steady answer
         with pytest.raises(grpc.RpcError) as err:
             stub.Act(request, timeout=5)
         assert err.value.code() == grpc.StatusCode.UNAVAILABLE and "control unreachable" in err.value.details()
         control = ControlService(cfg, start_metrics=False).start()
         inference.router.cfg.inference.control_addr = control.address
-        inference.router._channel, inference.router._refreshed = None, 0.0
+        inference.router._channel = None
+        inference.router.refresh()
         with pytest.raises(grpc.RpcError) as err:
             stub.Act(request, timeout=5)
         assert err.value.code() == grpc.StatusCode.FAILED_PRECONDITION and "no experiment" in err.value.details()
@@ -231,10 +233,15 @@ def test_one_experiment_with_a_selector_serves_only_its_robots() -> None:
     try:
         edge.start()
         assert edge.wait_registered(10)
+        inference.router.refresh()  # routes are refreshed in the background: this one now, for a steady answer
         assert wait_for(lambda: act("arm-0").policy_version == 4, "arm-0 served")
         with pytest.raises(grpc.RpcError) as err:
             act("arm-1")
         assert err.value.code() == grpc.StatusCode.FAILED_PRECONDITION and "no experiment" in err.value.details()
+        with pytest.raises(grpc.RpcError) as err:  # not routed until a refresh after its first Act
+            act("probe")
+        assert err.value.code() == grpc.StatusCode.UNAVAILABLE and "not routed yet" in err.value.details()
+        inference.router.refresh()
         assert act("probe").policy_version == 4  # a client control does not know (evaluation) is served
     finally:
         edge.close()

@@ -183,6 +183,7 @@ def routed() -> Iterator[tuple[InferenceService, inference_pb2_grpc.InferenceStu
     edge.start()
     try:
         assert edge.wait_registered(10)
+        inference.router.refresh()  # routes are refreshed in the background: this one now, for a steady answer
         yield inference, inference_pb2_grpc.InferenceStub(make_channel(inference.address, AUTH))
     finally:
         edge.close()

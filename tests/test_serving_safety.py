@@ -415,6 +415,7 @@ def test_a_state_of_the_wrong_shape_is_refused_when_the_robots_spec_is_known() -
     try:
         edge.start()
         assert edge.wait_registered(10)
+        inference.router.refresh()  # routes are refreshed in the background: this one now, for a steady answer
         assert helpers.wait_for(lambda: stub.Act(_request(), timeout=30).policy_version == 4, "arm-0 served")
         for shape in ((3, 5), (1, 15)):
             err = _refused(stub, _request(state=np.zeros(shape, np.float32)))

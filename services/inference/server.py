@@ -52,6 +52,9 @@ MAX_INSTRUCTION_CHARS = 1024  # a task in words, not a document
 MAX_ACT_BATCH = 256  # robots in one ActBatch: an edge process's robots, with room to spare
 MAX_ACT_WAIT_S = 10.0  # a caller without a deadline still gets an answer (or an error) in bounded time
 EXPERIMENTS_POLL_S = 2.0  # how often control is asked for experiments defined at run time
+LOADS_SUMMARY_S = 60.0  # after a slot's first load (INFO), versions loaded are summed up at INFO at most this often
+MAX_FIT_VERDICTS = 4096  # (robot, policy version) fit verdicts kept per slot: robots come and go, ids are not reused
+MISFIT_STAGES = ("load", "act")  # POLICY_MISFITS' `at` labels
 # What one Act's observation may decode to, over all the keys the policy reads (checked from the declared dtypes
 # and shapes before anything is decoded): several cameras at MAX_IMAGE_SIDE, with room to spare. A request's keys
 # are also checked against what the policy reads first, so this bounds policies that resize or declare no sizes.
@@ -206,16 +209,26 @@ class PolicySlot:
             name=f"inference-batch-{experiment}",
             workers=icfg.batch_workers,
             on_join=JOINED.inc,
-            on_failure=lambda stage, n: FORWARD_FAILURES.labels(experiment, stage).inc(n),
+            on_failure=self._count_failure,
         )
         self.policy: Policy | None = None
         self.subscriber: WeightSubscriber | None = None
         self._load_lock = threading.Lock()
         self._non_finite_logged = -1  # the policy version whose non-finite actions were logged (once a version)
         self.non_finite = NON_FINITE_ACTIONS.labels(experiment)
-        # robot_id -> (policy, spec, why the policy cannot drive it or ""): checked once per policy and spec
-        self._fits: dict[str, tuple[Policy, robot_pb2.RobotSpec, str]] = {}
+        # robot_id -> (policy version, spec, why the policy cannot drive it or ""): checked once per version and spec.
+        # The version, never the policy: a robot that left must not keep the weights it last saw alive.
+        self._fits: dict[str, tuple[int, robot_pb2.RobotSpec, str]] = {}
         self._misfit_logged: dict[str, int] = {}  # robot kind -> the policy version whose misfit was logged
+        self._failure_stages: set[str] = set()  # FORWARD_FAILURES label sets of this experiment (removed with it)
+        self._loads_unlogged = 0  # versions loaded since the last INFO line about loads
+        self._loads_logged_at: float | None = None  # monotonic time of that line; None before the first load
+        self.closed = False  # no longer served: its metric series are gone and must not come back
+
+    def _count_failure(self, stage: str, count: int) -> None:
+        if not self.closed:
+            self._failure_stages.add(stage)
+            FORWARD_FAILURES.labels(self.experiment, stage).inc(count)
 
     def load_weights(self, weights: WeightSet) -> Policy:
         """Rebuild the policy from a weight set and serve it; raises ValueError (keeping the old one) if bad,
@@ -234,18 +247,35 @@ class PolicySlot:
             continuous = self.service.cfg.inference.continuous_batching and isinstance(policy, SteppedSampler)
             rows = [shape, (policy.chunk_horizon, *shape)]  # an action, or a chunk of them
             self.batcher.set_policy(act, policy.version, preprocess, policy if continuous else None, rows)
+            self._fits = {}  # verdicts of older versions are never asked again
         WEIGHT_UPDATES.inc()
-        POLICY_VERSION.labels(self.experiment).set(policy.version)
-        log.info(
-            "policy loaded",
-            extra=kv(
-                experiment=self.experiment,
-                version=policy.version,
-                kind=weights.policy.kind,
-                build_ms=round((time.perf_counter() - start) * 1e3, 2),
-            ),
-        )
+        if not self.closed:
+            POLICY_VERSION.labels(self.experiment).set(policy.version)
+        self._log_load(policy.version, weights.policy.kind, round((time.perf_counter() - start) * 1e3, 2))
         return policy
+
+    def _log_load(self, version: int, kind: str, build_ms: float) -> None:
+        """Every load at DEBUG; at INFO the first one, then at most every LOADS_SUMMARY_S how many were loaded (a
+        learner publishing every few updates would otherwise write hundreds of lines a minute)."""
+        fields = kv(experiment=self.experiment, version=version, kind=kind, build_ms=build_ms)
+        now = time.monotonic()
+        if self._loads_logged_at is None:
+            self._loads_logged_at = now
+            log.info("policy loaded", extra=fields)
+            return
+        log.debug("policy loaded", extra=fields)
+        self._loads_unlogged += 1
+        if now - self._loads_logged_at >= LOADS_SUMMARY_S:
+            log.info(
+                "policy versions loaded",
+                extra=kv(
+                    experiment=self.experiment,
+                    loaded=self._loads_unlogged,
+                    version=version,
+                    since_s=round(now - self._loads_logged_at, 1),
+                ),
+            )
+            self._loads_logged_at, self._loads_unlogged = now, 0
 
     def _check_fits_some(self, policy: Policy) -> None:
         """PolicyMisfit (counted; the caller keeps the previous policy) when robots are routed here and the policy
@@ -253,7 +283,8 @@ class PolicySlot:
         specs = self.service.router.specs_in(self.experiment)
         reasons = [f"{s.robot_id} ({s.kind}): {why}" for s in specs if (why := policy_misfit(policy, s))]
         if specs and len(reasons) == len(specs):
-            POLICY_MISFITS.labels(self.experiment, "load").inc()
+            if not self.closed:
+                POLICY_MISFITS.labels(self.experiment, "load").inc()
             served = self.policy.version if self.policy is not None else None
             raise PolicyMisfit(
                 f"experiment {self.experiment}: policy version {policy.version} ({policy.spec.kind}) fits none of its "
@@ -263,14 +294,18 @@ class PolicySlot:
     def misfit(self, policy: Policy, spec: robot_pb2.RobotSpec) -> str:
         """Why `policy` cannot drive this robot ("" when it can): checked once per policy and robot spec, counted
         per Act refused, logged once per policy version and robot kind."""
-        cached = self._fits.get(spec.robot_id)
-        if cached is not None and cached[0] is policy and cached[1] is spec:
+        fits = self._fits  # replaced whole at a load: read once
+        cached = fits.get(spec.robot_id)
+        if cached is not None and cached[0] == policy.version and cached[1] is spec:
             why = cached[2]
         else:
             why = policy_misfit(policy, spec)
-            self._fits[spec.robot_id] = (policy, spec, why)  # a race between RPC threads stores the same answer
+            if len(fits) >= MAX_FIT_VERDICTS:  # bounded: drop the oldest verdict (a robot that left, likely)
+                fits.pop(next(iter(fits), ""), None)
+            fits[spec.robot_id] = (policy.version, spec, why)  # a race between RPC threads stores the same answer
         if why:
-            POLICY_MISFITS.labels(self.experiment, "act").inc()
+            if not self.closed:
+                POLICY_MISFITS.labels(self.experiment, "act").inc()
             if self._misfit_logged.get(spec.kind) != policy.version:
                 self._misfit_logged[spec.kind] = policy.version
                 log.error(
@@ -279,6 +314,20 @@ class PolicySlot:
                     extra=kv(experiment=self.experiment, version=policy.version, robot_id=spec.robot_id, error=why),
                 )
         return why
+
+    def forget_metrics(self) -> None:
+        """Remove this experiment's labelled series (it is no longer served): frozen values would outlive it."""
+        self.closed = True
+        name = self.experiment
+        for family, labels in [
+            (POLICY_VERSION, [(name,)]),
+            (NON_FINITE_ACTIONS, [(name,)]),
+            (FORWARD_FAILURES, [(name, stage) for stage in sorted(self._failure_stages)]),
+            (POLICY_MISFITS, [(name, at) for at in MISFIT_STAGES]),
+        ]:
+            for label_values in labels:
+                with contextlib.suppress(KeyError):  # never set
+                    family.remove(*label_values)
 
     def note_non_finite(self, version: int) -> None:
         """The policy of `version` produced a NaN/Inf action: counted always, logged once per version."""
@@ -315,13 +364,18 @@ def check_finite_weights(tensors: Mapping[str, np.ndarray], version: int) -> Non
 
 
 class Router:
-    """robot_id -> experiment: from Control's ListRobots and the experiments' selectors, cached; an
-    unknown robot refreshes the cache (at most every REFRESH_S). One experiment that selects every robot
-    (or the implicit default one) needs no Control. A robot control knows and no selector picks gets
-    FAILED_PRECONDITION; with one experiment, a client control does not know (an evaluation probe) is served,
-    and so is every robot while control is unreachable."""
+    """robot_id -> experiment: from Control's ListRobots (online robots) and the experiments' selectors. A
+    background thread rebuilds the routes from each answer (robots that left are dropped), every POLL_S and, at
+    most every REFRESH_S, when an Act names a robot not routed; an Act never waits on control. One experiment that
+    selects every robot (or the implicit default one) needs no Control. A robot not routed yet gets UNAVAILABLE
+    until a refresh begun after its first Act has answered; then a robot control knows and no selector picks gets
+    FAILED_PRECONDITION, and so does one control does not know, except with one experiment, where such a client (an
+    evaluation probe) is served, as is every robot no selector refused while control is unreachable."""
 
-    REFRESH_S = 1.0
+    REFRESH_S = 1.0  # at most this often when an Act names a robot not routed
+    POLL_S = 5.0  # otherwise this often: robots that left are pruned, changed specs picked up
+    LIST_TIMEOUT_S = 2.0
+    MAX_ASKED = 4096  # robots not routed that asked, remembered (bounded: probes may use any id)
 
     def __init__(self, cfg: StackConfig) -> None:
         self.cfg = cfg
@@ -329,71 +383,136 @@ class Router:
         self._routes: dict[str, tuple[str, str]] = {}  # robot_id -> (experiment, robot kind)
         self._specs: dict[str, robot_pb2.RobotSpec] = {}  # robot_id -> its spec, as control lists it
         self._lock = threading.Lock()
-        self._refreshed = 0.0
+        self._refreshed = 0.0  # monotonic time the last refresh began
         self._channel: grpc.Channel | None = None
         self._refused: set[str] = set()  # defined experiments whose definition did not check here
         self._unselected: set[str] = set()  # robots control knows that no experiment selects (last refresh)
+        self._asked: dict[str, int] = {}  # robot not routed -> refreshes begun when it first asked
+        self._begun = 0  # refreshes begun
+        self._answered = 0  # the number of the last refresh that ended (answered or failed)
+        self._error = ""  # why the last refresh failed; "" when control answered it
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
 
-    def route(self, robot_id: str) -> tuple[str, str]:
-        """(experiment, robot kind); the kind is "" when one experiment of one embodiment needs no lookup."""
+    def start(self) -> None:
+        """Refresh in the background from now on (a first refresh at once)."""
+        if self._thread is None:
+            self._wake.set()
+            self._thread = threading.Thread(target=self._run, name="inference-routes", daemon=True)
+            self._thread.start()
+
+    def takes_any(self) -> bool:
+        """One experiment of one embodiment that selects every robot: routing needs no control."""
         experiments = self.experiments
         single = len(experiments) == 1 and not experiments[0].shared_embodiment
-        if single and (not self.cfg.experiments or experiments[0].robots == RobotSelector()):
+        return single and (not self.cfg.experiments or experiments[0].robots == RobotSelector())
+
+    def route(self, robot_id: str) -> tuple[str, str]:
+        """(experiment, robot kind); the kind is "" when one experiment of one embodiment needs no lookup. From
+        the current routes only: a robot not routed wakes the refresher and is answered at once (RoutingError)."""
+        experiments = self.experiments
+        if self.takes_any():
             return experiments[0].name, ""  # it takes any robot (the implicit default always has)
-        try:
-            route = self._lookup(robot_id)
-        except RoutingError:
-            if not single:
-                raise
-            return experiments[0].name, ""  # control down: one experiment's robots keep being served
-        if route is not None:
-            return route
+        single = len(experiments) == 1 and not experiments[0].shared_embodiment
         with self._lock:
-            unselected = robot_id in self._unselected
-        if single and not unselected:
+            route = self._routes.get(robot_id)
+            if route is not None:
+                return route
+            if robot_id not in self._asked and len(self._asked) >= self.MAX_ASKED:
+                self._asked.pop(next(iter(self._asked)))
+            checked = self._answered > self._asked.setdefault(robot_id, self._begun)
+            unselected, error = robot_id in self._unselected, self._error
+        if unselected:  # until its spec or the experiments change (POLL_S, or add() wakes the refresher)
+            raise RoutingError(
+                grpc.StatusCode.FAILED_PRECONDITION, f"robot {robot_id!r} is in no experiment (no selector picks it)"
+            )
+        if error or not checked:
+            self._wake.set()  # paced by the refresher: at most one ListRobots every REFRESH_S
+        if error:
+            if single:
+                return experiments[0].name, ""  # control down: one experiment's robots keep being served
+            raise RoutingError(grpc.StatusCode.UNAVAILABLE, f"robot {robot_id!r} not routed: {error}")
+        if not checked:
+            raise RoutingError(
+                grpc.StatusCode.UNAVAILABLE, f"robot {robot_id!r} not routed yet: waiting for control's robot list"
+            )
+        if single:
             return experiments[0].name, ""  # a client control does not know (an evaluation probe): served
         raise RoutingError(
             grpc.StatusCode.FAILED_PRECONDITION, f"robot {robot_id!r} is in no experiment (unknown to control?)"
         )
 
-    def _lookup(self, robot_id: str) -> tuple[str, str] | None:
-        """The cached route, refreshed from control (at most every REFRESH_S) for a robot not routed yet."""
-        with self._lock:
-            route = self._routes.get(robot_id)
-            refresh = route is None and time.monotonic() - self._refreshed >= self.REFRESH_S
-            if refresh:
-                self._refreshed = time.monotonic()
-        if refresh:  # outside the lock: known robots keep being served while Control answers
-            self._refresh()
-            with self._lock:
-                route = self._routes.get(robot_id)
-        return route
+    def _run(self) -> None:
+        """The refresher: woken by route() or every POLL_S; at most one refresh every REFRESH_S."""
+        while not self._stop.is_set():
+            self._wake.wait(self.POLL_S)
+            if self._stop.is_set():
+                return
+            if self.takes_any():  # nothing to ask control (an experiment defined at run time may change this)
+                self._wake.clear()
+                continue
+            pause = self._refreshed + self.REFRESH_S - time.monotonic()
+            if pause > 0 and self._stop.wait(pause):
+                return
+            self._wake.clear()
+            self.refresh()
 
-    def _refresh(self) -> None:
-        from user.experiments import experiment_for
+    def refresh(self) -> None:
+        """Rebuild the routes from control's online robots (in the refresher thread; tests may call it)."""
+        with self._lock:
+            self._begun += 1
+            number, experiments = self._begun, self.experiments
+        self._refreshed = time.monotonic()
         from user.v1 import control_pb2
 
+        request = control_pb2.ListRobotsRequest(include_offline=False, without_episodes=True)
         try:
-            resp = self._stub().ListRobots(
-                control_pb2.ListRobotsRequest(include_offline=True, without_episodes=True), timeout=2.0
-            )
+            resp = self._stub().ListRobots(request, timeout=self.LIST_TIMEOUT_S)
         except grpc.RpcError as err:
-            raise RoutingError(
-                grpc.StatusCode.UNAVAILABLE, f"control unreachable for routing: {err.code().name}"
-            ) from None
-        routes, unselected, specs = {}, set(), {}
-        experiments = self.experiments
-        for info in resp.robots:
-            exp = experiment_for(info.spec, experiments)
-            if exp is not None:
-                routes[info.spec.robot_id] = (exp.name, info.spec.kind)
-                specs[info.spec.robot_id] = info.spec
-            else:
-                unselected.add(info.spec.robot_id)
+            self._failed(number, f"control unreachable for routing: {err.code().name}")
+            return
+        routes, specs, unselected = self._rebuild(resp.robots, experiments)
         with self._lock:
-            self._routes.update(routes)
-            self._specs.update(specs)
-            self._unselected = unselected
+            if number < self._answered:  # a later refresh (a caller's, beside the refresher's) already answered
+                return
+            if self.experiments is not experiments:  # added or removed meanwhile: this answer is stale
+                self._wake.set()
+                return
+            self._routes, self._specs, self._unselected = routes, specs, unselected
+            self._asked = {r: n for r, n in self._asked.items() if r not in routes and r not in unselected}
+            self._answered, error, self._error = number, self._error, ""
+        if error:
+            log.info("control answers routing again", extra=kv(robots=len(routes)))
+
+    def _failed(self, number: int, error: str) -> None:
+        with self._lock:
+            if number < self._answered:
+                return
+            self._answered, previous, self._error = number, self._error, error
+        if not previous and not self._stop.is_set():  # once per outage: routed robots keep being served meanwhile
+            log.warning("robot routes not refreshed; keeping the last ones", extra=kv(error=error))
+
+    def _rebuild(
+        self, robots: Collection[Any], experiments: list[ExperimentConfig]
+    ) -> tuple[dict[str, tuple[str, str]], dict[str, robot_pb2.RobotSpec], set[str]]:
+        """(routes, specs, unselected) of control's robots. A spec equal to the one held is kept, the same object:
+        a slot's fit verdict for it stays valid."""
+        from user.experiments import experiment_for
+
+        with self._lock:
+            held = self._specs
+        routes, specs, unselected = {}, {}, set()
+        for info in robots:
+            exp = experiment_for(info.spec, experiments)
+            rid = info.spec.robot_id
+            if exp is None:
+                unselected.add(rid)
+                continue
+            routes[rid] = (exp.name, info.spec.kind)
+            old = held.get(rid)
+            specs[rid] = old if old is not None and old == info.spec else info.spec
+        return routes, specs, unselected
 
     def spec(self, robot_id: str) -> robot_pb2.RobotSpec | None:
         """The robot's spec, when routing learned it from control (else None)."""
@@ -443,6 +562,8 @@ class Router:
         """Route to `exp` too (after the others: the first matching selector wins, as everywhere)."""
         with self._lock:
             self.experiments = [*self.experiments, exp]  # replaced, not mutated: route() reads it unlocked
+            self._refreshed = 0.0
+        self._wake.set()  # its robots are routed by the next refresh
 
     def remove(self, name: str) -> None:
         """Route to `name` no more (Control.RemoveExperiment): its robots are looked up again."""
@@ -450,10 +571,20 @@ class Router:
             self.experiments = [e for e in self.experiments if e.name != name]
             self._routes = {rid: route for rid, route in self._routes.items() if route[0] != name}
             self._refreshed = 0.0
+        self._wake.set()
 
     def close(self) -> None:
-        if self._channel is not None:
-            self._channel.close()
+        """Stop the refresher (a ListRobots in flight is cancelled with the channel) and close the channel."""
+        self._stop.set()
+        self._wake.set()
+        for _ in range(2):  # again after the join: a refresh that was starting may have opened one
+            with self._lock:
+                channel, self._channel = self._channel, None
+            if channel is not None:
+                channel.close()
+            if self._thread is not None:
+                self._thread.join(self.LIST_TIMEOUT_S + 3.0)
+                self._thread = None
 
 
 class _ActError(Exception):
@@ -695,6 +826,7 @@ class InferenceService(rpc.GrpcService):
         )
         for slot in self.slots.values():
             self._subscribe(slot)
+        self.router.start()
         self._watcher = threading.Thread(target=self._watch_experiments, name="inference-experiments", daemon=True)
         self._watcher.start()
         return self
@@ -734,8 +866,7 @@ class InferenceService(rpc.GrpcService):
                 slot.subscriber.stop()
                 slot.subscriber = None
             slot.batcher.stop()
-        with contextlib.suppress(KeyError):  # its version is no longer served
-            POLICY_VERSION.remove(name)
+            slot.forget_metrics()  # after the batcher: no forward of it is left to count a failure
         log.info("experiment removed by control; no longer served", extra=kv(experiment=name))
 
     def _watch_experiments(self) -> None:
