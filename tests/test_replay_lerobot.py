@@ -87,7 +87,16 @@ def test_lerobot_round_trip(tmp_path: Path, capsys: pytest.CaptureFixture[str]) 
     original = LeRobotDataset("local/made", root=src)
     again = LeRobotDataset("local/exported", root=out)
     assert (again.num_episodes, again.num_frames, again.fps) == (2, 8, FPS)
-    assert set(again.features) == set(original.features) | {"next.success"}  # made without it
+    per_step = {
+        "next.truncated",
+        "intervention",
+        "held",
+        "robot_index",
+        "policy_version",
+        "observed_at_ns",
+        "acted_at_ns",
+    }
+    assert set(again.features) == set(original.features) | {"next.success"} | per_step  # made without them
     for i in range(8):
         a, b = original[i], again[i]
         for key in ("observation.state", "observation.images.front", "action", "next.reward", "next.done"):

@@ -18,7 +18,7 @@ import json
 import sys
 from pathlib import Path
 
-from user.arg_types import non_negative_int, positive_int
+from user.arg_types import non_negative_int, positive_float
 from user.config import ConfigError, StackConfig, load_config
 
 TOOLS = {
@@ -66,8 +66,8 @@ def _add_export_arguments(s: argparse.ArgumentParser) -> None:
         metavar="A:B|N",
         help="episodes of the table in arrival order, from 0: A:B (A to B-1), A:, :B, or N (just episode N)",
     )
-    s.add_argument("--task", default="", help="task text of every frame (default: the robot kind)")
-    s.add_argument("--fps", type=positive_int, help="frames per second (default: the robot's control rate)")
+    s.add_argument("--task", default="", help="task text of every frame (default: the robot spec's task, else kind)")
+    s.add_argument("--fps", type=positive_float, help="frames per second (default: the robot's control rate)")
 
 
 def actions_help() -> str:
@@ -169,6 +169,8 @@ def main(argv: list[str]) -> int:
     except (ValueError, FileNotFoundError, FileExistsError, BufferHeld) as exc:
         print(f"userctl replay {args.tool}: {exc}", file=sys.stderr)
         return 2
+    for note in s.notes:
+        print(f"userctl replay {args.tool}: note: {note}", file=sys.stderr)
     already = ""
     if s.present_episodes or s.present_frames:
         already = f" (already there, not stored again: {s.present_episodes} episodes, {s.present_frames} frames)"
