@@ -79,6 +79,9 @@ class BatchRequest:
     n_step: int = 1
     gamma: float = 1.0  # the discount replay sums n-step rewards with (used when n_step > 1)
     action_horizon: int = 1  # > 1: Batch.action_chunk holds each row's next H actions of its episode
+    # Tables whose every action is a demonstrator's: replay flags their rows Batch.intervention (imported demos are
+    # stored without the flag), so BC terms and human-only rules count them.
+    human_tables: tuple[str, ...] = ("demos",)
 
 
 @dataclass
@@ -90,7 +93,7 @@ class Batch:
     reward: torch.Tensor  # (B,) float32 (n-step discounted sum when n_step > 1)
     next_observation: dict[str, torch.Tensor]
     terminated: torch.Tensor  # (B,) float32 0/1: no bootstrapping
-    intervention: torch.Tensor  # (B,) bool: a human chose the action
+    intervention: torch.Tensor  # (B,) bool: a human chose the action (every row of BatchRequest.human_tables)
     discount: torch.Tensor | None = None  # (B,) gamma**n per row when n-step; None = gamma
     embodiment: torch.Tensor | None = None  # (B,) int64 index into Layout.embodiments
     action_mask: torch.Tensor | None = None  # (B, action_dim) bool: real (not padded) action dims

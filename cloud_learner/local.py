@@ -96,7 +96,13 @@ class Buffer:
         names = sorted(shares)
         counts = [round(request.batch_size * shares[t] / total) for t in names]
         counts[-1] = request.batch_size - sum(counts[:-1])
-        parts = [self.tables[t].sample(c, rng) for t, c in zip(names, counts, strict=True) if c > 0]
+        parts = []
+        for name, count in zip(names, counts, strict=True):
+            if count > 0:
+                part = self.tables[name].sample(count, rng)
+                if name in request.human_tables:  # as replay flags them: every action there is a demonstrator's
+                    part["intervention"] = np.ones(count, np.bool_)
+                parts.append(part)
         rows = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
         def tensor(x: np.ndarray) -> torch.Tensor:

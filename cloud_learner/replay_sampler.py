@@ -8,16 +8,23 @@ asked in parallel and their Batch protos concatenated. A shard that fails is mar
 re-probed with Stats after a growing backoff, and sampled again as soon as it answers (its data is on
 its disk: it is back with it). The part of a batch a shard failed to deliver is re-asked of the others.
 
+A request with table ratios (RLPD's {"online": 1, "demos": 1}) keeps replay's exact rows per table (largest
+remainder) and splits each table's rows across the shards that hold that table, in proportion to that table's
+transitions there (for the robots asked), so every transition of a table is equally likely whichever shard holds
+it. A shard is asked only for the tables it holds (their rows as ratios); one without a table is not a failed
+shard. Per-table counts come from each shard's Stats, refreshed in the background every `stats_every_s`.
+
 Errors look like the stub's (grpc.RpcError with code()): FAILED_PRECONDITION when every live shard is
 empty, UNAVAILABLE when none is live.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 
@@ -67,6 +74,16 @@ class Shard:
     retry_at: float = 0.0  # down, or empty: next Stats probe at this time
     probing: bool = False  # a Stats probe is in flight
     backoff_s: float = 0.0
+    # table -> robot -> transitions, from the last Stats
+    tables: dict[str, dict[str, int]] = dataclasses.field(default_factory=dict)
+    tables_at: float = float("-inf")  # when `tables` was last read
+
+    def table_count(self, table: str, robot_ids: Sequence[str]) -> int:
+        """Transitions of `table` here for these robots (all when empty), as of the last Stats."""
+        robots = self.tables.get(table, {})
+        if not robot_ids:
+            return sum(robots.values())
+        return sum(robots.get(r, 0) for r in robot_ids)
 
 
 class ShardedSampler:
@@ -81,11 +98,13 @@ class ShardedSampler:
         min_backoff_s: float = 0.2,
         max_backoff_s: float = 5.0,
         clock: Callable[[], float] = time.monotonic,
+        stats_every_s: float = 10.0,
     ) -> None:
         if not addrs or len(set(addrs)) != len(addrs):
             raise ValueError(f"need distinct replay addresses, got {addrs}")
         self.timeout_s = timeout_s
         self.min_backoff_s, self.max_backoff_s = min_backoff_s, max_backoff_s
+        self.stats_every_s = stats_every_s  # per-table counts of a live shard are this old at most (plus a Stats)
         self._clock = clock
         self._rng = np.random.default_rng(seed)
         self._lock = threading.Lock()  # one Sample at a time: shard state and rng are not shared
@@ -102,6 +121,8 @@ class ShardedSampler:
         timeout = timeout or self.timeout_s
         with self._lock:
             self._probe(timeout)
+            if request.tables:
+                return self._sample_tables(request, timeout)
             batches: list[replay_pb2.Batch] = []
             missing, failed = int(request.batch_size), set()
             for _ in range(len(self.shards)):  # a round per shard at most: each failure removes one
@@ -113,17 +134,92 @@ class ShardedSampler:
                 asked = [(s, int(c)) for s, c in zip(ready, counts, strict=True) if c > 0]
                 futures = [self._pool.submit(self._sample_one, s, request, c, timeout) for s, c in asked]
                 for (shard, _), future in zip(asked, futures, strict=True):
-                    batch = future.result()
-                    if batch is None:
+                    resp = future.result()
+                    if resp is None:
                         failed.add(shard.addr)  # its share goes to the others next round
                     else:
-                        batches.append(batch)
-                        missing -= _batch_len(batch)
+                        batches.append(resp.batch)
+                        missing -= _batch_len(resp.batch)
             if not batches:
                 raise self._nothing_error()
             return replay_pb2.SampleResponse(
                 batch=merge_batches(batches), transitions=sum(s.transitions for s in self.shards if s.up)
             )
+
+    def _sample_tables(self, request: replay_pb2.SampleRequest, timeout: float) -> replay_pb2.SampleResponse:
+        """A batch with exact rows per table, each table's rows split over the shards that hold it (caller holds
+        the lock). A table no live shard holds: FAILED_PRECONDITION, as one replay answers for an empty table."""
+        self._refresh_tables(self.stats_every_s)
+        robot_ids = list(request.robot_ids)
+        missing = split_rows(int(request.batch_size), dict(request.tables))
+        batches: list[replay_pb2.Batch] = []
+        counts: dict[str, dict[str, int]] = {}  # addr -> table -> transitions (the shard's answer, else Stats)
+        failed: set[str] = set()
+        for _ in range(len(self.shards)):  # a round per shard at most: each failure removes one
+            if not any(missing.values()):
+                break
+            ready = [s for s in self.shards if s.up and s.transitions > 0 and s.addr not in failed]
+            asked = self._plan(ready, missing, robot_ids)
+            futures = [self._pool.submit(self._sample_one, s, request, rows, timeout) for s, rows in asked]
+            for (shard, rows), future in zip(asked, futures, strict=True):
+                resp = future.result()
+                if resp is None:
+                    failed.add(shard.addr)  # its rows go to the other holders of their tables next round
+                    continue
+                batches.append(resp.batch)
+                counts[shard.addr] = dict(resp.table_transitions)
+                for table, n in rows.items():
+                    missing[table] -= n
+        short = [t for t, n in missing.items() if n > 0]
+        if short:  # every holder of a table failed this time
+            raise self._no_table_error(short[0], robot_ids)
+        return replay_pb2.SampleResponse(
+            batch=merge_batches(batches),
+            transitions=sum(s.transitions for s in self.shards if s.up),
+            table_transitions=self._table_totals(request, robot_ids, counts),
+        )
+
+    def _plan(
+        self, ready: list[Shard], missing: dict[str, int], robot_ids: list[str]
+    ) -> list[tuple[Shard, dict[str, int]]]:
+        """Rows per shard and table: each table's missing rows drawn over its holders in proportion to their
+        transitions of it (a multinomial: every transition of the table equally likely)."""
+        plan: dict[str, dict[str, int]] = {}  # addr -> table -> rows
+        for table, n in missing.items():
+            if n <= 0:
+                continue
+            holders = [(s, s.table_count(table, robot_ids)) for s in ready]
+            holders = [(s, c) for s, c in holders if c > 0]
+            if not holders:
+                raise self._no_table_error(table, robot_ids)
+            sizes = np.array([c for _, c in holders], dtype=float)
+            for (shard, _), k in zip(holders, self._rng.multinomial(n, sizes / sizes.sum()), strict=True):
+                if k > 0:
+                    plan.setdefault(shard.addr, {})[table] = int(k)
+        return [(s, plan[s.addr]) for s in ready if s.addr in plan]
+
+    def _table_totals(
+        self, request: replay_pb2.SampleRequest, robot_ids: list[str], answered: dict[str, dict[str, int]]
+    ) -> dict[str, int]:
+        """Per table asked: its transitions over the live shards (a shard's own answer where it gave one)."""
+        out = {}
+        for table in request.tables:
+            out[table] = sum(
+                answered[s.addr][table] if table in answered.get(s.addr, {}) else s.table_count(table, robot_ids)
+                for s in self.shards
+                if s.up
+            )
+        return out
+
+    def _no_table_error(self, table: str, robot_ids: list[str]) -> SamplerError:
+        self._refresh_tables(self.min_backoff_s)  # it may have arrived since the last Stats: look soon
+        if not any(s.up for s in self.shards):
+            return self._nothing_error()
+        robots = f" for robots {sorted(robot_ids)[:8]}" if robot_ids else ""
+        return SamplerError(
+            grpc.StatusCode.FAILED_PRECONDITION,
+            f"no sampleable transitions in table {table!r}{robots} on any live replay shard yet",
+        )
 
     def Stats(self, request: replay_pb2.StatsRequest, timeout: float | None = None) -> replay_pb2.StatsResponse:
         """Counts summed over the shards that answer (steps, transitions, episodes, steps per robot):
@@ -169,6 +265,15 @@ class ShardedSampler:
         while pending and not any(s.up and s.transitions > 0 for s in self.shards) and self._clock() < end:
             _, pending = wait(pending, timeout=max(0.0, end - self._clock()), return_when=FIRST_COMPLETED)
 
+    def _refresh_tables(self, max_age_s: float) -> None:
+        """Stats of each live shard whose per-table counts are older than max_age_s, in the background: a
+        table that arrives on a shard is sampled there from the next batch on that finds it."""
+        now = self._clock()
+        for shard in self.shards:
+            if shard.up and not shard.probing and now - shard.tables_at >= max_age_s:
+                shard.probing = True
+                self._pool.submit(self._stats, shard, self.timeout_s)
+
     def _stats(self, shard: Shard, timeout: float) -> None:
         try:
             stats = shard.stub.Stats(replay_pb2.StatsRequest(), timeout=timeout)
@@ -177,15 +282,24 @@ class ShardedSampler:
             return
         finally:
             shard.probing = False
+        shard.tables = {
+            name: {robot: int(r.transitions) for robot, r in t.robots.items()} for name, t in stats.tables.items()
+        }
+        shard.tables_at = self._clock()
         self._mark_up(shard, int(stats.transitions))
         if not shard.transitions:  # empty: look again later, without hammering it
             shard.retry_at = self._clock() + self.min_backoff_s
 
     def _sample_one(
-        self, shard: Shard, request: replay_pb2.SampleRequest, n: int, timeout: float
-    ) -> replay_pb2.Batch | None:
+        self, shard: Shard, request: replay_pb2.SampleRequest, n: int | dict[str, int], timeout: float
+    ) -> replay_pb2.SampleResponse | None:
+        """n rows, or rows per table (the tables this shard is asked for, their rows as ratios)."""
         req = replay_pb2.SampleRequest()
-        req.CopyFrom(request)  # the same tables, sampler, n-step, frame stack and action horizon
+        req.CopyFrom(request)  # the same sampler, n-step, frame stack, action horizon and human tables
+        if isinstance(n, dict):
+            req.ClearField("tables")
+            req.tables.update(n)
+            n = sum(n.values())
         req.batch_size = n
         try:
             resp = shard.stub.Sample(req, timeout=timeout)
@@ -198,7 +312,7 @@ class ShardedSampler:
             return None
         self._mark_up(shard, int(resp.transitions))
         SHARD_SAMPLED.labels(shard.addr).inc(n)
-        return resp.batch
+        return resp
 
     def _mark_up(self, shard: Shard, transitions: int) -> None:
         if not shard.up:
@@ -235,6 +349,19 @@ def replay_source(
 
 
 # --------------------------------------------------------------------------- batches
+
+
+def split_rows(batch_size: int, ratios: dict[str, float]) -> dict[str, int]:
+    """Exact rows per table by ratio (largest remainder), as replay splits a batch: 50/50 of 255 is 128 + 127."""
+    names = list(ratios)
+    r = np.array([ratios[n] for n in names], np.float64)
+    r = r / r.max()  # finite ratios can sum past float64's range; scaled, the sum is <= len(r)
+    exact = batch_size * r / r.sum()
+    counts = np.floor(exact).astype(np.int64)
+    left = batch_size - int(counts.sum())
+    if left:
+        counts[np.argsort(-(exact - counts), kind="stable")[:left]] += 1
+    return dict(zip(names, counts.tolist(), strict=True))
 
 
 def _batch_len(batch: replay_pb2.Batch) -> int:

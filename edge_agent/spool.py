@@ -17,7 +17,9 @@ Two kinds behind one small interface:
 - `MemoryOutbox`: the same in RAM, bounded by a step count (today's behaviour; lost on a crash).
 
 A full spool (the next step would pass `max_bytes`) follows its policy: `drop_oldest` deletes the oldest
-steps to make room (counted); `pause` keeps every step and reports `accepting = False`, which the robot
+steps to make room; `dropped` counts the lost ones: never sent, or sent and never acknowledged (a step replay
+stored and acks after its drop is not lost; a kill -9 forgets drops still awaiting their ack), and a log line
+per episode names their step range. `pause` keeps every step and reports `accepting = False`, which the robot
 loop obeys by holding still until acks free space. `max_bytes` is the configured cap lowered to what the
 disk allows now: the spool's pages may fill half of its file plus the free disk (LMDB deletes copy pages
 too, so acks still work on a full spool). It is re-read from the disk every second, on acks and as the
@@ -59,7 +61,8 @@ FullPolicy = Literal["pause", "drop_oldest"]
 SPOOL_STEPS = prometheus_client.Gauge("user_edge_spool_steps", "Steps in the outbox, waiting for replay's ack")
 SPOOL_BYTES = prometheus_client.Gauge("user_edge_spool_bytes", "Serialized step bytes in the outbox")
 SPOOL_DROPPED = prometheus_client.Counter(
-    "user_edge_spool_dropped_total", "Oldest unacked steps dropped because the outbox was full"
+    "user_edge_spool_dropped_total",
+    "Steps dropped because the outbox was full and lost: never sent, or sent and never acknowledged by replay",
 )
 SPOOL_QUARANTINED = prometheus_client.Gauge(
     "user_edge_spool_quarantined_steps",
@@ -142,6 +145,91 @@ class Outbox(ABC):
         SPOOL_FULL.set(int(self.full))
 
 
+_MAX_DROPPED_IN_FLIGHT = 100_000  # dropped steps awaiting a possible ack; beyond, the oldest count as lost
+
+
+def _step_id(data: bytes) -> tuple[str, str, int]:
+    step = step_pb2.Step.FromString(data)
+    return step.robot_id, step.episode_id, step.step_index
+
+
+class _Drops:
+    """Which steps dropped from a full outbox are lost. One the sender has not read yet is lost at once. One it
+    read is in flight: replay may store and ack it still, so it is lost only if its stream ends without that ack
+    (the sender's next read from below what it read before starts a new stream). Lost steps are logged per episode
+    with their step range, one line per burst of drops (and at least every _DROP_LOG_EVERY_S while one lasts).
+    The caller holds its outbox's lock; `read` sees the reads in the same lock as the drops."""
+
+    def __init__(self, where: str) -> None:
+        self.where = where
+        self.read_upto = 0  # newest seq the sender read on its current stream
+        self.in_flight: dict[int, tuple[str, str, int]] = {}  # dropped after being read: seq -> step id, until acked
+        self.burst: dict[tuple[str, str], list[int]] = {}  # (robot, episode) -> [first, last, steps] lost, unlogged
+        self.first_at = self.last_at = 0.0
+
+    def lost_now(self, seqs: Iterable[int]) -> int:
+        """How many of these drops are lost at once (not read yet); changes nothing."""
+        return sum(seq > self.read_upto for seq in seqs)
+
+    def dropped(self, gone: Iterable[tuple[int, tuple[str, str, int]]]) -> int:
+        """Steps (seq, step id) that left the outbox unacknowledged; returns how many are lost now."""
+        lost = 0
+        for seq, step in gone:
+            if seq > self.read_upto:
+                self._lost(step)
+                lost += 1
+            else:
+                self.in_flight[seq] = step
+        while len(self.in_flight) > _MAX_DROPPED_IN_FLIGHT:
+            self._lost(self.in_flight.pop(next(iter(self.in_flight))))
+            lost += 1
+        return lost
+
+    def acked(self, seqs: Iterable[int]) -> None:
+        """Replay stored these: a dropped one among them was not lost."""
+        if self.in_flight:
+            for seq in seqs:
+                self.in_flight.pop(seq, None)
+
+    def read(self, after_seq: int, top: int) -> int:
+        """The sender read (after_seq, top]; returns how many in-flight drops this shows lost."""
+        lost = 0
+        if after_seq < self.read_upto:  # a new stream: the old one's acks are over
+            lost = self.end_stream()
+            self.read_upto = after_seq
+        self.read_upto = max(self.read_upto, top)
+        return lost
+
+    def end_stream(self) -> int:
+        """Every drop still in flight was never acked: lost. Returns how many."""
+        for step in self.in_flight.values():
+            self._lost(step)
+        lost, self.in_flight = len(self.in_flight), {}
+        return lost
+
+    def _lost(self, step: tuple[str, str, int]) -> None:
+        now = time.monotonic()
+        if not self.burst:
+            self.first_at = now
+        self.last_at = now
+        robot, episode, t = step
+        span = self.burst.setdefault((robot, episode), [t, t, 0])
+        span[0], span[1], span[2] = min(span[0], t), max(span[1], t), span[2] + 1
+
+    def log(self, force: bool = False) -> None:
+        """One warning per episode for the lost steps gathered, once their burst ended (a quiet second), every
+        _DROP_LOG_EVERY_S while it lasts, or when forced (close)."""
+        now = time.monotonic()
+        if not self.burst or not (force or now - self.last_at >= 1.0 or now - self.first_at >= _DROP_LOG_EVERY_S):
+            return
+        for (robot, episode), (first, last, n) in self.burst.items():
+            log.warning(
+                "spool full; steps dropped that replay never acknowledged",
+                extra=kv(path=self.where, robot_id=robot, episode_id=episode, steps=f"{first}-{last}", count=n),
+            )
+        self.burst = {}
+
+
 class MemoryOutbox(Outbox):
     """In RAM, at most `max_steps`; the oldest are dropped beyond (lost on a crash)."""
 
@@ -154,6 +242,7 @@ class MemoryOutbox(Outbox):
         self._steps: OrderedDict[int, replay_pb2.InsertRequest] = OrderedDict()
         self._bytes = 0
         self._next_seq = 1
+        self._drops = _Drops("memory")
 
     def put(self, step: step_pb2.Step, table: str = "") -> int:
         req = replay_pb2.InsertRequest(step=step, table=table)
@@ -163,32 +252,46 @@ class MemoryOutbox(Outbox):
             self._next_seq += 1
             self._steps[seq] = req
             self._bytes += size
+            gone = []
             while len(self._steps) > self.max_steps:
-                _, old = self._steps.popitem(last=False)
+                old_seq, old = self._steps.popitem(last=False)
                 self._bytes -= old.step.ByteSize()
-                self.dropped += 1
-                SPOOL_DROPPED.inc()
+                gone.append((old_seq, (old.step.robot_id, old.step.episode_id, old.step.step_index)))
+            self._count_lost(self._drops.dropped(gone))
+            self._drops.log()
         self._publish_metrics()
         return seq
 
+    def _count_lost(self, n: int) -> None:
+        self.dropped += n
+        SPOOL_DROPPED.inc(n)
+
     def read(self, after_seq: int, limit: int) -> list[replay_pb2.InsertRequest]:
         with self._lock:
-            if not self._steps or after_seq >= self._next_seq - 1:
-                return []
-            out = []
-            # Seqs only grow, so every kept seq from after_seq+1 on is found by probing upwards;
-            # the gaps (acked or dropped) are skipped by starting at the oldest kept seq.
-            seq = max(after_seq + 1, next(iter(self._steps)))
-            while seq < self._next_seq and len(out) < limit:
-                req = self._steps.get(seq)
-                if req is not None:
-                    out.append(req)
-                seq += 1
+            out = self._read(after_seq, limit)
+            self._count_lost(self._drops.read(after_seq, out[-1].seq if out else after_seq))
             return out
+
+    def _read(self, after_seq: int, limit: int) -> list[replay_pb2.InsertRequest]:
+        """Caller holds the lock."""
+        if not self._steps or after_seq >= self._next_seq - 1:
+            return []
+        out = []
+        # Seqs only grow, so every kept seq from after_seq+1 on is found by probing upwards;
+        # the gaps (acked or dropped) are skipped by starting at the oldest kept seq.
+        seq = max(after_seq + 1, next(iter(self._steps)))
+        while seq < self._next_seq and len(out) < limit:
+            req = self._steps.get(seq)
+            if req is not None:
+                out.append(req)
+            seq += 1
+        return out
 
     def ack(self, seqs: Iterable[int]) -> int:
         n = 0
+        seqs = list(seqs)
         with self._lock:
+            self._drops.acked(seqs)
             for seq in seqs:
                 req = self._steps.pop(seq, None)
                 if req is not None:
@@ -212,6 +315,11 @@ class MemoryOutbox(Outbox):
     @property
     def full(self) -> bool:
         return len(self._steps) >= self.max_steps
+
+    def close(self) -> None:
+        with self._lock:  # drops still in flight get no ack now
+            self._count_lost(self._drops.end_stream())
+            self._drops.log(force=True)
 
 
 def _key(seq: int) -> bytes:
@@ -259,6 +367,7 @@ class LmdbSpool(Outbox):
         self._pending: dict[int, tuple[bytes, str]] = {}  # pause, disk full: seq -> (step, table), in seq order
         self._pending_bytes = 0
         self._last_drop_log = -float("inf")
+        self._drops = _Drops(str(self.path))
         self._env = lmdb.open(
             str(self.path), map_size=2 * max_bytes + _MAP_HEADROOM, max_dbs=4, sync=fsync, metasync=fsync
         )
@@ -388,6 +497,7 @@ class LmdbSpool(Outbox):
                 with self._lock:
                     self._refresh_cap()
                     self._flush_pending()
+                    self._drops.log()
             except (lmdb.Error, OSError) as exc:  # a full or failing disk: the next round tries again
                 log.warning("spool upkeep failed", extra=kv(path=str(self.path), error=str(exc)))
             self._publish_metrics()
@@ -404,6 +514,7 @@ class LmdbSpool(Outbox):
             dropped = self._store(seq, data, table)
             # Only now: the sender takes every seq up to last_seq as readable (or acked or dropped).
             self._next_seq, self._last_size = seq + 1, len(data)
+            self._drops.log()
         if self.policy == "pause" and self.full and not was_full:
             log.warning(
                 "spool full; robots hold until replay acknowledges steps",
@@ -459,8 +570,8 @@ class LmdbSpool(Outbox):
             try:
                 dropped += self._drop_oldest(max(1, self._count // 100))
                 return dropped + self._write(seq, data, table)
-            except lmdb.Error:
-                return dropped + self._count_dropped(1)
+            except lmdb.Error:  # this step goes, never sent
+                return dropped + self._count_dropped(self._drops.dropped([(seq, _step_id(data))]))
         self._keep_in_ram(seq, data, table)
         return dropped
 
@@ -501,17 +612,27 @@ class LmdbSpool(Outbox):
         return dropped, freed
 
     def _drop_oldest(self, n: int) -> int:
+        """Caller holds the lock. Drop the n oldest kept steps in a transaction of their own; returns how many."""
         with self._env.begin(write=True) as txn:
-            cursor, nbytes, dropped = txn.cursor(self._steps), self._bytes, 0
-            while dropped < n and cursor.first():
-                nbytes -= len(cursor.value())
-                txn.delete(cursor.key(), db=self._tables)
-                cursor.delete()
-                dropped += 1
+            cursor, nbytes, gone = txn.cursor(self._steps), self._bytes, []
+            while len(gone) < n and cursor.first():
+                nbytes -= self._pop_oldest(txn, cursor, gone)
             txn.put(b"bytes", _key(nbytes), db=self._meta)
-            txn.put(b"dropped", _key(self.dropped + dropped), db=self._meta)
-        self._bytes, self._count = nbytes, self._count - dropped
-        return self._count_dropped(dropped)
+            lost = self._drops.lost_now(seq for seq, _ in gone)
+            txn.put(b"dropped", _key(self.dropped + lost), db=self._meta)
+        self._bytes, self._count = nbytes, self._count - len(gone)
+        self._count_dropped(self._drops.dropped(gone))
+        return len(gone)
+
+    def _pop_oldest(
+        self, txn: lmdb.Transaction, cursor: lmdb.Cursor, gone: list[tuple[int, tuple[str, str, int]]]
+    ) -> int:
+        """Delete the step under `cursor` (the oldest kept), noting (seq, step id) in `gone`; returns its bytes."""
+        key, value = cursor.key(), cursor.value()
+        gone.append((int.from_bytes(key, "big"), _step_id(value)))
+        txn.delete(key, db=self._tables)
+        cursor.delete()
+        return len(value)
 
     def _write(self, seq: int, data: bytes, table: str = "") -> int:
         """Caller holds the lock. One transaction: make room (drop_oldest), put, update meta."""
@@ -524,23 +645,25 @@ class LmdbSpool(Outbox):
                     if held and over > 0:  # refused steps make room first: they never make the robots hold
                         gone, freed = self._drop_held(txn, over)
                         held, held_bytes, dropped = held - gone, held_bytes - freed, gone
+                    oldest: list[tuple[int, tuple[str, str, int]]] = []  # (seq, step id) of kept steps dropped
                     if self.policy == "drop_oldest":
                         cursor = txn.cursor(self._steps)
                         while count and nbytes + len(data) > self.max_bytes and cursor.first():
-                            nbytes -= len(cursor.value())
-                            txn.delete(cursor.key(), db=self._tables)
-                            cursor.delete()
-                            count, dropped = count - 1, dropped + 1
+                            nbytes -= self._pop_oldest(txn, cursor, oldest)
+                            count -= 1
                     txn.put(_key(seq), data, db=self._steps)
                     if table:  # most steps go to the default table: nothing kept for them
                         txn.put(_key(seq), table.encode(), db=self._tables)
                     nbytes, count = nbytes + len(data), count + 1
                     txn.put(b"next_seq", _key(max(seq + 1, self._next_seq)), db=self._meta)  # older ones from RAM too
                     txn.put(b"bytes", _key(nbytes), db=self._meta)
-                    txn.put(b"dropped", _key(self.dropped + dropped), db=self._meta)
+                    # a step the sender read may still be stored and acked: lost only once its stream ends
+                    lost = dropped + self._drops.lost_now(s for s, _ in oldest)
+                    txn.put(b"dropped", _key(self.dropped + lost), db=self._meta)
                 self._bytes, self._count = nbytes, count
                 self._held_count, self._held_bytes = held, held_bytes
-                return self._count_dropped(dropped)
+                self._count_dropped(dropped + self._drops.dropped(oldest))
+                return dropped + len(oldest)
             except lmdb.MapFullError:
                 if attempt == 3:
                     raise
@@ -553,16 +676,19 @@ class LmdbSpool(Outbox):
     # ------------------------------------------------------------------ read, ack, set aside
 
     def read(self, after_seq: int, limit: int) -> list[replay_pb2.InsertRequest]:
-        if not self._pending:  # racy but safe: a step waiting in RAM later has a seq above all read here
-            return self._read_disk(after_seq, limit)
-        with self._lock:  # one view of RAM and disk: a step moving between them is seen exactly once
+        # Under the lock: one view of RAM and disk (a step moving between them is seen exactly once), and a drop
+        # knows whether the sender read its step (see _Drops).
+        with self._lock:
             out = self._read_disk(after_seq, limit)
-            for seq, (data, table) in self._pending.items():
-                if seq > after_seq:
-                    req = replay_pb2.InsertRequest(seq=seq, table=table)
-                    req.step.ParseFromString(data)
-                    out.append(req)
-        return sorted(out, key=lambda r: r.seq)[:limit]
+            if self._pending:
+                for seq, (data, table) in self._pending.items():
+                    if seq > after_seq:
+                        req = replay_pb2.InsertRequest(seq=seq, table=table)
+                        req.step.ParseFromString(data)
+                        out.append(req)
+                out = sorted(out, key=lambda r: r.seq)[:limit]
+            self._count_dropped(self._drops.read(after_seq, out[-1].seq if out else after_seq))
+        return out
 
     def _read_disk(self, after_seq: int, limit: int) -> list[replay_pb2.InsertRequest]:
         out: list[replay_pb2.InsertRequest] = []
@@ -582,6 +708,7 @@ class LmdbSpool(Outbox):
     def ack(self, seqs: Iterable[int]) -> int:
         seqs = list(seqs)
         with self._lock:
+            self._drops.acked(seqs)
             n = self._forget_pending(seqs)
             try:
                 deleted = self._delete(seqs)
@@ -680,6 +807,16 @@ class LmdbSpool(Outbox):
     def full(self) -> bool:  # steps set aside are not counted: they make room when needed (see _write)
         return bool(self._pending) or self._bytes + self._last_size > self.max_bytes
 
+    def _close_drops(self) -> None:
+        """Caller holds the lock. Drops still in flight get no ack now: lost; the count is kept on disk."""
+        self._count_dropped(self._drops.end_stream())
+        self._drops.log(force=True)
+        try:
+            with self._env.begin(write=True) as txn:
+                txn.put(b"dropped", _key(self.dropped), db=self._meta)
+        except lmdb.Error as exc:  # a full disk: the count on disk stays what the last write left
+            log.warning("spool could not record its dropped count", extra=kv(path=str(self.path), error=str(exc)))
+
     def close(self) -> None:
         if self._closed.is_set():
             return
@@ -693,6 +830,7 @@ class LmdbSpool(Outbox):
                     "spool disk full at close; steps waiting in RAM are lost",
                     extra=kv(path=str(self.path), steps=len(self._pending)),
                 )
+            self._close_drops()
             try:
                 self._env.sync(True)
             finally:

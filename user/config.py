@@ -133,7 +133,11 @@ class ReplayConfig(_ServerSection):
     control_addr: str = Field(default="127.0.0.1:50051", description="control service: robot specs to validate against")
     rpc_timeout_s: float = Field(default=5.0, gt=0, description="deadline on calls to control")
     max_map_mb: int = Field(default=0, ge=0, description="the LMDB map grows up to this; 0 = 4 x map_size_mb")
-    capacity_mb: int = Field(default=0, ge=0, description="stored step bytes; beyond, oldest episodes leave; 0 = off")
+    capacity_mb: int = Field(
+        default=0,
+        ge=0,
+        description="stored step bytes; beyond, the oldest ended episodes leave (none being written is cut); 0 = off",
+    )
     durability: Literal["fsync", "os"] = Field(
         default="fsync", description="fsync: ack survives a power cut; os: survives kill -9, fsync every second"
     )
@@ -155,7 +159,8 @@ class ReplayConfig(_ServerSection):
         description="touch the RAM tier's column pages when a layout first arrives, so RSS is at its plateau early",
     )
     attach: dict[str, Path] = Field(
-        default={}, description="read-only tables from other buffers, e.g. {prior: runs/old/replay}"
+        default={},
+        description="read-only tables from other buffers, e.g. {prior: runs/old/replay} (not while their owner runs)",
     )
     shm_dir: str | None = Field(
         default="/dev/shm",
@@ -211,7 +216,9 @@ class LearnerConfig(_ServerSection):
     server: ServerConfig = ServerConfig(port=50054, metrics_port=9104)
     replay_addr: str = Field(default="127.0.0.1:50052", description="replay service to sample from")
     replay_addrs: list[str] = Field(
-        default=[], description="replay shards sampled in proportion to their size; empty = replay_addr alone"
+        default=[],
+        description="replay shards sampled in proportion to their size (per table for table ratios); "
+        "empty = replay_addr alone",
     )
     control_addr: str = Field(default="127.0.0.1:50051", description="control service: robot specs")
     checkpoint_dir: Path = Field(default=Path("runs/default/checkpoints"), description="resumes from the newest here")

@@ -10,6 +10,7 @@ shifted images. The policy is published as the same "mlp" / "cnn" kind SAC and R
 
 from __future__ import annotations
 
+import math
 from typing import Any, Literal
 
 import numpy as np
@@ -19,6 +20,7 @@ from pydantic import Field
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout, TableShares, configured_lr
 from cloud_learner.algorithms.sac import MAX_BATCH, EncoderParams, Widths, augment, make_encoder, publish, trainable
 from user.policies.mlp import GaussianActor, log_prob_of
+from user.policy import SquashedGaussianActor
 from user.v1 import learner_pb2
 
 
@@ -31,6 +33,19 @@ class BCParams(EncoderParams):
     tables: TableShares = Field(
         default={"demos": 0.5, "interventions": 0.5}, description="replay table -> share of each batch"
     )
+
+
+def masked_log_prob(
+    head: SquashedGaussianActor, features: torch.Tensor, action: torch.Tensor, mask: torch.Tensor
+) -> torch.Tensor:
+    """log_prob_of summed over the real action dims only (Batch.action_mask, a layout padded across embodiments):
+    a padded dim is never executed, so its stored filler is no label (as the head's own log-prob masks it)."""
+    mean, log_std = head.distribution(features)
+    squashed = ((action - head.action_bias) / head.action_scale).clamp(-1 + 1e-4, 1 - 1e-4)
+    pre = torch.atanh(squashed)
+    normal = -0.5 * ((pre - mean) / log_std.exp()) ** 2 - log_std - 0.5 * math.log(2 * math.pi)
+    per_dim = normal - torch.log(head.action_scale * (1 - squashed.pow(2)) + 1e-6)
+    return (per_dim * mask.to(per_dim.dtype)).sum(-1)
 
 
 @ALGORITHMS.register("bc", description="Behaviour cloning on demos and interventions (MSE or Gaussian NLL)")
@@ -54,8 +69,10 @@ class BC(Algorithm):
             _, _, mean_action = self.actor.head(features)
             error, mask = (mean_action - batch.action).pow(2), batch.action_mask
             per_row = error.mean(dim=-1) if mask is None else (error * mask).sum(-1) / mask.sum(-1).clamp(min=1)
-        else:
+        elif batch.action_mask is None:
             per_row = -log_prob_of(self.actor.head, features, batch.action)
+        else:
+            per_row = -masked_log_prob(self.actor.head, features, batch.action, batch.action_mask)
         weight = batch.intervention.float() if self.p.only_interventions else torch.ones_like(per_row)
         loss = (per_row * weight).sum() / weight.sum().clamp(min=1.0)
         self.optimizer.zero_grad(set_to_none=True)

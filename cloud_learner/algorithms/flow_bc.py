@@ -101,7 +101,10 @@ class FlowBc(Algorithm):
 
     def batch_request(self) -> BatchRequest:
         return BatchRequest(
-            batch_size=self.p.batch_size, tables=dict(self.p.tables), action_horizon=self.config.horizon
+            batch_size=self.p.batch_size,
+            tables=dict(self.p.tables),
+            action_horizon=self.config.horizon,
+            human_tables=tuple(self.p.demo_tables),  # replay flags their rows intervention
         )
 
     def targets(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -120,13 +123,9 @@ class FlowBc(Algorithm):
         """1 for human rows, 0 for the policy's own; None = every row counts."""
         if not self.p.human_only:
             return None
-        human = batch.intervention.to(self.device).bool()
-        from_demos = getattr(batch, "from_demos", None)  # (B,) bool when the sampler marks table origin
-        if from_demos is not None:
-            human = human | from_demos.to(self.device).bool()
-        elif set(self.p.tables) <= {"demos", "interventions", *self.p.demo_tables}:
+        if set(self.p.tables) <= {"interventions", *self.p.demo_tables}:
             return None  # human-only tables: every row is a human action
-        return human.float()
+        return batch.intervention.to(self.device).float()  # demo_tables' rows come flagged (BatchRequest.human_tables)
 
     def update(self, batch: Batch) -> dict[str, float]:
         observation = {k: v.cpu().numpy() for k, v in batch.observation.items()}
@@ -137,7 +136,8 @@ class FlowBc(Algorithm):
         self.model.train()
         context = self.model.encode(prepared.images, prepared.state, prepared.tokens)
         target, mask = self.targets(batch)
-        loss = self.model.flow_loss(context, target, weight, mask)
+        dims = batch.action_mask.to(self.device) if batch.action_mask is not None else None
+        loss = self.model.flow_loss(context, target, weight, mask, dims)  # padded action dims are no label
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()

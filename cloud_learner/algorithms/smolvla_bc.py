@@ -203,7 +203,12 @@ class SmolVlaBc(Algorithm):
         self.grad_clip = float(clip) if clip else None
 
     def batch_request(self) -> BatchRequest:
-        return BatchRequest(batch_size=self.p.batch_size, tables=dict(self.p.tables), action_horizon=self.chunk_size)
+        return BatchRequest(
+            batch_size=self.p.batch_size,
+            tables=dict(self.p.tables),
+            action_horizon=self.chunk_size,
+            human_tables=tuple(self.p.demo_tables),  # replay flags their rows intervention
+        )
 
     # --- batch -> lerobot --------------------------------------------------------------------------
 
@@ -211,13 +216,9 @@ class SmolVlaBc(Algorithm):
         """Bool (B,) of the rows to imitate; None = all of them (as flow_bc decides)."""
         if not self.p.human_only:
             return None
-        human = batch.intervention.bool()
-        from_demos = getattr(batch, "from_demos", None)  # (B,) bool when the sampler marks table origin
-        if from_demos is not None:
-            return human | from_demos.to(human.device).bool()
-        if set(self.p.tables) <= {"demos", "interventions", *self.p.demo_tables}:
+        if set(self.p.tables) <= {"interventions", *self.p.demo_tables}:
             return None  # human-only tables: every row is a human action
-        return human
+        return batch.intervention.bool()  # demo_tables' rows come flagged (BatchRequest.human_tables)
 
     def targets(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, chunk, A) target actions and (B, chunk) action_is_pad (true past an episode's end / a hand-back)."""

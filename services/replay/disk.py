@@ -141,8 +141,10 @@ class StepDB:
         durability: str = "fsync",
         sync_interval_s: float = 1.0,
         readonly: bool = False,
+        lock: bool = True,
         guard: threading.RLock | None = None,
     ) -> None:
+        """lock=False (read-only only): no LMDB lock file is used or created; the caller guarantees no writer."""
         if durability not in DURABILITY:
             raise ValueError(f"durability must be one of {DURABILITY}, got {durability!r}")
         self.path = Path(path)
@@ -158,7 +160,7 @@ class StepDB:
             max_dbs=8,
             subdir=True,
             readonly=readonly,
-            lock=True,  # also read-only: another process may be writing
+            lock=lock or not readonly,  # also read-only, unless the caller knows nothing writes (attach)
             readahead=False,  # samples are random reads; readahead only pollutes the page cache
             meminit=False,
             # no writemap: measured here, puts into a sparse writable map page-fault (~3x the CPU of a

@@ -840,6 +840,8 @@ def sample_request_problem(req: replay_pb2.SampleRequest) -> str | None:
             return f"table {name[:80]!r} must be 1-64 characters of A-Z a-z 0-9 _ . -"
         if not (math.isfinite(ratio) and ratio > 0):
             return f"ratio of table {name!r} must be finite and > 0, got {ratio}"
+    if (problem := _human_tables_problem(req.human_tables)) is not None:
+        return problem
     if req.sampler not in SAMPLERS:
         return f"unknown sampler {req.sampler}"
     if req.frame_stack > MAX_FRAME_STACK:
@@ -857,6 +859,16 @@ def sample_request_problem(req: replay_pb2.SampleRequest) -> str | None:
     for field, value in (("priority_alpha", req.priority_alpha), ("priority_beta", req.priority_beta)):
         if not (math.isfinite(value) and 0 <= value <= 10):
             return f"{field} must be in [0, 10], got {value}"
+    return None
+
+
+def _human_tables_problem(names: Sequence[str]) -> str | None:
+    """Why SampleRequest.human_tables is refused, or None (a table this replay lacks is fine: it marks nothing)."""
+    if len(names) > MAX_TABLES:
+        return f"human_tables: at most {MAX_TABLES} tables per sample, got {len(names)}"
+    for i, name in enumerate(names):
+        if not TABLE_NAME.fullmatch(name):
+            return f"human_tables[{i}]: {name[:80]!r} must be 1-64 characters of A-Z a-z 0-9 _ . -"
     return None
 
 
@@ -883,6 +895,7 @@ def to_draw(req: replay_pb2.SampleRequest) -> Draw:
         gamma=req.gamma or 0.99,
         frame_stack=max(1, req.frame_stack),
         encoded_frames=req.encoded_frames,
+        human_tables=tuple(sorted(set(req.human_tables))),
     )
 
 

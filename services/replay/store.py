@@ -7,11 +7,13 @@
 
 Step t is sampleable once its next observation exists (step t+1's observation, or its own
 final_observation when it ends the episode), in any arrival order. Capacity is by bytes: when the
-stored steps exceed capacity_mb, whole episodes leave, oldest first (FIFO), from LMDB and RAM.
+stored steps exceed capacity_mb, whole episodes leave, oldest first (FIFO), from LMDB and RAM; one still being
+written is never cut (see _evict_over_capacity).
 """
 
 from __future__ import annotations
 
+import fcntl
 import logging
 import os
 import threading
@@ -50,6 +52,7 @@ from services.replay.hot import HotGroup, Layout, decode_blobs, decode_image, fr
 from services.replay.rawstep import Span, StepSpans, Unexpected, step_spans
 from services.replay.tables import INTERVENTIONS, Draw, EmptyBufferError, Index, Record
 from user import owner_lock, wire
+from user.config import ConfigError
 from user.log import kv
 from user.v1 import robot_pb2, step_pb2
 from user.v1 import tensor_pb2 as tpb
@@ -93,6 +96,16 @@ FAILED_COMMITS = prometheus_client.Counter(
     "Write transactions that did not commit (nothing of them stored or acknowledged), by reason",
     ["reason"],
 )
+OVER_CAPACITY = prometheus_client.Gauge(
+    "user_replay_over_capacity",
+    "1 while stored bytes exceed capacity_mb but nothing left may be evicted (episodes still being written, "
+    "which are never cut, and the newest episode), else 0",
+)
+REFUSED_EVICTED = prometheus_client.Counter(
+    "user_replay_evicted_episode_steps_refused_total",
+    "Steps refused (acked as duplicates, not stored) because their episode was evicted: no headless part is kept",
+)
+MAX_EVICTED_REMEMBERED = 100_000  # evicted episodes whose late steps are refused (the oldest are forgotten)
 
 
 class LayoutError(ReplayError):
@@ -119,7 +132,8 @@ def hold_buffer(path: str | Path, holder: str) -> int:
     try:
         return owner_lock.take(Path(path) / HOLDER_FILE, f"{holder} (pid {os.getpid()})")
     except owner_lock.Held as held:
-        raise BufferHeld(f"{path} is held by {held.holder}", held.holder) from None
+        holder = held.holder if not _attached_only(Path(path)) else ATTACHED_HOLDER
+        raise BufferHeld(f"{path} is held by {holder}", holder) from None
 
 
 def buffer_holder(path: str | Path) -> str | None:
@@ -129,6 +143,45 @@ def buffer_holder(path: str | Path) -> str | None:
 
 def release_buffer(fd: int) -> None:
     os.close(fd)  # closing the fd drops its flock
+
+
+ATTACHED_HOLDER = "a replay that attached it read-only (replay.attach): stop that one first"
+
+
+def _attached_only(path: Path) -> bool:
+    """Whether the buffer's holders hold it shared (attach) only: then holder.lock still names its last owner."""
+    try:
+        fd = os.open(path / HOLDER_FILE, os.O_RDONLY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    finally:
+        os.close(fd)
+    return True
+
+
+def _share_buffer(path: Path, setting: str) -> int | None:
+    """A shared flock on path/holder.lock, kept while a store reads that buffer without LMDB's locks (attach): its
+    owner's hold_buffer (LOCK_EX) fails meanwhile, so nothing writes it under the reader. Opening the file for
+    reading creates nothing. None for a buffer without holder.lock (a copy): nothing to lock. Raises ConfigError
+    naming `setting` and the holder while a live process holds the buffer."""
+    try:
+        fd = os.open(path / HOLDER_FILE, os.O_RDONLY)
+    except FileNotFoundError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        holder = os.pread(fd, 256, 0).decode(errors="replace").strip() or "unknown"
+        os.close(fd)
+        raise ConfigError(
+            f"{setting}: {path} is held by {holder}, which may still write it; attach it once that process has "
+            "stopped, or attach a copy"
+        ) from None
+    return fd
 
 
 def tensor_array(tensor: tpb.Tensor) -> np.ndarray:
@@ -183,6 +236,7 @@ class _Pending:
     nbytes: int = 0
     keys: list[bytes] = field(default_factory=list)
     scalars: list[tuple[float, int, int, int]] = field(default_factory=list)  # reward, flags, version, bytes
+    refused: int = 0  # steps of evicted episodes taken out before the commit (answered as duplicates)
 
 
 @dataclass(slots=True)
@@ -380,6 +434,9 @@ class ReplayStore:
         self._bytes = 0
         self._evicted_episodes = 0
         self._evicted_steps_per_robot: dict[str, int] = {}  # since open: stored + evicted = everything acked
+        self._evicted: dict[bytes, bool] = {}  # evicted episode prefix -> its refusal was logged (_refuse_evicted)
+        self._over_capacity = False  # above capacity_mb with nothing evictable left (warned once)
+        self._attached_holds: list[int] = []  # shared flocks on attached buffers' holder.lock (see attach)
         self.compactions = 0  # index compactions (dropping evicted rows)
         self.hits = self.misses = 0
         self.generation = 0  # bumps when a commit or an eviction changes what can be sampled
@@ -506,16 +563,32 @@ class ReplayStore:
     def attach(self, path: str | Path, table: str) -> int:
         """Open another buffer read-only and sample its transitions as `table`; returns how many.
 
-        Its steps are read from its own LMDB on demand (never copied, never evicted, never written).
+        Its steps are read from its own LMDB on demand: never copied, never evicted, never written, and nothing is
+        created in its directory (LMDB opens without its lock file, lock=False). Without LMDB's locks a reader is
+        safe only while no process writes, so a buffer held by its owner (a replay service, `userctl replay
+        import`) is refused (ConfigError naming replay.attach.<table> and the holder), and until this store closes
+        it keeps a shared flock on the buffer's holder.lock, so the owner refuses to start on it meanwhile. A copy
+        without holder.lock cannot be guarded so: do not write it while it is attached.
         """
         if table in self.index.tables:
             raise ValueError(f"table {table!r} exists already; attach under a new name")
         if len(self._attached) >= 250:
             raise ValueError("at most 250 attached buffers")
-        db = StepDB(path, readonly=True)
+        path, setting = Path(path), f"replay.attach.{table}"
+        if not (path / "data.mdb").is_file():
+            raise ConfigError(f"{setting}: {path} holds no replay buffer (no data.mdb)")
+        hold = _share_buffer(path, setting)
+        try:
+            db = StepDB(path, readonly=True, lock=False)
+        except BaseException:
+            if hold is not None:
+                os.close(hold)
+            raise
         with self._lock:
             source = len(self._attached) + 1
             self._attached.append(db)
+            if hold is not None:
+                self._attached_holds.append(hold)
             self._attached_episodes[table] = self._scan(db, bytes([0, source]), table)
             self.generation += 1
             n = self.index.count(table)
@@ -756,14 +829,16 @@ class ReplayStore:
         self._evict_over_capacity()
         COMMITS.observe(len(keys))
         for item in group:
-            item.future.set_result((len(item.steps), 0))
+            item.future.set_result((len(item.steps), item.refused))
         return True
 
     def _commit_group(self, group: list[_Pending]) -> None:
-        steps = [s for item in group for s in item.steps]
         with self._write_lock:
+            if self._evicted and self._refuse_evicted(group):
+                return  # every step was of an evicted episode
             if self._commit_in_order(group):
                 return
+            steps = [s for item in group for s in item.steps]
             done = self.db.put_steps(
                 steps,
                 [t for item in group for t in item.tables],
@@ -782,7 +857,7 @@ class ReplayStore:
         at = 0
         for item in group:
             stored = sum(done.stored_mask[at : at + len(item.steps)])
-            item.future.set_result((stored, len(item.steps) - stored))
+            item.future.set_result((stored, len(item.steps) - stored + item.refused))
             at += len(item.steps)
 
     def _index_committed(self, stored: list[tuple[bytes, step_pb2.Step, int, str]], sampleable: list[bytes]) -> None:
@@ -1188,18 +1263,23 @@ class ReplayStore:
         return tail
 
     def _evict_over_capacity(self) -> None:
-        """Whole episodes, oldest first, until the stored bytes fit capacity_mb again (with 5% slack)."""
+        """Whole episodes, oldest first (by first arrival), until the stored bytes fit capacity_mb again (with 5%
+        slack), from LMDB and RAM.
+
+        Only complete episodes go (a last step and every step below it), and abandoned ones: an episode still
+        being written stays unless its robot has since stored a step of a later episode (a robot writes one
+        episode at a time, so that one will not go on: its edge restarted mid-episode, or its spool dropped the
+        rest). No wall clock: a robot that stops for good keeps its one open episode. When only episodes still
+        being written are left, nothing more is evicted: the bytes stay above capacity_mb (warned once,
+        gauge user_replay_over_capacity) rather than cut one. Later steps of an evicted episode are refused
+        (_refuse_evicted), so no headless part of it is stored; a restarted replay no longer knows which
+        episodes it evicted."""
         if not self.capacity_bytes or self._bytes <= self.capacity_bytes:
+            self._note_over_capacity(False)
             return
-        target = int(self.capacity_bytes * 0.95)
         with self._lock:
-            victims: list[bytes] = []
-            freed = 0
-            for prefix, ep in self._episodes.items():
-                if self._bytes - freed <= target or len(victims) == len(self._episodes) - 1:
-                    break
-                victims.append(prefix)
-                freed += ep.nbytes
+            victims, freed = self._eviction_victims(int(self.capacity_bytes * 0.95))
+        self._note_over_capacity(self._bytes - freed > self.capacity_bytes)
         if not victims:
             return
         # Out of the index first, then out of LMDB: a sample (which holds the lock from draw to read) never draws
@@ -1215,6 +1295,7 @@ class ReplayStore:
                     del self._steps_per_robot[ep.robot]
                 self._bytes -= ep.nbytes
                 self._evicted_steps_per_robot[ep.robot] = self._evicted_steps_per_robot.get(ep.robot, 0) + ep.steps
+                self._remember_evicted(prefix)
             self.index.evict_episodes(victims)
             if self.index.wants_compaction():
                 self._compact_index()
@@ -1225,6 +1306,84 @@ class ReplayStore:
             self.generation += 1
         self.db.delete_episodes_later(victims)  # with the next commit: no transaction (fsync) of its own
         log.info("evicted episodes", extra=kv(episodes=len(victims), bytes=freed))
+
+    def _eviction_victims(self, target: int) -> tuple[list[bytes], int]:
+        """The oldest evictable episodes whose bytes bring the store down to `target`, and those bytes (caller
+        holds the lock). Evictable: complete, or abandoned (see _evict_over_capacity); the newest episode stays, so
+        the buffer never empties itself (one episode above capacity_mb stays until the next one arrives)."""
+        newest: dict[str, bytes] | None = None  # robot -> its newest episode; built only if an open one is met
+        victims: list[bytes] = []
+        freed = 0
+        for prefix, ep in self._episodes.items():
+            if self._bytes - freed <= target or len(victims) == len(self._episodes) - 1:  # one always stays
+                break
+            if ep.last < 0 or ep.steps != ep.last + 1:  # still being written, unless abandoned
+                if newest is None:
+                    newest = {}
+                    for p, e in reversed(self._episodes.items()):
+                        newest.setdefault(e.robot, p)
+                if newest[ep.robot] == prefix:
+                    continue
+            victims.append(prefix)
+            freed += ep.nbytes
+        return victims, freed
+
+    def _note_over_capacity(self, over: bool) -> None:
+        """Warn once when the bytes stay above capacity_mb for want of evictable episodes; note when it ends."""
+        if over == self._over_capacity:
+            return
+        self._over_capacity = over
+        OVER_CAPACITY.set(int(over))
+        if over:
+            log.warning(
+                "replay above capacity_mb, but only episodes still being written (never cut) and the newest are "
+                "left; eviction goes on once they end",
+                extra=kv(path=str(self.path), stored_bytes=self._bytes, capacity_bytes=self.capacity_bytes),
+            )
+        else:
+            log.info("replay within capacity_mb again", extra=kv(path=str(self.path), stored_bytes=self._bytes))
+
+    def _remember_evicted(self, prefix: bytes) -> None:
+        if len(self._evicted) >= MAX_EVICTED_REMEMBERED:
+            self._evicted.pop(next(iter(self._evicted)))
+        self._evicted[prefix] = False
+
+    def _refuse_evicted(self, group: list[_Pending]) -> bool:
+        """Take steps of evicted episodes out of the group before its commit (writer thread): stored, they would
+        be an episode without its start (or a stray re-sent step). They are answered as duplicates (the edge
+        forgets them), counted, and logged once per episode. Returns True when no step is left to commit."""
+        left = 0
+        for item in group:
+            gone = [i for i, key in enumerate(item.keys) if key[:-8] in self._evicted]
+            if gone:
+                self._refuse(item, gone)
+            left += len(item.steps)
+        if left:
+            return False
+        for item in group:
+            item.future.set_result((0, item.refused))
+        return True
+
+    def _refuse(self, item: _Pending, gone: list[int]) -> None:
+        """Take the steps at `gone` out of `item`; count them, log each episode's first."""
+        for i in gone:
+            prefix = item.keys[i][:-8]
+            if not self._evicted[prefix]:
+                self._evicted[prefix] = True
+                step = item.steps[i]
+                log.warning(
+                    "steps of an evicted episode refused (not stored): its start is gone",
+                    extra=kv(robot_id=step.robot_id, episode_id=step.episode_id, step_index=step.step_index),
+                )
+        item.refused += len(gone)
+        REFUSED_EVICTED.inc(len(gone))
+        keep = sorted(set(range(len(item.keys))) - set(gone))
+        item.steps = [item.steps[i] for i in keep]
+        item.tables = [item.tables[i] for i in keep]
+        item.raws = [item.raws[i] for i in keep]
+        item.keys = [item.keys[i] for i in keep]
+        item.scalars = [item.scalars[i] for i in keep]
+        item.nbytes = sum(map(len, item.raws))
 
     def _compact_index(self) -> None:
         """Drop evicted rows from the index, so it stays proportional to what is stored (a months-long run
@@ -1295,11 +1454,14 @@ class ReplayStore:
             drawn = self.index.draw(req, rng)
             idx = self.index
             tids, last = drawn.tids, drawn.last
+            human = idx.intervention.a[tids]
+            if drawn.human is not None:  # a human table's rows (Draw.human_tables): a demonstrator's, unflagged or not
+                human = human | drawn.human
             out: dict[str, Any] = {
                 "reward": drawn.reward,
                 "terminated": drawn.terminated,
                 "truncated": drawn.truncated,
-                "intervention": idx.intervention.a[tids],
+                "intervention": human,
                 "policy_version": idx.policy_version.a[tids],
                 "indices": idx.ids.a[tids],  # public ids: rows are renumbered when the index compacts
                 "weights": drawn.weights,
@@ -1657,3 +1819,5 @@ class ReplayStore:
             self.db.close()
             for db in self._attached:
                 db.close()
+            for fd in self._attached_holds:  # owners may write those buffers again
+                os.close(fd)

@@ -193,6 +193,7 @@ class Draw:
     gamma: float = 0.99
     frame_stack: int = 1  # observations get an axis of the k newest frames (oldest first)
     encoded_frames: bool = False  # JPEG/PNG frames as kept (wire.EncodedFrames) where they share one encoding
+    human_tables: tuple[str, ...] = ()  # rows drawn from these come flagged intervention (Drawn.human)
 
 
 @dataclass
@@ -204,6 +205,7 @@ class Drawn:
     truncated: np.ndarray
     n_steps: np.ndarray
     weights: np.ndarray
+    human: np.ndarray | None = None  # rows drawn from Draw.human_tables (None: none asked)
 
 
 class Index:
@@ -543,10 +545,11 @@ class Index:
         shares = (
             _split(req.batch_size, req.tables) if len(req.tables) > 1 else {next(iter(req.tables), ALL): req.batch_size}
         )
-        tids, weights = [], []
+        tids, weights, human = [], [], []
         for table, k in shares.items():
             if k == 0:
                 continue
+            human.append(np.full(k, table in req.human_tables))
             if req.sampler == "prioritized":
                 if self.count(table, req.robot_ids) == 0:
                     raise _empty(table, req.robot_ids)
@@ -561,7 +564,31 @@ class Index:
             weights.append(w)
         tid = np.concatenate(tids) if len(tids) > 1 else tids[0]
         weight = np.concatenate(weights) if len(weights) > 1 else weights[0]
-        return self._n_step(tid, weight, req.n_step, req.gamma)
+        drawn = self._n_step(tid, weight, req.n_step, req.gamma)
+        if req.human_tables:
+            # a row of the union is a human table's when that table holds it (a transition is in one table)
+            drawn.human = self.held_by(tid, req.human_tables) if ALL in shares else np.concatenate(human)
+        return drawn
+
+    def held_by(self, tids: np.ndarray, tables: tuple[str, ...]) -> np.ndarray:
+        """Which of `tids` one of `tables` holds: a binary search per robot of the batch in that robot's
+        column (tids ascending), never a scan of a table."""
+        out = np.zeros(len(tids), np.bool_)
+        held = [self.tables[t] for t in tables if t in self.tables]
+        if not held or not len(tids):
+            return out
+        robot = self.robot.a[tids]
+        for code in np.unique(robot).tolist():
+            sel = np.flatnonzero(robot == code)
+            mine = tids[sel]
+            for grows in held:
+                grow = grows.get(code)
+                if grow is None or not grow.n:
+                    continue
+                col = grow.view()
+                pos = np.minimum(np.searchsorted(col, mine), grow.n - 1)
+                out[sel] |= col[pos] == mine
+        return out
 
     def _draw_one(
         self, cands: np.ndarray, k: int, req: Draw, rng: np.random.Generator

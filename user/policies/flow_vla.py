@@ -144,15 +144,23 @@ class FlowVla(nn.Module):
         chunk: torch.Tensor,
         weight: torch.Tensor | None = None,
         mask: torch.Tensor | None = None,
+        action_mask: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Flow-matching loss for normalised target chunks (B, horizon, A) in [-1, 1].
 
         weight (B,): per-row weights; mask (B, horizon) bool: the chunk's real actions (padding past an
-        episode's end does not count; the row's loss is the mean over its real ones)."""
+        episode's end does not count; the row's loss is the mean over its real ones); action_mask (B, A) bool:
+        the real action dims of a layout padded across embodiments: a padded dim's stored filler is neither label
+        nor input, its target is 0 (trained too: at sampling it then flows to 0 and feeds the real dims what
+        training fed them, instead of drifting untrained)."""
+        dims = None if action_mask is None else action_mask.to(chunk.device, chunk.dtype)[:, None, :]
+        if dims is not None:
+            chunk = chunk * dims
         noise = torch.randn_like(chunk)
         t = torch.rand(chunk.shape[0], device=chunk.device)
         x_t = t[:, None, None] * chunk + (1 - t[:, None, None]) * noise
-        err = (self.velocity(x_t, t, context) - (chunk - noise)).pow(2).mean(dim=2)  # (B, horizon)
+        sq = (self.velocity(x_t, t, context) - (chunk - noise)).pow(2)  # (B, horizon, A)
+        err = sq.mean(dim=2)
         if mask is None:
             err = err.mean(dim=1)
         else:
