@@ -6,7 +6,9 @@ atomically). A crash at any point leaves the previous checkpoint loadable; stray
 are never read. Loading uses torch.load(weights_only=True): these files are ours, never wire bytes.
 A checkpoint that does not load (a torn disk write, `truncate`) is skipped with a warning for the next
 older one, never deleted; pruning keeps the newest files at or below the one just written, so files of a
-higher count (such a skipped one) neither push this run's own checkpoints out nor get deleted.
+higher count (such a skipped one) neither push this run's own checkpoints out nor get deleted. A removed experiment
+keeps its final checkpoint alone (`keep_final_checkpoint`). "checkpoint saved" is at INFO for a directory's first
+save (and the first after a failed one), then at DEBUG with one INFO line a minute (user.log.RoutineLog).
 
 One learner per checkpoint directory (`lock_checkpoint_dir`): two would publish one weight version number
 with different weights. A write the disk refuses (ENOSPC) raises CheckpointWriteError with no temp file left
@@ -27,7 +29,7 @@ import torch
 
 from user import owner_lock
 from user.config import ConfigError
-from user.log import kv
+from user.log import RoutineLog, kv
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +40,7 @@ _NAME = re.compile(r"^ckpt-(\d{9,})\.pt$")
 OWNER_LOCK = "owner.lock"  # flocked by the learner using the directory; holds its pid for the refusal message
 # Our temp files: mkstemp's (".<final name>.<8 of [a-z0-9_]>.tmp") and the per-pid version mark older builds wrote.
 _TEMP = re.compile(r"^\.(?:(?:ckpt-\d{9,}\.pt|latest|weight_version)\.[a-z0-9_]{8}|weight_version\.\d+)\.tmp$")
+_SAVED = RoutineLog("checkpoint saved")  # by checkpoint directory
 
 
 class CheckpointError(RuntimeError):
@@ -188,6 +191,18 @@ def save_checkpoint(ckpt_dir: str | Path, state: dict[str, Any], keep: int = KEE
     ckpt_dir = Path(ckpt_dir)
     path = ckpt_dir / checkpoint_name(int(state["updates"]))
     try:
+        _write_named(ckpt_dir, path, state)
+    except CheckpointWriteError:
+        _SAVED.reset(str(ckpt_dir))  # the next one saved says so at INFO
+        raise
+    _prune_below(ckpt_dir, path, keep)
+    _SAVED.log(log, str(ckpt_dir), path=str(path), updates=int(state["updates"]))
+    return path
+
+
+def _write_named(ckpt_dir: Path, path: Path, state: dict[str, Any]) -> None:
+    """`state` at `path`, then named by `latest`; CheckpointWriteError with nothing of it left otherwise."""
+    try:
         ckpt_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise CheckpointWriteError(ckpt_dir, exc) from exc
@@ -201,13 +216,31 @@ def save_checkpoint(ckpt_dir: str | Path, state: dict[str, Any], keep: int = KEE
         if isinstance(exc, CheckpointWriteError):
             raise
         raise CheckpointWriteError(ckpt_dir / LATEST, exc) from exc
-    # Only files below this one are pruned: a higher count is not this run's (e.g. an unreadable newest one it
-    # fell back from) and must not push this run's own recent checkpoints out.
+
+
+def _prune_below(ckpt_dir: Path, path: Path, keep: int) -> list[Path]:
+    """Keep `path` and the newest keep - 1 below it; returns what went. Only files below it are pruned: a higher
+    count is not this run's (e.g. an unreadable newest one it fell back from) and must not push this run's own
+    recent checkpoints out."""
     below = [p for p in list_checkpoints(ckpt_dir) if _updates_of(p) < _updates_of(path)]
-    for old in below[: max(0, len(below) - (keep - 1))]:
+    gone = below[: max(0, len(below) - (keep - 1))]
+    for old in gone:
         old.unlink(missing_ok=True)
-    log.info("checkpoint saved", extra=kv(path=str(path), updates=int(state["updates"])))
-    return path
+    return gone
+
+
+def keep_final_checkpoint(ckpt_dir: str | Path) -> list[Path]:
+    """A removed experiment's directory keeps the checkpoint `latest` names alone (its final one; the previous one
+    if the final write failed); the others below it go, as pruning would. Returns what went."""
+    ckpt_dir = Path(ckpt_dir)
+    _SAVED.reset(str(ckpt_dir))
+    final = latest_path(ckpt_dir)
+    if final is None:
+        return []
+    gone = _prune_below(ckpt_dir, final, keep=1)
+    if gone:
+        log.info("older checkpoints removed; the final one stays", extra=kv(path=str(final), removed=len(gone)))
+    return gone
 
 
 def latest_path(ckpt_dir: str | Path) -> Path | None:

@@ -53,6 +53,7 @@ from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, 
 from cloud_learner.checkpoint import (
     CheckpointError,
     CheckpointWriteError,
+    keep_final_checkpoint,
     load_latest,
     read_version_mark,
     save_checkpoint,
@@ -698,6 +699,7 @@ class ExperimentRun:
                 request.robot_ids.extend(sorted(self.specs))
         if table != "online":
             request.tables[table] = 1.0
+        request.human_tables.extend(req.human_tables)
         if req.n_step > 1:
             request.n_step, request.gamma = req.n_step, req.gamma
         if req.action_horizon > 1:
@@ -763,7 +765,9 @@ class ExperimentRun:
         restart resumes the count and a finished pretraining is never redone."""
         pre = self.exp.pretrain
         assert pre is not None
-        req = dataclasses.replace(self.algo.batch_request(), tables={pre.table: 1.0})
+        # human: replay flags every row intervention, so SAC's/RLPD's BC term and BC's only_interventions count them
+        human = (pre.table,) if pre.human else ()
+        req = dataclasses.replace(self.algo.batch_request(), tables={pre.table: 1.0}, human_tables=human)
         keys = sorted(self.layout.observation)
         PRETRAIN_TARGET.labels(self.exp.name).set(pre.steps)
         backoff = rpc.Backoff(initial_s=0.1, max_s=2.0)
@@ -781,8 +785,6 @@ class ExperimentRun:
                 backoff.sleep(self._stop)
                 continue
             backoff.reset()
-            if pre.human:  # every row of a demo table is a demonstrated action: BC terms count them
-                arrays["intervention"] = np.ones(len(arrays["action"]), bool)
             self.pretrain_updates += 1
             self.update(to_batch(arrays, self.lc.device, req.gamma), publish=False, state="pretraining")
             PRETRAIN_UPDATES.labels(self.exp.name).set(self.pretrain_updates)
@@ -895,6 +897,7 @@ class ExperimentRun:
             request.n_step, request.gamma = req.n_step, req.gamma
         if req.action_horizon > 1:  # replay assembles each row's next H actions (action-chunking policies)
             request.action_horizon = req.action_horizon
+        request.human_tables.extend(req.human_tables)  # replay flags their rows intervention (imported demos)
         if "tables" in replay_pb2.SampleRequest.DESCRIPTOR.fields_by_name:  # replay with tables (RLPD's shares)
             # An algorithm's "online" share (its default, or RLPD's half) is the experiment's own table, the one
             # its robots fill; "online" alone is no tables at all (uniform over every transition).
@@ -1139,7 +1142,10 @@ class ExperimentRun:
         st = self.state
         st.weight_version, st.policy_kind, st.last_publish_ns = version, spec.kind, time.time_ns()
         WEIGHT_VERSION.labels(self.exp.name).set(version)
-        log.info("weights published", extra=kv(experiment=self.exp.name, version=version, updates=self.algo.updates))
+        # INFO for the first version, then DEBUG and a line a minute: one per version was ~110 MB a day per experiment
+        self.learner.store.publish_log.log(
+            log, self.exp.name, experiment=self.exp.name, version=version, updates=self.algo.updates
+        )
 
     def _check_fit(self, spec: learner_pb2.PolicySpec, tensors: dict[str, np.ndarray], version: int) -> None:
         """LearnerError naming the experiment and the mismatch unless the policy the algorithm returns reads only
@@ -1370,7 +1376,11 @@ class Learner:
 
     def _drop_removed(self, listed: set[str]) -> None:
         """Experiments defined at run time that control lists no more (Control.RemoveExperiment) stop here: their
-        threads end and their last checkpoint stays on disk (the name is never defined again)."""
+        threads end and their final checkpoint alone stays on disk (the name is never defined again). Nothing else of
+        them stays till the learner exits: their weights leave memory and shared memory (their weight streams end
+        NOT_FOUND) and their metric series go."""
+        series = [UPDATES, UPDATES_PER_S, WEIGHT_VERSION, SCALARS, EXPERIMENT_FAILED, BUFFER_TRANSITIONS, SAMPLE_ERRORS]
+        series += [CHECKPOINT_FAILURES, VERSION_MARK_FAILURES, PRETRAIN_UPDATES, PRETRAIN_TARGET, LOOP_SECONDS]
         for name in sorted(self.defined - listed):
             self.defined.discard(name)
             run = self.runs.get(name)
@@ -1379,11 +1389,14 @@ class Learner:
                 run.join(self.lc.rpc_timeout_s + 1)
                 if run.state.state != "failed":
                     run.checkpoint(final=True)
+                    keep_final_checkpoint(run.ckpt_dir)
             # Replaced, not mutated: RPC and report threads iterate them.
             self.runs = {n: r for n, r in self.runs.items() if n != name}
             self.experiments = [e for e in self.experiments if e.name != name]
             self.experiment_states = {n: st for n, st in self.experiment_states.items() if n != name}
-            EXPERIMENT_FAILED.remove(name)  # gone, not failed: a stale 1 would alert for ever
+            self.store.drop(name)  # after experiment_states: a stream that asks again is NOT_FOUND as well
+            for family in series:  # every label set of it: gone, not failed or stale (a stale 1 would alert for ever)
+                rpc.remove_series(family, "experiment", name)
             log.info("experiment removed by control; training ends", extra=kv(experiment=name))
 
     def _on_robots(self, specs: list[robot_pb2.RobotSpec]) -> None:

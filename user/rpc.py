@@ -599,6 +599,17 @@ def start_metrics_http(
     return httpd, httpd.server_port
 
 
+def remove_series(family: Any, label: str, value: str) -> None:
+    """Remove every series of a labelled metric family whose `label` is `value` (an experiment removed, a robot
+    forgotten): frozen values must not outlive what they measured."""
+    names = family._labelnames  # prometheus_client keeps no public accessor for them
+    keys = {
+        tuple(s.labels[n] for n in names) for m in family.collect() for s in m.samples if s.labels.get(label) == value
+    }
+    for key in keys:
+        family.remove(*key)
+
+
 def install_signal_handlers() -> threading.Event:
     """SIGTERM and SIGINT set the returned event instead of killing the process."""
     stop = threading.Event()

@@ -13,7 +13,8 @@ was tampered with, truncated or replaced is rejected and the version is sent ove
 
 Server side (`ShmWeights`): each (experiment, version, selection) is written once (0600, under a
 temporary name, then renamed), shared by every shared-memory subscriber; the newest `keep` versions
-per experiment stay, older files are unlinked, and the whole is bounded in bytes. close() removes them.
+per experiment stay, older files are unlinked, and the whole is bounded in bytes. drop(experiment) removes a removed
+experiment's files (it never publishes again to evict them), close() all of them.
 The learner's payload buffers may themselves live here (`buffer`, a mapped hidden file): a version packed
 into one is published by a hard link to it, with no copy at all. Each learner flocks a lock file here for its
 whole life; the next learner removes the files of any whose lock is free (it died: kill -9, a container killed).
@@ -206,8 +207,8 @@ class ShmWeights:
         finally:
             entry.done.set()
         with self._lock:
-            if self._closed:  # closed while writing: nobody will remove it otherwise
-                self._unlink(name)
+            if entry.name and (self._closed or self._files.get(key) is not entry):
+                self._unlink(name)  # closed or dropped while writing: nobody will remove it otherwise
 
     def _evict(self, experiment: str, incoming: int) -> None:
         """Unlink the oldest files: beyond `keep` per experiment (counting the one to come) and beyond
@@ -247,6 +248,18 @@ class ShmWeights:
             spare, self._spare = self._spare, ""
             return spare
 
+    def drop(self, experiment: str) -> int:
+        """A removed experiment's version files go now (they went only when it published again: never); how many.
+        Those linked to payload buffers free their pages once the buffer goes too (the store lets go of it)."""
+        with self._lock:
+            gone = [k for k in self._files if k[0] == experiment]
+            for key in gone:
+                entry = self._files.pop(key)
+                if entry.name:  # one still being written is unlinked by its writer (not in _files any more)
+                    self._unlink(entry.name)
+            self._tidy_buffers()
+        return len(gone)
+
     def files(self) -> list[str]:
         with self._lock:
             return [e.name for e in self._files.values() if e.name]
@@ -275,12 +288,7 @@ class ShmWeights:
         a version packed into it is published by a hard link instead of a 4 MiB-per-1M-params copy. None (use
         ordinary memory) below MIN_BUFFER_BYTES, beyond max_bytes, or when the directory cannot hold it."""
         with self._lock:
-            while self._dropped:
-                key, gone = self._dropped.popleft()
-                found = self._buffers.get(key)
-                if found is not None and found[1] == gone:
-                    del self._buffers[key]
-                    self._buffer_bytes -= found[2]
+            self._tidy_buffers()
             if self._closed or nbytes < MIN_BUFFER_BYTES or self._buffer_bytes + nbytes > self.max_bytes:
                 return None
         self.owner.hold()
@@ -304,6 +312,15 @@ class ShmWeights:
             self._buffer_bytes += nbytes
         weakref.finalize(array, self._drop_buffer, id(array), name)
         return array
+
+    def _tidy_buffers(self) -> None:
+        """Forget the buffers collected since (caller holds the lock)."""
+        while self._dropped:
+            key, gone = self._dropped.popleft()
+            found = self._buffers.get(key)
+            if found is not None and found[1] == gone:
+                del self._buffers[key]
+                self._buffer_bytes -= found[2]
 
     def _drop_buffer(self, key: int, name: str) -> None:
         """The buffer's array is gone (its pool let it go): its file goes too (links of versions stay). No lock:

@@ -33,7 +33,7 @@ import prometheus_client
 
 from user import rpc
 from user.config import AuthConfig
-from user.log import kv
+from user.log import RoutineLog, kv
 from user.v1 import learner_pb2, learner_pb2_grpc
 from user.v1 import tensor_pb2 as tpb
 from user.weight_codec import (
@@ -221,6 +221,10 @@ class WeightStore:
         self._pool_lock = threading.Lock()  # BufferPool is not thread-safe
         self._body_pool = BufferPool(keep=2)  # uncompressed patch bodies and XORs, reused by the next ones
         self._closed = False
+        # Experiments dropped (removed): their streams end NOT_FOUND. A name each, never defined again by control.
+        self._gone: set[str] = set()
+        self._drop_hooks: list[Callable[[str], None]] = []  # what else holds an experiment's weights (ShmWeights)
+        self.publish_log = RoutineLog("weights published")  # the learner's line per version, by experiment
 
     def publish(
         self,
@@ -274,6 +278,7 @@ class WeightStore:
         with self._cond:
             if not self._versions:
                 self._default = experiment
+            self._gone.discard(experiment)  # published again (a plain store): served again
             versions = self._versions.setdefault(experiment, OrderedDict())
             if versions and packed.version <= next(reversed(versions)):
                 raise ValueError(f"weight version {packed.version} is not newer than {next(reversed(versions))}")
@@ -286,6 +291,37 @@ class WeightStore:
         so that a same-host subscriber's file is a link to the payload, not a copy of it."""
         with self._pool_lock:
             self._payload_pool.fresh = fresh
+
+    def on_drop(self, hook: Callable[[str], None]) -> None:
+        """Call hook(experiment) when an experiment is dropped (e.g. ShmWeights.drop: its files go too)."""
+        self._drop_hooks.append(hook)
+
+    def drop(self, experiment: str) -> bool:
+        """A removed experiment leaves: its versions, encodings and states go (their payload buffers with the last
+        stream that still sends one), streams of it end NOT_FOUND and the on_drop hooks run. Without it they stayed
+        until the learner exited (an experiment evicts its versions only when it publishes again). False if no
+        version of it was held."""
+        with self._cond:
+            held = self._versions.pop(experiment, None) is not None
+            self._gone.add(experiment)
+            self._cond.notify_all()
+        with self._cache_lock:
+            for key in [k for k in self._cache if k[0] == experiment]:
+                del self._cache[key]
+            for key in [k for k in self._states if k[0] == experiment]:
+                del self._states[key]
+        self.publish_log.reset(experiment)
+        for hook in list(self._drop_hooks):
+            hook(experiment)
+        return held
+
+    def dropped(self, experiment: str) -> bool:
+        """Whether `experiment` (as a subscriber names it) was dropped and not published since."""
+        with self._cond:
+            return self._is_gone(experiment)
+
+    def _is_gone(self, experiment: str) -> bool:
+        return experiment in self._gone or self._key(experiment) in self._gone
 
     def _take_payload_buffer(self, nbytes: int) -> np.ndarray:
         with self._pool_lock:
@@ -331,7 +367,7 @@ class WeightStore:
 
         def newer() -> PackedWeights | None:
             versions = self._versions.get(self._key(experiment))
-            if self._closed or not versions:
+            if self._closed or not versions or self._is_gone(experiment):
                 return None
             latest = versions[next(reversed(versions))]
             if latest.version > have_version or (or_older and latest.version < have_version):
@@ -339,7 +375,7 @@ class WeightStore:
             return None
 
         with self._cond:
-            self._cond.wait_for(lambda: self._closed or newer() is not None, timeout)
+            self._cond.wait_for(lambda: self._closed or self._is_gone(experiment) or newer() is not None, timeout)
             return newer()
 
     def wake(self) -> None:
@@ -720,6 +756,7 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         self.shm = shm
         if shm is not None:
             store.payload_buffers_from(shm.buffer)
+            store.on_drop(shm.drop)
         self.default_chunk_bytes = default_chunk_bytes
         self.poll_s = poll_s
         self.freshness_s = freshness_s
@@ -775,6 +812,12 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         does not train, so a subscriber's typo is NOT_FOUND at once rather than a stream that never delivers."""
         return ""
 
+    def _removed(self, experiment: str) -> str:
+        """Why a dropped experiment's weights never come again ("" = not dropped)."""
+        if not self.store.dropped(experiment):
+            return ""
+        return f"experiment {experiment[:64]!r} was removed: this learner publishes no more weights of it"
+
     # ------------------------------------------------------------------ one stream
 
     def _open(
@@ -802,7 +845,7 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
         if not acked and not pinned:
             pinned = WE.WEIGHT_ENCODING_FP32_ZSTD if self.store.encoding == ENCODING_ZSTD else WE.WEIGHT_ENCODING_FP32
         experiment = request.experiment
-        unknown = self.unknown_experiment(experiment)
+        unknown = self.unknown_experiment(experiment) or self._removed(experiment)
         if unknown:
             context.abort(grpc.StatusCode.NOT_FOUND, unknown)
         latest = self.store.latest(experiment)
@@ -850,6 +893,8 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
             while context.is_active() and not self.store.closed:
                 full = self.store.wait_newer(have, self.poll_s, link.experiment, or_older=True)
                 if full is None:
+                    if removed := self._removed(link.experiment):  # a clear end, not a stream that never delivers
+                        context.abort(grpc.StatusCode.NOT_FOUND, removed)
                     continue
                 if full.version < held:
                     self._versions_restarted(link, held, full.version, context)
@@ -937,6 +982,9 @@ class WeightServicer(learner_pb2_grpc.LearnerServicer):
             wire = self.store.wire(full, tpb.DTYPE_FLOAT32, prefixes)
             h = full.header
             name = shm.file_for(h.experiment, full.version, wire.digest, wire.payload)
+            if name and self.store.dropped(h.experiment):  # dropped while this was written: its file goes too
+                shm.drop(h.experiment)
+                return None
             if not name:
                 return None
             header = learner_pb2.WeightHeader(
@@ -1149,6 +1197,7 @@ class WeightSubscriber:
         self.shm_fallbacks = 0  # shared-memory versions that could not be used (re-fetched over the stream)
         self.restarts = 0  # learners found to have restarted their versions below ours (resubscribed from 0)
         self.last_sync_s = 0.0  # publish (learner clock) -> applied (ours) of the last version
+        self._applied_log = RoutineLog("weights applied")  # INFO for the first version and the first after an error
 
     @property
     def version(self) -> int:
@@ -1184,6 +1233,7 @@ class WeightSubscriber:
             except grpc.RpcError as err:
                 if self._stop.is_set():
                     break
+                self._applied_log.reset(self.experiment)
                 if self._versions_restarted(err):
                     backoff.reset()
                     continue  # at once, from version 0
@@ -1191,6 +1241,7 @@ class WeightSubscriber:
                     "weight stream failed", extra=kv(addr=self.addr, code=str(err.code()), version=self.version)
                 )
             except WireError as exc:
+                self._applied_log.reset(self.experiment)
                 log.error("bad weight stream, reconnecting", extra=kv(addr=self.addr, error=str(exc)))
             if not backoff.sleep(self._stop):
                 break
@@ -1304,6 +1355,7 @@ class WeightSubscriber:
         """Drop the version and its base; the server resends a full set."""
         self.rejected += 1
         WEIGHTS_REJECTED.inc()
+        self._applied_log.reset(self.experiment)
         self._assembler.forget_base()
         log.warning("weight version rejected; asking for a full set", extra=kv(version=version, error=str(exc)))
         outbox.put(learner_pb2.WeightAck(version=version, rejected=True, error=str(exc)[:500]))
@@ -1315,11 +1367,13 @@ class WeightSubscriber:
         try:
             self.on_weights(weights)
         except ValueError as exc:  # a refusal that says why (a misfit policy, non-finite tensors): no traceback
+            self._applied_log.reset(self.experiment)
             log.warning(
                 "weights refused; keeping the previous version", extra=kv(version=weights.version, error=str(exc))
             )
             return False
         except Exception:
+            self._applied_log.reset(self.experiment)
             log.exception("on_weights failed; keeping the previous version", extra=kv(version=weights.version))
             return False
         WEIGHTS_APPLY.observe(time.perf_counter() - start)
@@ -1330,10 +1384,11 @@ class WeightSubscriber:
             self._cond.notify_all()
         if weights.published_at_ns:
             self.last_sync_s = max(0.0, (time.time_ns() - weights.published_at_ns) / 1e9)
-        log.info(
-            "weights applied",
-            extra=kv(
-                version=weights.version, updates=weights.learner_updates, encoding=encoding_name(weights.encoding)
-            ),
+        self._applied_log.log(
+            log,
+            self.experiment,
+            version=weights.version,
+            updates=weights.learner_updates,
+            encoding=encoding_name(weights.encoding),
         )
         return True
