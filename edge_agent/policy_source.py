@@ -126,6 +126,8 @@ class _Chunked:
 
 ACT_BATCH_WINDOW_S = 0.005  # longest a robot waits for the others of its agent before its batch goes out
 ACTIVE_S = 1.0  # a robot that asked this recently is expected in the next batch
+# "no action from inference" lines: at most one a minute (an outage flapping at the control rate wrote ~55k a day)
+ERROR_LOG_EVERY_S = 60.0
 _CODES = {code.value[0]: code for code in grpc.StatusCode}
 
 
@@ -243,7 +245,10 @@ class RemotePolicy(PolicySource):
         self._warmup = self._stub.Status.future(inference_pb2.InferenceStatusRequest(), timeout=5.0)
         self._deterministic = deterministic
         self._version = 0
-        self._last_error: grpc.StatusCode | None = None
+        self._last_error: grpc.StatusCode | None = None  # of the current run of failed calls; None = answering
+        self._logged_code: grpc.StatusCode | None = None  # the code this run's warning named; None = none yet
+        self._warned_at = -ERROR_LOG_EVERY_S  # monotonic time of the last warning
+        self._unlogged = 0  # failed calls since the last warning
 
     @property
     def version(self) -> int:
@@ -298,9 +303,10 @@ class RemotePolicy(PolicySource):
             log.warning("undecodable action from inference", extra=kv(error=str(err)))
             return None
         _REMOTE_LATENCY.observe(time.perf_counter() - start)
-        if self._last_error is not None:
-            log.info("inference answers again", extra=kv(addr=self.addr, version=resp.policy_version))
-            self._last_error = None
+        if self._last_error is not None:  # said at INFO only when the run of errors was (else a DEBUG line)
+            level = logging.INFO if self._logged_code is not None else logging.DEBUG
+            log.log(level, "inference answers again", extra=kv(addr=self.addr, version=resp.policy_version))
+            self._last_error = self._logged_code = None
         self._version = int(resp.policy_version)
         return action, self._version
 
@@ -313,9 +319,15 @@ class RemotePolicy(PolicySource):
     def _note_error(self, code: grpc.StatusCode, details: str) -> None:
         ACTION_TIMEOUTS.labels("remote", code.name.lower()).inc()
         CLIENT_ERRORS.labels(ACT_METHOD, code.name).inc()
-        if code != self._last_error:  # log transitions, not every held tick
-            log.warning("no action from inference; holding", extra=kv(addr=self.addr, code=code.name, details=details))
-            self._last_error = code
+        self._last_error, self._unlogged = code, self._unlogged + 1
+        now = time.monotonic()
+        # A run of errors is said once (and again if its code changes), at most one line a minute however it flaps.
+        if code != self._logged_code and now - self._warned_at >= ERROR_LOG_EVERY_S:
+            log.warning(
+                "no action from inference; holding",
+                extra=kv(addr=self.addr, code=code.name, details=details, failed_calls=self._unlogged),
+            )
+            self._logged_code, self._warned_at, self._unlogged = code, now, 0
 
     def close(self) -> None:
         self._warmup.cancel()

@@ -143,12 +143,12 @@ def test_a_teleoperator_plugged_in_later_takes_over_and_one_pulled_mid_run_recon
         wait_for(lambda: loop.intervention_steps >= 20, "the human drives once the gamepad connects")
         wait_for(lambda: robot_info(control, "arm-0").status.intervention_steps >= 20, "interventions at control")
         first, detaches = loop.teleop, TELEOP_DETACHES.labels("arm-0")._value.get()
-        cable.unlink()  # pulled mid-run: polls fail, the policy drives, the gamepad is released
+        cable.unlink()  # pulled while its human drives: polls fail, the robot holds, the gamepad is released
         wait_for(lambda: loop.teleop is None, "the failing gamepad detached")
         assert TELEOP_DETACHES.labels("arm-0")._value.get() == detaches + 1
         helped, steps = loop.intervention_steps, loop.env_steps
-        wait_for(lambda: loop.env_steps >= steps + 20, "the policy drives without the gamepad")
-        assert loop.intervention_steps == helped and loop.alive
+        wait_for(lambda: loop.env_steps >= steps + 20, "held steps without the gamepad")
+        assert loop.intervention_steps == helped and loop.alive and loop.teleop_lost  # not handed to the policy
         cable.touch()  # re-plugged: the old handle stays dead, a fresh instance connects and drives
         wait_for(lambda: loop.intervention_steps >= helped + 20, "the human drives again after re-plugging")
         assert loop.teleop is not None and loop.teleop is not first and agent.teleops["arm-0"] is loop.teleop

@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 from collections.abc import Iterator
 
+import grpc
 import numpy as np
 import pytest
 import torch
@@ -133,3 +134,25 @@ def test_make_policy_source_chooses_by_config() -> None:
     finally:
         remote.close()
         local.close()
+
+
+def test_inference_errors_are_logged_once_a_minute_however_they_flap(caplog: pytest.LogCaptureFixture) -> None:
+    """A robot whose inference keeps failing (nothing listens here) or flaps between codes writes one warning, not
+    one per held tick or per change of code (that was ~55k lines a day per robot); a minute on, the next says how
+    many calls failed meanwhile."""
+    policy = RemotePolicy(f"127.0.0.1:{free_port()}", AuthConfig(token="test-token-0123456789"))
+    obs = {"state": np.zeros(3, np.float32)}
+    try:
+        with caplog.at_level("INFO", logger="edge_agent.policy_source"):
+            for _ in range(20):
+                assert policy.act("arm-0", obs, 0.05) is None
+            for code in [grpc.StatusCode.DEADLINE_EXCEEDED, grpc.StatusCode.FAILED_PRECONDITION] * 50:
+                policy._note_error(code, "flapping")
+            warnings = [r for r in caplog.records if r.getMessage() == "no action from inference; holding"]
+            assert len(warnings) == 1
+            policy._warned_at -= 61  # a minute later
+            policy._note_error(grpc.StatusCode.RESOURCE_EXHAUSTED, "busy")
+            warnings = [r for r in caplog.records if r.getMessage() == "no action from inference; holding"]
+            assert len(warnings) == 2 and warnings[1].fields["failed_calls"] >= 101  # type: ignore[attr-defined]
+    finally:
+        policy.close()
