@@ -10,9 +10,10 @@ its disk: it is back with it). The part of a batch a shard failed to deliver is 
 
 A request with table ratios (RLPD's {"online": 1, "demos": 1}) keeps replay's exact rows per table (largest
 remainder) and splits each table's rows across the shards that hold that table, in proportion to that table's
-transitions there (for the robots asked), so every transition of a table is equally likely whichever shard holds
-it. A shard is asked only for the tables it holds (their rows as ratios); one without a table is not a failed
-shard. Per-table counts come from each shard's Stats, refreshed in the background every `stats_every_s`.
+transitions there (for the robots asked for that table: table_robot_ids, else robot_ids), so every transition of a
+table is equally likely whichever shard holds it. A shard is asked only for the tables it holds (their rows as
+ratios); one without a table is not a failed shard. Per-table counts come from each shard's Stats, refreshed in
+the background every `stats_every_s`.
 
 Errors look like the stub's (grpc.RpcError with code()): FAILED_PRECONDITION when every live shard is
 empty, UNAVAILABLE when none is live.
@@ -36,7 +37,7 @@ from cloud_learner.replay_shm import SharedMemoryReplay
 from user import rpc, wire
 from user.config import AuthConfig, LearnerConfig
 from user.log import kv
-from user.v1 import replay_pb2, replay_pb2_grpc, tensor_pb2
+from user.v1 import replay_pb2, replay_pb2_grpc, robot_pb2, tensor_pb2
 
 log = logging.getLogger(__name__)
 
@@ -150,7 +151,7 @@ class ShardedSampler:
         """A batch with exact rows per table, each table's rows split over the shards that hold it (caller holds
         the lock). A table no live shard holds: FAILED_PRECONDITION, as one replay answers for an empty table."""
         self._refresh_tables(self.stats_every_s)
-        robot_ids = list(request.robot_ids)
+        robot_ids = {t: table_robots(request, t) for t in request.tables}  # each table's own robots (table_robot_ids)
         missing = split_rows(int(request.batch_size), dict(request.tables))
         batches: list[replay_pb2.Batch] = []
         counts: dict[str, dict[str, int]] = {}  # addr -> table -> transitions (the shard's answer, else Stats)
@@ -172,7 +173,7 @@ class ShardedSampler:
                     missing[table] -= n
         short = [t for t, n in missing.items() if n > 0]
         if short:  # every holder of a table failed this time
-            raise self._no_table_error(short[0], robot_ids)
+            raise self._no_table_error(short[0], robot_ids[short[0]])
         return replay_pb2.SampleResponse(
             batch=merge_batches(batches),
             transitions=sum(s.transitions for s in self.shards if s.up),
@@ -180,7 +181,7 @@ class ShardedSampler:
         )
 
     def _plan(
-        self, ready: list[Shard], missing: dict[str, int], robot_ids: list[str]
+        self, ready: list[Shard], missing: dict[str, int], robot_ids: dict[str, list[str]]
     ) -> list[tuple[Shard, dict[str, int]]]:
         """Rows per shard and table: each table's missing rows drawn over its holders in proportion to their
         transitions of it (a multinomial: every transition of the table equally likely)."""
@@ -188,10 +189,10 @@ class ShardedSampler:
         for table, n in missing.items():
             if n <= 0:
                 continue
-            holders = [(s, s.table_count(table, robot_ids)) for s in ready]
+            holders = [(s, s.table_count(table, robot_ids[table])) for s in ready]
             holders = [(s, c) for s, c in holders if c > 0]
             if not holders:
-                raise self._no_table_error(table, robot_ids)
+                raise self._no_table_error(table, robot_ids[table])
             sizes = np.array([c for _, c in holders], dtype=float)
             for (shard, _), k in zip(holders, self._rng.multinomial(n, sizes / sizes.sum()), strict=True):
                 if k > 0:
@@ -199,13 +200,13 @@ class ShardedSampler:
         return [(s, plan[s.addr]) for s in ready if s.addr in plan]
 
     def _table_totals(
-        self, request: replay_pb2.SampleRequest, robot_ids: list[str], answered: dict[str, dict[str, int]]
+        self, request: replay_pb2.SampleRequest, robot_ids: dict[str, list[str]], answered: dict[str, dict[str, int]]
     ) -> dict[str, int]:
         """Per table asked: its transitions over the live shards (a shard's own answer where it gave one)."""
         out = {}
         for table in request.tables:
             out[table] = sum(
-                answered[s.addr][table] if table in answered.get(s.addr, {}) else s.table_count(table, robot_ids)
+                answered[s.addr][table] if table in answered.get(s.addr, {}) else s.table_count(table, robot_ids[table])
                 for s in self.shards
                 if s.up
             )
@@ -222,8 +223,10 @@ class ShardedSampler:
         )
 
     def Stats(self, request: replay_pb2.StatsRequest, timeout: float | None = None) -> replay_pb2.StatsResponse:
-        """Counts summed over the shards that answer (steps, transitions, episodes, steps per robot):
-        sync mode's env-step count. UNAVAILABLE when none answers."""
+        """Counts summed over the shards that answer (steps, transitions, episodes, steps per robot: sync mode's
+        env-step count; transitions per table and robot), and the specs of StatsRequest.spec_tables' robots (one per
+        robot, by id; specs_left_out summed). UNAVAILABLE when none answers."""
+        specs: dict[str, robot_pb2.RobotSpec] = {}
         timeout = timeout or self.timeout_s
         futures = [self._pool.submit(s.stub.Stats, request, timeout=timeout) for s in self.shards]
         out, answered = replay_pb2.StatsResponse(), 0
@@ -238,8 +241,16 @@ class ShardedSampler:
             out.episodes += part.episodes
             for robot_id, n in part.steps_per_robot.items():
                 out.steps_per_robot[robot_id] += n
+            for name, table in part.tables.items():  # which robots hold a table's transitions (the learner's demos)
+                out.tables[name].transitions += table.transitions
+                for robot_id, r in table.robots.items():
+                    out.tables[name].robots[robot_id].transitions += r.transitions
+            for spec in part.specs:
+                specs.setdefault(spec.robot_id, spec)
+            out.specs_left_out += part.specs_left_out
         if not answered:
             raise self._nothing_error()
+        out.specs.extend(specs[r] for r in sorted(specs))
         return out
 
     def close(self) -> None:
@@ -299,6 +310,8 @@ class ShardedSampler:
         if isinstance(n, dict):
             req.ClearField("tables")
             req.tables.update(n)
+            for table in [t for t in req.table_robot_ids if t not in n]:  # replay refuses robots of a table not asked
+                del req.table_robot_ids[table]
             n = sum(n.values())
         req.batch_size = n
         try:
@@ -349,6 +362,13 @@ def replay_source(
 
 
 # --------------------------------------------------------------------------- batches
+
+
+def table_robots(request: replay_pb2.SampleRequest, table: str) -> list[str]:
+    """The robots `table`'s rows are drawn from: its table_robot_ids entry, else robot_ids (empty = all)."""
+    if table in request.table_robot_ids:
+        return list(request.table_robot_ids[table].ids)
+    return list(request.robot_ids)
 
 
 def split_rows(batch_size: int, ratios: dict[str, float]) -> dict[str, int]:

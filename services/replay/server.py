@@ -67,6 +67,7 @@ MAX_N_STEP = 1000
 MAX_FRAME_STACK = 64
 MAX_TABLES = 64
 MAX_SAMPLE_ROBOTS = 4096  # robot_ids of one SampleRequest: a learner names its experiment's fleet
+MAX_STATS_SPECS = 1024  # StatsResponse.specs: ~0.3 KB each, a learner asks for its demo tables' robots
 MAX_STORE_TABLES = 256  # distinct tables one buffer holds: each costs index columns and a metric series
 PREFETCH_MAX_BYTES = 16 << 20  # larger batches are assembled per request, not kept ready in RAM
 # batches for a same-host learner: assembling one (~5 ms for 50 MB of frames) overlaps the learner's copy-out
@@ -677,7 +678,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             if self.prefetch.served > served:
                 PREFETCH_SERVED.inc()
             transitions = self.store.transitions_for(robot_ids)
-            per_table = {t: self.store.transitions_for(robot_ids, [t]) for t in draw.tables}
+            per_table = {t: self.store.transitions_for(draw.robots_of(t) or None, [t]) for t in draw.tables}
         except (EmptyBufferError, LayoutError) as exc:
             context.abort(grpc.StatusCode.FAILED_PRECONDITION, str(exc))
         except StoreClosedError:
@@ -791,13 +792,19 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
         return replay_pb2.UpdatePrioritiesResponse(updated=updated)
 
     def Stats(self, request: replay_pb2.StatsRequest, context: grpc.ServicerContext) -> replay_pb2.StatsResponse:
+        problem = _table_names_problem("spec_tables", request.spec_tables)
+        if problem is not None:
+            context.abort(grpc.StatusCode.INVALID_ARGUMENT, problem)
         try:
             st = self.store.stats()
             tables = self.store.table_stats()
             cache = self.store.cache_info()
+            specs, left_out = self.store.table_specs(request.spec_tables, MAX_STATS_SPECS)
         except StoreClosedError:
             context.abort(grpc.StatusCode.UNAVAILABLE, "replay is shutting down")
         return replay_pb2.StatsResponse(
+            specs=specs,
+            specs_left_out=left_out,
             steps=st["steps"],
             transitions=st["transitions"],
             episodes=st["episodes"],
@@ -840,7 +847,9 @@ def sample_request_problem(req: replay_pb2.SampleRequest) -> str | None:
             return f"table {name[:80]!r} must be 1-64 characters of A-Z a-z 0-9 _ . -"
         if not (math.isfinite(ratio) and ratio > 0):
             return f"ratio of table {name!r} must be finite and > 0, got {ratio}"
-    if (problem := _human_tables_problem(req.human_tables)) is not None:
+    if (problem := _table_names_problem("human_tables", req.human_tables)) is not None:
+        return problem
+    if (problem := _table_robot_ids_problem(req)) is not None:
         return problem
     if req.sampler not in SAMPLERS:
         return f"unknown sampler {req.sampler}"
@@ -862,23 +871,35 @@ def sample_request_problem(req: replay_pb2.SampleRequest) -> str | None:
     return None
 
 
-def _human_tables_problem(names: Sequence[str]) -> str | None:
-    """Why SampleRequest.human_tables is refused, or None (a table this replay lacks is fine: it marks nothing)."""
+def _table_names_problem(field: str, names: Sequence[str]) -> str | None:
+    """Why a list of table names (SampleRequest.human_tables, StatsRequest.spec_tables) is refused, or None (a table
+    this replay lacks is fine: it marks, or holds, nothing)."""
     if len(names) > MAX_TABLES:
-        return f"human_tables: at most {MAX_TABLES} tables per sample, got {len(names)}"
+        return f"{field}: at most {MAX_TABLES} tables, got {len(names)}"
     for i, name in enumerate(names):
         if not TABLE_NAME.fullmatch(name):
-            return f"human_tables[{i}]: {name[:80]!r} must be 1-64 characters of A-Z a-z 0-9 _ . -"
+            return f"{field}[{i}]: {name[:80]!r} must be 1-64 characters of A-Z a-z 0-9 _ . -"
     return None
 
 
-def _robot_ids_problem(robot_ids: Sequence[str]) -> str | None:
-    """Why SampleRequest.robot_ids is refused (never quoting an id: one may be megabytes), or None."""
+def _robot_ids_problem(robot_ids: Sequence[str], field: str = "robot_ids") -> str | None:
+    """Why SampleRequest.robot_ids (or a list of table_robot_ids) is refused (never quoting an id: one may be
+    megabytes), or None."""
     if len(robot_ids) > MAX_SAMPLE_ROBOTS:
-        return f"robot_ids: at most {MAX_SAMPLE_ROBOTS} robots per sample, got {len(robot_ids)}"
+        return f"{field}: at most {MAX_SAMPLE_ROBOTS} robots per sample, got {len(robot_ids)}"
     for i, rid in enumerate(robot_ids):
         if not rid or len(rid.encode()) > MAX_ROBOT_ID_BYTES:
-            return f"robot_ids[{i}]: a robot id is 1 to {MAX_ROBOT_ID_BYTES} bytes, got {len(rid.encode())}"
+            return f"{field}[{i}]: a robot id is 1 to {MAX_ROBOT_ID_BYTES} bytes, got {len(rid.encode())}"
+    return None
+
+
+def _table_robot_ids_problem(req: replay_pb2.SampleRequest) -> str | None:
+    """Why SampleRequest.table_robot_ids is refused, or None: each key one of `tables`, each list as robot_ids."""
+    for table, robots in req.table_robot_ids.items():  # at most MAX_TABLES keys: each is a key of `tables`
+        if table not in req.tables:
+            return f"table_robot_ids: {table[:80]!r} is not one of tables {sorted(req.tables)}"
+        if (problem := _robot_ids_problem(robots.ids, f"table_robot_ids[{table!r}].ids")) is not None:
+            return problem
     return None
 
 
@@ -896,6 +917,7 @@ def to_draw(req: replay_pb2.SampleRequest) -> Draw:
         frame_stack=max(1, req.frame_stack),
         encoded_frames=req.encoded_frames,
         human_tables=tuple(sorted(set(req.human_tables))),
+        table_robot_ids={t: sorted(set(r.ids)) for t, r in req.table_robot_ids.items()},
     )
 
 

@@ -1406,6 +1406,16 @@ class ReplayStore:
         with self._lock:
             return self.db.get_spec(robot_id)
 
+    def table_specs(self, tables: Iterable[str], limit: int) -> tuple[list[robot_pb2.RobotSpec], int]:
+        """The stored specs of the robots with sampleable transitions in `tables`, by robot id: at most `limit`, and
+        how many more robots have one (StatsResponse.specs, specs_left_out)."""
+        self._check_open()
+        with self._lock:
+            index = self.index
+            codes = {c for t in tables for c, g in index.tables.get(t, {}).items() if g.n}
+            specs = [s for r in sorted(index.robots[c] for c in codes) if (s := self.db.get_spec(r)) is not None]
+        return specs[:limit], max(0, len(specs) - limit)
+
     # ------------------------------------------------------------------ reads
 
     def _read(self, keys: list[bytes]) -> list[step_pb2.Step]:

@@ -194,6 +194,11 @@ class Draw:
     frame_stack: int = 1  # observations get an axis of the k newest frames (oldest first)
     encoded_frames: bool = False  # JPEG/PNG frames as kept (wire.EncodedFrames) where they share one encoding
     human_tables: tuple[str, ...] = ()  # rows drawn from these come flagged intervention (Drawn.human)
+    table_robot_ids: dict[str, list[str]] = field(default_factory=dict)  # table -> its robots instead of robot_ids
+
+    def robots_of(self, table: str) -> list[str]:
+        """The robots `table`'s rows are drawn from (empty = all)."""
+        return self.table_robot_ids.get(table, self.robot_ids)
 
 
 @dataclass
@@ -550,15 +555,16 @@ class Index:
             if k == 0:
                 continue
             human.append(np.full(k, table in req.human_tables))
+            robot_ids = req.robots_of(table)
             if req.sampler == "prioritized":
-                if self.count(table, req.robot_ids) == 0:
-                    raise _empty(table, req.robot_ids)
-                t, w = self._draw_prioritized(table, k, req, rng)
+                if self.count(table, robot_ids) == 0:
+                    raise _empty(table, robot_ids)
+                t, w = self._draw_prioritized(table, k, req, rng, robot_ids)
             else:
                 newest = req.window if req.sampler == "recency" else 0  # tids grow with arrival: newest are last
-                cands = self.candidates(table, req.robot_ids, newest)
+                cands = self.candidates(table, robot_ids, newest)
                 if len(cands) == 0:
-                    raise _empty(table, req.robot_ids)
+                    raise _empty(table, robot_ids)
                 t, w = self._draw_one(cands, k, req, rng)
             tids.append(t)
             weights.append(w)
@@ -608,11 +614,11 @@ class Index:
         return tree
 
     def _draw_prioritized(
-        self, table: str, k: int, req: Draw, rng: np.random.Generator
+        self, table: str, k: int, req: Draw, rng: np.random.Generator, robot_ids: list[str]
     ) -> tuple[np.ndarray, np.ndarray]:
-        """k draws proportional to priority^alpha over the table's robots: O(k log n) in sum trees."""
+        """k draws proportional to priority^alpha over the table's robots asked for: O(k log n) in sum trees."""
         grows = self.all if table == ALL else self.tables.get(table, {})
-        codes = self._codes(req.robot_ids)
+        codes = self._codes(robot_ids)
         parts = [(c, g) for c, g in sorted(grows.items()) if g.n and (codes is None or c in codes)]
         trees = [self._tree(table, c, req.alpha) for c, _ in parts]
         n = sum(g.n for _, g in parts)
