@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from pydantic import Field, StringConstraints
 
+from user.experiments import EMBODIMENT_KEY
 from user.log import kv
 from user.registry import PluginParams, Registry
 from user.v1 import learner_pb2
@@ -54,22 +55,57 @@ class Layout:
 
     For an experiment spanning several embodiments, features and actions are padded to the largest
     robot's size and `embodiments` lists the robot kinds (the index is the embodiment id in batches).
+    `action_low`/`action_high` are then the union of every robot's range per dim, and `embodiment_low`/
+    `embodiment_high` (E, action_dim) hold each robot kind's own range, row i for embodiments[i]: what a
+    policy maps its [-1, 1] onto, so each robot's actions span its range, not the union.
     """
 
     observation: dict[str, Feature]
     action_low: np.ndarray
     action_high: np.ndarray
     embodiments: tuple[str, ...] = ()
+    embodiment_low: np.ndarray | None = None
+    embodiment_high: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if (self.embodiment_low is None) != (self.embodiment_high is None):
+            raise ValueError("Layout.embodiment_low and embodiment_high: give both or neither")
+        want = (len(self.embodiments), self.action_dim)
+        for name in ("embodiment_low", "embodiment_high"):
+            table = getattr(self, name)
+            if table is not None and np.shape(table) != want:
+                raise ValueError(f"Layout.{name} is {np.shape(table)}, one row per embodiment needs {want}")
 
     @property
     def action_dim(self) -> int:
         return int(self.action_low.size)
+
+    @property
+    def per_embodiment(self) -> bool:
+        """Each embodiment has its own action range (a shared layout)."""
+        return self.embodiment_low is not None
+
+    def policy_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """The range a policy maps [-1, 1] onto: (E, A) rows per embodiment when shared, else (A,)."""
+        if self.embodiment_low is not None and self.embodiment_high is not None:
+            return np.asarray(self.embodiment_low), np.asarray(self.embodiment_high)
+        return np.asarray(self.action_low).reshape(-1), np.asarray(self.action_high).reshape(-1)
+
+    def bounds_json(self) -> tuple[list, list]:
+        """policy_bounds as PolicySpec JSON values: flat lists, or one list per embodiment when shared."""
+        low, high = self.policy_bounds()
+        return _floats(low), _floats(high)
 
     def state_keys(self) -> list[str]:
         return sorted(k for k, f in self.observation.items() if not f.is_image)
 
     def image_keys(self) -> list[str]:
         return sorted(k for k, f in self.observation.items() if f.is_image)
+
+
+def _floats(values: np.ndarray) -> list:
+    """Python floats, nested as the array is (a flat array gives what `[float(x) for x in a]` always gave)."""
+    return [_floats(row) for row in values] if values.ndim > 1 else [float(x) for x in values]
 
 
 @dataclass(frozen=True)
@@ -104,6 +140,14 @@ class Batch:
 
     def __len__(self) -> int:
         return int(self.action.shape[0])
+
+    def embodiment_index(self) -> torch.Tensor | None:
+        """Each row's index into Layout.embodiments (which action range is its robot's): `embodiment`, else
+        the one-hot embodiment feature of a shared layout's observation; None when the batch has neither."""
+        if self.embodiment is not None:
+            return self.embodiment
+        onehot = self.observation.get(EMBODIMENT_KEY)
+        return None if onehot is None else onehot.argmax(dim=-1)
 
 
 class Algorithm(ABC):

@@ -1,4 +1,5 @@
-"""The learner: one Algorithm per experiment, each sampling only its robots, publishing its own weights.
+"""The learner: one Algorithm per experiment, each sampling only its robots (and, in tables other than its own,
+imported robots that fit them), publishing its own weights.
 
 The loop knows no algorithm by name. For each experiment of the stack config it waits until Control
 knows robots the experiment's selector picks, derives the `Layout` from their specs, builds the
@@ -301,15 +302,37 @@ def decode_batch(batch: replay_pb2.Batch, layout: Layout, device: str | torch.de
 
 
 def layout_fingerprint(layout: Layout) -> str:
-    return json.dumps(
-        {
-            "observation": {k: [list(f.shape), f.dtype, f.is_image] for k, f in sorted(layout.observation.items())},
-            "action_low": [round(float(x), 6) for x in layout.action_low],
-            "action_high": [round(float(x), 6) for x in layout.action_high],
-            "embodiments": list(layout.embodiments),
-        },
-        sort_keys=True,
-    )
+    return json.dumps(_layout_fields(layout), sort_keys=True)
+
+
+def _layout_fields(layout: Layout) -> dict[str, Any]:
+    fields = {
+        "observation": {k: [list(f.shape), f.dtype, f.is_image] for k, f in sorted(layout.observation.items())},
+        "action_low": [round(float(x), 6) for x in layout.action_low],
+        "action_high": [round(float(x), 6) for x in layout.action_high],
+        "embodiments": list(layout.embodiments),
+    }
+    if layout.per_embodiment:  # absent from single-embodiment layouts: their fingerprint is what it always was
+        low, high = layout.policy_bounds()
+        fields["embodiment_low"] = [[round(float(x), 6) for x in row] for row in low]
+        fields["embodiment_high"] = [[round(float(x), 6) for x in row] for row in high]
+    return fields
+
+
+def layout_difference(recorded: object, layout: Layout) -> str:
+    """The layout fields a checkpoint's fingerprint differs in from `layout`'s, e.g. "embodiment_low (absent in the
+    checkpoint)": a shared experiment checkpointed before per-embodiment action ranges lacks those fields."""
+    try:
+        old = json.loads(recorded) if isinstance(recorded, str) else {}
+    except json.JSONDecodeError:
+        old = {}
+    new = json.loads(json.dumps(_layout_fields(layout)))  # compared as the checkpoint's JSON reads back
+    names = [
+        f"{k} (absent in the checkpoint)" if k not in old else f"{k} (absent now)" if k not in new else k
+        for k in sorted(set(old) | set(new))
+        if old.get(k) != new.get(k)
+    ]
+    return ", ".join(names) or "the fingerprint"
 
 
 def trained_with(exp: ExperimentConfig) -> dict[str, Any]:
@@ -395,8 +418,9 @@ def check_checkpoint(
         )
     if ckpt.get("layout") != layout_fingerprint(layout):
         raise LearnerError(
-            f"{at}: the checkpoint in {where} was trained for robots of layout {ckpt.get('layout')}, the experiment's "
-            f"robots give {layout_fingerprint(layout)}; {_ELSEWHERE}"
+            f"{at}: the checkpoint in {where} was trained for robots of another layout (differing: "
+            f"{layout_difference(ckpt.get('layout'), layout)}): the checkpoint's {ckpt.get('layout')}, the "
+            f"experiment's robots give {layout_fingerprint(layout)}; {_ELSEWHERE}"
         )
     stored = ckpt.get("trained_with")
     if stored is not None and config is not None:
@@ -878,6 +902,8 @@ class ExperimentRun:
 
     # ------------------------------------------------------------------ sampling
 
+    _table_robots: _TableRobots | None = None  # made by the first sample asking for other tables (demos)
+
     def _groups(self) -> list[tuple[str, list[str]]]:
         """(embodiment kind, robot ids) to sample separately: one group unless the embodiment is shared."""
         with self._lock:
@@ -889,7 +915,21 @@ class ExperimentRun:
             kinds.setdefault(s.kind, []).append(s.robot_id)
         return sorted((k, sorted(v)) for k, v in kinds.items())
 
-    def _request(self, batch_size: int, robot_ids: list[str], req: BatchRequest) -> replay_pb2.SampleRequest:
+    def _request_tables(self, req: BatchRequest) -> dict[str, float]:
+        """The request's table shares. An algorithm's "online" share (its default, or RLPD's half) is the
+        experiment's own table, the one its robots fill; "online" alone is no tables at all (uniform over every
+        transition)."""
+        tables = dict(req.tables)
+        if "online" in tables and self.exp.table != "online":
+            share = tables.pop("online")
+            tables[self.exp.table] = tables.get(self.exp.table, 0.0) + share
+        return {} if tables == {"online": 1.0} else tables
+
+    def _request(
+        self, batch_size: int, robot_ids: list[str], req: BatchRequest, demo_robots: list[str] | tuple[str, ...] = ()
+    ) -> replay_pb2.SampleRequest:
+        """One group's sample: its robots; the request's other tables (demos, interventions) also over
+        `demo_robots`, robots of theirs that fit the group (imported demos under their dataset's robot id)."""
         request = replay_pb2.SampleRequest(
             batch_size=batch_size, robot_ids=robot_ids, encoded_frames=self.lc.replay_encoded_frames
         )
@@ -899,21 +939,38 @@ class ExperimentRun:
             request.action_horizon = req.action_horizon
         request.human_tables.extend(req.human_tables)  # replay flags their rows intervention (imported demos)
         if "tables" in replay_pb2.SampleRequest.DESCRIPTOR.fields_by_name:  # replay with tables (RLPD's shares)
-            # An algorithm's "online" share (its default, or RLPD's half) is the experiment's own table, the one
-            # its robots fill; "online" alone is no tables at all (uniform over every transition).
-            tables = dict(req.tables)
-            if "online" in tables and self.exp.table != "online":
-                share = tables.pop("online")
-                tables[self.exp.table] = tables.get(self.exp.table, 0.0) + share
-            if tables == {"online": 1.0}:
-                tables = {}
             try:
-                request.tables.update(tables)  # type: ignore[attr-defined]
+                request.tables.update(self._request_tables(req))  # type: ignore[attr-defined]
             except (AttributeError, TypeError, ValueError) as exc:
                 if not self._tables_warned:
                     self._tables_warned = True
                     log.warning("replay tables not requested", extra=kv(experiment=self.exp.name, error=str(exc)))
+            if demo_robots:  # the own table stays the group's robots'
+                ids = sorted({*robot_ids, *demo_robots})
+                for table in request.tables:
+                    if table != self.exp.table:
+                        request.table_robot_ids[table].ids.extend(ids)
         return request
+
+    def _demo_robots(self, stub: Any, req: BatchRequest, groups: list[tuple[str, list[str]]]) -> dict[str, list[str]]:
+        """kind -> robots of the request's other tables whose stored spec fits that group as its robots do (imported
+        demos under their dataset's robot id), as of replay's last Stats: read in the background every ~10 s."""
+        other = tuple(sorted(t for t in self._request_tables(req) if t != self.exp.table))
+        if not other:
+            return {}
+        if self._table_robots is None:
+            self._table_robots = _TableRobots(self.exp.name)
+        return self._table_robots.fitting(stub, other, lambda: self._fit_context(groups), self.lc.rpc_timeout_s)
+
+    def _fit_context(
+        self, groups: list[tuple[str, list[str]]]
+    ) -> tuple[dict[str, robot_pb2.RobotSpec], set[str], dict[str, str]]:
+        """(kind -> a spec of that group's robots, this experiment's robots, robot -> the other experiment it is in)."""
+        with self._lock:
+            mine = dict(self.specs)
+        runs = [(name, list(run.specs)) for name, run in list(self.learner.runs.items()) if name != self.exp.name]
+        others = {rid: name for name, ids in runs for rid in ids}
+        return {kind: mine[ids[0]] for kind, ids in groups}, set(mine), others
 
     def sample_once(self, stub: replay_pb2_grpc.ReplayStub) -> Prefetched | None:
         """One batch for the algorithm, or None (empty buffer or an error, already logged and counted)."""
@@ -921,11 +978,13 @@ class ExperimentRun:
         groups = [g for g in self._groups() if g[1]]
         if not groups:
             return None
+        demos = self._demo_robots(stub, req, groups)
         share = -(-req.batch_size // len(groups))  # equal share per embodiment (ceil)
         parts, transitions = [], 0
         for kind, robot_ids in groups:
             try:
-                resp = stub.Sample(self._request(share, robot_ids, req), timeout=self.lc.rpc_timeout_s)
+                request = self._request(share, robot_ids, req, demos.get(kind, ()))
+                resp = stub.Sample(request, timeout=self.lc.rpc_timeout_s)
             except grpc.RpcError as err:
                 details = err.details() if hasattr(err, "details") else ""
                 if err.code() == grpc.StatusCode.FAILED_PRECONDITION and any(
@@ -1461,3 +1520,107 @@ class _FailedRun:
 
     def checkpoint(self, final: bool = False) -> None:
         pass
+
+
+def _same_shapes(spec: robot_pb2.RobotSpec, like: robot_pb2.RobotSpec) -> bool:
+    """Whether replay stores and samples `spec`'s steps as `like`'s: the same observation features (names, shapes,
+    dtypes, images) and action shape and dtype. Bounds may differ (an imported dataset's come from its statistics)."""
+    from user.spec import features
+
+    same_action = list(spec.action.shape) == list(like.action.shape) and spec.action.dtype == like.action.dtype
+    return same_action and features(spec) == features(like)
+
+
+def _group_of(spec: robot_pb2.RobotSpec, like: dict[str, robot_pb2.RobotSpec]) -> str | None:
+    """The group (kind -> a spec of its robots) `spec` fits, its own kind first; None: none."""
+    return next((k for k in sorted(like, key=lambda k: k != spec.kind) if _same_shapes(spec, like[k])), None)
+
+
+class _TableRobots:
+    """The robots of the tables an experiment samples besides its own (imported demos under their dataset's robot
+    id, another robot's interventions) that fit a sampling group. Replay's Stats(spec_tables) is read in a thread of
+    its own every REFRESH_S, never per sample; until the first answer only the experiment's robots are sampled. A
+    robot that fits no group, has no stored spec or is another experiment's is left out, logged once (INFO)."""
+
+    REFRESH_S = 10.0
+    RETRY_S = 1.0  # after a failed Stats
+
+    def __init__(self, experiment: str) -> None:
+        self.experiment = experiment
+        self._lock = threading.Lock()
+        self._tables: tuple[str, ...] = ()  # the tables `_fits` is for
+        self._fits: dict[str, list[str]] = {}  # kind -> robot ids
+        self._due = 0.0  # monotonic time of the next refresh
+        self._busy = False
+        self._failing = False
+        self._left_out: dict[str, str] = {}  # robot -> why (logged)
+
+    def fitting(self, stub: Any, tables: tuple[str, ...], context: Any, timeout: float) -> dict[str, list[str]]:
+        """kind -> the robots of `tables` that fit that group; starts a refresh when due. context() -> (kind -> a
+        spec of the group, the experiment's robots, robot -> another experiment), taken when a refresh starts."""
+        with self._lock:
+            start = not self._busy and (time.monotonic() >= self._due or tables != self._tables)
+            self._busy = self._busy or start
+            fits = self._fits if tables == self._tables else {}
+        if start:
+            args = (stub, tables, *context(), timeout)
+            name = f"learner-{self.experiment}-demo-robots"
+            threading.Thread(target=self._refresh, args=args, name=name, daemon=True).start()
+        return fits
+
+    def _refresh(
+        self,
+        stub: Any,
+        tables: tuple[str, ...],
+        like: dict[str, robot_pb2.RobotSpec],
+        mine: set[str],
+        others: dict[str, str],
+        timeout: float,
+    ) -> None:
+        fits = None
+        try:
+            stats = stub.Stats(replay_pb2.StatsRequest(spec_tables=tables), timeout=timeout)
+            fits = self._fit(stats, tables, like, mine, others)
+        except Exception as exc:  # RpcError, or the stub's channel closed as the run stops: asked again later
+            if not self._failing:
+                log.warning(
+                    "replay stats for the robots of other tables failed; asked again",
+                    extra=kv(experiment=self.experiment, tables=list(tables), error=str(exc)[:200]),
+                )
+        with self._lock:
+            self._busy, self._failing = False, fits is None
+            self._due = time.monotonic() + (self.REFRESH_S if fits is not None else self.RETRY_S)
+            if fits is not None:
+                self._tables, self._fits = tables, fits
+
+    def _fit(
+        self,
+        stats: replay_pb2.StatsResponse,
+        tables: tuple[str, ...],
+        like: dict[str, robot_pb2.RobotSpec],
+        mine: set[str],
+        others: dict[str, str],
+    ) -> dict[str, list[str]]:
+        specs = {s.robot_id: s for s in stats.specs}
+        held = {r for t in tables if t in stats.tables for r, c in stats.tables[t].robots.items() if c.transitions}
+        out: dict[str, list[str]] = {}
+        for rid in sorted((held | set(specs)) - mine):
+            spec = specs.get(rid)
+            kind = _group_of(spec, like) if spec is not None and rid not in others else None
+            if kind is not None:
+                out.setdefault(kind, []).append(rid)
+                self._left_out.pop(rid, None)  # logged again should it stop fitting
+                continue
+            if rid in others:
+                why = f"a robot of experiment {others[rid]!r}"
+            elif spec is None:
+                why = "replay holds no spec of it" + (" (past the 1024 a Stats lists)" if stats.specs_left_out else "")
+            else:
+                why = "its observations or actions differ from the experiment's robots'"
+            if self._left_out.get(rid) != why:
+                self._left_out[rid] = why
+                log.info(
+                    "robot of a sampled table left out of online training",
+                    extra=kv(experiment=self.experiment, robot_id=rid, tables=list(tables), why=why),
+                )
+        return out

@@ -142,15 +142,34 @@ def layout_for(exp: ExperimentConfig, specs: Sequence[robot_pb2.RobotSpec]) -> L
     observation = {k: Feature((n,), "float32") for k, n in state.items()}
     observation.update({k: Feature(shape, dtype, True) for k, (shape, dtype) in images.items()})
     observation[EMBODIMENT_KEY] = Feature((len(kinds),), "float32")
-    # Each dim spans every embodiment's range; dims no robot has get [-1, 1] (the mask drops them).
-    low = np.full(action_dim, np.inf, np.float32)
-    high = np.full(action_dim, -np.inf, np.float32)
+    rows_low, rows_high = embodiment_bounds(exp, specs, kinds, action_dim)
+    # The union of the rows per dim (what clips any robot's action); the policy maps onto each row's own.
+    low, high = rows_low.min(axis=0), rows_high.max(axis=0)
+    return Layout(observation, low, high, tuple(kinds), rows_low, rows_high)
+
+
+def embodiment_bounds(
+    exp: ExperimentConfig, specs: Sequence[robot_pb2.RobotSpec], kinds: Sequence[str], action_dim: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """(E, action_dim) float32 low and high, row i the action range of robot kind kinds[i]; the padded dims a kind
+    lacks get [-1, 1] (masked out of every loss). LayoutError when two robots of one kind differ in their actions:
+    a kind is one embodiment row, and either robot's range would be wrong for the other."""
+    low = np.tile(np.float32(-1.0), (len(kinds), action_dim))
+    high = np.tile(np.float32(1.0), (len(kinds), action_dim))
+    first: dict[str, robot_pb2.RobotSpec] = {}
     for spec in specs:
-        lo, hi = (a.reshape(-1) for a in contract.action_bounds(spec))
-        low[: lo.size] = np.minimum(low[: lo.size], lo)
-        high[: hi.size] = np.maximum(high[: hi.size], hi)
-    low[~np.isfinite(low)], high[~np.isfinite(high)] = -1.0, 1.0
-    return Layout(observation, low, high, embodiments=tuple(kinds))
+        lo, hi = (a.reshape(-1).astype(np.float32) for a in contract.action_bounds(spec))
+        seen = first.setdefault(spec.kind, spec)
+        if seen is not spec:
+            lo0, hi0 = (a.reshape(-1).astype(np.float32) for a in contract.action_bounds(seen))
+            if lo.shape != lo0.shape or not (np.array_equal(lo, lo0) and np.array_equal(hi, hi0)):
+                raise LayoutError(
+                    f"experiment {exp.name}: robots {seen.robot_id} and {spec.robot_id} are both kind {spec.kind} but "
+                    "have different action bounds; a shared embodiment has one action range per kind"
+                )
+        row = kinds.index(spec.kind)
+        low[row, : lo.size], high[row, : hi.size] = lo, hi
+    return low, high
 
 
 # --------------------------------------------------------------------------- padding (shared embodiment)

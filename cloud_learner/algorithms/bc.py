@@ -19,7 +19,7 @@ from pydantic import Field
 
 from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, Layout, TableShares, configured_lr
 from cloud_learner.algorithms.sac import MAX_BATCH, EncoderParams, Widths, augment, make_encoder, publish, trainable
-from user.policies.mlp import GaussianActor, log_prob_of
+from user.policies.mlp import GaussianActor, log_prob_of, scale_bias
 from user.policy import SquashedGaussianActor
 from user.v1 import learner_pb2
 
@@ -36,15 +36,21 @@ class BCParams(EncoderParams):
 
 
 def masked_log_prob(
-    head: SquashedGaussianActor, features: torch.Tensor, action: torch.Tensor, mask: torch.Tensor
+    head: SquashedGaussianActor,
+    features: torch.Tensor,
+    action: torch.Tensor,
+    mask: torch.Tensor,
+    embodiment: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """log_prob_of summed over the real action dims only (Batch.action_mask, a layout padded across embodiments):
-    a padded dim is never executed, so its stored filler is no label (as the head's own log-prob masks it)."""
+    a padded dim is never executed, so its stored filler is no label (as the head's own log-prob masks it).
+    `embodiment` (B,): each row's range when the head's bounds are per embodiment."""
+    scale, bias = scale_bias(head, embodiment)
     mean, log_std = head.distribution(features)
-    squashed = ((action - head.action_bias) / head.action_scale).clamp(-1 + 1e-4, 1 - 1e-4)
+    squashed = ((action - bias) / scale).clamp(-1 + 1e-4, 1 - 1e-4)
     pre = torch.atanh(squashed)
     normal = -0.5 * ((pre - mean) / log_std.exp()) ** 2 - log_std - 0.5 * math.log(2 * math.pi)
-    per_dim = normal - torch.log(head.action_scale * (1 - squashed.pow(2)) + 1e-6)
+    per_dim = normal - torch.log(scale * (1 - squashed.pow(2)) + 1e-6)
     return (per_dim * mask.to(per_dim.dtype)).sum(-1)
 
 
@@ -56,7 +62,8 @@ class BC(Algorithm):
     def __init__(self, params: BCParams, layout: Layout, device: torch.device) -> None:
         super().__init__(params, layout, torch.device(device))
         self.p = params
-        self.actor = GaussianActor(make_encoder(layout, params), params.hidden, layout.action_low, layout.action_high)
+        low, high = layout.policy_bounds()  # (E, A) when shared: each embodiment's own range
+        self.actor = GaussianActor(make_encoder(layout, params), params.hidden, low, high)
         self.actor.to(self.device)
         self.optimizer = torch.optim.Adam(trainable(self.actor), lr=params.lr, fused=self.device.type == "cuda")
 
@@ -65,14 +72,15 @@ class BC(Algorithm):
 
     def update(self, batch: Batch) -> dict[str, float]:
         features = self.actor.encoder(augment(batch.observation, self.actor.encoder, self.p.image_pad))
+        embodiment = batch.embodiment_index()
         if self.p.loss == "mse":
-            _, _, mean_action = self.actor.head(features)
+            _, _, mean_action = self.actor.sample(features, embodiment=embodiment)
             error, mask = (mean_action - batch.action).pow(2), batch.action_mask
             per_row = error.mean(dim=-1) if mask is None else (error * mask).sum(-1) / mask.sum(-1).clamp(min=1)
         elif batch.action_mask is None:
-            per_row = -log_prob_of(self.actor.head, features, batch.action)
+            per_row = -log_prob_of(self.actor.head, features, batch.action, embodiment)
         else:
-            per_row = -masked_log_prob(self.actor.head, features, batch.action, batch.action_mask)
+            per_row = -masked_log_prob(self.actor.head, features, batch.action, batch.action_mask, embodiment)
         weight = batch.intervention.float() if self.p.only_interventions else torch.ones_like(per_row)
         loss = (per_row * weight).sum() / weight.sum().clamp(min=1.0)
         self.optimizer.zero_grad(set_to_none=True)

@@ -64,6 +64,7 @@ def config_for(layout: Layout, params: FlowBcParams) -> FlowVlaConfig:
     if params.state_mean or params.state_std:
         mean = [x for k in state_keys for x in params.state_mean.get(k, [0.0] * dims[k])]
         std = [x for k in state_keys for x in params.state_std.get(k, [1.0] * dims[k])]
+    low, high = layout.bounds_json()  # one list per embodiment when shared: each robot's own range
     return FlowVlaConfig(
         state_mean=mean,
         state_std=std,
@@ -73,8 +74,8 @@ def config_for(layout: Layout, params: FlowBcParams) -> FlowVlaConfig:
         instruction_key=INSTRUCTION_KEY if has_instruction else None,
         default_instruction=params.default_instruction,
         action_dim=layout.action_dim,
-        action_low=[float(x) for x in layout.action_low.reshape(-1)],
-        action_high=[float(x) for x in layout.action_high.reshape(-1)],
+        action_low=low,
+        action_high=high,
         horizon=params.horizon,
         image_size=params.image_size,
         hidden=params.hidden,
@@ -108,7 +109,8 @@ class FlowBc(Algorithm):
         )
 
     def targets(self, batch: Batch) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """(B, horizon, A) normalised target chunks and their (B, horizon) mask of real actions (None: all)."""
+        """(B, horizon, A) target chunks normalised to [-1, 1] (each row by its embodiment's range when shared)
+        and their (B, horizon) mask of real actions (None: all)."""
         chunk, mask = batch.action_chunk, batch.chunk_mask
         if chunk is None:
             if self.config.horizon != 1:
@@ -117,7 +119,7 @@ class FlowBc(Algorithm):
         if tuple(chunk.shape[1:]) != (self.config.horizon, self.config.action_dim):
             raise ValueError(f"action_chunk shape {tuple(chunk.shape)} does not match the policy's chunk")
         mask = mask.to(self.device).bool() if mask is not None else None
-        return self.scaler.normalize(chunk.to(self.device).float()), mask
+        return self.scaler.normalize(chunk.to(self.device).float(), batch.embodiment_index()), mask
 
     def row_weights(self, batch: Batch) -> torch.Tensor | None:
         """1 for human rows, 0 for the policy's own; None = every row counts."""

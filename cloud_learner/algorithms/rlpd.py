@@ -108,7 +108,7 @@ class RLPD(SAC):
         obs = augment(batch.observation, self.encoder, self.p.image_pad)
         with torch.set_grad_enabled(self.p.bc_encoder):
             features = self.encoder(obs)
-        _, _, mean_action = self.actor.head(features, batch.action_mask)
+        _, _, mean_action = self.actor.sample(features, batch.action_mask, batch.embodiment_index())
         loss = bc_mse(mean_action, batch)
         self.actor_optimizer.zero_grad(set_to_none=True)
         if self.p.bc_encoder:

@@ -35,7 +35,7 @@ from cloud_learner.algorithm import ALGORITHMS, Algorithm, Batch, BatchRequest, 
 from user.policies.cnn import KIND as CNN_KIND
 from user.policies.cnn import ConvEncoder, random_shift
 from user.policies.mlp import KIND as MLP_KIND
-from user.policies.mlp import GaussianActor, StateEncoder, policy_spec
+from user.policies.mlp import GaussianActor, StateEncoder, policy_spec, scale_bias
 from user.policy import MAX_IMAGE_SIDE, module_tensors
 from user.registry import PluginParams
 from user.v1 import learner_pb2
@@ -323,12 +323,13 @@ def publish(
     """The actor as policy kind "mlp" (state only) or "cnn" (cameras): spec JSON + named tensors."""
     enc = actor.encoder
     state = enc if isinstance(enc, StateEncoder) else enc.state
+    low, high = layout.bounds_json()  # one list per embodiment when shared: each robot's own range
     config: dict[str, Any] = {
         "state_keys": state.keys if state is not None else [],
         "state_dims": state.dims if state is not None else [],
         "hidden": [m.out_features for m in actor.head.net if isinstance(m, nn.Linear)][:-1],
-        "action_low": [float(x) for x in np.asarray(layout.action_low).reshape(-1)],
-        "action_high": [float(x) for x in np.asarray(layout.action_high).reshape(-1)],
+        "action_low": low,
+        "action_high": high,
     }
     if state is not None and (state.mean is not None or state.std is not None):
         config |= {"state_mean": state.mean, "state_std": state.std}
@@ -379,9 +380,10 @@ class SAC(Algorithm):
     def __init__(self, params: SACParams, layout: Layout, device: torch.device) -> None:
         super().__init__(params, layout, torch.device(device))
         p = self.p = params
-        self.low = np.asarray(layout.action_low, np.float32).reshape(-1)
-        self.high = np.asarray(layout.action_high, np.float32).reshape(-1)
-        action_dim = self.low.size
+        # (A,), or (E, A) per embodiment of a shared layout: the actor squashes each row into its robot's range
+        low, high = layout.policy_bounds()
+        self.low, self.high = np.asarray(low, np.float32), np.asarray(high, np.float32)
+        action_dim = layout.action_dim
 
         # One encoder object, held by both the actor and the critic; the target critic gets a copy.
         self.encoder = make_encoder(layout, p)
@@ -428,7 +430,7 @@ class SAC(Algorithm):
         encoder's features of the next observations serve both the next action and the target heads
         (one conv pass instead of two; the target encoder trails the online one by Polyak averaging)."""
         next_features = self.critic_target.encoder(next_obs)
-        next_action, next_log_prob, _ = self.actor.head(next_features, batch.action_mask)
+        next_action, next_log_prob, _ = self.actor.sample(next_features, batch.action_mask, batch.embodiment_index())
         target_q = self.critic_target(next_features, masked(next_action, batch.action_mask))
         subset = torch.randperm(self.p.num_critics, device=self.device)[: self.p.target_subset]
         next_v = target_q[subset].min(dim=0).values
@@ -451,7 +453,7 @@ class SAC(Algorithm):
         info = {"critic_loss": critic_loss.detach(), "q": q.detach().mean()}
         loss = critic_loss
         if self.p.bc_encoder:  # the same conv pass carries the BC gradient into the encoder
-            encoder_bc = bc_mse(self.frozen_head_mean(features), batch)
+            encoder_bc = bc_mse(self.frozen_head_mean(features, batch.embodiment_index()), batch)
             loss = loss + self.bc_weight() * encoder_bc
             info["encoder_bc_loss"] = encoder_bc.detach()
         self.step_encoder(loss)
@@ -466,13 +468,14 @@ class SAC(Algorithm):
         with torch.no_grad():
             torch._foreach_lerp_(self._target_params, self._critic_params, self.p.tau)
 
-    def frozen_head_mean(self, features: torch.Tensor) -> torch.Tensor:
+    def frozen_head_mean(self, features: torch.Tensor, embodiment: torch.Tensor | None = None) -> torch.Tensor:
         """The actor's mean action with its head's parameters detached: a loss on it trains only what
         produced `features` (the encoder); the head learns in the actor step."""
         head = self.actor.head
         params = {name: x.detach() for name, x in head.net.named_parameters()}
         mean = torch.func.functional_call(head.net, params, (features,)).chunk(2, dim=-1)[0]
-        return torch.tanh(mean) * head.action_scale + head.action_bias  # the head's deterministic action
+        scale, bias = scale_bias(head, embodiment)
+        return torch.tanh(mean) * scale + bias  # the head's deterministic action
 
     def bc_weight(self) -> float:
         """The BC term's weight now: bc_weight, decaying linearly to 0 over bc_decay_updates updates."""
@@ -485,7 +488,8 @@ class SAC(Algorithm):
         chose, when bc_weight > 0: SAC+BC / IBRL-style use of demos); then tune alpha toward the target entropy."""
         alpha = self.log_alpha.detach().exp()
         mask = batch.action_mask if batch is not None else None
-        action, log_prob, mean_action = self.actor.head(features, mask)
+        embodiment = batch.embodiment_index() if batch is not None else None
+        action, log_prob, mean_action = self.actor.sample(features, mask, embodiment)
         q = self.critic(features, masked(action, mask))
         q_pi = q.min(dim=0).values if self.p.actor_q == "min" else q.mean(dim=0)
         actor_loss = (alpha * log_prob - q_pi).mean()

@@ -12,6 +12,9 @@ Small enough to train on two CPU cores (~0.2 M parameters at 64x64). The instruc
 the request (ActRequest.instruction), else from the observation's `instruction` feature (UTF-8
 bytes, see user/text.py), else from the config's default (e.g. the robot's RobotSpec.task).
 Weights travel as named raw tensors like every policy; the spec's JSON holds the architecture.
+A policy shared by several embodiments has `action_low`/`action_high` as one list per embodiment (the
+layout's order): each row's [-1, 1] maps onto its own robot's range, picked by the one-hot `embodiment`
+feature, in training (flow_bc's targets) and in acting alike.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 from torch import nn
 
+from user.experiments import EMBODIMENT_KEY
 from user.policy import Policy, check_device, load_tensors, module_tensors, register_policy
 from user.text import INSTRUCTION_KEY, decode_instruction, word_ids
 from user.v1 import learner_pb2
@@ -45,8 +49,9 @@ class FlowVlaConfig(BaseModel):
     instruction_key: str | None = Field(INSTRUCTION_KEY, description="uint8 observation feature with the instruction")
     default_instruction: str = ""
     action_dim: int = Field(ge=1)
-    action_low: list[float]
-    action_high: list[float]
+    # One range for every robot, or one row per embodiment of a shared layout (each robot's own range).
+    action_low: list[float] | list[list[float]]
+    action_high: list[float] | list[list[float]]
     horizon: int = Field(8, ge=1, description="actions per chunk")
     image_size: int = Field(64, ge=16, description="images are resized to this square size")
     vocab_size: int = Field(1024, ge=2)
@@ -68,8 +73,15 @@ class FlowVlaConfig(BaseModel):
             raise ValueError("state_std must be > 0")
         return self
 
+    @property
+    def embodiment_rows(self) -> int:
+        """Rows of per-embodiment action bounds; 0: one range for every robot."""
+        return len(self.action_low) if self.action_low and isinstance(self.action_low[0], list) else 0
+
     def observation_keys(self) -> list[str]:
         keys = [*self.image_keys, *self.state_keys]
+        if self.embodiment_rows and EMBODIMENT_KEY not in keys:  # the bounds' rows are picked by it
+            keys.append(EMBODIMENT_KEY)
         return [*keys, self.instruction_key] if self.instruction_key else keys
 
 
@@ -202,7 +214,7 @@ class FlowVla(nn.Module):
             hidden = layer(hidden)
         x = rows.x + shared.dt * hidden.view_as(rows.x)
         at = None if rows.at is None else rows.at + 1
-        return FlowRows(x, rows.base, rows.step + 1, rows.taken + 1, shared, at)
+        return FlowRows(x, rows.base, rows.step + 1, rows.taken + 1, shared, at, rows.embodiment)
 
 
 class FlowShared:
@@ -231,6 +243,7 @@ class FlowRows:
         taken: np.ndarray,
         shared: FlowShared,
         at: int | None = None,
+        embodiment: torch.Tensor | None = None,
     ) -> None:
         self.x = x  # (B, horizon, A): the noisy chunks
         self.base = base  # (B, hidden): the context's share of the expert's first layer, with its bias
@@ -238,6 +251,7 @@ class FlowRows:
         self.taken = taken  # (B,): steps taken, on the host (done() needs no device sync)
         self.shared = shared
         self.at = at  # the step every row is at, when they all are at one (no gather needed)
+        self.embodiment = embodiment  # (B,) each row's embodiment index (per-embodiment action bounds), or None
 
     def __len__(self) -> int:
         return int(self.x.shape[0])
@@ -247,7 +261,8 @@ class FlowRows:
         cat = torch.cat
         at = self.at if self.at == other.at else None
         x, base, step = cat([self.x, other.x]), cat([self.base, other.base]), cat([self.step, other.step])
-        return FlowRows(x, base, step, np.concatenate([self.taken, other.taken]), self.shared, at)
+        ids = None if self.embodiment is None or other.embodiment is None else cat([self.embodiment, other.embodiment])
+        return FlowRows(x, base, step, np.concatenate([self.taken, other.taken]), self.shared, at, ids)
 
     def done(self) -> np.ndarray:
         return self.taken >= self.shared.steps
@@ -261,14 +276,23 @@ class FlowRows:
 
     def _rows(self, index: torch.Tensor | slice, host: np.ndarray | slice | None = None) -> FlowRows:
         host = index if host is None else host
-        return FlowRows(self.x[index], self.base[index], self.step[index], self.taken[host], self.shared, self.at)
+        ids = None if self.embodiment is None else self.embodiment[index]
+        x, base, step = self.x[index], self.base[index], self.step[index]
+        return FlowRows(x, base, step, self.taken[host], self.shared, self.at, ids)
 
 
 class Prepared:
     """What preprocess hands to forward: device tensors for one batch."""
 
-    def __init__(self, images: list[torch.Tensor], state: torch.Tensor | None, tokens: torch.Tensor) -> None:
+    def __init__(
+        self,
+        images: list[torch.Tensor],
+        state: torch.Tensor | None,
+        tokens: torch.Tensor,
+        embodiment: torch.Tensor | None = None,
+    ) -> None:
         self.images, self.state, self.tokens = images, state, tokens
+        self.embodiment = embodiment  # (B,) indices into per-embodiment action bounds; None with one range
 
     def __len__(self) -> int:
         return int(self.tokens.shape[0])
@@ -336,24 +360,51 @@ class Preprocessor:
                 flat = (flat - self.shift) * self.scale
             state = self._to_device(flat)
         tokens = self._to_device(self.tokens(self.instructions(observation, instructions, batch)))
-        return Prepared(images, state, tokens)
+        return Prepared(images, state, tokens, self.embodiment(observation, batch))
+
+    def embodiment(self, observation: Mapping[str, Any], batch: int) -> torch.Tensor | None:
+        """Each row's embodiment index from the one-hot feature, when the action bounds are per embodiment."""
+        rows = self.cfg.embodiment_rows
+        if not rows:
+            return None
+        if EMBODIMENT_KEY not in observation:
+            raise ValueError(f"observation lacks {EMBODIMENT_KEY!r}: the policy's action range is per embodiment")
+        onehot = np.asarray(observation[EMBODIMENT_KEY], np.float32).reshape(batch, -1)
+        if onehot.shape[1] != rows:
+            raise ValueError(f"observation {EMBODIMENT_KEY!r} has {onehot.shape[1]} values per row, the policy {rows}")
+        return self._to_device(onehot.argmax(axis=1).astype(np.int64))
 
 
 class ActionScaler:
-    """[low, high] <-> [-1, 1] per action dim."""
+    """[low, high] <-> [-1, 1] per action dim; with per-embodiment bounds (E, A), each row by its embodiment."""
 
     def __init__(self, cfg: FlowVlaConfig, device: torch.device) -> None:
         low = torch.tensor(cfg.action_low, dtype=torch.float32, device=device)
         high = torch.tensor(cfg.action_high, dtype=torch.float32, device=device)
-        if low.shape != (cfg.action_dim,) or high.shape != (cfg.action_dim,) or not bool((high > low).all()):
-            raise ValueError(f"{KIND}: action_low/high need {cfg.action_dim} elements each with high > low")
+        rows = cfg.embodiment_rows
+        want = (rows, cfg.action_dim) if rows else (cfg.action_dim,)
+        if low.shape != want or high.shape != want or not bool((high > low).all()):
+            what = f"{rows} rows of {cfg.action_dim}" if rows else f"{cfg.action_dim}"
+            raise ValueError(f"{KIND}: action_low/high need {what} elements each with high > low")
         self.scale, self.bias = (high - low) / 2, (high + low) / 2
 
-    def normalize(self, action: torch.Tensor) -> torch.Tensor:
-        return ((action - self.bias) / self.scale).clamp(-1.0, 1.0)
+    def rows(self, x: torch.Tensor, embodiment: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Scale and bias broadcastable to x, (B, A) or (B, horizon, A): per row by its embodiment when shared."""
+        if self.scale.ndim == 1:
+            return self.scale, self.bias
+        if embodiment is None:
+            raise ValueError(f"{KIND}: per-embodiment action bounds need each row's {EMBODIMENT_KEY!r}; none given")
+        index = embodiment.to(self.scale.device, torch.long).reshape(-1)
+        shape = (index.numel(), *([1] * (x.ndim - 2)), self.scale.shape[-1])
+        return self.scale[index].reshape(shape), self.bias[index].reshape(shape)
 
-    def unnormalize(self, x: torch.Tensor) -> torch.Tensor:
-        return x * self.scale + self.bias
+    def normalize(self, action: torch.Tensor, embodiment: torch.Tensor | None = None) -> torch.Tensor:
+        scale, bias = self.rows(action, embodiment)
+        return ((action - bias) / scale).clamp(-1.0, 1.0)
+
+    def unnormalize(self, x: torch.Tensor, embodiment: torch.Tensor | None = None) -> torch.Tensor:
+        scale, bias = self.rows(x, embodiment)
+        return x * scale + bias
 
 
 def parse_config(spec: learner_pb2.PolicySpec) -> FlowVlaConfig:
@@ -394,6 +445,10 @@ class FlowVlaPolicy(Policy):
         return self._action_shape
 
     @property
+    def embodiment_rows(self) -> int:
+        return self.config.embodiment_rows
+
+    @property
     def chunk_horizon(self) -> int:
         return self._chunk_horizon
 
@@ -414,7 +469,7 @@ class FlowVlaPolicy(Policy):
     @torch.inference_mode()  # no autograd bookkeeping at all (a few % faster than no_grad on CPU)
     def forward(self, prepared: Prepared, deterministic: bool = False) -> np.ndarray:
         context = self.model.encode(prepared.images, prepared.state, prepared.tokens)
-        chunk = self.scaler.unnormalize(self.model.sample(context, deterministic))
+        chunk = self.scaler.unnormalize(self.model.sample(context, deterministic), prepared.embodiment)
         return chunk.cpu().numpy().astype(np.float32, copy=False)
 
     # Stepped sampling (user.policy.SteppedSampler): forward() in parts, so the inference service can let
@@ -422,7 +477,9 @@ class FlowVlaPolicy(Policy):
     @torch.inference_mode()
     def begin(self, prepared: Prepared, deterministic: bool = False) -> FlowRows:
         context = self.model.encode(prepared.images, prepared.state, prepared.tokens)
-        return self.model.start(context, deterministic)
+        rows = self.model.start(context, deterministic)
+        rows.embodiment = prepared.embodiment  # finish maps each row onto its embodiment's range
+        return rows
 
     @torch.inference_mode()
     def advance(self, rows: FlowRows) -> FlowRows:
@@ -430,7 +487,7 @@ class FlowVlaPolicy(Policy):
 
     @torch.inference_mode()
     def finish(self, rows: FlowRows) -> np.ndarray:
-        chunk = self.scaler.unnormalize(rows.x.clamp(-1.0, 1.0))
+        chunk = self.scaler.unnormalize(rows.x.clamp(-1.0, 1.0), rows.embodiment)
         return chunk.cpu().numpy().astype(np.float32, copy=False)
 
     def act(self, observation: Mapping[str, np.ndarray], deterministic: bool = False) -> np.ndarray:

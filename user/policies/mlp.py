@@ -9,6 +9,10 @@ identical code. Config JSON of kind "mlp":
     {"state_keys": ["state"], "state_dims": [15], "hidden": [256, 256],
      "action_low": [...], "action_high": [...]}
 
+A policy shared by several embodiments (user/policies/padded.py) has `action_low`/`action_high` as one
+list per embodiment, in the layout's embodiment order: each row's squashed Gaussian spans its own robot's
+range (not the union of all robots'), picked by the observation's one-hot `embodiment` feature.
+
 Tensors are `GaussianActor.state_dict()` (names "head.net.0.weight", ...).
 """
 
@@ -22,6 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from user.experiments import EMBODIMENT_KEY
 from user.policy import Policy, SquashedGaussianActor, check_device, load_tensors, register_policy
 from user.v1 import learner_pb2
 
@@ -79,31 +84,116 @@ class StateEncoder(nn.Module):
         return (x - self._shift.to(x.device)) * self._scale.to(x.device)
 
 
+class EmbodiedSquashedGaussian(SquashedGaussianActor):
+    """A SquashedGaussianActor whose [low, high] is per row: bounds (E, A), row e the range of embodiment e of a
+    shared layout, so each robot's samples, log-probs and entropy are over its own range, not the union's."""
+
+    def __init__(self, obs_dim: int, action_dim: int, hidden: Sequence[int], low: np.ndarray, high: np.ndarray) -> None:
+        if low.ndim != 2 or high.shape != low.shape or low.shape[1] != action_dim or not low.shape[0]:
+            raise ValueError(
+                f"per-embodiment action bounds must be (embodiments, {action_dim}); got {low.shape} and {high.shape}"
+            )
+        super().__init__(obs_dim, action_dim, hidden, low[0], high[0])  # the network, and row 0 checked
+        if not bool(np.all(high > low)):
+            raise ValueError("action_high must exceed action_low elementwise (every embodiment's row)")
+        self.action_scale = torch.as_tensor((high - low) / 2.0)  # replaces the buffers, still not persistent
+        self.action_bias = torch.as_tensor((high + low) / 2.0)
+
+    @property
+    def embodiments(self) -> int:
+        return int(self.action_scale.shape[0])
+
+    def rows(self, embodiment: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, A) scale and bias of each row's embodiment (indices (B,) into the bound rows)."""
+        if embodiment is None:
+            raise ValueError(f"per-embodiment action bounds need each row's {EMBODIMENT_KEY!r} index; none given")
+        index = embodiment.to(self.action_scale.device, torch.long).reshape(-1)
+        return self.action_scale[index], self.action_bias[index]
+
+    def forward(
+        self, obs: torch.Tensor, mask: torch.Tensor | None = None, embodiment: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """SquashedGaussianActor.forward with each row's own scale and bias (its embodiment's range)."""
+        scale, bias = self.rows(embodiment)
+        mean, log_std = self.distribution(obs)
+        std = log_std.exp()
+        pre = mean + std * torch.randn_like(mean)
+        squashed = torch.tanh(pre)
+        per_dim = (-0.5 * ((pre - mean) / std) ** 2 - log_std - 0.5 * np.log(2 * np.pi)) - torch.log(
+            scale * (1 - squashed.pow(2)) + 1e-6
+        )
+        log_prob = (per_dim if mask is None else per_dim * mask).sum(-1)
+        return squashed * scale + bias, log_prob, torch.tanh(mean) * scale + bias
+
+
+def scale_bias(
+    head: SquashedGaussianActor, embodiment: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The head's affine map from [-1, 1] to actions: per row for per-embodiment bounds, else its (A,) buffers."""
+    if isinstance(head, EmbodiedSquashedGaussian):
+        return head.rows(embodiment)
+    return head.action_scale, head.action_bias
+
+
+def embodiment_of(obs: Mapping[str, torch.Tensor]) -> torch.Tensor | None:
+    """Each row's embodiment index from the observation's `embodiment` feature (one-hot (B, E), or indices (B,))."""
+    value = obs.get(EMBODIMENT_KEY)
+    if value is None:
+        return None
+    return value.argmax(dim=-1) if value.ndim > 1 else value.long()
+
+
 class GaussianActor(nn.Module):
     """encoder(obs) -> squashed Gaussian over actions. `detach_encoder` stops actor gradients reaching
-    a shared encoder (DrQ / SERL: only the critic trains the image encoder)."""
+    a shared encoder (DrQ / SERL: only the critic trains the image encoder). Bounds of shape (E, A) (a
+    layout shared by E embodiments) give each row its embodiment's range (EmbodiedSquashedGaussian)."""
 
     def __init__(self, encoder: nn.Module, hidden: Sequence[int], action_low: Any, action_high: Any) -> None:
         super().__init__()
-        low = np.asarray(action_low, dtype=np.float32).reshape(-1)
+        low = np.asarray(action_low, dtype=np.float32)
         self.encoder = encoder
-        self.head = SquashedGaussianActor(encoder.out_dim, low.size, list(hidden), low, action_high)
+        if low.ndim == 2:
+            high = np.asarray(action_high, dtype=np.float32)
+            self.head = EmbodiedSquashedGaussian(encoder.out_dim, low.shape[1], list(hidden), low, high)
+        else:
+            low = low.reshape(-1)
+            self.head = SquashedGaussianActor(encoder.out_dim, low.size, list(hidden), low, action_high)
+
+    @property
+    def per_embodiment(self) -> bool:
+        return isinstance(self.head, EmbodiedSquashedGaussian)
 
     def forward(
         self, obs: Mapping[str, torch.Tensor], detach_encoder: bool = False
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         features = self.encoder(obs)
-        return self.head(features.detach() if detach_encoder else features)
+        features = features.detach() if detach_encoder else features
+        return self.sample(features, embodiment=embodiment_of(obs) if self.per_embodiment else None)
+
+    def sample(
+        self, features: torch.Tensor, mask: torch.Tensor | None = None, embodiment: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The head on encoded features: (action, log-prob, mean action). `embodiment` (B,) picks each row's
+        range when the bounds are per embodiment; one range for all rows otherwise (then it is not read)."""
+        if isinstance(self.head, EmbodiedSquashedGaussian):
+            return self.head(features, mask, embodiment)
+        return self.head(features, mask)
 
 
-def log_prob_of(head: SquashedGaussianActor, features: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+def log_prob_of(
+    head: SquashedGaussianActor,
+    features: torch.Tensor,
+    action: torch.Tensor,
+    embodiment: torch.Tensor | None = None,
+) -> torch.Tensor:
     """log pi(action | features) under the squashed Gaussian (BC's NLL loss); actions at the bounds are
-    pulled in by 1e-4 of the half-range so atanh stays finite."""
+    pulled in by 1e-4 of the half-range so atanh stays finite. `embodiment`: per-embodiment bounds' rows."""
+    scale, bias = scale_bias(head, embodiment)
     mean, log_std = head.distribution(features)
-    squashed = ((action - head.action_bias) / head.action_scale).clamp(-1 + 1e-4, 1 - 1e-4)
+    squashed = ((action - bias) / scale).clamp(-1 + 1e-4, 1 - 1e-4)
     pre = torch.atanh(squashed)
     normal_logp = (-0.5 * ((pre - mean) / log_std.exp()) ** 2 - log_std - 0.5 * np.log(2 * np.pi)).sum(-1)
-    return normal_logp - torch.log(head.action_scale * (1 - squashed.pow(2)) + 1e-6).sum(-1)
+    return normal_logp - torch.log(scale * (1 - squashed.pow(2)) + 1e-6).sum(-1)
 
 
 # --- the published policy ---------------------------------------------------------------------------
@@ -159,12 +249,20 @@ class ActorPolicy(Policy):
         raise NotImplementedError
 
     @property
+    def embodiment_rows(self) -> int:
+        """Rows of per-embodiment action bounds (the embodiments the policy spans); 0: one range for every robot."""
+        head = self.actor.head
+        return head.embodiments if isinstance(head, EmbodiedSquashedGaussian) else 0
+
+    @property
     def observation_keys(self) -> tuple[str, ...]:
-        return (*sorted(self.config["state_keys"]), *sorted(self.config.get("image_keys", [])))
+        keys = (*sorted(self.config["state_keys"]), *sorted(self.config.get("image_keys", [])))
+        # Per-embodiment bounds read the embodiment even where the networks do not (features left it out).
+        return (*keys, EMBODIMENT_KEY) if self.embodiment_rows and EMBODIMENT_KEY not in keys else keys
 
     @property
     def action_shape(self) -> tuple[int, ...]:
-        return (len(self.config["action_low"]),)
+        return (int(np.shape(self.config["action_low"])[-1]),)
 
     @property
     def chunk_horizon(self) -> int:
@@ -186,6 +284,10 @@ class ActorPolicy(Policy):
         for key, shape in zip(self.config.get("image_keys", []), self.config.get("image_shapes", []), strict=True):
             if tuple(obs[key].shape[1:]) != tuple(shape):
                 raise ValueError(f"image {key!r} has shape {tuple(obs[key].shape[1:])}, the policy expects {shape}")
+        rows = self.embodiment_rows
+        if rows and tuple(obs[EMBODIMENT_KEY].shape[1:]) != (rows,):
+            got = tuple(obs[EMBODIMENT_KEY].shape[1:])
+            raise ValueError(f"observation {EMBODIMENT_KEY!r} is {got} per row; the policy needs a one-hot of {rows}")
 
     @torch.no_grad()
     def act(self, observation: Mapping[str, np.ndarray], deterministic: bool = False) -> np.ndarray:

@@ -4,7 +4,9 @@ The learner trains on a padded layout (state features zero-padded to the widest 
 `embodiment` feature, actions padded with a mask) and publishes the algorithm's policy wrapped in
 this kind. Callers add the robot's embodiment index (`user.experiments.embodiment_inputs`) to its
 raw observation and cut the padded action back to the robot's size (`fit_action`); this class pads
-and one-hots in between, so any inner policy kind works unchanged.
+and one-hots in between, so any inner policy kind works unchanged. An inner policy with per-embodiment
+action bounds (one row per embodiment: mlp, cnn, flow_vla) maps each row onto its own robot's range by that
+one-hot; its rows must be these embodiments, in this order.
 """
 
 from __future__ import annotations
@@ -53,6 +55,12 @@ class PaddedPolicy(Policy):
         self.embodiments = [k for k, _ in pairs]
         self.action_dims = dict(pairs)
         self.inner = build_policy(inner, tensors, version, device)
+        rows = int(getattr(self.inner, "embodiment_rows", 0) or 0)
+        if rows and rows != len(self.embodiments):
+            raise ValueError(
+                f"padded: the inner {inner.kind!r} policy has action bounds for {rows} embodiments, "
+                f"the config lists {len(self.embodiments)} ({self.embodiments})"
+            )
 
     @property
     def observation_keys(self) -> tuple[str, ...]:
