@@ -152,7 +152,7 @@ class ShardedSampler:
         the lock). A table no live shard holds: FAILED_PRECONDITION, as one replay answers for an empty table."""
         self._refresh_tables(self.stats_every_s)
         robot_ids = {t: table_robots(request, t) for t in request.tables}  # each table's own robots (table_robot_ids)
-        missing = split_rows(int(request.batch_size), dict(request.tables))
+        missing = wire.split_rows(int(request.batch_size), dict(request.tables))
         batches: list[replay_pb2.Batch] = []
         counts: dict[str, dict[str, int]] = {}  # addr -> table -> transitions (the shard's answer, else Stats)
         failed: set[str] = set()
@@ -369,19 +369,6 @@ def table_robots(request: replay_pb2.SampleRequest, table: str) -> list[str]:
     if table in request.table_robot_ids:
         return list(request.table_robot_ids[table].ids)
     return list(request.robot_ids)
-
-
-def split_rows(batch_size: int, ratios: dict[str, float]) -> dict[str, int]:
-    """Exact rows per table by ratio (largest remainder), as replay splits a batch: 50/50 of 255 is 128 + 127."""
-    names = list(ratios)
-    r = np.array([ratios[n] for n in names], np.float64)
-    r = r / r.max()  # finite ratios can sum past float64's range; scaled, the sum is <= len(r)
-    exact = batch_size * r / r.sum()
-    counts = np.floor(exact).astype(np.int64)
-    left = batch_size - int(counts.sum())
-    if left:
-        counts[np.argsort(-(exact - counts), kind="stable")[:left]] += 1
-    return dict(zip(names, counts.tolist(), strict=True))
 
 
 def _batch_len(batch: replay_pb2.Batch) -> int:

@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import errno
 import socket
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from user.v1 import step_pb2
 
 
 def free_port() -> int:
@@ -90,3 +94,51 @@ def fill(mnt: Path) -> Path:
         except OSError as exc:
             assert exc.errno == errno.ENOSPC
     return filler
+
+
+class ListSink:
+    """Collects an edge loop's steps in memory (a StepSink, for loop tests that need no replay)."""
+
+    def __init__(self) -> None:
+        self.steps: list[step_pb2.Step] = []
+        self._lock = threading.Lock()
+
+    def send(self, step: step_pb2.Step, table: str = "") -> int:
+        with self._lock:
+            self.steps.append(step)
+            return len(self.steps)
+
+    @property
+    def unacked(self) -> int:
+        return 0
+
+    def snapshot(self) -> list[step_pb2.Step]:
+        with self._lock:
+            return list(self.steps)
+
+
+class NoHardware:
+    """The lerobot Robot/Teleoperator lifecycle of a device with no hardware (put first in the bases): it connects
+    at once and needs no calibration, so a test device defines only its features and its I/O."""
+
+    _connected = False
+
+    @property
+    def is_connected(self) -> bool:
+        return self._connected
+
+    def connect(self, calibrate: bool = True) -> None:
+        self._connected = True
+
+    def disconnect(self) -> None:
+        self._connected = False
+
+    @property
+    def is_calibrated(self) -> bool:
+        return True
+
+    def calibrate(self) -> None:
+        pass
+
+    def configure(self) -> None:
+        pass

@@ -28,7 +28,7 @@ from services.control.server import ControlService
 from services.inference.server import InferenceService
 from services.replay.server import ReplayService
 from tests import helpers
-from tests.helpers import free_port, wait_for
+from tests.helpers import ListSink, free_port, wait_for
 from user import wire
 from user.config import AuthConfig, RobotConfig, StackConfig
 from user.rpc import Backoff, make_channel
@@ -51,27 +51,6 @@ ACTOR = {
 
 
 random_weights = functools.partial(helpers.random_weights, ACTOR)
-
-
-class ListSink:
-    """Collects steps in memory (a StepSink, for loop tests that do not need replay)."""
-
-    def __init__(self) -> None:
-        self.steps: list[step_pb2.Step] = []
-        self._lock = threading.Lock()
-
-    def send(self, step: step_pb2.Step, table: str = "") -> int:
-        with self._lock:
-            self.steps.append(step)
-            return len(self.steps)
-
-    @property
-    def unacked(self) -> int:
-        return 0
-
-    def snapshot(self) -> list[step_pb2.Step]:
-        with self._lock:
-            return list(self.steps)
 
 
 def stack_cfg(tmp_path: Path) -> StackConfig:

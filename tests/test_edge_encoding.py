@@ -19,7 +19,7 @@ from edge_agent.robot import Robot, make_robot
 from edge_agent.spool import open_outbox
 from services.replay.disk import step_key
 from services.replay.server import _END, ReplayService, _Inbox
-from tests.helpers import wait_for
+from tests.helpers import ListSink, wait_for
 from user import wire
 from user.config import AuthConfig, RobotConfig, StackConfig
 from user.rpc import make_channel
@@ -276,19 +276,6 @@ def test_the_agent_shares_act_encoded_frames_with_its_step_encoder(camera_arm: R
     finally:
         agent.policy.close()
         agent.encoder.close()
-
-
-class ListSink:
-    def __init__(self) -> None:
-        self.steps: list[step_pb2.Step] = []
-
-    def send(self, step: step_pb2.Step, table: str = "") -> int:
-        self.steps.append(step)
-        return len(self.steps)
-
-    @property
-    def unacked(self) -> int:
-        return 0
 
 
 def test_the_encoder_keeps_send_order_and_passes_unplanned_robots_through() -> None:

@@ -7,7 +7,6 @@ agent finds, validates and wires them with no other edit. Their steps travel to 
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -22,12 +21,12 @@ from edge_agent.tasks.human_label import QueueKeys
 from edge_agent.teleop import TELEOPERATORS, Teleoperator
 from services.control.server import ControlService
 from services.replay.server import ReplayService
-from tests.helpers import wait_for
+from tests.helpers import ListSink, wait_for
 from user import wire
 from user.config import AuthConfig, PluginConfig, RobotConfig, StackConfig
 from user.registry import PluginError, PluginParams, plugin_lines
 from user.rpc import make_channel
-from user.v1 import control_pb2, control_pb2_grpc, replay_pb2, replay_pb2_grpc, robot_pb2, step_pb2, tensor_pb2
+from user.v1 import control_pb2, control_pb2_grpc, replay_pb2, replay_pb2_grpc, robot_pb2, tensor_pb2
 
 AUTH = AuthConfig(token="test-token")
 POLICY_ACTION = -1.0  # the toy policy pushes away from the goal
@@ -127,21 +126,6 @@ class ConstantPolicy(PolicySource):
     @property
     def version(self) -> int:
         return 7
-
-
-class ListSink:
-    def __init__(self) -> None:
-        self.steps: list[step_pb2.Step] = []
-        self._lock = threading.Lock()
-
-    def send(self, step: step_pb2.Step, table: str = "") -> int:
-        with self._lock:
-            self.steps.append(step)
-            return len(self.steps)
-
-    @property
-    def unacked(self) -> int:
-        return 0
 
 
 # --------------------------------------------------------------------------- fixtures

@@ -18,6 +18,7 @@ from lerobot.teleoperators import TeleopEvents
 
 from edge_agent.robot import Robot, make_robot
 from edge_agent.teleop import TELEOPERATORS
+from tests.helpers import NoHardware
 from user.registry import PluginError
 from user.v1 import robot_pb2, tensor_pb2
 
@@ -181,7 +182,7 @@ class ScriptedArmConfig(LeRobotConfig):
     camera_shape: tuple[int, int, int] = (6, 8, 3)
 
 
-class ScriptedArm(LeRobot):
+class ScriptedArm(NoHardware, LeRobot):
     """A lerobot Robot without hardware: joints jump to their commanded positions."""
 
     config_class = ScriptedArmConfig
@@ -206,22 +207,8 @@ class ScriptedArm(LeRobot):
     def action_features(self) -> dict:
         return {f"{j}.pos": float for j in self.config.joints}
 
-    @property
-    def is_connected(self) -> bool:
-        return self._connected
-
     def connect(self, calibrate: bool = True) -> None:
         self._connected, self.connects = True, self.connects + 1
-
-    @property
-    def is_calibrated(self) -> bool:
-        return True
-
-    def calibrate(self) -> None:
-        pass
-
-    def configure(self) -> None:
-        pass
 
     def get_observation(self) -> dict[str, Any]:
         assert self._connected
@@ -236,9 +223,6 @@ class ScriptedArm(LeRobot):
         for key, value in action.items():
             self.positions[key.removesuffix(".pos")] = float(value)
         return action
-
-    def disconnect(self) -> None:
-        self._connected = False
 
 
 def test_so101_state_shows_the_jaw_and_the_controllers_hidden_target() -> None:
@@ -333,7 +317,7 @@ class ScriptedPadConfig(LeTeleoperatorConfig):
     use_gripper: bool = True
 
 
-class ScriptedPad(LeTeleoperator):
+class ScriptedPad(NoHardware, LeTeleoperator):
     """A lerobot end-effector teleoperator without a device: replays a script of (intervening, action)."""
 
     config_class = ScriptedPadConfig
@@ -354,23 +338,6 @@ class ScriptedPad(LeTeleoperator):
     def feedback_features(self) -> dict:
         return {}
 
-    @property
-    def is_connected(self) -> bool:
-        return self._connected
-
-    def connect(self, calibrate: bool = True) -> None:
-        self._connected = True
-
-    @property
-    def is_calibrated(self) -> bool:
-        return True
-
-    def calibrate(self) -> None:
-        pass
-
-    def configure(self) -> None:
-        pass
-
     def get_action(self) -> dict[str, Any]:
         self._intervening, action = self.script.pop(0)
         return action
@@ -385,9 +352,6 @@ class ScriptedPad(LeTeleoperator):
 
     def send_feedback(self, feedback: dict[str, Any]) -> None:
         pass
-
-    def disconnect(self) -> None:
-        self._connected = False
 
 
 def test_lerobot_teleop_adapter_maps_the_pad_and_intervenes_on_its_event(tmp_path: Path) -> None:

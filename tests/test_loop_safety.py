@@ -20,7 +20,7 @@ from edge_agent.policy_source import LocalPolicy, PolicySource, _Chunked
 from edge_agent.robot import Observation, Robot, clip_action
 from edge_agent.teleop import Teleoperator
 from tests import helpers
-from tests.helpers import wait_for
+from tests.helpers import ListSink, wait_for
 from user import wire
 from user.config import AuthConfig
 from user.registry import PluginParams
@@ -75,27 +75,6 @@ class PosArm(Robot):
     def hold(self) -> Any:
         self.holds += 1
         return self.hold_returns(self.q)
-
-
-class ListSink:
-    """Collects steps in memory (a StepSink)."""
-
-    def __init__(self) -> None:
-        self.steps: list[step_pb2.Step] = []
-        self._lock = threading.Lock()
-
-    def send(self, step: step_pb2.Step, table: str = "") -> int:
-        with self._lock:
-            self.steps.append(step)
-            return len(self.steps)
-
-    @property
-    def unacked(self) -> int:
-        return 0
-
-    def snapshot(self) -> list[step_pb2.Step]:
-        with self._lock:
-            return list(self.steps)
 
 
 class Planner(PolicySource):

@@ -19,6 +19,7 @@ from lerobot.teleoperators import TeleopEvents
 from edge_agent.robot import make_robot
 from edge_agent.task import ParamError
 from edge_agent.teleop import TELEOPERATORS
+from tests.helpers import NoHardware
 from user.config import ConfigError, load_config
 from user.registry import PluginError
 
@@ -40,7 +41,7 @@ class HoldDeviceConfig(LeRobotConfig):
     fail_first_reads: int = 0
 
 
-class HoldDevice(LeRobot):
+class HoldDevice(NoHardware, LeRobot):
     """Joints jump to their goal positions, velocities are measured as commanded; the first `fail_first_reads`
     observations raise as a Feetech bus read glitch does."""
 
@@ -64,23 +65,6 @@ class HoldDevice(LeRobot):
     def action_features(self) -> dict:
         return dict.fromkeys(self.state, float)
 
-    @property
-    def is_connected(self) -> bool:
-        return self._connected
-
-    def connect(self, calibrate: bool = True) -> None:
-        self._connected = True
-
-    @property
-    def is_calibrated(self) -> bool:
-        return True
-
-    def calibrate(self) -> None:
-        pass
-
-    def configure(self) -> None:
-        pass
-
     def get_observation(self) -> dict[str, Any]:
         self.reads += 1
         if self.reads <= self.config.fail_first_reads:
@@ -91,9 +75,6 @@ class HoldDevice(LeRobot):
         self.sent.append(dict(action))
         self.state.update({k: float(v) for k, v in action.items()})
         return action
-
-    def disconnect(self) -> None:
-        self._connected = False
 
 
 @dataclass
@@ -142,7 +123,7 @@ class HoldPadConfig(LeTeleoperatorConfig):
     pass
 
 
-class HoldPad(LeTeleoperator):
+class HoldPad(NoHardware, LeTeleoperator):
     """An end-effector pad (lerobot's gamepad / keyboard_ee keys) whose intervention button is held."""
 
     config_class = HoldPadConfig
@@ -160,23 +141,6 @@ class HoldPad(LeTeleoperator):
     def feedback_features(self) -> dict:
         return {}
 
-    @property
-    def is_connected(self) -> bool:
-        return self._connected
-
-    def connect(self, calibrate: bool = True) -> None:
-        self._connected = True
-
-    @property
-    def is_calibrated(self) -> bool:
-        return True
-
-    def calibrate(self) -> None:
-        pass
-
-    def configure(self) -> None:
-        pass
-
     def get_action(self) -> dict[str, Any]:
         return {"delta_x": 0.5, "delta_y": -0.5, "delta_z": 0.0, "gripper": 1.0}
 
@@ -185,9 +149,6 @@ class HoldPad(LeTeleoperator):
 
     def send_feedback(self, feedback: dict[str, Any]) -> None:
         pass
-
-    def disconnect(self) -> None:
-        self._connected = False
 
 
 def lerobot_robot(tmp_path: Path, config: dict[str, Any] | None = None, **params: Any) -> Any:

@@ -5,7 +5,6 @@ cost memory or batch time, and per-experiment state is reported per experiment. 
 from __future__ import annotations
 
 import functools
-import threading
 import tracemalloc
 from collections.abc import Iterator
 from typing import Any
@@ -24,6 +23,7 @@ from edge_agent.teleop import Teleoperator
 from services.inference import server as server_module
 from services.inference.server import InferenceService
 from tests import helpers
+from tests.helpers import ListSink
 from user import spec as spec_contract
 from user import wire
 from user.config import AuthConfig, StackConfig
@@ -31,7 +31,7 @@ from user.policies.flow_vla import FlowVlaConfig, policy_spec, random_weights
 from user.policy import MAX_IMAGE_SIDE, build_policy
 from user.registry import PluginParams
 from user.rpc import make_channel
-from user.v1 import inference_pb2, inference_pb2_grpc, robot_pb2, step_pb2
+from user.v1 import inference_pb2, inference_pb2_grpc, robot_pb2
 from user.v1 import tensor_pb2 as tpb
 from user.weights import WeightSet
 
@@ -208,21 +208,6 @@ class ScriptedHuman(Teleoperator):
         return np.asarray(self.actions.pop(0), np.float32) if self.actions else None
 
 
-class ListSink:
-    def __init__(self) -> None:
-        self.steps: list[step_pb2.Step] = []
-        self.lock = threading.Lock()
-
-    def send(self, step: step_pb2.Step, table: str = "") -> int:
-        with self.lock:
-            self.steps.append(step)
-            return len(self.steps)
-
-    @property
-    def unacked(self) -> int:
-        return 0
-
-
 def _run_loop(robot: RecordingRobot, source: PolicySource, teleop: Teleoperator | None, steps: int) -> list[Any]:
     sink = ListSink()
     loop = RobotLoop(robot, source, sink, mode="fast", action_deadline_s=0.0, teleop=teleop)
@@ -231,8 +216,7 @@ def _run_loop(robot: RecordingRobot, source: PolicySource, teleop: Teleoperator 
         helpers.wait_for(lambda: len(sink.steps) >= steps, f"{steps} steps")
     finally:
         loop.stop()
-    with sink.lock:
-        return list(sink.steps[:steps])
+    return sink.snapshot()[:steps]
 
 
 def test_the_edge_holds_on_a_non_finite_policy_action_and_clips_the_others() -> None:

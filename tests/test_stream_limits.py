@@ -18,7 +18,6 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from services.control.server import ControlService
 from services.replay.server import MAX_SAMPLE_ROBOTS, ReplayService
-from services.replay.tables import _split
 from tests.helpers import wait_for
 from tests.test_control import _cfg as control_cfg
 from tests.test_replay_service import AUTH, insert, make_service, requests, specs, stats, stub
@@ -27,6 +26,7 @@ from tests.test_replay_tables_service import insert_into
 from user import rpc, wire
 from user.config import AuthConfig, ServerConfig
 from user.v1 import control_pb2_grpc, replay_pb2
+from user.wire import split_rows as _split
 
 __all__ = ["make_service", "specs"]  # fixtures
 

@@ -441,3 +441,17 @@ def declared_nbytes(tensor: tpb.Tensor) -> int:
 def decoded_dtype(code: int) -> np.dtype:
     """The numpy dtype from_tensor returns for a wire dtype (bf16 decodes to float32)."""
     return np.dtype(np.float32) if code == tpb.DTYPE_BFLOAT16 else dtype_from_proto(code).newbyteorder("=")
+
+
+def split_rows(batch_size: int, ratios: Mapping[str, float]) -> dict[str, int]:
+    """Exact rows per table of a SampleRequest's ratios (largest remainder), as replay draws them and sharded
+    learners split them: 50/50 of 256 is 128 + 128, of 255 is 128 + 127."""
+    names = list(ratios)
+    r = np.array([ratios[n] for n in names], np.float64)
+    r = r / r.max()  # finite ratios can sum past float64's range (1e308 + 1e308); scaled, the sum is <= len(r)
+    exact = batch_size * r / r.sum()
+    counts = np.floor(exact).astype(np.int64)
+    left = batch_size - int(counts.sum())
+    if left:
+        counts[np.argsort(-(exact - counts), kind="stable")[:left]] += 1
+    return dict(zip(names, counts.tolist(), strict=True))

@@ -24,6 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from user.wire import split_rows
+
 ONLINE = "online"
 INTERVENTIONS = "interventions"
 ALL = ""  # the union of this buffer's tables, each transition once (the legacy request); not attached ones
@@ -547,9 +549,8 @@ class Index:
     # ------------------------------------------------------------------ draws
 
     def draw(self, req: Draw, rng: np.random.Generator) -> Drawn:
-        shares = (
-            _split(req.batch_size, req.tables) if len(req.tables) > 1 else {next(iter(req.tables), ALL): req.batch_size}
-        )
+        one = {next(iter(req.tables), ALL): req.batch_size}
+        shares = split_rows(req.batch_size, req.tables) if len(req.tables) > 1 else one
         tids, weights, human = [], [], []
         for table, k in shares.items():
             if k == 0:
@@ -711,16 +712,3 @@ def _some(names: list[str], shown: int = 8) -> str:
     """The first few names and how many more: a request may name thousands."""
     more = f" and {len(names) - shown} more" if len(names) > shown else ""
     return f"{names[:shown]}{more}"
-
-
-def _split(batch_size: int, ratios: dict[str, float]) -> dict[str, int]:
-    """Exact shares of batch_size by ratio (largest remainder), so 50/50 of 256 is 128 + 128."""
-    names = list(ratios)
-    r = np.array([ratios[n] for n in names], np.float64)
-    r = r / r.max()  # finite ratios can sum past float64's range (1e308 + 1e308); scaled, the sum is <= len(r)
-    exact = batch_size * r / r.sum()
-    counts = np.floor(exact).astype(np.int64)
-    left = batch_size - int(counts.sum())
-    if left:
-        counts[np.argsort(-(exact - counts), kind="stable")[:left]] += 1
-    return dict(zip(names, counts.tolist(), strict=True))
