@@ -479,10 +479,14 @@ def bench_shape(
 
 
 class _StreamContext:
-    """What the servicer's Insert loop needs of a gRPC context: abort (a refused step ends the stream)."""
+    """What the servicer's Insert loop needs of a gRPC context: abort (a refused step ends the stream) and
+    is_active (a cancelled client frees the stream's thread; this one never goes away)."""
 
     def abort(self, code: Any, details: str) -> None:
         raise RuntimeError(f"{code}: {details}")
+
+    def is_active(self) -> bool:
+        return True
 
 
 def camera_spec(robot_id: str) -> Any:
