@@ -6,9 +6,10 @@ so nothing here ever waits on the learner. Each robot's task judges every step (
 success); its teleoperator, if any, is polled every tick and, when it answers, drives instead of the
 policy: the step goes to replay with `intervention = true` and the human action as the action. A
 teleoperator that fails while its human drives leaves the robot holding, not to the policy the human
-was overriding, until a teleoperator answers again or an operator RESUMEs it. Whenever the policy did
-not drive a tick (a human did, or the robot held or was paused) its planned chunks are dropped: it
-plans afresh from the robot's current observation before it acts again.
+was overriding, until a teleoperator sends a human action again or an operator RESUMEs it (a poll that
+answers None is not enough: a device back from a glitch may have lost that its human was driving).
+Whenever the policy did not drive a tick (a human did, or the robot held or was paused) its planned
+chunks are dropped: it plans afresh from the robot's current observation before it acts again.
 A ControlClient registers the robots, heartbeats their status and delivers PAUSE / RESUME / RESET
 commands.
 
@@ -98,7 +99,7 @@ TELEOP_ATTACHED = prometheus_client.Gauge(
 )
 TELEOP_LOST_HOLDS = prometheus_client.Counter(
     "user_edge_teleop_lost_holds_total",
-    "Steps held because the teleoperator failed while its human drove (until it answers again or a RESUME)",
+    "Steps held because the teleoperator failed while its human drove (until a human action again or a RESUME)",
     ["robot_id"],
 )
 TELEOP_DETACHES = prometheus_client.Counter(
@@ -243,7 +244,7 @@ class RobotLoop:
         self.teleop_failing_since: float | None = None  # monotonic start of the current streak of failed polls
         self.teleop_error: str | None = None  # the latest failed poll's error, for the detach line
         self._human_at: float | None = None  # monotonic time of the teleoperator's latest action
-        self.teleop_lost = False  # it failed while its human drove: hold until a teleoperator answers or a RESUME
+        self.teleop_lost = False  # it failed while its human drove: hold until a human action or a RESUME
         self._plan_stale = True  # the policy did not drive the last tick: its chunks must not run on
         # Errors whose traceback was logged: the same error again (the next streak, a re-attached instance that
         # fails alike) is one debug line, so a teleoperator that always fails does not repeat its traceback.
@@ -261,6 +262,8 @@ class RobotLoop:
         self._action_dtype = wire.dtype_from_proto(self._action_check.dtype)
         self._non_finite = {src: NON_FINITE_ACTIONS.labels(self.robot_id, src) for src in ("policy", "teleop")}
         self._non_finite_run = 0  # non-finite actions since the last applied one (logged once a run)
+        self._wrong_size_version: int | None = None  # policy version of the current wrong-size run (logged once)
+        self._wrong_size_run = 0  # wrong-size policy answers since the last right-size one
         self._stop = threading.Event()
         self._paused = threading.Event()
         self._lease_hold = threading.Event()  # control: no running experiment for this robot (see set_lease)
@@ -321,7 +324,8 @@ class RobotLoop:
 
     def set_teleop(self, teleop: Teleoperator | None) -> None:
         """Swap the teleoperator (hot-plug); None lets the policy drive from the next tick, unless the old one
-        failed while its human drove (teleop_lost): then the robot holds until a new one answers or a RESUME."""
+        failed while its human drove (teleop_lost): then the robot holds until a teleoperator sends a human action
+        (answering None is not enough) or a RESUME."""
         self.teleop_failing_since = None
         self.teleop = teleop
 
@@ -510,8 +514,9 @@ class RobotLoop:
         """The teleoperator's action this tick, or None. A device failing while nobody drives lets the policy drive,
         loudly. One failing while its human drives (an action within TELEOP_DETACH_S, the detach window) sets
         teleop_lost: the robot holds instead of going back to the policy the human was overriding, through the
-        detach and after it, until a teleoperator answers a poll (this one, or a fresh one hot-plug attaches) or an
-        operator RESUMEs it."""
+        detach and after it, until a poll returns a finite human action (this device, or a fresh one hot-plug
+        attaches) or an operator RESUMEs it. A poll answering None does not release it: a device back from a glitch
+        may have lost that its human was driving (lerobot's intervention state), and the policy must not drive."""
         if (teleop := self.teleop) is None:
             return None
         try:
@@ -531,9 +536,6 @@ class RobotLoop:
                 self._log_teleop_error(exc)
             return None
         self.teleop_failing_since = None
-        if self.teleop_lost:
-            self.teleop_lost = False
-            log.info("teleoperator answers again: the robot is released", extra=kv(robot_id=self.robot_id))
         if human is None:
             return None
         human = np.asarray(human, np.float32)
@@ -545,6 +547,9 @@ class RobotLoop:
             )
             return None
         self._human_at = time.monotonic()
+        if self.teleop_lost and np.isfinite(human).all():  # its human drives again: the hold ends
+            self.teleop_lost = False
+            log.info("teleoperator sends actions again: the robot is released", extra=kv(robot_id=self.robot_id))
         return human.reshape(self._hold_action.shape)
 
     def _log_teleop_error(self, exc: Exception) -> None:
@@ -583,20 +588,33 @@ class RobotLoop:
             self.policy.reset(self.robot_id)
             self._plan_stale = False
         answer = self.policy.act(self.robot_id, obs.features, self.deadline_s)
-        if answer is not None and np.asarray(answer[0]).size != self._hold_action.size:
-            log.warning(
-                "policy action has the wrong size; holding",
-                extra=kv(robot_id=self.robot_id, got=int(np.asarray(answer[0]).size), want=self._hold_action.size),
-            )
-            return self._hold_step()
         if answer is None:
             return self._held(), 0, True, False
+        if np.asarray(answer[0]).size != self._hold_action.size:
+            return self._wrong_size(int(np.asarray(answer[0]).size), int(answer[1]))
+        if self._wrong_size_run:
+            log.info("policy actions have the right size again", extra=kv(robot_id=self.robot_id))
+            self._wrong_size_version, self._wrong_size_run = None, 0
         action, version = answer
         action = np.asarray(action, np.float32).reshape(self._hold_action.shape)
         if not self._finite(action, "policy", int(version)):
             return self._hold_step()  # the rest of a chunk with a NaN is not run either
         applied = self._checked_action(self.robot.act(self._clip(action)))
         return applied, int(version), False, False
+
+    def _wrong_size(self, got: int, version: int) -> tuple[np.ndarray, int, bool, bool]:
+        """A policy answer of the wrong size: the robot holds. Logged, and the plan dropped, once per run and policy
+        version: every row of a chunk has that size, and re-planning every tick would fetch synchronously at the
+        control rate while nothing it answers can be run."""
+        self._wrong_size_run += 1
+        if version == self._wrong_size_version:
+            return self._held(), 0, True, False
+        self._wrong_size_version = version
+        log.warning(
+            "policy action has the wrong size; holding (logged once until a right-size one or another version)",
+            extra=kv(robot_id=self.robot_id, got=got, want=self._hold_action.size, version=version),
+        )
+        return self._hold_step()
 
     def _hold_step(self) -> tuple[np.ndarray, int, bool, bool]:
         """A held step the policy did not drive: its plan is stale."""
@@ -972,7 +990,7 @@ class EdgeAgent:
         log.warning(
             "teleoperator detached: its polls kept failing; "
             + (
-                "the robot holds (it failed while its human drove) until one connects again or an operator resumes"
+                "the robot holds (it failed while its human drove) until its human drives again or an operator resumes"
                 if loop.teleop_lost
                 else "the policy drives until it connects again"
             ),

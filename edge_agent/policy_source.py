@@ -423,6 +423,8 @@ class LocalPolicy(PolicySource):
         self._chunks = _Chunked(self._fetch)
         self._workers: dict[str, _Worker] = {}  # robot id -> its forward thread
         self._workers_lock = threading.Lock()
+        self._closed = False  # set by close(), read under _workers_lock: no worker thread starts after it
+        self._refused: dict[str, int] = {}  # robot id -> version whose refusal of its observations was logged
         self._subscriber = WeightSubscriber(
             learner_addr,
             auth,
@@ -452,6 +454,8 @@ class LocalPolicy(PolicySource):
     def act(
         self, robot_id: str, observation: dict[str, np.ndarray], deadline_s: float
     ) -> tuple[np.ndarray, int] | None:
+        if self._closed:  # a copy RoutedPolicy dropped while this robot's loop was still asking it: hold
+            return None
         return self._chunks.act(robot_id, observation, deadline_s)
 
     def _fetch(
@@ -461,8 +465,11 @@ class LocalPolicy(PolicySource):
         if policy is None:
             ACTION_TIMEOUTS.labels("local", "no_policy").inc()
             return None
+        worker = self._worker(robot_id)
+        if worker is None:  # closed meanwhile: the robot holds
+            return None
         start = time.perf_counter()
-        done, answer = self._worker(robot_id).call(lambda: self._forward(policy, robot_id, observation), deadline_s)
+        done, answer = worker.call(lambda: self._forward(policy, robot_id, observation), deadline_s)
         if not done:  # a stale action is worse than holding still: the late one is dropped when it lands
             ACTION_TIMEOUTS.labels("local", "late").inc()
             return None
@@ -470,10 +477,14 @@ class LocalPolicy(PolicySource):
             ACTION_LATENCY.labels("local").observe(time.perf_counter() - start)
         return answer  # type: ignore[return-value] - _forward's
 
-    def _worker(self, robot_id: str) -> _Worker:
+    def _worker(self, robot_id: str) -> _Worker | None:
+        """The robot's forward thread, started on its first call; None once closed (a thread started then would
+        never be stopped)."""
         worker = self._workers.get(robot_id)
         if worker is None:
             with self._workers_lock:
+                if self._closed:
+                    return None
                 worker = self._workers.get(robot_id)
                 if worker is None:
                     worker = self._workers[robot_id] = _Worker(f"local-policy-{robot_id}")
@@ -490,10 +501,17 @@ class LocalPolicy(PolicySource):
             batched = {name: np.asarray(v)[None] for name, v in embodiment_inputs(policy, kind, observation).items()}
             with self._lock:
                 action = fit_action(policy, kind, policy.act(batched, self._deterministic))
-        except ValueError as err:  # observation does not fit this policy: hold, say why once
+        except ValueError as err:  # observation does not fit this policy: hold, say why once a streak and version
             ACTION_TIMEOUTS.labels("local", "bad_observation").inc()
-            log.warning("local policy refused the observation", extra=kv(robot_id=robot_id, error=str(err)))
+            if self._refused.get(robot_id) != int(policy.version):
+                self._refused[robot_id] = int(policy.version)
+                log.warning(
+                    "local policy refused the observation; holding (logged once until it takes one)",
+                    extra=kv(robot_id=robot_id, version=int(policy.version), error=str(err)),
+                )
             return None
+        if self._refused.pop(robot_id, None) is not None:
+            log.info("local policy takes the observations again", extra=kv(robot_id=robot_id))
         return _as_chunk(np.asarray(action)[0]), int(policy.version)
 
     def reset(self, robot_id: str) -> None:
@@ -505,6 +523,7 @@ class LocalPolicy(PolicySource):
     def close(self) -> None:
         self._subscriber.stop()
         with self._workers_lock:
+            self._closed = True
             workers, self._workers = list(self._workers.values()), {}
         for worker in workers:
             worker.close()

@@ -676,19 +676,22 @@ class LmdbSpool(Outbox):
     # ------------------------------------------------------------------ read, ack, set aside
 
     def read(self, after_seq: int, limit: int) -> list[replay_pb2.InsertRequest]:
-        # Under the lock: one view of RAM and disk (a step moving between them is seen exactly once), and a drop
-        # knows whether the sender read its step (see _Drops).
+        """The disk is read and parsed outside the lock: `put` runs on the robots' control threads, and a drain
+        of large steps must not hold them. RAM is taken first (under the lock), then the disk (one LMDB snapshot):
+        steps move from RAM to disk oldest first, so every step up to the newest returned is seen (a step seen in
+        both is returned once). A drop racing the read (between the disk read and the lock that notes it) counts
+        as lost even if replay stores the step it was sent as (see _Drops)."""
         with self._lock:
-            out = self._read_disk(after_seq, limit)
-            if self._pending:
-                for seq, (data, table) in self._pending.items():
-                    if seq > after_seq:
-                        req = replay_pb2.InsertRequest(seq=seq, table=table)
-                        req.step.ParseFromString(data)
-                        out.append(req)
-                out = sorted(out, key=lambda r: r.seq)[:limit]
-            self._count_dropped(self._drops.read(after_seq, out[-1].seq if out else after_seq))
-        return out
+            in_ram = [(seq, kept) for seq, kept in self._pending.items() if seq > after_seq][:limit]
+        out = {req.seq: req for req in self._read_disk(after_seq, limit)}
+        for seq, (data, table) in in_ram:
+            if seq not in out:
+                req = out[seq] = replay_pb2.InsertRequest(seq=seq, table=table)
+                req.step.ParseFromString(data)
+        reqs = sorted(out.values(), key=lambda r: r.seq)[:limit]
+        with self._lock:  # a drop from now on knows the sender read its step
+            self._count_dropped(self._drops.read(after_seq, reqs[-1].seq if reqs else after_seq))
+        return reqs
 
     def _read_disk(self, after_seq: int, limit: int) -> list[replay_pb2.InsertRequest]:
         out: list[replay_pb2.InsertRequest] = []

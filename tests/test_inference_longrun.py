@@ -1,6 +1,6 @@
 """Inference over a long run: nothing kept per robot or per experiment outlives it, and routing never makes an Act
 wait on control. A policy version a robot last acted with is released once a newer one serves; routes are rebuilt
-in the background from control's online robots (a robot that left is dropped; an Act for one not routed is answered
+in the background from every robot control lists (one it forgot is dropped; an Act for one not routed is answered
 at once, even while control is stuck); policy loads are one INFO line, then a summary at most once a minute; an
 experiment removed at run time leaves no metric series behind. Real control and inference gRPC services on
 127.0.0.1 ephemeral ports, edges registered through a real ControlClient."""
@@ -174,9 +174,10 @@ def test_an_act_for_a_robot_not_routed_is_answered_while_control_is_stuck(starte
         edge.close()
 
 
-def test_a_robot_that_left_is_dropped_from_the_routes(started: Started) -> None:
-    """Routes are rebuilt from control's online robots: arm-0's edge hangs up and arm-0 is no longer routed (its
-    spec and route dropped) with no Act asking; it is routed again when it comes back."""
+def test_a_robot_control_forgot_is_dropped_from_the_routes(started: Started) -> None:
+    """Routes are rebuilt from every robot control lists: arm-0's edge hangs up, an operator forgets its robots
+    (Control.ForgetRobot) and they are no longer routed (spec and route dropped) with no Act asking; arm-0 is
+    routed again when it comes back. (An offline robot control still lists keeps its route: test_review_fixes_edge.)"""
     control, inference, stub = started(TWO)
     inference.load_weights(_sac(1))
     edge = _edge(control, "arm-0", "arm-1")
@@ -185,6 +186,9 @@ def test_a_robot_that_left_is_dropped_from_the_routes(started: Started) -> None:
     helpers.wait_for(lambda: router.spec("arm-1") is not None, "arm-1 routed")
     assert [s.robot_id for s in router.specs_in("reach")] == ["arm-0"]
     edge.close()
+    operator = control_pb2_grpc.ControlStub(make_channel(control.address, AUTH))
+    for rid in ("arm-0", "arm-1"):  # refused (FAILED_PRECONDITION) until control has seen the edge go
+        helpers.wait_for(lambda rid=rid: _forgotten(operator, rid), f"{rid} forgotten")
     helpers.wait_for(lambda: router.spec("arm-0") is None and router.spec("arm-1") is None, "both pruned")
     assert router.specs_in("reach") == [] and router.specs_in("pick") == []
     assert _code(stub, "arm-0") in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.FAILED_PRECONDITION)
@@ -193,6 +197,16 @@ def test_a_robot_that_left_is_dropped_from_the_routes(started: Started) -> None:
         helpers.wait_for(lambda: _served(stub, "arm-0", 1), "arm-0 served again")
     finally:
         edge.close()
+
+
+def _forgotten(operator: control_pb2_grpc.ControlStub, robot_id: str) -> bool:
+    """Control.ForgetRobot; False while control still has the robot online."""
+    try:
+        operator.ForgetRobot(control_pb2.ForgetRobotRequest(robot_id=robot_id), timeout=10)
+    except grpc.RpcError as err:
+        assert err.code() == grpc.StatusCode.FAILED_PRECONDITION, err.details()
+        return False
+    return True
 
 
 # --------------------------------------------------------------------------- 3: policy loads are not one INFO each

@@ -300,8 +300,8 @@ def test_a_local_policy_answers_within_its_deadline_and_drops_the_late_forward()
 
 def test_a_teleoperator_failing_while_its_human_drives_leaves_the_robot_held() -> None:
     """The human overrides a policy pushing to +1 with 0.2; the device dies mid-intervention. The robot holds (not
-    handed to the policy), also once hot-plug releases the device, until a teleoperator answers again; a second
-    loss is ended by an operator's RESUME."""
+    handed to the policy), also once hot-plug releases the device and while a re-plugged one answers None, until
+    a teleoperator sends a human action again; a second loss is ended by an operator's RESUME."""
     arm, sink = PosArm(rate_hz=50.0), ListSink()
     lost_before = TELEOP_LOST_HOLDS.labels("arm-0")._value.get()
     unplugged = OSError("device unplugged")
@@ -313,9 +313,11 @@ def test_a_teleoperator_failing_while_its_human_drives_leaves_the_robot_held() -
         loop.set_teleop(None)  # hot-plug releases the failing device
         detached_at = len(sink.steps)
         wait_for(lambda: len(sink.steps) >= detached_at + 5, "steps without a teleoperator")
-        again_at: list[int] = []  # steps sent when the re-plugged device (nobody touches it) is first polled
-        loop.set_teleop(Hand(arm.spec, lambda n: again_at.append(len(sink.steps)) if n == 1 else None))
-        wait_for(lambda: again_at and len(sink.steps) >= again_at[0] + 5, "the policy after the device answered")
+        again_at: list[int] = []  # steps sent when the re-plugged device is first polled
+        # Nobody touches it for 5 polls (None: still held), the human sends one action, then lets go.
+        replugged = lambda n: again_at.append(len(sink.steps)) if n == 1 else 0.1 if n == 6 else None  # noqa: E731
+        loop.set_teleop(Hand(arm.spec, replugged))
+        wait_for(lambda: again_at and len(sink.steps) >= again_at[0] + 10, "the policy after the human's action")
         # a second loss, ended by an operator
         second = Hand(arm.spec, lambda n: unplugged if n >= 4 else 0.3)
         loop.set_teleop(second)
@@ -327,14 +329,15 @@ def test_a_teleoperator_failing_while_its_human_drives_leaves_the_robot_held() -
         loop.stop()
     kinds = [kind(s) for s in sink.snapshot()]
     assert kinds[:4] == ["policy"] * 4 and kinds[4:9] == ["human"] * 5
-    assert set(kinds[9 : again_at[0]]) == {"held"}  # from the failure until the new device answered
+    released_at = again_at[0] + 5  # the re-plugged device's 6th poll: a human action
+    assert set(kinds[9:released_at]) == {"held"}  # from the failure until a human acted again (None polls too)
     assert again_at[0] - 9 >= 11 + 5  # held through the failures, the detach and 5 steps without a device
-    assert kinds[again_at[0]] == "policy"
-    lost_at = kinds.index("human", again_at[0]) + 3  # the second device drove 3 polls, then failed
+    assert kinds[released_at : released_at + 2] == ["human", "policy"]
+    lost_at = kinds.index("human", released_at + 1) + 3  # the second device drove 3 polls, then failed
     assert kinds[lost_at - 3 : lost_at] == ["human"] * 3
     assert set(kinds[lost_at:resumed_at]) == {"held"}
     assert kinds[-1] == "policy" and not loop.teleop_lost
-    held_for_loss = (again_at[0] - 9) + (resumed_at - lost_at)
+    held_for_loss = (released_at - 9) + (resumed_at - lost_at)
     assert TELEOP_LOST_HOLDS.labels("arm-0")._value.get() - lost_before >= held_for_loss
 
 

@@ -364,16 +364,17 @@ def check_finite_weights(tensors: Mapping[str, np.ndarray], version: int) -> Non
 
 
 class Router:
-    """robot_id -> experiment: from Control's ListRobots (online robots) and the experiments' selectors. A
-    background thread rebuilds the routes from each answer (robots that left are dropped), every POLL_S and, at
-    most every REFRESH_S, when an Act names a robot not routed; an Act never waits on control. One experiment that
-    selects every robot (or the implicit default one) needs no Control. A robot not routed yet gets UNAVAILABLE
+    """robot_id -> experiment: from Control's ListRobots (every robot it knows, online or not) and the experiments'
+    selectors. A background thread rebuilds the routes from each answer (robots control forgot are dropped; one
+    offline keeps its route, so a control restart unroutes no robot), every POLL_S and, at most every REFRESH_S,
+    when an Act names a robot not routed; an Act never waits on control. One experiment that selects every robot
+    (or the implicit default one) needs no Control. A robot not routed yet gets UNAVAILABLE
     until a refresh begun after its first Act has answered; then a robot control knows and no selector picks gets
     FAILED_PRECONDITION, and so does one control does not know, except with one experiment, where such a client (an
     evaluation probe) is served, as is every robot no selector refused while control is unreachable."""
 
     REFRESH_S = 1.0  # at most this often when an Act names a robot not routed
-    POLL_S = 5.0  # otherwise this often: robots that left are pruned, changed specs picked up
+    POLL_S = 5.0  # otherwise this often: robots control forgot are pruned, changed specs picked up
     LIST_TIMEOUT_S = 2.0
     MAX_ASKED = 4096  # robots not routed that asked, remembered (bounded: probes may use any id)
 
@@ -459,14 +460,23 @@ class Router:
             self.refresh()
 
     def refresh(self) -> None:
-        """Rebuild the routes from control's online robots (in the refresher thread; tests may call it)."""
+        """Rebuild the routes from every robot control knows, online or not (in the refresher thread; tests may
+        call it): a control restart, after which robots are offline until their edges reconnect, keeps them
+        routed; only a robot control no longer lists (forgotten) is pruned. Any failure (an unreadable TLS file
+        for the channel, a bug) is recorded like control being unreachable: the refresher never dies of it."""
         with self._lock:
             self._begun += 1
             number, experiments = self._begun, self.experiments
         self._refreshed = time.monotonic()
+        try:
+            self._refresh(number, experiments)
+        except Exception as exc:
+            self._failed(number, f"routing refresh failed: {exc}", exc)
+
+    def _refresh(self, number: int, experiments: list[ExperimentConfig]) -> None:
         from user.v1 import control_pb2
 
-        request = control_pb2.ListRobotsRequest(include_offline=False, without_episodes=True)
+        request = control_pb2.ListRobotsRequest(include_offline=True, without_episodes=True)
         try:
             resp = self._stub().ListRobots(request, timeout=self.LIST_TIMEOUT_S)
         except grpc.RpcError as err:
@@ -485,13 +495,15 @@ class Router:
         if error:
             log.info("control answers routing again", extra=kv(robots=len(routes)))
 
-    def _failed(self, number: int, error: str) -> None:
+    def _failed(self, number: int, error: str, exc: BaseException | None = None) -> None:
+        """A refresh that got no answer; `exc` when it raised something other than an RPC error (its traceback is
+        logged, once per outage like the rest)."""
         with self._lock:
             if number < self._answered:
                 return
             self._answered, previous, self._error = number, self._error, error
         if not previous and not self._stop.is_set():  # once per outage: routed robots keep being served meanwhile
-            log.warning("robot routes not refreshed; keeping the last ones", extra=kv(error=error))
+            log.warning("robot routes not refreshed; keeping the last ones", extra=kv(error=error), exc_info=exc)
 
     def _rebuild(
         self, robots: Collection[Any], experiments: list[ExperimentConfig]
