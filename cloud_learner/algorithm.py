@@ -116,7 +116,8 @@ class BatchRequest:
     gamma: float = 1.0  # the discount replay sums n-step rewards with (used when n_step > 1)
     action_horizon: int = 1  # > 1: Batch.action_chunk holds each row's next H actions of its episode
     # Tables whose every action is a demonstrator's: replay flags their rows Batch.intervention (imported demos are
-    # stored without the flag), so BC terms and human-only rules count them.
+    # stored without the flag), so BC terms and human-only rules count them. The learner leaves out the pretrain
+    # table of an experiment with pretrain.human false (its rows are no demonstrator's).
     human_tables: tuple[str, ...] = ("demos",)
 
 

@@ -714,6 +714,14 @@ class ExperimentRun:
         """normalize from the robots' own table: publish the initial policy so they can collect min_steps."""
         self.publish(max(self._restore(ckpt), read_version_mark(self.ckpt_dir)) + 1)
 
+    def _human_tables(self, req: BatchRequest) -> list[str]:
+        """The tables whose rows replay flags intervention: req's, less the pretrain table of an experiment that
+        says its rows are no demonstrator's (pretrain.human: false, e.g. policy rollouts kept in "demos")."""
+        pre = self.exp.pretrain
+        if pre is None or pre.human:
+            return list(req.human_tables)
+        return [t for t in req.human_tables if t != pre.table]
+
     def _table_request(self, table: str, req: BatchRequest) -> replay_pb2.SampleRequest:
         """A sample of one table: the experiment's own (its robots) or a pre-filled one (every row of it:
         imported demos carry their dataset's robot id)."""
@@ -723,7 +731,7 @@ class ExperimentRun:
                 request.robot_ids.extend(sorted(self.specs))
         if table != "online":
             request.tables[table] = 1.0
-        request.human_tables.extend(req.human_tables)
+        request.human_tables.extend(self._human_tables(req))
         if req.n_step > 1:
             request.n_step, request.gamma = req.n_step, req.gamma
         if req.action_horizon > 1:
@@ -937,7 +945,7 @@ class ExperimentRun:
             request.n_step, request.gamma = req.n_step, req.gamma
         if req.action_horizon > 1:  # replay assembles each row's next H actions (action-chunking policies)
             request.action_horizon = req.action_horizon
-        request.human_tables.extend(req.human_tables)  # replay flags their rows intervention (imported demos)
+        request.human_tables.extend(self._human_tables(req))  # replay flags their rows intervention (imported demos)
         if "tables" in replay_pb2.SampleRequest.DESCRIPTOR.fields_by_name:  # replay with tables (RLPD's shares)
             try:
                 request.tables.update(self._request_tables(req))  # type: ignore[attr-defined]
@@ -1175,6 +1183,8 @@ class ExperimentRun:
             self._phase("publish", start)
 
     def _publish(self, version: int) -> None:
+        if self.learner.store.dropped(self.exp.name):  # removed by control while this thread ran: nothing to publish
+            return
         spec, tensors = self.algo.policy()
         if self.exp.shared_embodiment:  # actors pad per robot kind; see user/policies/padded.py
             from user.policies.padded import padded_spec
@@ -1197,7 +1207,8 @@ class ExperimentRun:
             return
         self._mark_faults.succeeded()
         self._owed_version = 0
-        self.learner.store.publish(version, spec, tensors, int(self.algo.updates), experiment=self.exp.name)
+        if self.learner.store.publish(version, spec, tensors, int(self.algo.updates), experiment=self.exp.name) is None:
+            return  # removed meanwhile: refused, and its metric series stay gone
         st = self.state
         st.weight_version, st.policy_kind, st.last_publish_ns = version, spec.kind, time.time_ns()
         WEIGHT_VERSION.labels(self.exp.name).set(version)
@@ -1579,7 +1590,8 @@ class _TableRobots:
     ) -> None:
         fits = None
         try:
-            stats = stub.Stats(replay_pb2.StatsRequest(spec_tables=tables), timeout=timeout)
+            # counts_only: the specs and per-robot transitions, not replay's walk of every episode (every REFRESH_S)
+            stats = stub.Stats(replay_pb2.StatsRequest(spec_tables=tables, counts_only=True), timeout=timeout)
             fits = self._fit(stats, tables, like, mine, others)
         except Exception as exc:  # RpcError, or the stub's channel closed as the run stops: asked again later
             if not self._failing:

@@ -12,8 +12,10 @@ A request with table ratios (RLPD's {"online": 1, "demos": 1}) keeps replay's ex
 remainder) and splits each table's rows across the shards that hold that table, in proportion to that table's
 transitions there (for the robots asked for that table: table_robot_ids, else robot_ids), so every transition of a
 table is equally likely whichever shard holds it. A shard is asked only for the tables it holds (their rows as
-ratios); one without a table is not a failed shard. Per-table counts come from each shard's Stats, refreshed in
-the background every `stats_every_s`.
+ratios); one without a table is not a failed shard, and one holding only another table (imported demos) is asked
+for that one. Per-table counts come from each shard's Stats (counts_only), refreshed in the background every
+`stats_every_s`, and at once when a shard answers FAILED_PRECONDITION for its tables (stale counts): the batch is
+then asked again by the fresh counts, and the shard keeps its other tables.
 
 Errors look like the stub's (grpc.RpcError with code()): FAILED_PRECONDITION when every live shard is
 empty, UNAVAILABLE when none is live.
@@ -155,20 +157,28 @@ class ShardedSampler:
         missing = wire.split_rows(int(request.batch_size), dict(request.tables))
         batches: list[replay_pb2.Batch] = []
         counts: dict[str, dict[str, int]] = {}  # addr -> table -> transitions (the shard's answer, else Stats)
+        answered: dict[str, int] = {}  # addr -> its SampleResponse.transitions
         failed: set[str] = set()
-        for _ in range(len(self.shards)):  # a round per shard at most: each failure removes one
+        refreshed: set[str] = set()  # shards whose per-table counts proved stale this batch (read again)
+        for _ in range(2 * len(self.shards)):  # a round per shard at most failing, and per shard found stale
             if not any(missing.values()):
                 break
-            ready = [s for s in self.shards if s.up and s.transitions > 0 and s.addr not in failed]
+            # which shards hold a table is their per-table counts' business (_plan), not their total: a shard of
+            # imported demos alone holds none of the experiment's own robots' transitions
+            ready = [s for s in self.shards if s.up and s.addr not in failed]
             asked = self._plan(ready, missing, robot_ids)
             futures = [self._pool.submit(self._sample_one, s, request, rows, timeout) for s, rows in asked]
             for (shard, rows), future in zip(asked, futures, strict=True):
                 resp = future.result()
+                if resp is None and shard.up and shard.addr not in refreshed:
+                    refreshed.add(shard.addr)  # stale counts, read again: asked again by them (its other tables too)
+                    continue
                 if resp is None:
                     failed.add(shard.addr)  # its rows go to the other holders of their tables next round
                     continue
                 batches.append(resp.batch)
                 counts[shard.addr] = dict(resp.table_transitions)
+                answered[shard.addr] = int(resp.transitions)  # the request's robots' transitions there
                 for table, n in rows.items():
                     missing[table] -= n
         short = [t for t, n in missing.items() if n > 0]
@@ -176,7 +186,7 @@ class ShardedSampler:
             raise self._no_table_error(short[0], robot_ids[short[0]])
         return replay_pb2.SampleResponse(
             batch=merge_batches(batches),
-            transitions=sum(s.transitions for s in self.shards if s.up),
+            transitions=sum(answered.get(s.addr, s.transitions) for s in self.shards if s.up),
             table_transitions=self._table_totals(request, robot_ids, counts),
         )
 
@@ -287,7 +297,8 @@ class ShardedSampler:
 
     def _stats(self, shard: Shard, timeout: float) -> None:
         try:
-            stats = shard.stub.Stats(replay_pb2.StatsRequest(), timeout=timeout)
+            # counts_only: per-table robots' transitions from replay's index, not a walk of its every episode
+            stats = shard.stub.Stats(replay_pb2.StatsRequest(counts_only=True), timeout=timeout)
         except grpc.RpcError as err:
             self._mark_down(shard, err)
             return
@@ -307,6 +318,7 @@ class ShardedSampler:
         """n rows, or rows per table (the tables this shard is asked for, their rows as ratios)."""
         req = replay_pb2.SampleRequest()
         req.CopyFrom(request)  # the same sampler, n-step, frame stack, action horizon and human tables
+        tables = isinstance(n, dict)
         if isinstance(n, dict):
             req.ClearField("tables")
             req.tables.update(n)
@@ -317,13 +329,17 @@ class ShardedSampler:
         try:
             resp = shard.stub.Sample(req, timeout=timeout)
         except grpc.RpcError as err:
-            if err.code() == grpc.StatusCode.FAILED_PRECONDITION:  # nothing sampleable there (for these robots)
+            if err.code() != grpc.StatusCode.FAILED_PRECONDITION:
+                self._mark_down(shard, err)
+            elif tables:  # its per-table counts were stale: read again now (its other tables are still there)
+                self._stats(shard, timeout)
+            else:  # nothing sampleable there (for these robots)
                 self._mark_up(shard, 0)
                 shard.retry_at = self._clock() + self.min_backoff_s
-            else:
-                self._mark_down(shard, err)
             return None
-        self._mark_up(shard, int(resp.transitions))
+        # A table answer's transitions are those of the request's robot_ids only, not the tables' robots (imported
+        # demos): the shard keeps the total its Stats gave, or it looked empty and was left out of the next batch.
+        self._mark_up(shard, shard.transitions if tables else int(resp.transitions))
         SHARD_SAMPLED.labels(shard.addr).inc(n)
         return resp
 

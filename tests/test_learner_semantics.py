@@ -315,3 +315,17 @@ def test_flow_bc_loss_ignores_padded_action_dims() -> None:
         torch.manual_seed(1)  # the same noise and flow times for both batches
         out.append(algo.update(_padded_batch(pad))["flow_loss"])
     assert out[0] == pytest.approx(out[1], rel=1e-6)
+
+
+def test_online_batches_leave_rows_of_a_pretrain_table_unflagged_when_not_human(
+    mixed: ReplayService, tmp_path: Path
+) -> None:
+    """pretrain: {table: demos, human: false} (its demos table holds policy rollouts): the online batches, which
+    every algorithm asks to flag "demos" (BatchRequest.human_tables), leave its rows unflagged too."""
+    pretrain = {"table": "demos", "steps": 1, "min_size": 1, "human": False}
+    half = {"online": 0.5, "demos": 0.5}
+    params = {"tables": half, "only_interventions": True, "batch_size": 64, "hidden": [16]}
+    run = _run(tmp_path, "bc", params, pretrain=pretrain)
+    batch = run.sample_once(stub(mixed)).batch
+    assert int((marks(batch) == DEMO).sum()) > 0 and not batch.intervention.any()
+    assert run.algo.update(batch)["rows"] == 0.0

@@ -193,6 +193,10 @@ _PRIOR_RATIO = {  # measured on SAC actors mid-training (docs/notes/weights.md);
 }
 
 
+def _log_refused(experiment: str, version: int) -> None:
+    log.debug("weights of a removed experiment not published", extra=kv(experiment=experiment, version=version))
+
+
 class WeightStore:
     """The last `history` published versions per experiment, their shared encodings, and the streams
     waiting for a newer version (thread-safe). publish() packs the raw set on the caller's thread (one
@@ -234,13 +238,24 @@ class WeightStore:
         learner_updates: int = 0,
         *,
         experiment: str = "",
-    ) -> PackedWeights:
+    ) -> PackedWeights | None:
+        """The version packed and served; None for an experiment dropped (removed): a run's thread may still publish
+        after the learner dropped it, and that version must not bring it back (control never reuses a name)."""
+        if self._refused(experiment, version):  # before packing: no payload buffer (shared-memory file) for it
+            return None
         self._make_room(version, experiment)
         packed = pack_weights(  # outside the lock
             version, policy, tensors, learner_updates, experiment=experiment, alloc=self._take_payload_buffer
         )
-        self.publish_packed(packed)
-        return packed
+        return packed if self.publish_packed(packed) else None
+
+    def _refused(self, experiment: str, version: int) -> bool:
+        """Whether `experiment` was dropped: its versions are not served again (a DEBUG line each)."""
+        with self._cond:
+            gone = experiment in self._gone
+        if gone:
+            _log_refused(experiment, version)
+        return gone
 
     def _make_room(self, version: int, experiment: str) -> None:
         """At capacity, the oldest version leaves before the new one is packed (not after), so the pack
@@ -271,20 +286,24 @@ class WeightStore:
                     with self._pool_lock:
                         self._state_pool.give(state.payload)
 
-    def publish_packed(self, packed: PackedWeights) -> None:
+    def publish_packed(self, packed: PackedWeights) -> bool:
+        """Serve `packed`; False (not served) for a dropped experiment's (see publish)."""
         if packed.header.encoding != ENCODING_RAW:
             raise ValueError("publish raw weight sets; encodings are made per subscriber")
         experiment = packed.header.experiment
         with self._cond:
+            if experiment in self._gone:  # dropped, perhaps while publish packed it
+                _log_refused(experiment, packed.version)
+                return False
             if not self._versions:
                 self._default = experiment
-            self._gone.discard(experiment)  # published again (a plain store): served again
             versions = self._versions.setdefault(experiment, OrderedDict())
             if versions and packed.version <= next(reversed(versions)):
                 raise ValueError(f"weight version {packed.version} is not newer than {next(reversed(versions))}")
             versions[packed.version] = packed
             self._evict(experiment, versions, self.history)
             self._cond.notify_all()
+        return True
 
     def payload_buffers_from(self, fresh: Callable[[int], np.ndarray | None]) -> None:
         """Pack new payloads into buffers from `fresh` (None from it: ordinary memory), e.g. ShmWeights.buffer,
@@ -316,7 +335,7 @@ class WeightStore:
         return held
 
     def dropped(self, experiment: str) -> bool:
-        """Whether `experiment` (as a subscriber names it) was dropped and not published since."""
+        """Whether `experiment` (as a subscriber names it) was dropped (for good: publish refuses its versions)."""
         with self._cond:
             return self._is_gone(experiment)
 

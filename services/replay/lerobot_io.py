@@ -604,21 +604,27 @@ def import_dataset(
     with _hub_offline():
         ds = _open_dataset(root, repo_id)
         plan = _plan(ds, root, repo_id, robot_id or _safe(f"lerobot-{repo_id}")[:64])
-        try:
-            fd = hold_buffer(store_path, "`userctl replay import`")
-        except BufferHeld as exc:  # a service started meanwhile
-            raise BufferHeld(_held_text(store_path, exc.holder), exc.holder) from None
-        try:
-            store = ReplayStore(store_path, map_size_mb, cache_mb=0, max_map_mb=max(map_size_mb, 1 << 20))
-            try:
-                counts = _import_into(store, ds, plan, repo_id, table)
-            finally:
-                store.close()
-        finally:
-            release_buffer(fd)
+        with contextlib.closing(plan.finals):
+            counts = _import_held(store_path, map_size_mb, ds, plan, repo_id, table)
     return Summary(
         counts.episodes, counts.frames, str(store_path), counts.present_episodes, counts.present_frames, plan.notes
     )
+
+
+def _import_held(store_path: str | Path, map_size_mb: int, ds: Any, plan: _Plan, repo_id: str, table: str) -> _Counts:
+    """_import_into the buffer at store_path, held (hold_buffer) while the steps are written."""
+    try:
+        fd = hold_buffer(store_path, "`userctl replay import`")
+    except BufferHeld as exc:  # a service started meanwhile
+        raise BufferHeld(_held_text(store_path, exc.holder), exc.holder) from None
+    try:
+        store = ReplayStore(store_path, map_size_mb, cache_mb=0, max_map_mb=max(map_size_mb, 1 << 20))
+        try:
+            return _import_into(store, ds, plan, repo_id, table)
+        finally:
+            store.close()
+    finally:
+        release_buffer(fd)
 
 
 def _held_text(store_path: str | Path, holder: str) -> str:
@@ -708,12 +714,27 @@ def _grey(root: Path, meta: dict[str, Any], columns: dict[str, _Column]) -> dict
 
 
 class _Finals:
-    """The final observations meta/user_final_observations.npz keeps, read one episode at a time."""
+    """The final observations meta/user_final_observations.npz keeps, read one episode at a time from the archive
+    opened once per import: an open parses the zip's whole directory (an entry per episode and camera), so one per
+    read was O(episodes^2), and np.load's NpzFile finds a name by scanning a list. close() when the import is done."""
 
     def __init__(self, root: Path, meta: dict[str, Any], columns: dict[str, _Column]) -> None:
         self.path = root / "meta" / FINALS_FILE
         self.listed: dict[str, Any] = meta.get("final_observations", {})
         self.ours = {c.ours: c for c in columns.values()}
+        self._zip: zipfile.ZipFile | None = None  # opened at the first get(); names looked up in its dict
+
+    def _array(self, key: str) -> np.ndarray:
+        """Array `key` of the archive (the .npy member _FinalsWriter wrote; never a pickle)."""
+        if self._zip is None:
+            self._zip = zipfile.ZipFile(self.path)
+        with self._zip.open(key + ".npy") as f:
+            return np.lib.format.read_array(f, allow_pickle=False)
+
+    def close(self) -> None:
+        if self._zip is not None:
+            self._zip.close()
+            self._zip = None
 
     def get(self, episode: int) -> dict[str, np.ndarray] | None:
         """Episode's final observation (None: the dataset keeps none); ValueError when it is damaged."""
@@ -721,8 +742,7 @@ class _Finals:
         if names is None:
             return None
         try:
-            with np.load(self.path, allow_pickle=False) as npz:
-                obs = {name: npz[key] for name, key in names.items()}
+            obs = {name: self._array(key) for name, key in names.items()}
         except (OSError, ValueError, KeyError, TypeError, AttributeError, zipfile.BadZipFile) as exc:
             raise ValueError(f"{self.path} (named by meta/{META_FILE}): {type(exc).__name__}: {exc}") from None
         for name, array in obs.items():
@@ -763,9 +783,13 @@ def _plan(ds: Any, root: Path, repo_id: str, base: str) -> _Plan:
     texts = {int(i): str(t) for t, i in ds.meta.tasks["task_index"].items()}
     bounds = np.flatnonzero(np.diff(ep_index)) + 1
     starts, stops = (np.r_[0, bounds].tolist(), np.r_[bounds, len(ep_index)].tolist()) if len(ep_index) else ([], [])
-    for start, stop in zip(starts, stops, strict=True):
-        tasks = [texts.get(int(i), "") for i in dict.fromkeys(task_index[start:stop].tolist())]
-        plan.episodes.append(_episode(plan, arrow[start:stop], head, repo_id, int(ep_index[start]), start, tasks))
+    try:
+        for start, stop in zip(starts, stops, strict=True):
+            tasks = [texts.get(int(i), "") for i in dict.fromkeys(task_index[start:stop].tolist())]
+            plan.episodes.append(_episode(plan, arrow[start:stop], head, repo_id, int(ep_index[start]), start, tasks))
+    except BaseException:
+        plan.finals.close()  # the caller closes it once it has the plan
+        raise
     _note_tasks(plan)
     return plan
 

@@ -797,7 +797,7 @@ class ReplayServicer(replay_pb2_grpc.ReplayServicer):
             context.abort(grpc.StatusCode.INVALID_ARGUMENT, problem)
         try:
             st = self.store.stats()
-            tables = self.store.table_stats()
+            tables = self.store.table_stats(counts_only=request.counts_only)  # a timed poll: no walk of every episode
             cache = self.store.cache_info()
             specs, left_out = self.store.table_specs(request.spec_tables, MAX_STATS_SPECS)
         except StoreClosedError:
