@@ -187,9 +187,15 @@ def test_robots_offline_for_forget_offline_after_days_are_forgotten_online_ones_
         robots.finish("arm-0", 2, successes=1)
         wait_for(lambda: reach(control).episodes == 2, "arm-0's episodes counted")
         before = totals(reach(control))
+        forgotten = (
+            prometheus_client.REGISTRY.get_sample_value("user_control_robots_forgotten_total", {"how": "offline"})
+            or 0.0
+        )
         goes.close()
         wait_for(lambda: "arm-0" not in robot_ids(control), "offline arm-0 forgotten")
         assert robot_ids(control) == {"arm-1": True}
+        after = prometheus_client.REGISTRY.get_sample_value("user_control_robots_forgotten_total", {"how": "offline"})
+        assert after == forgotten + 1
         assert totals(reach(control)) == before
     finally:
         goes.close()

@@ -88,6 +88,11 @@ EPISODES = prometheus_client.Counter(
     "Finished episodes reported by edges (per robot: user_edge_episodes_total)",
     ["success"],
 )
+ROBOTS_FORGOTTEN = prometheus_client.Counter(
+    "user_control_robots_forgotten_total",
+    "Robots dropped from control's registry and state: requested (ForgetRobot) or offline (forget_offline_after_days)",
+    ["how"],
+)
 HEARTBEAT_REJECTED = prometheus_client.Counter(
     "user_control_heartbeat_rejected_total",
     "Robot statuses and episode summaries of heartbeats dropped (not stored) for breaking the contract",
@@ -943,7 +948,7 @@ class Registry:
                     f"robot {robot_id} is online (agent {rec.agent_id!r} on {rec.hostname}): unplug it or stop its"
                     " edge first"
                 )
-            return self._forget_locked(robot_id, "requested")
+            return self._forget_locked(robot_id, "requested", "requested")
 
     def forget_offline(self, max_age_s: float) -> list[str]:
         """Forget every robot offline for longer than max_age_s (the reaper: control.forget_offline_after_days)."""
@@ -955,10 +960,10 @@ class Registry:
                 if not rec.online and max(rec.last_heartbeat_ns, rec.registered_at_ns, self._started_ns) < cutoff
             ]
             for rid in old:
-                self._forget_locked(rid, f"offline for more than {max_age_s / 86400:g} days")
+                self._forget_locked(rid, "offline", f"offline for more than {max_age_s / 86400:g} days")
         return old
 
-    def _forget_locked(self, robot_id: str, why: str) -> int:
+    def _forget_locked(self, robot_id: str, how: str, why: str) -> int:
         """Its record, history and totals go; its experiments keep its episodes in their totals."""
         del self._robots[robot_id]
         self._last_lease.pop(robot_id, None)
@@ -967,6 +972,7 @@ class Registry:
             self._forgotten.setdefault(key[0], EpisodeTotals()).add(self._totals.pop(key))
         if self.state is not None:
             self.state.forget_robot(robot_id)
+        ROBOTS_FORGOTTEN.labels(how).inc()
         log.info("robot forgotten", extra=kv(robot_id=robot_id, episodes=episodes, why=why))
         return episodes
 
